@@ -1,0 +1,1 @@
+"""Warp kernels (installed as usdml.kernels): pure compute over arrays, runnable on cpu and cuda."""

@@ -1,0 +1,115 @@
+"""``usdml info``: what usdml sees on a stage at one timecode, as text or JSON."""
+
+from __future__ import annotations
+
+import time as _time
+from collections import Counter
+
+from usdml.errors import UsdmlError
+from usdml.scene import Snapshot
+from usdml.stage import StageDelegate
+from usdml.voxel_budget import array_bytes, direction_count, human_bytes, plan_arrays
+
+
+def _render_settings(snap: Snapshot) -> dict | None:
+    rs = snap.render_settings
+    if rs is None:
+        return None
+    return {
+        "path": rs.path, "camera": rs.camera, "resolution": list(rs.resolution),
+        "pixelAspectRatio": rs.pixel_aspect_ratio, "includedPurposes": rs.included_purposes,
+        "products": [{
+            "path": p.path, "productName": p.product_name, "productNameTimeVarying": p.name_time_varying,
+            "productType": p.product_type, "camera": p.camera,
+            "resolution": list(p.resolution) if p.resolution else None,
+            "vars": [{"path": v.path, "name": v.name, "sourceName": v.source_name,
+                      "sourceType": v.source_type, "dataType": v.data_type} for v in p.vars],
+        } for p in rs.products],
+    }
+
+
+def stage_info(delegate: StageDelegate, time: float | None = None, started: float | None = None) -> dict:
+    """Summary of ``delegate``'s stage at ``time`` (default: its start timecode) as a JSON-able dict.
+
+    ``started`` is the ``time.perf_counter()`` before the stage was opened, so ``loadSeconds``
+    covers opening and reading; without it only the snapshot is timed.
+    """
+    t0 = _time.perf_counter() if started is None else started
+    time = delegate.start_time if time is None else time
+    snap = delegate.snapshot(time)
+    seconds = _time.perf_counter() - t0
+    if not snap.meshes and not snap.prototypes:
+        raise UsdmlError(f"{delegate.path}: no renderable geometry at time {time:g} (no visible Mesh or "
+                         "implicit gprim with purpose default/render); check visibility, purpose and "
+                         "activation, or open the layer that holds the geometry")
+    settings = delegate.usdml_settings
+    plan = plan_arrays(snap, settings)
+    per_array = array_bytes(settings.voxel_resolution, settings.direction_step)
+    kinds = Counter(p.kind for p in snap.prototypes)
+    return {
+        "stage": delegate.path,
+        "time": snap.time,
+        "startTimeCode": delegate.start_time,
+        "endTimeCode": delegate.end_time,
+        "timeCodesPerSecond": delegate.time_codes_per_second,
+        "metersPerUnit": snap.meters_per_unit,
+        "upAxis": snap.up_axis,
+        "meshes": len(snap.meshes) + sum(len(p.meshes) for p in snap.prototypes),
+        "triangles": snap.triangle_count(),
+        "uniqueTriangles": snap.unique_triangle_count(),
+        "prototypes": len(snap.prototypes),
+        "prototypeKinds": dict(sorted(kinds.items())),
+        "instances": sum(p.instance_count for p in snap.prototypes),
+        "animatedPrototypes": sum(p.animated for p in snap.prototypes),
+        "deforming": len(snap.deforming_meshes) + sum(p.deforming for p in snap.prototypes),
+        "lights": len(snap.lights),
+        "lightTypes": snap.lights.type_counts(),
+        "cameras": [str(c.GetPath()) for c in delegate.cameras],
+        "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
+        "renderSettings": _render_settings(snap),
+        "usdmlSettings": settings.as_dict(),
+        "voxelMemory": {
+            "resolution": settings.voxel_resolution, "directionStep": settings.direction_step,
+            "directions": direction_count(settings.direction_step), "bytesPerArray": per_array,
+            "arrays": len(plan), "totalBytes": per_array * len(plan),
+            "plan": [{"role": r, "source": s} for r, s in plan],
+        },
+        "warnings": list(delegate.warn.messages),
+        "loadSeconds": round(seconds, 3),
+    }
+
+
+def format_info(info: dict) -> str:
+    """The human-readable summary printed by ``usdml info``."""
+    n = "{:,}".format
+    rs = info["renderSettings"]
+    vm = info["voxelMemory"]
+    kinds = ", ".join(f"{k} {v}" for k, v in info["prototypeKinds"].items()) or "none"
+    lines = [
+        f"stage       {info['stage']}  ({info['upAxis']}-up, {info['metersPerUnit']:g} m/unit, timecodes "
+        f"{info['startTimeCode']:g}-{info['endTimeCode']:g} @ {info['timeCodesPerSecond']:g}/s)",
+        f"time        {info['time']:g}",
+        f"geometry    {n(info['meshes'])} meshes, {n(info['triangles'])} triangles rendered "
+        f"({n(info['uniqueTriangles'])} unique)",
+        f"instancing  {n(info['prototypes'])} prototypes ({kinds}), {n(info['instances'])} instances, "
+        f"{info['animatedPrototypes']} with moving instances",
+        f"deforming   {info['deforming']}",
+        f"lights      {n(info['lights'])}" + (" (" + ", ".join(f"{k} {n(v)}" for k, v in info["lightTypes"].items()) + ")"
+                                               if info["lightTypes"] else ""),
+        f"camera      {info['camera']}  (cameras on stage: {len(info['cameras'])})",
+    ]
+    if rs:
+        res = "x".join(map(str, rs["resolution"]))
+        lines.append(f"render      {rs['path']}: {res}, camera {rs['camera']}")
+        for p in rs["products"]:
+            names = ", ".join(v["name"] for v in p["vars"]) or "no vars"
+            lines.append(f"  product   {p['productName']}{' (time-varying)' if p['productNameTimeVarying'] else ''}: {names}")
+    else:
+        lines.append("render      no RenderSettings")
+    s = info["usdmlSettings"]
+    lines.append(f"usdml       visibility {s['visibility']}, voxels {s['voxel_resolution']}^3 @ {s['direction_step']:g} deg, "
+                 f"{n(s['vpl_count'])} VPLs, LGH alpha {s['lgh_alpha']:g}, {s['shadow_samples']} shadow samples, seed {s['seed']}")
+    lines.append(f"voxel mem   {vm['arrays']} array(s) x {human_bytes(vm['bytesPerArray'])} = {human_bytes(vm['totalBytes'])} "
+                 f"({n(vm['directions'])} directions at {vm['resolution']}^3)")
+    lines.append(f"loaded in   {info['loadSeconds']:.2f} s" + (f", {len(info['warnings'])} warning(s)" if info["warnings"] else ""))
+    return "\n".join(lines)

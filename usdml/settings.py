@@ -1,0 +1,57 @@
+"""usdml's one settings object, with the papers' defaults.
+
+Fed, in increasing priority, from these defaults, the stage's ``UsdmlRenderSettingsAPI`` attributes
+on its RenderSettings prim, and command-line flags.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+#: schema attribute name -> settings field
+SCHEMA_ATTRIBUTES = {
+    "usdml:visibility": "visibility",
+    "usdml:voxel:resolution": "voxel_resolution",
+    "usdml:voxel:directionStep": "direction_step",
+    "usdml:voxel:fullyDynamic": "fully_dynamic",
+    "usdml:vpl:count": "vpl_count",
+    "usdml:lgh:alpha": "lgh_alpha",
+    "usdml:lgh:levels": "lgh_levels",
+    "usdml:shadow:samples": "shadow_samples",
+    "usdml:seed": "seed",
+}
+
+VISIBILITY_BACKENDS = ("exact", "voxel", "insm", "svo")
+
+
+@dataclass(frozen=True)
+class UsdmlSettings:
+    visibility: str = "exact"       #: visibility backend
+    voxel_resolution: int = 128     #: voxels per axis of each direction voxelization (paper 000)
+    direction_step: float = 2.0     #: degrees between direction bins, k in paper 000 (90 x 90 at 2 deg)
+    fully_dynamic: bool = False     #: re-voxelize the whole scene each frame (paper 000, Alg. 5)
+    vpl_count: int = 100_000        #: VPLs per frame (paper 004 uses 100K)
+    lgh_alpha: float = 1.0          #: LGH blending radius factor, r_l = alpha h_l (paper 004)
+    lgh_levels: int = 0             #: LGH levels; 0 = largest count with |S1| < VPLs / 2 (paper 004)
+    shadow_samples: int = 4         #: stochastic shadow samples per pixel (paper 004)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        from usdml.errors import UsdmlError
+
+        if self.visibility not in VISIBILITY_BACKENDS:
+            raise UsdmlError(f"unknown visibility backend {self.visibility!r}; use one of {', '.join(VISIBILITY_BACKENDS)}")
+        for name in ("voxel_resolution", "vpl_count", "shadow_samples"):
+            if getattr(self, name) < 1:
+                raise UsdmlError(f"setting {name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.direction_step <= 90:
+            raise UsdmlError(f"direction step must be in (0, 90] degrees, got {self.direction_step}")
+        if self.lgh_alpha <= 0 or self.lgh_levels < 0:
+            raise UsdmlError("LGH alpha must be > 0 and levels >= 0")
+
+    def updated(self, **values) -> "UsdmlSettings":
+        """A copy with the given non-None values replaced."""
+        return replace(self, **{k: v for k, v in values.items() if v is not None})
+
+    def as_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}

@@ -1,0 +1,388 @@
+"""The scene delegate: a USD stage in, a :class:`usdml.scene.Snapshot` per timecode out.
+
+Instancing is kept, never flattened: every native prototype and every PointInstancer prototype
+becomes one :class:`~usdml.scene.Prototype` in its own space with N instance transforms; nested
+instancing (a PointInstancer inside a prototype, instances inside a PointInstancer prototype)
+composes instance transforms, not geometry. Geometry that does not change over the shot is read
+once and reused by later snapshots.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
+
+from usdml.errors import UsdmlError, Warnings
+from usdml.scene import Lights, Mesh, Prototype, Snapshot
+from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
+from usdml.stage.lights import LightParams, expand, read_light
+from usdml.stage.mesh import read_mesh
+from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
+from usdml.stage.skel import SkelResolver
+
+IMPLICIT = ("Sphere", "Cube", "Cylinder", "Cone", "Capsule", "Plane", "Cylinder_1", "Capsule_1")
+_PI_ATTRS = ("positions", "orientations", "orientationsf", "scales", "velocities", "accelerations",
+             "angularVelocities", "protoIndices", "invisibleIds", "inactiveIds", "ids")
+_MESH_ATTRS = ("points", "faceVertexCounts", "faceVertexIndices", "holeIndices", "normals",
+               "primvars:normals", "primvars:normals:indices", "primvars:displayColor",
+               "primvars:displayColor:indices", "orientation", "doubleSided")
+
+
+def _tf_message(e: Exception) -> str:
+    """The first diagnostic of a Tf.ErrorException, without the C++ function and file names."""
+    for block in re.split(r"\n\s*Error in ", "\n" + str(e)):
+        _, sep, message = block.partition(" : '")
+        if sep:
+            return " ".join(message.strip().rstrip("'").split())
+    return " ".join(str(e).split())
+
+
+def open_stage(path: str | os.PathLike) -> Usd.Stage:
+    """Open a stage or raise a one-line :class:`UsdmlError` naming the file and what to do."""
+    p = Path(path)
+    if not p.exists():
+        raise UsdmlError(f"{path}: no such file; check the stage path")
+    if p.is_dir():
+        raise UsdmlError(f"{path}: is a directory; give a .usd/.usda/.usdc/.usdz file")
+    if not os.access(p, os.R_OK):
+        raise UsdmlError(f"{path}: not readable (permission denied); fix its permissions")
+    if not Sdf.FileFormat.FindByExtension(p.suffix.lstrip(".") or "_none_"):
+        raise UsdmlError(f"{path}: {p.suffix or 'no extension'} is not a USD file format; use .usd/.usda/.usdc/.usdz")
+    try:
+        stage = Usd.Stage.Open(str(p), Usd.Stage.LoadAll)
+    except Tf.ErrorException as e:
+        raise UsdmlError(f"{path}: cannot open stage: {_tf_message(e)}; fix the layer") from None
+    if stage is None:
+        raise UsdmlError(f"{path}: cannot open stage; is it a valid USD layer?")
+    return stage
+
+
+def _matrix(m) -> np.ndarray:
+    """Gf.Matrix4d (row-vector convention) -> (4, 4) float64 column-convention array."""
+    return np.array(m, np.float64).T
+
+
+@dataclass
+class _InstanceSet:
+    """Instances of one prototype found while walking some root, transforms relative to that root."""
+
+    xforms: list[np.ndarray] = field(default_factory=list)       # each (n, 4, 4)
+    ids: list[np.ndarray] = field(default_factory=list)
+    instancers: list[str] = field(default_factory=list)
+    animated: bool = False
+
+    def add(self, xforms: np.ndarray, ids: np.ndarray, instancer: str, animated: bool) -> None:
+        self.xforms.append(xforms)
+        self.ids.append(ids)
+        self.instancers.extend([instancer] * len(xforms))
+        self.animated |= animated
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate(self.xforms), np.concatenate(self.ids).astype(np.int64)
+
+
+@dataclass
+class _Content:
+    """What a walk below one root found, in that root's space."""
+
+    meshes: list[tuple[Usd.Prim, np.ndarray, bool]] = field(default_factory=list)   # prim, rel xform, xform animated
+    lights: list[tuple[LightParams, np.ndarray]] = field(default_factory=list)
+    instances: dict[str, _InstanceSet] = field(default_factory=dict)
+
+
+class StageDelegate:
+    """Reads one stage; :meth:`snapshot` gives the render index at any timecode.
+
+    Parameters
+    ----------
+    path : the stage's root layer.
+    camera : ``--camera`` (prim path or name), else the RenderSettings camera, ``main_cam``, the
+        first camera, or a camera framing the scene.
+    render_settings_path : ``--renderSettingsPrimPath``, else the stage's ``renderSettingsPrimPath``.
+    """
+
+    def __init__(self, path: str | os.PathLike, camera: str | None = None,
+                 render_settings_path: str | None = None, warn: Warnings | None = None):
+        self.path = str(path)
+        self.warn = warn or Warnings()
+        self.stage = open_stage(path)
+        for err in self.stage.GetCompositionErrors():
+            self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
+        self.settings_prim = settings_prim(self.stage, render_settings_path)
+        self.usdml_settings = read_usdml_settings(self.settings_prim)
+        self.has_time_range = self.stage.HasAuthoredTimeCodeRange()
+        self.start_time = self.stage.GetStartTimeCode()
+        self.end_time = self.stage.GetEndTimeCode()
+        if not self.has_time_range:
+            self.start_time = self.end_time = 0.0 if not self.stage.HasAuthoredMetadata("startTimeCode") else self.start_time
+        self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
+        self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
+        self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
+        self.cameras = find_cameras(self.stage)
+        self._camera_request = camera
+        self.skel = SkelResolver(self.warn)
+        self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
+        self._mesh_ids: dict[str, int] = {}
+        self._assign_mesh_ids()
+
+    # ----------------------------------------------------------------------------------------------
+    def _assign_mesh_ids(self) -> None:
+        """primIds from one pass over the stage and its prototypes, so they do not depend on frames."""
+        roots = [self.stage.GetPseudoRoot()] + list(self.stage.GetPrototypes())
+        for root in roots:
+            for prim in Usd.PrimRange(root):
+                if prim.IsA(UsdGeom.Mesh):
+                    self._mesh_ids.setdefault(str(prim.GetPath()), len(self._mesh_ids))
+
+    def _mesh_id(self, path: str) -> int:
+        return self._mesh_ids.setdefault(path, len(self._mesh_ids))
+
+    def check_time(self, time: float) -> None:
+        if not np.isfinite(time):
+            raise UsdmlError(f"time {time} is not a finite timecode")
+        lo, hi = self.start_time, self.end_time
+        if self.has_time_range and not (lo - 1e-9 <= time <= hi + 1e-9):
+            raise UsdmlError(f"time {time:g} is outside the stage's range [{lo:g}, {hi:g}] "
+                             f"(startTimeCode/endTimeCode of {self.path}); pick a time within it")
+
+    @property
+    def camera_prim(self) -> Usd.Prim | None:
+        request = self._camera_request
+        if request is None and self.settings_prim is not None:
+            rel = self.settings_prim.GetRelationship("camera")
+            targets = rel.GetForwardedTargets() if rel else []
+            if targets:
+                prim = self.stage.GetPrimAtPath(targets[0])
+                if not prim or not prim.IsA(UsdGeom.Camera):
+                    raise UsdmlError(f"{self.settings_prim.GetPath()}.camera: target {targets[0]} is not a Camera")
+                return prim
+        return select_camera(self.stage, request, self.cameras)
+
+    # ----------------------------------------------------------------------------------------------
+    def snapshot(self, time: float) -> Snapshot:
+        """The render index at ``time`` (a timecode of the stage)."""
+        self.check_time(time)
+        t = Usd.TimeCode(time)
+        xf = UsdGeom.XformCache(t)
+        rs = read_render_settings(self.settings_prim, t) if self.settings_prim is not None else None
+        purposes = set(rs.included_purposes if rs else ("default", "render")) | {"default"}
+
+        top = self._walk(self.stage.GetPseudoRoot(), t, xf, purposes)
+        meshes: list[Mesh] = []
+        prototypes: list[Prototype] = []
+        light_parts: list[Lights] = []
+        for prim, rel, animated in top.meshes:
+            path = str(prim.GetPath())
+            skinned = self.skel.query(prim) is not None
+            deforming = skinned and self.skel.is_animated(prim) or UsdGeom.Mesh(prim).GetPointsAttr().ValueMightBeTimeVarying()
+            if skinned:
+                posed = self.skel.posed_world_points(prim, t, xf)
+                mesh = read_mesh(prim, t, None, self._mesh_id(path), self.warn, points=posed,
+                                 deforming=deforming, authored_normals=False)
+            elif animated and not deforming:
+                mesh = self._cached_mesh(prim, t, None, "")
+                if mesh is not None:
+                    prototypes.append(Prototype(
+                        path=path, name=path, kind="rigid", meshes=[mesh], xforms=rel[None],
+                        instance_ids=np.zeros(1, np.int64), instancers=[path], animated=True))
+                continue
+            else:
+                mesh = (read_mesh(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if deforming
+                        else self._cached_mesh(prim, t, rel, "/"))
+            if mesh is not None:
+                meshes.append(mesh)
+        for params, rel in top.lights:
+            light_parts.append(expand(params, rel[None]))
+
+        # Prototypes, breadth first: nested instance sets are composed with their outer instances.
+        pending = dict(top.instances)
+        contents: dict[str, _Content] = {}
+        while pending:
+            proto_path, inst = next(iter(pending.items()))
+            del pending[proto_path]
+            xforms, ids = inst.arrays()
+            root = self.stage.GetPrimAtPath(proto_path)
+            if proto_path not in contents:
+                contents[proto_path] = self._walk(root, t, xf, purposes)
+            content = contents[proto_path]
+            proto_meshes = []
+            deforming = False
+            for prim, rel, animated in content.meshes:
+                path = str(prim.GetPath())
+                varying = animated or UsdGeom.Mesh(prim).GetPointsAttr().ValueMightBeTimeVarying()
+                if self.skel.query(prim) is not None:
+                    self.warn(f"{path}: skinned meshes inside instance prototypes are rendered at rest")
+                deforming |= varying
+                mesh = (read_mesh(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if varying
+                        else self._cached_mesh(prim, t, rel, proto_path))
+                if mesh is not None:
+                    proto_meshes.append(mesh)
+            if proto_meshes:
+                existing = next((p for p in prototypes if p.path == proto_path), None)
+                if existing is not None:     # reached again through another nesting path
+                    existing.xforms = np.concatenate([existing.xforms, xforms])
+                    existing.instance_ids = np.concatenate([existing.instance_ids, ids])
+                    existing.instancers += inst.instancers
+                    existing.animated |= inst.animated
+                else:
+                    prototypes.append(Prototype(
+                        path=proto_path, name=self._prototype_name(root, inst), kind=self._kind(root),
+                        meshes=proto_meshes, xforms=xforms, instance_ids=ids, instancers=list(inst.instancers),
+                        animated=inst.animated, deforming=deforming))
+            for params, rel in content.lights:
+                light_parts.append(expand(params, xforms @ rel, ids))
+            for nested_path, nested in content.instances.items():
+                nx, nids = nested.arrays()
+                composed = (xforms[:, None] @ nx[None]).reshape(-1, 4, 4)
+                target = pending.setdefault(nested_path, _InstanceSet())
+                target.add(composed, np.arange(len(composed)), proto_path,
+                           inst.animated or nested.animated or deforming)
+
+        for p in prototypes:
+            if not np.isfinite(p.xforms).all():
+                raise UsdmlError(f"{p.instancers[0]}: non-finite (NaN/inf) instance transform; fix its "
+                                 "xformOps or PointInstancer positions/orientations/scales")
+        snap = Snapshot(
+            time=float(time), stage_path=self.path, meshes=meshes, prototypes=prototypes,
+            lights=Lights.concat(light_parts), camera=None, render_settings=rs,
+            mesh_paths=sorted(self._mesh_ids, key=self._mesh_ids.get), start_time=self.start_time,
+            end_time=self.end_time, time_codes_per_second=self.time_codes_per_second,
+            meters_per_unit=self.meters_per_unit, up_axis=self.up_axis)
+        cam_prim = self.camera_prim
+        if cam_prim is not None:
+            snap.camera = read_camera(cam_prim, t)
+        else:
+            bounds = snap.world_bounds()
+            if bounds is not None:
+                snap.camera = framing_camera(bounds, self.up_axis)
+        return snap
+
+    # ----------------------------------------------------------------------------------------------
+    def _prototype_name(self, root: Usd.Prim, inst: _InstanceSet) -> str:
+        return inst.instancers[0] if root.IsPrototype() else str(root.GetPath())
+
+    @staticmethod
+    def _kind(root: Usd.Prim) -> str:
+        return "native" if root.IsPrototype() else "pointInstancer"
+
+    def _cached_mesh(self, prim: Usd.Prim, t: Usd.TimeCode, rel: np.ndarray | None, space: str) -> Mesh | None:
+        """Read a mesh whose topology and points do not vary; reuse it when its placement is unchanged."""
+        mesh_attrs_vary = any(prim.GetAttribute(a).ValueMightBeTimeVarying()
+                              for a in _MESH_ATTRS if prim.HasAttribute(a))
+        key = (str(prim.GetPath()), space)
+        cached = self._mesh_cache.get(key)
+        if cached is not None and not mesh_attrs_vary and np.array_equal(cached[1], np.eye(4) if rel is None else rel):
+            return cached[0]
+        mesh = read_mesh(prim, t, rel, self._mesh_id(key[0]), self.warn)
+        if not mesh_attrs_vary:
+            self._mesh_cache[key] = (mesh, np.eye(4) if rel is None else rel.copy())
+        return mesh
+
+    def _relative(self, prim: Usd.Prim, root: Usd.Prim, xf: UsdGeom.XformCache) -> np.ndarray:
+        if root.IsPseudoRoot():
+            return _matrix(xf.GetLocalToWorldTransform(prim))
+        m, _resets = xf.ComputeRelativeTransform(prim, root)
+        return _matrix(m)
+
+    def _walk(self, root: Usd.Prim, t: Usd.TimeCode, xf: UsdGeom.XformCache, purposes: set[str]) -> _Content:
+        """Meshes, lights and instance sets below ``root`` (itself included), relative to ``root``."""
+        content = _Content()
+        animated: dict[Sdf.Path, bool] = {}
+        purpose_of: dict[Sdf.Path, str] = {}
+        it = iter(Usd.PrimRange(root))
+        for prim in it:
+            ppath = prim.GetPath()
+            parent = ppath.GetParentPath()
+            if prim.IsPseudoRoot():
+                animated[ppath], purpose_of[ppath] = False, "default"
+                continue
+            inherited_anim = animated.get(parent, False) if prim != root else False
+            xformable = UsdGeom.Xformable(prim)
+            if xformable and prim != root:
+                anim = inherited_anim or xformable.TransformMightBeTimeVarying()
+            else:
+                anim = inherited_anim
+            animated[ppath] = anim
+            imageable = UsdGeom.Imageable(prim)
+            if imageable:
+                if imageable.GetVisibilityAttr().Get(t) == UsdGeom.Tokens.invisible:
+                    it.PruneChildren()
+                    continue
+                parent_purpose = purpose_of.get(parent, "default") if prim != root else "default"
+                own = imageable.GetPurposeAttr().Get()
+                purpose = parent_purpose if parent_purpose != "default" else str(own or "default")
+                purpose_of[ppath] = purpose
+                if purpose not in purposes:
+                    it.PruneChildren()
+                    continue
+            else:
+                purpose_of[ppath] = purpose_of.get(parent, "default")
+
+            if prim.IsInstance():
+                # a prototype root that is itself an instance (a PointInstancer prototype pointing at an
+                # instanceable prim) sits at identity: the PointInstancer already applied its transform
+                rel = np.eye(4) if prim == root else self._relative(prim, root, xf)
+                iset = content.instances.setdefault(str(prim.GetPrototype().GetPath()), _InstanceSet())
+                iset.add(rel[None], np.array([len(iset.instancers)]), str(ppath), anim)
+                it.PruneChildren()
+                continue
+            if prim.IsA(UsdGeom.PointInstancer):
+                self._point_instancer(prim, root, t, xf, anim, content)
+                it.PruneChildren()
+                continue
+            if prim.IsA(UsdGeom.Mesh):
+                content.meshes.append((prim, self._relative(prim, root, xf), anim))
+            elif prim.HasAPI(UsdLux.LightAPI):
+                params = read_light(prim, t, self.warn)
+                if params is not None:
+                    rel = self._relative(prim, root, xf)
+                    if not np.isfinite(rel).all():
+                        raise UsdmlError(f"{ppath}: non-finite (NaN/inf) transform; fix its xformOps")
+                    content.lights.append((params, rel))
+            elif prim.GetTypeName() in IMPLICIT:
+                self.warn(f"{ppath}: implicit {prim.GetTypeName()} prims are not tessellated yet; skipped")
+        return content
+
+    def _point_instancer(self, prim: Usd.Prim, root: Usd.Prim, t: Usd.TimeCode, xf: UsdGeom.XformCache,
+                         anim: bool, content: _Content) -> None:
+        pi = UsdGeom.PointInstancer(prim)
+        path = str(prim.GetPath())
+        targets = pi.GetPrototypesRel().GetForwardedTargets()
+        indices = np.asarray(pi.GetProtoIndicesAttr().Get(t) or [], np.int64)
+        if not len(indices):
+            return
+        xforms = pi.ComputeInstanceTransformsAtTime(t, t, UsdGeom.PointInstancer.IncludeProtoXform,
+                                                    UsdGeom.PointInstancer.IgnoreMask)
+        if xforms is None or len(xforms) != len(indices):
+            self.warn(f"{path}: PointInstancer attributes are inconsistent (positions vs protoIndices) "
+                      f"at time {t.GetValue()}; skipped")
+            return
+        m = np.transpose(np.asarray(xforms, np.float64), (0, 2, 1))
+        if not np.isfinite(m).all():
+            raise UsdmlError(f"{path}: non-finite (NaN/inf) positions/orientations/scales at time "
+                             f"{t.GetValue()}; fix the PointInstancer")
+        m = self._relative(prim, root, xf) @ m
+        mask = np.asarray(pi.ComputeMaskAtTime(t) or [True] * len(indices), bool)
+        ids_attr = pi.GetIdsAttr().Get(t)
+        ids = np.asarray(ids_attr, np.int64) if ids_attr is not None and len(ids_attr) == len(indices) \
+            else np.arange(len(indices), dtype=np.int64)
+        bad = (indices < 0) | (indices >= len(targets))
+        if bad.any():
+            self.warn(f"{path}.protoIndices: {int(bad.sum())} index(es) outside the {len(targets)} "
+                      "prototypes; those instances skipped")
+        varying = anim or any(pi.GetPrim().GetAttribute(a).ValueMightBeTimeVarying()
+                              for a in _PI_ATTRS if pi.GetPrim().HasAttribute(a))
+        for j, target in enumerate(targets):
+            sel = (indices == j) & mask
+            if not sel.any():
+                continue
+            proto = self.stage.GetPrimAtPath(target)
+            if not proto:
+                self.warn(f"{path}.prototypes: target {target} does not exist; its instances skipped")
+                continue
+            content.instances.setdefault(str(target), _InstanceSet()).add(m[sel], ids[sel], path, varying)

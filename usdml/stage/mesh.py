@@ -1,0 +1,191 @@
+"""Read a ``UsdGeom.Mesh`` into a triangulated :class:`usdml.scene.Mesh`.
+
+Polygons are fan-triangulated (as Hydra's mesh util does); faces that are hole faces, have fewer than
+three vertices or index outside ``points`` are dropped with a warning naming the prim. Subdivision
+meshes render as their control cage.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from usdml.errors import UsdmlError
+from usdml.scene import Mesh
+
+#: albedo of meshes without displayColor: UsdPreviewSurface's diffuseColor fallback
+DEFAULT_ALBEDO = (0.18, 0.18, 0.18)
+
+
+class Topology:
+    """Fan triangulation of one mesh's faces, shared by every per-corner primvar expansion."""
+
+    def __init__(self, counts: np.ndarray, indices: np.ndarray, n_points: int, holes: np.ndarray,
+                 left_handed: bool, path: str, warn: Callable[[str], None]):
+        counts = counts.astype(np.int64)
+        indices = indices.astype(np.int64)
+        if counts.sum() != len(indices) or (counts < 0).any():
+            raise ValueError(f"faceVertexCounts sum to {int(counts.clip(0).sum())} but there are "
+                             f"{len(indices)} faceVertexIndices")
+        offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else np.zeros(0, np.int64)
+        keep = counts >= 3
+        if (~keep).any():
+            warn(f"{path}: {int((~keep).sum())} face(s) with fewer than 3 vertices dropped")
+        bad_index = (indices < 0) | (indices >= n_points)
+        if bad_index.any():
+            face_of_corner = np.repeat(np.arange(len(counts)), counts)
+            bad_faces = np.zeros(len(counts), bool)
+            bad_faces[face_of_corner[bad_index]] = True
+            warn(f"{path}: {int(bad_faces.sum())} face(s) index outside the {n_points} points; dropped "
+                 "(check faceVertexIndices)")
+            keep &= ~bad_faces
+        if len(holes):
+            valid = holes[(holes >= 0) & (holes < len(counts))]
+            if len(valid):
+                warn(f"{path}: {len(np.unique(valid))} hole face(s) (holeIndices) not rendered")
+                keep[valid] = False
+        faces = np.nonzero(keep)[0]
+        ntri = counts[faces] - 2
+        self.face = np.repeat(faces, ntri)                                   # (T,)
+        first = np.repeat(offsets[faces], ntri)
+        k = np.arange(len(self.face)) - np.repeat(np.cumsum(ntri) - ntri, ntri)
+        corner = np.stack([first, first + k + 1, first + k + 2], axis=1)     # (T, 3) face-varying index
+        if left_handed:
+            corner = corner[:, [0, 2, 1]]
+        self.corner = corner
+        self.vertex = indices[corner] if len(corner) else np.zeros((0, 3), np.int64)
+
+    def expand(self, values: np.ndarray, interpolation: str, n_points: int) -> np.ndarray | None:
+        """Per-corner ``(T, 3, C)`` values for a primvar of the given interpolation, None on size mismatch."""
+        values = np.asarray(values)
+        if interpolation == "constant":
+            return np.broadcast_to(values[:1][None], (len(self.face), 3, values.shape[-1])) if len(values) else None
+        if interpolation == "uniform":
+            if len(values) <= (self.face.max(initial=-1)):
+                return None
+            return np.repeat(values[self.face][:, None], 3, axis=1)
+        if interpolation in ("vertex", "varying"):
+            if len(values) < n_points:
+                return None
+            return values[self.vertex]
+        if interpolation == "faceVarying":
+            if len(values) <= self.corner.max(initial=-1):
+                return None
+            return values[self.corner]
+        return None
+
+
+def _array(value, dtype, width=None) -> np.ndarray:
+    if value is None:
+        return np.zeros((0,) if width is None else (0, width), dtype)
+    a = np.asarray(value, dtype=dtype)
+    return a.reshape(-1, width) if width else a.reshape(-1)
+
+
+def transform_points(m: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` points through a (4, 4) column-convention matrix (affine)."""
+    return p @ m[:3, :3].T + m[:3, 3]
+
+
+def smooth_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, per corner ``(T, 3, 3)`` float32."""
+    p = points.astype(np.float64)
+    fn = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+    vn = np.zeros_like(p)
+    for c in range(3):
+        np.add.at(vn, tris[:, c], fn)
+    # vertices used only by zero-area triangles fall back to +Y rather than NaN
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.where(length > 0, vn / np.where(length > 0, length, 1), [0.0, 1.0, 0.0])
+    return vn[tris].astype(np.float32)
+
+
+def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,
+              warn: Callable[[str], None], points: np.ndarray | None = None,
+              deforming: bool = False, authored_normals: bool = True) -> Mesh | None:
+    """Triangulate the ``UsdGeom.Mesh`` ``prim`` at ``time``; ``to_space`` maps its local space to the target space.
+
+    ``points`` overrides the authored points (posed UsdSkel points, already in the target space when
+    ``to_space`` is None); ``authored_normals=False`` ignores authored normals (they do not follow a pose).
+    Returns None (after a warning) for a mesh with nothing renderable.
+    """
+    mesh = UsdGeom.Mesh(prim)
+    if points is None:
+        points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3)
+    normals = None
+    if authored_normals:
+        pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+        if pv and pv.HasAuthoredValue():
+            normals = (pv.ComputeFlattened(time), pv.GetInterpolation())
+        else:
+            normals = (mesh.GetNormalsAttr().Get(time), mesh.GetNormalsInterpolation())
+    return build_mesh(
+        prim, time, mesh_id, points, _array(mesh.GetFaceVertexCountsAttr().Get(time), np.int64),
+        _array(mesh.GetFaceVertexIndicesAttr().Get(time), np.int64),
+        _array(mesh.GetHoleIndicesAttr().Get(time), np.int64),
+        mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
+        bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn)
+
+
+def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndarray, counts: np.ndarray,
+               indices: np.ndarray, holes: np.ndarray, left: bool, to_space: np.ndarray | None,
+               normals: tuple | None, double_sided: bool, deforming: bool,
+               warn: Callable[[str], None]) -> Mesh | None:
+    """Triangulate polygon arrays of ``prim`` (a Mesh or a tessellated implicit gprim).
+
+    ``normals`` is ``(values, interpolation)`` or None to compute smooth normals; ``displayColor`` is
+    read from ``prim``'s primvars.
+    """
+    path = str(prim.GetPath())
+    if len(points) == 0:
+        warn(f"{path}: mesh has no points; skipped")
+        return None
+    if not np.isfinite(points).all():
+        raise UsdmlError(f"{path}.points: non-finite (NaN/inf) point values at time {time.GetValue()}; "
+                         "fix the mesh points")
+    m = np.eye(4) if to_space is None else to_space
+    flipped = np.linalg.det(m[:3, :3]) < 0
+    try:
+        topo = Topology(counts, indices, len(points), holes, left != flipped, path, warn)
+    except ValueError as e:
+        warn(f"{path}: {e}; mesh skipped")
+        return None
+    if len(topo.face) == 0:
+        warn(f"{path}: mesh has no renderable faces; skipped")
+        return None
+
+    world = transform_points(m, points) if to_space is not None else points
+    tris = topo.vertex.astype(np.int32)
+
+    corner_normals = None
+    raw, interp = normals if normals is not None else (None, "vertex")
+    if raw is not None and len(raw):
+        n = topo.expand(_array(raw, np.float64, 3), interp, len(points))
+        if n is None:
+            warn(f"{path}: {len(raw)} normals do not match interpolation {interp!r}; computing normals")
+        else:
+            n = n @ np.linalg.inv(m[:3, :3])   # inverse-transpose applied to row vectors
+            length = np.linalg.norm(n, axis=-1, keepdims=True)
+            corner_normals = np.where(length > 0, n / np.where(length > 0, length, 1), 0).astype(np.float32)
+    if corner_normals is None:
+        corner_normals = smooth_normals(world, tris)
+
+    albedo = None
+    dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor")
+    if dc and dc.HasValue():
+        raw = dc.ComputeFlattened(time)
+        if raw is not None and len(raw):
+            albedo = topo.expand(_array(raw, np.float32, 3), dc.GetInterpolation(), len(points))
+            if albedo is None:
+                warn(f"{path}: {len(raw)} displayColor values do not match interpolation "
+                     f"{dc.GetInterpolation()!r}; using the default albedo")
+    if albedo is None:
+        albedo = np.broadcast_to(np.float32(DEFAULT_ALBEDO), (len(tris), 3, 3))
+
+    return Mesh(
+        path=path, id=mesh_id, points=np.ascontiguousarray(world, np.float32), triangles=tris,
+        normals=np.ascontiguousarray(corner_normals, np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
+        face_index=topo.face.astype(np.int32), double_sided=double_sided,
+        orientation="leftHanded" if left else "rightHanded", deforming=deforming)

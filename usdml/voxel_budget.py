@@ -1,0 +1,51 @@
+"""What paper 000's per-direction voxel arrays cost, said before anything is built.
+
+An array holds one bit-packed voxelization per direction bin; at k degrees the paper's
+(theta, phi) grid over [0, 180) x [0, 180) has ceil(180/k)^2 bins (90 x 90 at 2 deg), and one
+voxelization at resolution r takes r^3 / 8 bytes (256 KiB at 128^3): about 2 GB per array.
+"""
+
+from __future__ import annotations
+
+import math
+
+from usdml.scene import Snapshot
+from usdml.settings import UsdmlSettings
+
+
+def direction_count(step_deg: float) -> int:
+    per_axis = math.ceil(180.0 / step_deg - 1e-9)
+    return per_axis * per_axis
+
+
+def array_bytes(resolution: int, step_deg: float) -> int:
+    """Bytes of one dense array of bit-packed voxelizations (rows padded to 32-bit words)."""
+    row_words = math.ceil(resolution / 32)
+    return direction_count(step_deg) * resolution * resolution * row_words * 4
+
+
+def plan_arrays(snap: Snapshot, settings: UsdmlSettings) -> list[tuple[str, str]]:
+    """The arrays the voxel backend would hold for ``snap``: ``(role, source)`` pairs.
+
+    One for the static part (static meshes and instances that never move, baked in world space),
+    one per prototype whose instances move (shared by all its instances, paper 000 Alg. 4), and one
+    rebuilt per frame for deforming geometry (Alg. 5) -- or a single per-frame array when the
+    scene is marked fully dynamic.
+    """
+    if settings.fully_dynamic:
+        return [("dynamic", "whole scene, rebuilt per frame")]
+    plan = []
+    if snap.static_meshes or any(not p.animated and not p.deforming for p in snap.prototypes):
+        plan.append(("static", "static meshes and unmoving instances"))
+    plan += [("prototype", p.name) for p in snap.prototypes if p.animated and not p.deforming]
+    if snap.deforming_meshes or any(p.deforming for p in snap.prototypes):
+        plan.append(("deforming", "deforming meshes, rebuilt per frame"))
+    return plan
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.2f} {unit}"
+        n /= 1024
+    return f"{n:.2f} TiB"
