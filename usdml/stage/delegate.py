@@ -21,14 +21,13 @@ from usdml.errors import UsdmlError, Warnings
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.lights import LightParams, expand, read_light
-from usdml.stage.mesh import read_mesh
+from usdml.stage.mesh import is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 
-IMPLICIT = ("Sphere", "Cube", "Cylinder", "Cone", "Capsule", "Plane", "Cylinder_1", "Capsule_1")
 _PI_ATTRS = ("positions", "orientations", "orientationsf", "scales", "velocities", "accelerations",
              "angularVelocities", "protoIndices", "invisibleIds", "inactiveIds", "ids")
-_MESH_ATTRS = ("points", "faceVertexCounts", "faceVertexIndices", "holeIndices", "normals",
+_MESH_ATTRS = ("faceVertexCounts", "faceVertexIndices", "holeIndices", "normals",
                "primvars:normals", "primvars:normals:indices", "primvars:displayColor",
                "primvars:displayColor:indices", "orientation", "doubleSided")
 
@@ -136,7 +135,7 @@ class StageDelegate:
         roots = [self.stage.GetPseudoRoot()] + list(self.stage.GetPrototypes())
         for root in roots:
             for prim in Usd.PrimRange(root):
-                if prim.IsA(UsdGeom.Mesh):
+                if is_gprim(prim):
                     self._mesh_ids.setdefault(str(prim.GetPath()), len(self._mesh_ids))
 
     def _mesh_id(self, path: str) -> int:
@@ -179,7 +178,7 @@ class StageDelegate:
         for prim, rel, animated in top.meshes:
             path = str(prim.GetPath())
             skinned = self.skel.query(prim) is not None
-            deforming = skinned and self.skel.is_animated(prim) or UsdGeom.Mesh(prim).GetPointsAttr().ValueMightBeTimeVarying()
+            deforming = skinned and self.skel.is_animated(prim) or points_vary(prim)
             if skinned:
                 posed = self.skel.posed_world_points(prim, t, xf)
                 mesh = read_mesh(prim, t, None, self._mesh_id(path), self.warn, points=posed,
@@ -192,7 +191,7 @@ class StageDelegate:
                         instance_ids=np.zeros(1, np.int64), instancers=[path], animated=True))
                 continue
             else:
-                mesh = (read_mesh(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if deforming
+                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if deforming
                         else self._cached_mesh(prim, t, rel, "/"))
             if mesh is not None:
                 meshes.append(mesh)
@@ -214,11 +213,11 @@ class StageDelegate:
             deforming = False
             for prim, rel, animated in content.meshes:
                 path = str(prim.GetPath())
-                varying = animated or UsdGeom.Mesh(prim).GetPointsAttr().ValueMightBeTimeVarying()
+                varying = animated or points_vary(prim)
                 if self.skel.query(prim) is not None:
                     self.warn(f"{path}: skinned meshes inside instance prototypes are rendered at rest")
                 deforming |= varying
-                mesh = (read_mesh(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if varying
+                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if varying
                         else self._cached_mesh(prim, t, rel, proto_path))
                 if mesh is not None:
                     proto_meshes.append(mesh)
@@ -278,16 +277,21 @@ class StageDelegate:
         cached = self._mesh_cache.get(key)
         if cached is not None and not mesh_attrs_vary and np.array_equal(cached[1], np.eye(4) if rel is None else rel):
             return cached[0]
-        mesh = read_mesh(prim, t, rel, self._mesh_id(key[0]), self.warn)
+        mesh = read_gprim(prim, t, rel, self._mesh_id(key[0]), self.warn)
         if not mesh_attrs_vary:
             self._mesh_cache[key] = (mesh, np.eye(4) if rel is None else rel.copy())
         return mesh
 
     def _relative(self, prim: Usd.Prim, root: Usd.Prim, xf: UsdGeom.XformCache) -> np.ndarray:
+        """``prim``'s local-to-``root`` transform (local-to-world below the pseudo-root)."""
         if root.IsPseudoRoot():
-            return _matrix(xf.GetLocalToWorldTransform(prim))
-        m, _resets = xf.ComputeRelativeTransform(prim, root)
-        return _matrix(m)
+            m = _matrix(xf.GetLocalToWorldTransform(prim))
+        else:
+            m = _matrix(xf.ComputeRelativeTransform(prim, root)[0])
+        if not np.isfinite(m).all():
+            raise UsdmlError(f"{prim.GetPath()}: non-finite (NaN/inf) transform at time {xf.GetTime().GetValue()}; "
+                             "fix its xformOps or those of its ancestors")
+        return m
 
     def _walk(self, root: Usd.Prim, t: Usd.TimeCode, xf: UsdGeom.XformCache, purposes: set[str]) -> _Content:
         """Meshes, lights and instance sets below ``root`` (itself included), relative to ``root``."""
@@ -335,17 +339,12 @@ class StageDelegate:
                 self._point_instancer(prim, root, t, xf, anim, content)
                 it.PruneChildren()
                 continue
-            if prim.IsA(UsdGeom.Mesh):
+            if is_gprim(prim):
                 content.meshes.append((prim, self._relative(prim, root, xf), anim))
             elif prim.HasAPI(UsdLux.LightAPI):
                 params = read_light(prim, t, self.warn)
                 if params is not None:
-                    rel = self._relative(prim, root, xf)
-                    if not np.isfinite(rel).all():
-                        raise UsdmlError(f"{ppath}: non-finite (NaN/inf) transform; fix its xformOps")
-                    content.lights.append((params, rel))
-            elif prim.GetTypeName() in IMPLICIT:
-                self.warn(f"{ppath}: implicit {prim.GetTypeName()} prims are not tessellated yet; skipped")
+                    content.lights.append((params, self._relative(prim, root, xf)))
         return content
 
     def _point_instancer(self, prim: Usd.Prim, root: Usd.Prim, t: Usd.TimeCode, xf: UsdGeom.XformCache,
@@ -375,8 +374,12 @@ class StageDelegate:
         if bad.any():
             self.warn(f"{path}.protoIndices: {int(bad.sum())} index(es) outside the {len(targets)} "
                       "prototypes; those instances skipped")
-        varying = anim or any(pi.GetPrim().GetAttribute(a).ValueMightBeTimeVarying()
-                              for a in _PI_ATTRS if pi.GetPrim().HasAttribute(a))
+        varying = anim or any(prim.GetAttribute(a).ValueMightBeTimeVarying()
+                              for a in _PI_ATTRS if prim.HasAttribute(a))
+        for a in ("velocities", "accelerations", "angularVelocities"):
+            # one positions sample plus velocities still moves: USD extrapolates from the sample
+            value = prim.GetAttribute(a).Get(t) if prim.HasAttribute(a) else None
+            varying |= value is not None and len(value) > 0 and bool(np.any(np.asarray(value)))
         for j, target in enumerate(targets):
             sel = (indices == j) & mask
             if not sel.any():

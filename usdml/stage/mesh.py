@@ -14,6 +14,10 @@ from pxr import Usd, UsdGeom
 
 from usdml.errors import UsdmlError
 from usdml.scene import Mesh
+from usdml.stage.implicit import IMPLICIT_TYPES, tessellate
+
+#: attributes whose time samples make a gprim's points vary
+_SHAPE_ATTRS = ("points", "size", "radius", "height", "radiusTop", "radiusBottom", "width", "length", "axis")
 
 #: albedo of meshes without displayColor: UsdPreviewSurface's diffuseColor fallback
 DEFAULT_ALBEDO = (0.18, 0.18, 0.18)
@@ -100,6 +104,32 @@ def smooth_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     length = np.linalg.norm(vn, axis=1, keepdims=True)
     vn = np.where(length > 0, vn / np.where(length > 0, length, 1), [0.0, 1.0, 0.0])
     return vn[tris].astype(np.float32)
+
+
+def is_gprim(prim: Usd.Prim) -> bool:
+    """A gprim usdml draws: a Mesh or an implicit surface it tessellates."""
+    return prim.IsA(UsdGeom.Mesh) or prim.GetTypeName() in IMPLICIT_TYPES
+
+
+def points_vary(prim: Usd.Prim) -> bool:
+    """Whether the gprim's shape (points, or an implicit surface's sizes) might change over time."""
+    return any(prim.GetAttribute(a).ValueMightBeTimeVarying() for a in _SHAPE_ATTRS if prim.HasAttribute(a))
+
+
+def read_gprim(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,
+               warn: Callable[[str], None], deforming: bool = False) -> Mesh | None:
+    """A Mesh (:func:`read_mesh`) or an implicit gprim tessellated by :mod:`usdml.stage.implicit`."""
+    if prim.IsA(UsdGeom.Mesh):
+        return read_mesh(prim, time, to_space, mesh_id, warn, deforming=deforming)
+    try:
+        poly = tessellate(prim, time)
+    except ValueError as e:
+        raise UsdmlError(f"{prim.GetPath()}: {e}; fix the {prim.GetTypeName()}'s attribute") from None
+    if poly is None:
+        return None
+    sided = UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(time)
+    return build_mesh(prim, time, mesh_id, poly.points, poly.counts, poly.indices, np.zeros(0, np.int64),
+                      False, to_space, (poly.normals, "faceVarying"), bool(sided), deforming, warn)
 
 
 def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,

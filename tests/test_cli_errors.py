@@ -1,0 +1,115 @@
+"""Bad input: one clear line naming the file / prim / attribute, exit status 2, no traceback."""
+
+import subprocess
+import sys
+
+import pytest
+from pxr import Sdf, UsdGeom, UsdLux
+
+from conftest import add_cube_mesh
+from usdml.cli import main
+
+
+def _run(capsys, *argv):
+    code = main(["info", *map(str, argv)])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _errors(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("usdml: error:")]
+
+
+def _assert_one_error(capsys, argv, pattern):
+    code, out, err = _run(capsys, *argv)
+    assert code == 2
+    (line,) = _errors(err)
+    assert "Traceback" not in err
+    import re
+    assert re.search(pattern, line), line
+
+
+def test_missing_file(capsys, tmp_path):
+    _assert_one_error(capsys, [tmp_path / "nope.usda"], r"nope\.usda: no such file")
+
+
+def test_syntax_error_names_file_and_line(capsys, tmp_path):
+    bad = tmp_path / "broken.usda"
+    bad.write_text('#usda 1.0\ndef Xform "a" {\n  float x = \n}\n')
+    _assert_one_error(capsys, [bad], r"broken\.usda: cannot open stage: .*broken\.usda:3")
+
+
+def test_not_a_usd_file(capsys, tmp_path):
+    txt = tmp_path / "notes.txt"
+    txt.write_text("hello")
+    _assert_one_error(capsys, [txt], r"notes\.txt: .txt is not a USD file format")
+    garbage = tmp_path / "garbage.usdc"
+    garbage.write_bytes(b"\x00\x01garbage" * 10)
+    _assert_one_error(capsys, [garbage], r"garbage\.usdc: cannot open stage")
+
+
+def test_unreadable_file(capsys, tmp_path):
+    import os
+    if os.geteuid() == 0:
+        pytest.skip("root can read any file")
+    f = tmp_path / "locked.usda"
+    f.write_text("#usda 1.0\n")
+    f.chmod(0)
+    _assert_one_error(capsys, [f], r"not readable")
+
+
+def test_no_renderable_geometry(capsys, new_stage):
+    stage = new_stage()
+    UsdGeom.Xform.Define(stage, "/empty")
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"no renderable geometry")
+
+
+def test_time_outside_the_stage(capsys, new_stage):
+    stage = new_stage(start=1, end=24)
+    add_cube_mesh(stage, "/box")
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath, "--time", "30"],
+                      r"time 30 is outside the stage's range \[1, 24\]")
+
+
+def test_nan_transform_names_the_prim(capsys, new_stage):
+    stage = new_stage()
+    box = add_cube_mesh(stage, "/World/box")
+    box.AddTranslateOp().Set((float("nan"), 0, 0))
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"/World/box.*non-finite")
+
+
+def test_nan_light_intensity_names_the_attribute(capsys, new_stage):
+    stage = new_stage()
+    add_cube_mesh(stage, "/box")
+    UsdLux.SphereLight.Define(stage, "/key").CreateIntensityAttr(float("nan"))
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"/key\.inputs:intensity: value nan is not finite")
+
+
+def test_nan_point_instancer_positions(capsys, new_stage):
+    stage = new_stage()
+    pi = UsdGeom.PointInstancer.Define(stage, "/pi")
+    add_cube_mesh(stage, "/pi/protos/box")
+    pi.CreatePrototypesRel().SetTargets(["/pi/protos/box"])
+    pi.CreatePositionsAttr([(0, 0, 0), (float("nan"), 0, 0)])
+    pi.CreateProtoIndicesAttr([0, 0])
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"/pi: non-finite")
+
+
+def test_missing_camera(capsys, new_stage):
+    stage = new_stage()
+    add_cube_mesh(stage, "/box")
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath, "--camera", "hero"], r"no camera named 'hero'")
+
+
+def test_console_script_exit_status_and_single_line(tmp_path):
+    """The installed entry point, as a user runs it."""
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "info", str(tmp_path / "x.usda")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"usdml: error: {tmp_path / 'x.usda'}: no such file; check the stage path"]

@@ -1,0 +1,186 @@
+"""PointInstancer and native instancing: one prototype, N transforms, never flattened."""
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+from conftest import add_cube_mesh, instance_world_points
+from usdml.scene import LightType
+from usdml.stage import StageDelegate
+
+
+def _m(gf) -> np.ndarray:
+    return np.array(gf, np.float64).T
+
+
+def _trs(p, q, s) -> np.ndarray:
+    """Column-convention T @ R(q) @ S from a position, a (w, x, y, z) quaternion and a scale."""
+    w, x, y, z = q / np.linalg.norm(q)
+    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    m = np.eye(4)
+    m[:3, :3] = r * np.asarray(s)[None, :]
+    m[:3, 3] = p
+    return m
+
+
+def _point_instancer_stage(new_stage, orientation_attr="orientations"):
+    stage = new_stage(start=1, end=2)
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/pi")
+    UsdGeom.Xformable(pi).AddTranslateOp().Set((0, 0, 5))
+    root = UsdGeom.Xform.Define(stage, "/World/pi/protos/arrow")
+    root.AddTranslateOp().Set((0, 1, 0))                       # prototype root xform: applied per instance
+    inner = UsdGeom.Xform.Define(stage, "/World/pi/protos/arrow/inner")
+    inner.AddScaleOp().Set((2, 2, 2))
+    box = add_cube_mesh(stage, "/World/pi/protos/arrow/inner/box")
+    box.AddTranslateOp().Set((1, 0, 0))
+    add_cube_mesh(stage, "/World/pi/protos/other")
+    pi.CreatePrototypesRel().SetTargets(["/World/pi/protos/arrow", "/World/pi/protos/other"])
+    pos = [(0, 0, 0), (10, 0, 0), (0, 10, 0), (5, 5, 5)]
+    quats = [(1, 0, 0, 0), (0.7071, 0, 0.7071, 0), (0.5, 0.5, 0.5, 0.5), (0, 0, 0, 1)]
+    pi.CreatePositionsAttr().Set(pos, 1)
+    pi.CreateVelocitiesAttr().Set([(24, 0, 0), (0, 48, 0), (0, 0, 0), (0, 0, -24)], 1)
+    if orientation_attr == "orientations":
+        pi.CreateOrientationsAttr().Set([Gf.Quath(*q) for q in quats])
+    else:
+        pi.CreateOrientationsfAttr().Set([Gf.Quatf(*q) for q in quats])
+    pi.CreateScalesAttr().Set([(1, 1, 1), (0.5, 0.5, 0.5), (1, 2, 3), (1, 1, 1)])
+    pi.CreateProtoIndicesAttr().Set([0, 0, 1, 0])
+    pi.CreateIdsAttr().Set([10, 11, 12, 13])
+    pi.CreateInvisibleIdsAttr().Set([13])
+    stage.Save()
+    return stage, pos, quats
+
+
+@pytest.mark.parametrize("orientation_attr", ["orientations", "orientationsf"])
+def test_point_instancer_transforms_velocities_and_invisible_ids(new_stage, orientation_attr):
+    stage, pos, quats = _point_instancer_stage(new_stage, orientation_attr)
+    d = StageDelegate(stage.GetRootLayer().realPath)
+    snap = d.snapshot(1.5)
+    assert snap.meshes == []
+    by = {p.path: p for p in snap.prototypes}
+    arrow, other = by["/World/pi/protos/arrow"], by["/World/pi/protos/other"]
+    assert arrow.kind == "pointInstancer" and arrow.animated
+    assert arrow.instance_ids.tolist() == [10, 11]            # 13 is invisible, 12 uses the other prototype
+    assert other.instance_ids.tolist() == [12]
+    assert arrow.instancers == ["/World/pi", "/World/pi"]
+    # the prototype keeps its nested xforms, in prototype space (relative to the prototype root)
+    local = arrow.meshes[0].points
+    assert np.allclose(local.min(0), [1, -1, -1]) and np.allclose(local.max(0), [3, 1, 1])
+    dt = 0.5 / 24.0                                            # velocities are per second
+    scales = [(1, 1, 1), (0.5, 0.5, 0.5)]
+    vel = [(24, 0, 0), (0, 48, 0)]
+    for i in range(2):
+        p = np.asarray(pos[i]) + np.asarray(vel[i]) * dt
+        expected = (np.array(_m(Gf.Matrix4d().SetTranslate((0, 0, 5)))) @ _trs(p, np.array(quats[i]), scales[i])
+                    @ _m(Gf.Matrix4d().SetTranslate((0, 1, 0))))
+        assert np.allclose(arrow.xforms[i], expected, atol=2e-3)   # quath has ~3 decimal digits
+    world = instance_world_points(arrow)
+    assert world.shape == (2, 8, 3)
+
+
+def test_native_instances_share_one_prototype(new_stage, tmp_path):
+    asset = Usd.Stage.CreateNew(str(tmp_path / "asset.usda"))
+    root = UsdGeom.Xform.Define(asset, "/Asset")
+    asset.SetDefaultPrim(root.GetPrim())
+    add_cube_mesh(asset, "/Asset/geo").AddTranslateOp().Set((0, 0.5, 0))
+    asset.Save()
+    stage = new_stage()
+    for i in range(3):
+        prim = stage.DefinePrim(f"/World/inst{i}", "Xform")
+        prim.GetReferences().AddReference("./asset.usda")
+        prim.SetInstanceable(True)
+        UsdGeom.Xformable(prim).AddTranslateOp().Set((3.0 * i, 0, 0))
+    flat = stage.DefinePrim("/World/unique", "Xform")
+    flat.GetReferences().AddReference("./asset.usda")
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    assert [m.path for m in snap.meshes] == ["/World/unique/geo"]
+    (proto,) = snap.prototypes
+    assert proto.kind == "native" and not proto.animated and proto.instance_count == 3
+    assert proto.instancers == ["/World/inst0", "/World/inst1", "/World/inst2"]
+    assert snap.triangle_count() == 4 * 12 and snap.unique_triangle_count() == 2 * 12
+    # same world geometry as USD's instance proxies
+    xf = UsdGeom.XformCache(0)
+    for i, world in enumerate(instance_world_points(proto)):
+        proxy = stage.GetPrimAtPath(f"/World/inst{i}/geo")
+        assert proxy.IsInstanceProxy()
+        m = np.array(xf.GetLocalToWorldTransform(proxy))
+        p = np.asarray(UsdGeom.Mesh(proxy).GetPointsAttr().Get(), np.float64) @ m[:3, :3] + m[3, :3]
+        assert np.allclose(np.sort(world, 0), np.sort(p, 0), atol=1e-6)
+
+
+def test_nested_instancing_composes_transforms(new_stage, tmp_path):
+    """A PointInstancer whose prototype is an instanceable prim, inside an instanceable asset."""
+    asset = Usd.Stage.CreateNew(str(tmp_path / "tree.usda"))
+    asset.SetDefaultPrim(UsdGeom.Xform.Define(asset, "/Tree").GetPrim())
+    add_cube_mesh(asset, "/Tree/trunk")
+    asset.Save()
+    forest = Usd.Stage.CreateNew(str(tmp_path / "forest.usda"))
+    forest.SetDefaultPrim(UsdGeom.Xform.Define(forest, "/Forest").GetPrim())
+    pi = UsdGeom.PointInstancer.Define(forest, "/Forest/pi")
+    tree = forest.DefinePrim("/Forest/pi/protos/tree", "Xform")
+    tree.GetReferences().AddReference("./tree.usda")
+    tree.SetInstanceable(True)
+    pi.CreatePrototypesRel().SetTargets([tree.GetPath()])
+    pi.CreatePositionsAttr([(0, 0, 0), (10, 0, 0)])
+    pi.CreateProtoIndicesAttr([0, 0])
+    forest.Save()
+    stage = new_stage()
+    for i in range(2):
+        prim = stage.DefinePrim(f"/World/forest{i}", "Xform")
+        prim.GetReferences().AddReference("./forest.usda")
+        prim.SetInstanceable(True)
+        UsdGeom.Xformable(prim).AddTranslateOp().Set((0, 0, 100.0 * i))
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    (proto,) = snap.prototypes          # the tree: 2 forests x 2 trees, geometry stored once
+    assert proto.instance_count == 4 and proto.triangle_count == 12
+    centers = sorted(map(tuple, np.round(instance_world_points(proto).mean(1), 6)))
+    assert centers == [(0, 0, 0), (0, 0, 100), (10, 0, 0), (10, 0, 100)]
+
+
+def test_lights_instanced_by_a_point_instancer(new_stage):
+    stage = new_stage()
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/lights")
+    UsdGeom.Xformable(pi).AddTranslateOp().Set((0, 10, 0))
+    bulb = UsdLux.SphereLight.Define(stage, "/World/lights/protos/bulb")
+    bulb.CreateRadiusAttr(0.1)
+    bulb.CreateTreatAsPointAttr(True)
+    bulb.CreateIntensityAttr(100)
+    pi.CreatePrototypesRel().SetTargets([bulb.GetPath()])
+    n = 1000
+    rng = np.random.default_rng(1)
+    pos = rng.uniform(-50, 50, (n, 3))
+    pi.CreatePositionsAttr(pos.tolist())
+    pi.CreateProtoIndicesAttr([0] * n)
+    pi.CreateInvisibleIdsAttr([3])
+    add_cube_mesh(stage, "/World/ground")
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    lights = snap.lights
+    assert len(lights) == n - 1 and snap.prototypes == []
+    assert (lights.type == LightType.POINT).all()
+    keep = np.arange(n) != 3
+    assert np.allclose(lights.position, pos[keep] + [0, 10, 0], atol=1e-4)   # point3f positions
+    assert lights.instance_ids.tolist() == np.arange(n)[keep].tolist()
+    assert np.allclose(lights.intensity, 100 * np.pi * 0.01)
+
+
+def test_light_inside_a_native_prototype_is_one_light_per_instance(new_stage, tmp_path):
+    asset = Usd.Stage.CreateNew(str(tmp_path / "lamp.usda"))
+    asset.SetDefaultPrim(UsdGeom.Xform.Define(asset, "/Lamp").GetPrim())
+    add_cube_mesh(asset, "/Lamp/post", size=0.2)
+    UsdLux.SphereLight.Define(asset, "/Lamp/bulb").AddTranslateOp().Set((0, 2, 0))
+    asset.Save()
+    stage = new_stage()
+    for i in range(4):
+        prim = stage.DefinePrim(f"/World/lamp{i}", "Xform")
+        prim.GetReferences().AddReference("./lamp.usda")
+        prim.SetInstanceable(True)
+        UsdGeom.Xformable(prim).AddTranslateOp().Set((i, 0, 0))
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    assert len(snap.lights) == 4
+    assert sorted(snap.lights.position[:, 0]) == [0, 1, 2, 3] and np.allclose(snap.lights.position[:, 1], 2)

@@ -1,0 +1,99 @@
+"""UsdSkel: posed points match UsdSkel.BakeSkinning, on a real OpenUSD test stage and a built one."""
+
+import numpy as np
+import pytest
+from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
+
+from conftest import add_cube_mesh
+from usdml.stage import StageDelegate
+
+
+def _baked_world_points(path: str, times: list[float]) -> dict[str, list[np.ndarray]]:
+    """Reference: bake skinning into a session layer of a fresh stage and read points back."""
+    stage = Usd.Stage.Open(path)
+    stage.SetEditTarget(stage.GetSessionLayer())
+    assert UsdSkel.BakeSkinning(stage.Traverse())
+    out = {}
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh):
+            pts = []
+            for t in times:
+                m = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
+                p = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(t), np.float64)
+                pts.append(p @ m[:3, :3] + m[3, :3])
+            out[str(prim.GetPath())] = pts
+    return out
+
+
+def _check_against_bake(path: str, times: list[float]) -> None:
+    reference = _baked_world_points(path, times)
+    d = StageDelegate(path)
+    moved = False
+    for k, t in enumerate(times):
+        snap = d.snapshot(t)
+        meshes = {m.path: m for m in snap.meshes}
+        for mesh_path, ref in reference.items():
+            mesh = meshes[mesh_path]
+            assert mesh.deforming
+            assert np.allclose(mesh.points, ref[k], atol=1e-3 * max(1.0, np.abs(ref[k]).max()))
+        moved |= k > 0 and not np.allclose(snap.meshes[0].points, d.snapshot(times[0]).meshes[0].points)
+    assert moved, "the skinned mesh should move over these frames"
+
+
+def test_openusd_lbs_stage_matches_bake_skinning(assets):
+    _check_against_bake(str(assets / "openusd/testUsdImagingGLSkelSkinning/test_lbs.usda"), [1, 30, 60.5, 120])
+
+
+def test_built_skinned_mesh_with_blend_shape_matches_bake_skinning(new_stage):
+    stage = new_stage(start=1, end=10)
+    root = UsdSkel.Root.Define(stage, "/Char")
+    UsdGeom.Xformable(root).AddTranslateOp().Set((5, 0, 0))
+    skel = UsdSkel.Skeleton.Define(stage, "/Char/Skel")
+    joints = ["hip", "hip/knee"]
+    skel.CreateJointsAttr(joints)
+    rest = Vt.Matrix4dArray([Gf.Matrix4d(1), Gf.Matrix4d().SetTranslate((0, 1, 0))])
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1), Gf.Matrix4d().SetTranslate((0, 1, 0))]))
+    skel.CreateRestTransformsAttr(rest)
+    anim = UsdSkel.Animation.Define(stage, "/Char/Skel/Anim")
+    anim.CreateJointsAttr(joints)
+    anim.CreateTranslationsAttr().Set(Vt.Vec3fArray([(0, 0, 0), (0, 1, 0)]))
+    anim.CreateScalesAttr().Set(Vt.Vec3hArray([(1, 1, 1), (1, 1, 1)]))
+    rot = anim.CreateRotationsAttr()
+    for t in (1, 10):
+        angle = 0 if t == 1 else 60
+        q = Gf.Rotation(Gf.Vec3d(0, 0, 1), angle).GetQuat()
+        rot.Set(Vt.QuatfArray([Gf.Quatf(1), Gf.Quatf(q)]), t)
+    anim.CreateBlendShapesAttr(["bulge"])
+    weights = anim.CreateBlendShapeWeightsAttr()
+    weights.Set(Vt.FloatArray([0.0]), 1)
+    weights.Set(Vt.FloatArray([1.0]), 10)
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+    mesh = add_cube_mesh(stage, "/Char/Body", size=0.5)
+    mesh.GetPointsAttr().Set([(x, y + 1.5, z) for x, y, z in mesh.GetPointsAttr().Get()])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 2).Set([0, 1] * 8)
+    binding.CreateJointWeightsPrimvar(False, 2).Set([0.3, 0.7] * 8)
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
+    shape = UsdSkel.BlendShape.Define(stage, "/Char/Body/bulge")
+    shape.CreateOffsetsAttr([(0.2, 0, 0)] * 2)
+    shape.CreatePointIndicesAttr([0, 1])
+    binding.CreateBlendShapesAttr(["bulge"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
+    add_cube_mesh(stage, "/ground")
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    reference = _baked_world_points(path, [1, 5, 10])["/Char/Body"]
+    d = StageDelegate(path)
+    for k, t in enumerate([1, 5, 10]):
+        body = next(m for m in d.snapshot(t).meshes if m.path == "/Char/Body")
+        assert body.deforming
+        assert np.allclose(body.points, reference[k], atol=1e-5)
+    assert not np.allclose(reference[0], reference[2])
+
+
+def test_usdz_rigged_figure_loads_skinned(assets):
+    d = StageDelegate(str(assets / "usd-wg/USDZ/RiggedFigure/RiggedFigure.usdz"))
+    a, b = d.snapshot(0), d.snapshot(15)
+    assert a.meshes and all(m.deforming for m in a.meshes)
+    assert not np.allclose(a.meshes[0].points, b.meshes[0].points)
