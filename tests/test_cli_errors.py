@@ -48,6 +48,10 @@ def test_not_a_usd_file(capsys, tmp_path):
     _assert_one_error(capsys, [garbage], r"garbage\.usdc: cannot open stage")
 
 
+def test_directory_instead_of_a_file(capsys, tmp_path):
+    _assert_one_error(capsys, [tmp_path], r"is a directory")
+
+
 def test_unreadable_file(capsys, tmp_path):
     import os
     if os.geteuid() == 0:

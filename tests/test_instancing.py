@@ -80,6 +80,26 @@ def test_point_instancer_transforms_velocities_and_invisible_ids(new_stage, orie
     assert world.shape == (2, 8, 3)
 
 
+def test_angular_velocities_and_accelerations(new_stage):
+    stage = new_stage(start=1, end=2)
+    pi = UsdGeom.PointInstancer.Define(stage, "/pi")
+    add_cube_mesh(stage, "/pi/protos/box")
+    pi.CreatePrototypesRel().SetTargets(["/pi/protos/box"])
+    pi.CreatePositionsAttr().Set([(0, 0, 0)], 1)
+    pi.CreateVelocitiesAttr().Set([(0, 0, 0)], 1)                   # USD applies accelerations with velocities
+    pi.CreateAccelerationsAttr().Set([(0, -9.8 * 24 * 24, 0)], 1)   # scene units per second squared
+    pi.CreateOrientationsAttr().Set([Gf.Quath(1, 0, 0, 0)], 1)       # USD spins authored orientations only
+    pi.CreateAngularVelocitiesAttr().Set([(0, 2160, 0)], 1)         # degrees per second
+    pi.CreateProtoIndicesAttr([0])
+    stage.Save()
+    (proto,) = StageDelegate(stage.GetRootLayer().realPath).snapshot(1.5).prototypes
+    dt = 0.5 / 24
+    assert proto.animated
+    assert np.allclose(proto.xforms[0, :3, 3], [0, -0.5 * 9.8 * 24 * 24 * dt * dt, 0], atol=1e-9)
+    c = np.cos(np.radians(45))
+    assert np.allclose(proto.xforms[0, :3, :3], [[c, 0, c], [0, 1, 0], [-c, 0, c]], atol=1e-3)
+
+
 def test_native_instances_share_one_prototype(new_stage, tmp_path):
     asset = Usd.Stage.CreateNew(str(tmp_path / "asset.usda"))
     root = UsdGeom.Xform.Define(asset, "/Asset")
