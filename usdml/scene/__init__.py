@@ -324,8 +324,9 @@ class Changes:
                 or any(self.prototypes.values()))
 
 
-def _mesh_state(m: Mesh) -> str:
-    return content_hash(m.points, m.triangles)
+def _mesh_changed(a: Mesh, b: Mesh) -> bool:
+    # the delegate hands out the same Mesh object while nothing changed: skip hashing then
+    return a is not b and content_hash(a.points, a.triangles) != content_hash(b.points, b.triangles)
 
 
 def diff(prev: Snapshot | None, cur: Snapshot) -> Changes:
@@ -335,10 +336,9 @@ def diff(prev: Snapshot | None, cur: Snapshot) -> Changes:
                        prototypes={p.path: {"added"} for p in cur.prototypes}, lights=True, camera=True)
     before = {m.path: m for m in prev.meshes}
     static = ({m.path for m in prev.static_meshes} != {m.path for m in cur.static_meshes}
-              or any(_mesh_state(m) != _mesh_state(before[m.path]) for m in cur.static_meshes
-                     if m.path in before))
+              or any(_mesh_changed(m, before[m.path]) for m in cur.static_meshes if m.path in before))
     deforming = [m.path for m in cur.deforming_meshes
-                 if m.path not in before or _mesh_state(m) != _mesh_state(before[m.path])]
+                 if m.path not in before or _mesh_changed(m, before[m.path])]
     protos: dict[str, set[str]] = {}
     old = {p.path: p for p in prev.prototypes}
     for p in cur.prototypes:
@@ -350,7 +350,8 @@ def diff(prev: Snapshot | None, cur: Snapshot) -> Changes:
         if p.xforms.shape != q.xforms.shape or not np.array_equal(p.xforms, q.xforms) \
                 or not np.array_equal(p.instance_ids, q.instance_ids):
             what.add("transforms")
-        if p.geometry_hash() != q.geometry_hash():
+        same_meshes = len(p.meshes) == len(q.meshes) and all(a is b for a, b in zip(p.meshes, q.meshes))
+        if not same_meshes and p.geometry_hash() != q.geometry_hash():
             what.add("points")
         protos[p.path] = what
     for path in old:
