@@ -54,7 +54,8 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "timeCodesPerSecond": delegate.time_codes_per_second,
         "metersPerUnit": snap.meters_per_unit,
         "upAxis": snap.up_axis,
-        "meshes": len(snap.meshes) + sum(len(p.meshes) for p in snap.prototypes),
+        "meshes": len(snap.meshes) + sum(len(p.meshes) * p.instance_count for p in snap.prototypes),
+        "uniqueMeshes": len(snap.meshes) + sum(len(p.meshes) for p in snap.prototypes),
         "triangles": snap.triangle_count(),
         "uniqueTriangles": snap.unique_triangle_count(),
         "prototypes": len(snap.prototypes),
@@ -90,7 +91,7 @@ def format_info(info: dict) -> str:
         f"{info['startTimeCode']:g}-{info['endTimeCode']:g} @ {info['timeCodesPerSecond']:g}/s)",
         f"time        {info['time']:g}",
         f"geometry    {n(info['meshes'])} meshes, {n(info['triangles'])} triangles rendered "
-        f"({n(info['uniqueTriangles'])} unique)",
+        f"({n(info['uniqueMeshes'])} meshes, {n(info['uniqueTriangles'])} triangles unique)",
         f"instancing  {n(info['prototypes'])} prototypes ({kinds}), {n(info['instances'])} instances, "
         f"{info['animatedPrototypes']} with moving instances",
         f"deforming   {info['deforming']}",

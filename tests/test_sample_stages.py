@@ -1,0 +1,82 @@
+"""The committed sample stages: what `usdml info` reports, and that the generator reproduces them."""
+
+import filecmp
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, STAGES
+from usdml.cli import main
+from usdml.scene import diff
+from usdml.stage import StageDelegate
+
+#: stage -> expected info (counted by hand from tools/make_stages.py; triangles after instancing)
+EXPECTED = {
+    "city": dict(meshes=864, uniqueMeshes=18, triangles=1_043_204, prototypes=5, instances=292,
+                 animatedPrototypes=0, deforming=0, lights=1024),
+    "planes": dict(meshes=866, uniqueMeshes=19, triangles=1_048_108, prototypes=6, instances=294,
+                   animatedPrototypes=1, deforming=0, lights=1024),
+    "creature": dict(meshes=2, uniqueMeshes=2, triangles=7168, prototypes=0, instances=0,
+                     animatedPrototypes=0, deforming=1, lights=1024),
+    "cornell": dict(meshes=9, uniqueMeshes=9, triangles=1034, prototypes=0, instances=0,
+                    animatedPrototypes=0, deforming=0, lights=2),
+    "park": dict(meshes=118, uniqueMeshes=9, triangles=17_562, prototypes=5, instances=114,
+                 animatedPrototypes=5, deforming=0, lights=7088),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_sample_stage_info(capsys, name):
+    assert main(["info", str(STAGES / f"{name}.usda"), "--json"]) == 0
+    out, err = capsys.readouterr()
+    info = json.loads(out)
+    assert {k: info[k] for k in EXPECTED[name]} == EXPECTED[name]
+    assert info["camera"] == "/World/main_cam" and info["warnings"] == []
+    assert info["renderSettings"]["path"] == "/Render/Settings"
+    assert [v["name"] for v in info["renderSettings"]["products"][0]["vars"]] == [
+        "color", "depth", "normal", "direct", "shadow", "primId"]
+    assert info["endTimeCode"] == (1 if name == "cornell" else 48)
+    assert "usdml: warning" not in err
+
+
+def test_city_is_a_layout_of_instanced_assets_with_instanced_lights():
+    d = StageDelegate(STAGES / "city.usda")
+    a, b = d.snapshot(1), d.snapshot(2)
+    assert all(p.kind == "native" and not p.animated for p in a.prototypes)
+    assert a.triangle_count() >= 500_000
+    assert (a.lights.instance_ids >= 0).all()                  # every light comes from the PointInstancer
+    changes = diff(a, b)
+    assert changes.lights and not changes.static and not any(changes.prototypes.values())
+    assert not np.allclose(a.lights.position, b.lights.position)
+
+
+def test_park_is_fully_dynamic_with_moving_rides():
+    d = StageDelegate(STAGES / "park.usda")
+    assert d.usdml_settings.fully_dynamic
+    snap = d.snapshot(10)
+    assert sum(p.instance_count for p in snap.prototypes if p.kind == "pointInstancer") >= 100
+    assert len({p.path for p in snap.prototypes if p.kind == "pointInstancer"}) >= 3
+    assert len(snap.lights) == 7088
+
+
+def test_planes_move_and_creature_deforms():
+    planes = StageDelegate(STAGES / "planes.usda")
+    changes = diff(planes.snapshot(1), planes.snapshot(5))
+    moving = [p for p, what in changes.prototypes.items() if what]
+    assert len(moving) == 1 and changes.prototypes[moving[0]] == {"transforms"}
+    creature = StageDelegate(STAGES / "creature.usda")
+    changes = diff(creature.snapshot(1), creature.snapshot(5))
+    assert len(changes.deforming) == 1 and not changes.static
+
+
+def test_generator_reproduces_the_committed_stages(tmp_path):
+    subprocess.run([sys.executable, str(ROOT / "tools" / "make_stages.py"), "--out", str(tmp_path)],
+                   check=True, capture_output=True)
+    committed = sorted(p.relative_to(STAGES) for p in STAGES.rglob("*") if p.is_file())
+    generated = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    assert committed == generated
+    different = [str(p) for p in committed if not filecmp.cmp(STAGES / p, tmp_path / p, shallow=False)]
+    assert different == []

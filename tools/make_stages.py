@@ -1,0 +1,1616 @@
+#!/usr/bin/env python
+"""Generate the usdml sample stages (deterministic, procedural).
+
+Usage::
+
+    python tools/make_stages.py [--out stages]
+
+Writes five top-level ``.usda`` stages plus binary ``.usdc`` layers::
+
+    city.usda      static instanced city, 1,024 animated point lights
+    planes.usda    sublayers city.usda, adds two airplanes flying over it
+    creature.usda  UsdSkel-rigged bear (warp's bear.usd) walking, 1,024 lights
+    cornell.usda   classic Cornell box lit by two spot lights
+    park.usda      amusement park, 112 moving rigid instances, 7,088 lights
+    assets/*.usdc  heavy meshes (buildings, airplane, rigged bear)
+    anim/*.usdc    heavy time samples (instancer positions / orientations),
+                   sublayered under the .usda that defines the prims
+
+Conventions shared by every stage: metersPerUnit = 1, upAxis = Y, 24 fps,
+defaultPrim </World>, camera </World/main_cam> (35 mm lens on a 36 x 20.25 mm
+16:9 back), render settings at </Render/Settings> (named by the
+``renderSettingsPrimPath`` stage metadata) with one product and six AOVs.
+
+Lights: many-light sets are a UsdGeom.PointInstancer whose prototypes are
+UsdLux.SphereLights with treatAsPoint = true and normalize = false, so
+``intensity`` is the radiance L of a bulb of radius r, i.e. radiant intensity
+I = L * pi * r^2.  Intensities are calibrated (``calibrate_intensity``) so the
+*unshadowed* direct radiance leaving an albedo-0.5 Lambertian surface at
+representative sample points averages a target (~0.3), rounded to 2
+significant digits.
+
+Everything is seeded; no timestamps are written, so re-running produces
+byte-identical files.
+"""
+import argparse
+import math
+import os
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
+
+FPS = 24
+RESOLUTION = (960, 540)
+UP = np.array([0.0, 1.0, 0.0])
+
+# (name, sourceName, dataType) of the RenderVars every product writes.
+RENDER_VARS = [
+    ("color", "color", "color4f"),
+    ("depth", "depth", "float"),
+    ("normal", "normal", "normal3f"),
+    ("direct", "direct", "color3f"),
+    ("shadow", "shadow", "float"),
+    ("primId", "primId", "int"),
+]
+
+# Bulb colours used as light prototypes (PointInstancers cannot vary a
+# light's colour per instance, so colour variety comes from prototypes).
+BULBS = {
+    "warm": (1.0, 0.78, 0.52),
+    "cool": (0.70, 0.82, 1.0),
+    "white": (1.0, 1.0, 1.0),
+    "pink": (1.0, 0.55, 0.75),
+}
+
+
+# --------------------------------------------------------------------------
+# Small math helpers
+# --------------------------------------------------------------------------
+
+def unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v)
+
+
+def frame_times(start, end):
+    """Frame numbers (time codes) and matching seconds from the first one."""
+    frames = np.arange(start, end + 1, dtype=float)
+    return frames, (frames - start) / FPS
+
+
+def yaw_quats(yaw):
+    """Quaternions (x, y, z, w) rotating about +Y by ``yaw`` radians.
+
+    Rotating +Z by yaw gives (sin yaw, 0, cos yaw): prototypes face +Z.
+    """
+    yaw = np.asarray(yaw, dtype=float)
+    z = np.zeros_like(yaw)
+    return np.stack([z, np.sin(yaw / 2), z, np.cos(yaw / 2)], axis=-1)
+
+
+def axis_angle_quat(axis, angle):
+    """Quaternion (w, x, y, z) tuple for a rotation of ``angle`` radians."""
+    axis = unit(axis)
+    s = math.sin(angle / 2)
+    return (math.cos(angle / 2), axis[0] * s, axis[1] * s, axis[2] * s)
+
+
+def quat_mul(a, b):
+    """Hamilton product of (w, x, y, z) tuples."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw)
+
+
+def basis_quat(x_axis, y_axis, z_axis):
+    """Quaternion (x, y, z, w) mapping local X/Y/Z onto the given unit axes."""
+    m = Gf.Matrix3d(*[float(c) for c in (*x_axis, *y_axis, *z_axis)])
+    q = m.ExtractRotation().GetQuat()
+    i = q.GetImaginary()
+    return (i[0], i[1], i[2], q.GetReal())
+
+
+def look_at(eye, target, up=UP):
+    """Camera-to-world matrix: USD cameras look down local -Z with +Y up."""
+    eye = np.asarray(eye, dtype=float)
+    fwd = unit(np.asarray(target, dtype=float) - eye)
+    right = unit(np.cross(fwd, up))
+    cam_up = np.cross(right, fwd)
+    rows = [(*right, 0.0), (*cam_up, 0.0), (*(-fwd), 0.0), (*eye, 1.0)]
+    return Gf.Matrix4d(*[float(c) for row in rows for c in row])
+
+
+def round_sig(x, digits=2):
+    return float(f"{x:.{digits}g}")
+
+
+# --------------------------------------------------------------------------
+# Mesh building
+# --------------------------------------------------------------------------
+
+class MeshBuilder:
+    """Accumulates polygons with per-face colours.
+
+    Vertices are welded on a 10 micron grid so boxes and facade grids come
+    out watertight.  Every ``add_*`` takes an outward hint and flips the
+    polygon if needed, so winding is consistently counter-clockwise seen from
+    outside (USD's rightHanded orientation) without hand-checking each face.
+    """
+
+    def __init__(self):
+        self.points = []
+        self.lookup = {}
+        self.counts = []
+        self.indices = []
+        self.colors = []
+
+    def _vertex(self, p):
+        key = (round(float(p[0]), 5), round(float(p[1]), 5), round(float(p[2]), 5))
+        idx = self.lookup.get(key)
+        if idx is None:
+            idx = self.lookup[key] = len(self.points)
+            self.points.append(key)
+        return idx
+
+    def add_poly(self, pts, color, outward):
+        pts = [np.asarray(p, dtype=float) for p in pts]
+        # Newell's method: robust normal for any planar-ish polygon.
+        normal = np.zeros(3)
+        for a, b in zip(pts, pts[1:] + pts[:1]):
+            normal += np.cross(a, b)
+        if np.dot(normal, outward) < 0:
+            pts = pts[::-1]
+        self.counts.append(len(pts))
+        self.indices.extend(self._vertex(p) for p in pts)
+        self.colors.append(tuple(color))
+
+    def add_prism(self, poly2d, origin, u, v, w0, w1, color, cap_color=None):
+        """Extrude a convex polygon given in the (u, v) plane along u x v."""
+        origin, u, v = (np.asarray(a, dtype=float) for a in (origin, u, v))
+        w = np.cross(u, v)
+        base = [origin + u * a + v * b for a, b in poly2d]
+        bottom = [p + w * w0 for p in base]
+        top = [p + w * w1 for p in base]
+        center = sum(base) / len(base) + w * (w0 + w1) / 2
+        cap = cap_color or color
+        self.add_poly(top, cap, w)
+        self.add_poly(bottom, cap, -w)
+        n = len(base)
+        for i in range(n):
+            j = (i + 1) % n
+            quad = [bottom[i], bottom[j], top[j], top[i]]
+            self.add_poly(quad, color, sum(quad) / 4 - center)
+
+    def add_box(self, lo, hi, color, cap_color=None):
+        (x0, y0, z0), (x1, y1, z1) = lo, hi
+        rect = [(x0, z0), (x1, z0), (x1, z1), (x0, z1)]
+        # u = +X, v = +Z -> extrusion axis u x v = -Y, hence the negated heights.
+        self.add_prism(rect, (0, 0, 0), (1, 0, 0), (0, 0, 1), -y1, -y0, color, cap_color)
+
+    def add_cylinder(self, center, radius, y0, y1, sides, color, cap_color=None, phase=0.0):
+        """Vertical n-gon prism: small n (5-8) gives the n-gon caps we want."""
+        poly = regular_polygon(sides, radius, phase)
+        cx, cz = center[0], center[-1]
+        poly = [(cx + a, cz + b) for a, b in poly]
+        self.add_prism(poly, (0, 0, 0), (1, 0, 0), (0, 0, 1), -y1, -y0, color, cap_color)
+
+    def add_beam(self, p0, p1, width, height, color, up_hint=(0, 1, 0)):
+        """Rectangular bar from p0 to p1 (width along the side axis)."""
+        p0, p1 = np.asarray(p0, dtype=float), np.asarray(p1, dtype=float)
+        axis = p1 - p0
+        length = np.linalg.norm(axis)
+        w = axis / length
+        side = np.cross(np.asarray(up_hint, dtype=float), w)
+        if np.linalg.norm(side) < 1e-6:
+            side = np.cross((1.0, 0.0, 0.0), w)
+        u = unit(side)
+        v = np.cross(w, u)  # u x v = w
+        hw, hh = width / 2, height / 2
+        rect = [(-hw, -hh), (hw, -hh), (hw, hh), (-hw, hh)]
+        self.add_prism(rect, p0, u, v, 0.0, length, color)
+
+    def add_pyramid(self, base_center, radius, y0, height, sides, color, phase=0.0):
+        """n-gon base + triangle fan: a spire/cap (base is an n-gon face)."""
+        cx, cz = base_center
+        ring = [np.array((cx + a, y0, cz + b)) for a, b in regular_polygon(sides, radius, phase)]
+        apex = np.array((cx, y0 + height, cz))
+        self.add_poly(ring, color, (0, -1, 0))
+        for i in range(sides):
+            tri = [ring[i], ring[(i + 1) % sides], apex]
+            self.add_poly(tri, color, sum(tri) / 3 - np.array((cx, y0 + height / 3, cz)))
+
+    def add_uv_sphere(self, center, radius, segments, rings, color):
+        c = np.asarray(center, dtype=float)
+
+        def at(i, j):
+            th = math.pi * i / rings
+            ph = 2 * math.pi * j / segments
+            return c + radius * np.array((math.sin(th) * math.cos(ph), math.cos(th),
+                                          math.sin(th) * math.sin(ph)))
+
+        for i in range(rings):
+            for j in range(segments):
+                quad = [at(i, j), at(i, j + 1), at(i + 1, j + 1), at(i + 1, j)]
+                if i == 0:
+                    quad = [quad[0], quad[2], quad[3]]  # pole: triangle
+                elif i == rings - 1:
+                    quad = quad[:3]
+                self.add_poly(quad, color, sum(quad) / len(quad) - c)
+
+    @property
+    def triangle_count(self):
+        return int(sum(n - 2 for n in self.counts))
+
+
+def regular_polygon(sides, radius, phase=0.0):
+    return [(radius * math.cos(phase + 2 * math.pi * k / sides),
+             radius * math.sin(phase + 2 * math.pi * k / sides)) for k in range(sides)]
+
+
+def define_mesh(stage, path, mb):
+    """Author a UsdGeom.Mesh from a MeshBuilder (flat, no subdivision)."""
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    points = Vt.Vec3fArray.FromNumpy(np.array(mb.points, dtype=np.float32))
+    mesh.CreatePointsAttr(points)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray(mb.counts))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(mb.indices))
+    mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(points))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    set_display_color(mesh, mb.colors)
+    return mesh
+
+
+def set_display_color(gprim, face_colors):
+    """Constant colour when all faces agree, else one colour per face."""
+    unique = sorted(set(face_colors))
+    if len(unique) == 1:
+        pv = gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant)
+        pv.Set(Vt.Vec3fArray([Gf.Vec3f(*unique[0])]))
+    else:
+        pv = gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.uniform)
+        pv.Set(Vt.Vec3fArray([Gf.Vec3f(*c) for c in face_colors]))
+
+
+# --------------------------------------------------------------------------
+# Stage plumbing: creation, cameras, render settings, lights
+# --------------------------------------------------------------------------
+
+def remove(path):
+    if os.path.exists(path):
+        os.remove(path)
+
+
+def new_stage(path, start, end, default_prim="World"):
+    """Fresh layer with the shared stage metadata and an Xform default prim."""
+    remove(path)
+    stage = Usd.Stage.CreateNew(path)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    stage.SetStartTimeCode(start)
+    stage.SetEndTimeCode(end)
+    stage.SetTimeCodesPerSecond(FPS)
+    stage.SetFramesPerSecond(FPS)
+    root = UsdGeom.Xform.Define(stage, "/" + default_prim)
+    stage.SetDefaultPrim(root.GetPrim())
+    # Assembly root keeps the model hierarchy valid above component assets.
+    Usd.ModelAPI(root).SetKind("assembly")
+    return stage
+
+
+def add_anim_layer(stage, out_dir, name):
+    """Create ``anim/<name>.usdc`` as the weakest sublayer of ``stage``.
+
+    Per-frame PointInstancer data for thousands of instances is megabytes as
+    text; binary crate keeps the .usda readable and the repo small.  Callers
+    author into it with ``Usd.EditContext(stage, layer)``.
+    """
+    rel = f"./anim/{name}.usdc"
+    path = os.path.join(out_dir, "anim", f"{name}.usdc")
+    remove(path)
+    layer = Sdf.Layer.CreateNew(path)
+    # Same rate as the root layer, so no implicit time scaling on sublayering.
+    layer.timeCodesPerSecond = FPS
+    layer.framesPerSecond = FPS
+    stage.GetRootLayer().subLayerPaths.append(rel)
+    return layer
+
+
+def define_camera(stage, eyes, targets, clip, frames=None, path="/World/main_cam"):
+    """35 mm lens on a 16:9 back; ``eyes``/``targets`` per frame if animated."""
+    cam = UsdGeom.Camera.Define(stage, path)
+    cam.CreateProjectionAttr(UsdGeom.Tokens.perspective)
+    cam.CreateFocalLengthAttr(35.0)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateVerticalApertureAttr(20.25)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(*clip))
+    set_camera_xform(cam, eyes, targets, frames)
+    return cam
+
+
+def set_camera_xform(cam, eyes, targets, frames=None):
+    op = cam.MakeMatrixXform()
+    if frames is None:
+        op.Set(look_at(eyes, targets))
+    else:
+        for f, eye, target in zip(frames, eyes, targets):
+            op.Set(look_at(eye, target), Usd.TimeCode(float(f)))
+
+
+def define_render_settings(stage, product_name, camera_path="/World/main_cam"):
+    """</Render/Settings> -> one product -> the six standard AOVs."""
+    UsdGeom.Scope.Define(stage, "/Render")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateResolutionAttr(Gf.Vec2i(*RESOLUTION))
+    settings.CreateCameraRel().SetTargets([Sdf.Path(camera_path)])
+    # Codeless schema registered by usdml; we only author the apiSchemas op.
+    settings.GetPrim().AddAppliedSchema("UsdmlRenderSettingsAPI")
+
+    product = UsdRender.Product.Define(stage, "/Render/Product")
+    product.CreateProductNameAttr(product_name)
+    var_paths = []
+    for name, source, dtype in RENDER_VARS:
+        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+        var.CreateSourceNameAttr(source)
+        var.CreateDataTypeAttr(dtype)
+        var.CreateSourceTypeAttr(UsdRender.Tokens.raw)
+        var_paths.append(var.GetPath())
+    product.CreateOrderedVarsRel().SetTargets(var_paths)
+    settings.CreateProductsRel().SetTargets([product.GetPath()])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    return settings
+
+
+def calibrate_intensity(light_pos, radius, samples, normals, target=0.3, albedo=0.5):
+    """Bulb radiance giving ``target`` mean unshadowed exitant radiance.
+
+    A treat-as-point sphere light of radius r and radiance L has radiant
+    intensity I = L*pi*r^2; a Lambertian point receives E = sum I cos/d^2 and
+    reflects albedo*E/pi.  Shadows only lower the real value.
+    """
+    to_light = light_pos[None, :, :] - samples[:, None, :]
+    d2 = np.maximum(np.sum(to_light ** 2, axis=-1), 0.25)  # clamp near-field
+    cos = np.clip(np.einsum("mnk,mk->mn", to_light, normals) / np.sqrt(d2), 0, None)
+    irradiance_per_l = np.sum(math.pi * radius ** 2 * cos / d2, axis=1)
+    exitant_per_l = albedo / math.pi * irradiance_per_l
+    return round_sig(target / float(np.mean(exitant_per_l)))
+
+
+def define_light_instancer(stage, anim_layer, path, protos, radius, intensity,
+                           proto_indices, positions, frames):
+    """PointInstancer of point-like SphereLights with per-frame positions.
+
+    ``protos`` are BULBS keys; ``positions`` is (frames, lights, 3).
+    """
+    pi = UsdGeom.PointInstancer.Define(stage, path)
+    UsdGeom.Scope.Define(stage, f"{path}/Prototypes")
+    proto_paths = []
+    for name in protos:
+        light = UsdLux.SphereLight.Define(stage, f"{path}/Prototypes/bulb_{name}")
+        light.CreateTreatAsPointAttr(True)
+        light.CreateRadiusAttr(radius)
+        light.CreateNormalizeAttr(False)
+        light.CreateIntensityAttr(intensity)
+        light.CreateColorAttr(Gf.Vec3f(*BULBS[name]))
+        proto_paths.append(light.GetPath())
+    pi.CreatePrototypesRel().SetTargets(proto_paths)
+    pi.CreateProtoIndicesAttr(Vt.IntArray([int(i) for i in proto_indices]))
+    pi.CreateIdsAttr(Vt.Int64Array(list(range(len(proto_indices)))))
+    with Usd.EditContext(stage, anim_layer):
+        attr = pi.CreatePositionsAttr()
+        for f, pos in zip(frames, positions):
+            attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos, dtype=np.float32)),
+                     Usd.TimeCode(float(f)))
+    return pi
+
+
+def set_instancer_xforms(stage, anim_layer, pi, frames, positions, orientations):
+    """Time-sampled positions (F, N, 3) and quath orientations (F, N, x y z w)."""
+    with Usd.EditContext(stage, anim_layer):
+        pos_attr = pi.CreatePositionsAttr()
+        ori_attr = pi.CreateOrientationsAttr()
+        for f, pos, ori in zip(frames, positions, orientations):
+            t = Usd.TimeCode(float(f))
+            pos_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos, dtype=np.float32)), t)
+            ori_attr.Set(Vt.QuathArray.FromNumpy(np.ascontiguousarray(ori, dtype=np.float16)), t)
+
+
+def write_asset(path, name, meshes, root_type="Xform"):
+    """Binary asset layer: default prim ``name`` holding named Mesh prims."""
+    remove(path)
+    stage = Usd.Stage.CreateNew(path)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    root = stage.DefinePrim(f"/{name}", root_type)
+    stage.SetDefaultPrim(root)
+    Usd.ModelAPI(root).SetKind("component")
+    for mesh_name, mb in meshes.items():
+        define_mesh(stage, f"/{name}/{mesh_name}", mb)
+    stage.Save()
+    return stage
+
+
+# --------------------------------------------------------------------------
+# City: building assets
+# --------------------------------------------------------------------------
+
+GLASS = (0.10, 0.15, 0.22)
+
+
+def add_facade(mb, origin, u, n, width, y0, floors, floor_h, bays, wall, reveal,
+               glass=GLASS, win_w=0.6, win_h=0.55, sill=0.3, depth=0.25):
+    """Facade grid with recessed windows.
+
+    Each bay x floor cell is 4 wall strips framing the opening, 4 reveal
+    quads (sill, head, jambs) stepping ``depth`` back, and a glass pane.
+    Cells share edges so the facade is one watertight sheet.
+    """
+    origin, u, n = (np.asarray(a, dtype=float) for a in (origin, u, n))
+    cw = width / bays
+    s0, s1 = cw * (1 - win_w) / 2, cw * (1 + win_w) / 2
+    t0, t1 = floor_h * sill, floor_h * (sill + win_h)
+    for f in range(floors):
+        for b in range(bays):
+            base = origin + u * (b * cw) + UP * (y0 + f * floor_h)
+
+            def p(s, t, d=0.0):
+                return base + u * s + UP * t - n * d
+
+            h = floor_h
+            mb.add_poly([p(0, 0), p(cw, 0), p(cw, t0), p(0, t0)], wall, n)
+            mb.add_poly([p(0, t1), p(cw, t1), p(cw, h), p(0, h)], wall, n)
+            mb.add_poly([p(0, t0), p(s0, t0), p(s0, t1), p(0, t1)], wall, n)
+            mb.add_poly([p(s1, t0), p(cw, t0), p(cw, t1), p(s1, t1)], wall, n)
+            d = depth
+            mb.add_poly([p(s0, t0), p(s1, t0), p(s1, t0, d), p(s0, t0, d)], reveal, UP)
+            mb.add_poly([p(s0, t1), p(s1, t1), p(s1, t1, d), p(s0, t1, d)], reveal, -UP)
+            mb.add_poly([p(s0, t0), p(s0, t1), p(s0, t1, d), p(s0, t0, d)], reveal, u)
+            mb.add_poly([p(s1, t0), p(s1, t1), p(s1, t1, d), p(s1, t0, d)], reveal, -u)
+            mb.add_poly([p(s0, t0, d), p(s1, t0, d), p(s1, t1, d), p(s0, t1, d)], glass, n)
+
+
+def facade_sides(x0, x1, z0, z1):
+    """(origin, u, outward normal, width) of the 4 sides of a footprint.
+
+    u = up x n so that (u, up) is counter-clockwise seen from outside.
+    """
+    return [
+        ((x0, 0, z1), (1, 0, 0), (0, 0, 1), x1 - x0),    # south (+Z)
+        ((x1, 0, z0), (-1, 0, 0), (0, 0, -1), x1 - x0),  # north (-Z)
+        ((x1, 0, z1), (0, 0, -1), (1, 0, 0), z1 - z0),   # east (+X)
+        ((x0, 0, z0), (0, 0, 1), (-1, 0, 0), z1 - z0),   # west (-X)
+    ]
+
+
+def add_tier(mb, half_x, half_z, y0, floors, floor_h, bays, wall, reveal,
+             roof=True, bottom=True, **kw):
+    """Box tier: four recessed-window facades + roof slab + floor.
+
+    Stacked tiers skip the hidden slab between them (roof/bottom = False) so
+    no coincident back-to-back faces are generated.
+    """
+    x0, x1, z0, z1 = -half_x, half_x, -half_z, half_z
+    for (ox, _, oz), u, n, width in facade_sides(x0, x1, z0, z1):
+        nb = bays[0] if n[2] else bays[1]
+        add_facade(mb, (ox, 0, oz), u, n, width, y0, floors, floor_h, nb, wall, reveal, **kw)
+    top = y0 + floors * floor_h
+    if roof:
+        mb.add_poly([(x0, top, z0), (x1, top, z0), (x1, top, z1), (x0, top, z1)], wall, UP)
+    if bottom:
+        mb.add_poly([(x0, y0, z0), (x1, y0, z0), (x1, y0, z1), (x0, y0, z1)], wall, -UP)
+    return top
+
+
+def add_parapet(mb, half_x, half_z, y, color, thick=0.25, height=1.1):
+    """Thin roof-edge walls (detail thinner than a voxel)."""
+    x0, x1, z0, z1 = -half_x, half_x, -half_z, half_z
+    mb.add_box((x0, y, z1 - thick), (x1, y + height, z1), color)
+    mb.add_box((x0, y, z0), (x1, y + height, z0 + thick), color)
+    mb.add_box((x1 - thick, y, z0 + thick), (x1, y + height, z1 - thick), color)
+    mb.add_box((x0, y, z0 + thick), (x0 + thick, y + height, z1 - thick), color)
+
+
+def add_fins(mb, half_x, half_z, y0, y1, bays, color, thick=0.2, depth=0.6):
+    """Vertical aluminium fins at every bay line, standing off the facade."""
+    for (ox, _, oz), u, n, width in facade_sides(-half_x, half_x, -half_z, half_z):
+        nb = bays[0] if n[2] else bays[1]
+        o, u, n = np.array((ox, 0.0, oz)), np.array(u, float), np.array(n, float)
+        for b in range(1, nb):
+            c = o + u * (b * width / nb)
+            a = c - u * thick / 2
+            z = c + u * thick / 2 + n * depth
+            lo, hi = np.minimum(a, z), np.maximum(a, z)
+            mb.add_box((lo[0], y0, lo[2]), (hi[0], y1, hi[2]), color)
+
+
+def add_shades(mb, half_x, half_z, y0, floors, floor_h, color, thick=0.12, depth=0.8):
+    """Horizontal sun-shade blades above each window row, all four sides."""
+    for f in range(floors):
+        y = y0 + f * floor_h + floor_h * 0.88
+        hx, hz = half_x + depth, half_z + depth
+        mb.add_box((-hx, y, half_z), (hx, y + thick, hz), color)
+        mb.add_box((-hx, y, -hz), (hx, y + thick, -half_z), color)
+        mb.add_box((half_x, y, -half_z), (hx, y + thick, half_z), color)
+        mb.add_box((-hx, y, -half_z), (-half_x, y + thick, half_z), color)
+
+
+def add_balconies(mb, half_x, half_z, floors, floor_h, bays, slab, rail, depth=1.2):
+    """Balconies on the +Z and -Z facades: slab + three glass-thin railings."""
+    cw = 2 * half_x / bays
+    for side in (1, -1):
+        z_in = side * half_z
+        z_out = side * (half_z + depth)
+        zlo, zhi = min(z_in, z_out), max(z_in, z_out)
+        for f in range(1, floors):
+            y = f * floor_h
+            for b in range(bays):
+                x0 = -half_x + b * cw + 0.1 * cw
+                x1 = x0 + 0.8 * cw
+                mb.add_box((x0, y - 0.18, zlo), (x1, y, zhi), slab)
+                zr = z_out - side * 0.05
+                mb.add_box((x0, y, min(zr, z_out)), (x1, y + 1.0, max(zr, z_out)), rail)
+                for x in (x0, x1 - 0.05):
+                    mb.add_box((x, y, zlo), (x + 0.05, y + 1.0, zhi), rail)
+
+
+def building_tower_fins():
+    """16-storey office tower: fins, parapet, octagonal penthouse, antenna."""
+    core, fins, roof = MeshBuilder(), MeshBuilder(), MeshBuilder()
+    wall, reveal, metal = (0.62, 0.62, 0.60), (0.45, 0.45, 0.45), (0.72, 0.74, 0.78)
+    h = 5.1
+    top = add_tier(core, h, h, 0.0, 16, 3.5, (4, 4), wall, reveal, win_w=0.7)
+    add_fins(fins, h, h, 0.0, top, (4, 4), metal)
+    add_parapet(roof, h, h, top, wall)
+    roof.add_cylinder((0, 0), 2.4, top, top + 3.5, 8, (0.5, 0.5, 0.52), phase=math.pi / 8)
+    roof.add_cylinder((0, 0), 0.08, top + 3.5, top + 13.5, 6, metal)
+    return {"facade": core, "fins": fins, "roof": roof}
+
+
+def building_apartments():
+    """9-storey brick apartments with balconies and a gabled stair house."""
+    core, balc, roof = MeshBuilder(), MeshBuilder(), MeshBuilder()
+    brick, reveal = (0.55, 0.28, 0.20), (0.62, 0.58, 0.52)
+    hx, hz = 5.5, 3.9
+    top = add_tier(core, hx, hz, 0.0, 9, 3.0, (4, 3), brick, reveal)
+    add_balconies(balc, hx, hz, 9, 3.0, 4, (0.70, 0.70, 0.68), (0.20, 0.22, 0.24))
+    add_parapet(roof, hx, hz, top, brick, thick=0.3, height=0.9)
+    # Stair house: pentagonal (gable) profile extruded along X -> 5-gon caps.
+    gable = [(-1.5, 0.0), (1.5, 0.0), (1.5, 2.6), (0.0, 3.6), (-1.5, 2.6)]
+    roof.add_prism(gable, (-1.5, top, 0.5), (0, 0, -1), (0, 1, 0), -1.4, 1.4,
+                   (0.58, 0.32, 0.24), cap_color=(0.58, 0.32, 0.24))
+    return {"facade": core, "balconies": balc, "roof": roof}
+
+
+def building_stepped_tower():
+    """Art-deco setback tower: three tiers, parapets, hexagonal spire."""
+    core, roof = MeshBuilder(), MeshBuilder()
+    stone, reveal = (0.78, 0.72, 0.60), (0.60, 0.55, 0.46)
+    glass = (0.10, 0.22, 0.24)
+    y = 0.0
+    for tier, (half, floors, bays) in enumerate(((5.3, 10, 4), (4.1, 7, 3), (2.9, 5, 2))):
+        # Setback roofs are exposed; the floor of an upper tier is hidden.
+        y = add_tier(core, half, half, y, floors, 3.4, (bays, bays), stone, reveal,
+                     bottom=tier == 0, glass=glass, win_w=0.5, win_h=0.6)
+        add_parapet(roof, half, half, y, stone, thick=0.28, height=0.8)
+    roof.add_cylinder((0, 0), 1.6, y, y + 2.5, 6, stone)
+    roof.add_pyramid((0, 0), 1.6, y + 2.5, 9.0, 6, (0.55, 0.58, 0.60))
+    return {"facade": core, "roof": roof}
+
+
+def building_shop():
+    """3-storey shop house: big shop windows, awnings, heptagonal water tank."""
+    core, awn, roof = MeshBuilder(), MeshBuilder(), MeshBuilder()
+    stucco, reveal = (0.80, 0.62, 0.40), (0.55, 0.45, 0.35)
+    h = 5.2
+    add_tier(core, h, h, 0.0, 1, 4.5, (2, 2), stucco, reveal, roof=False,
+             win_w=0.8, win_h=0.6, sill=0.1)
+    top = add_tier(core, h, h, 4.5, 2, 3.2, (4, 4), stucco, reveal, bottom=False)
+    red = (0.60, 0.12, 0.10)
+    for (ox, _, oz), u, n, width in facade_sides(-h, h, -h, h):
+        o, u, n = np.array((ox, 0.0, oz)), np.array(u, float), np.array(n, float)
+        for b in range(2):
+            # Sloped thin awning over each shop window.
+            a = o + u * (width * (b * 0.5 + 0.05)) + UP * 3.7
+            c = o + u * (width * (b * 0.5 + 0.45)) + UP * 3.7
+            mid = (a + c) / 2
+            # up_hint is the awning's normal, so the width runs along u.
+            awn.add_beam(mid, mid + n * 1.4 - UP * 0.5, width * 0.4, 0.08, red,
+                         up_hint=UP * 1.4 + n * 0.5)
+    add_parapet(roof, h, h, top, stucco, thick=0.25, height=0.7)
+    legs_top = top + 2.0
+    for sx, sz in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        roof.add_box((sx * 1.2 - 0.08, top, sz * 1.2 - 0.08), (sx * 1.2 + 0.08, legs_top, sz * 1.2 + 0.08),
+                     (0.3, 0.3, 0.3))
+    wood = (0.45, 0.32, 0.20)
+    roof.add_cylinder((0, 0), 1.6, legs_top, legs_top + 2.6, 7, wood)
+    roof.add_pyramid((0, 0), 1.7, legs_top + 2.6, 0.9, 7, (0.3, 0.3, 0.3))
+    return {"facade": core, "awnings": awn, "roof": roof}
+
+
+def building_slab():
+    """10-storey slab block wrapped in horizontal sun-shade blades."""
+    core, shades, roof = MeshBuilder(), MeshBuilder(), MeshBuilder()
+    panel, reveal = (0.85, 0.85, 0.82), (0.60, 0.60, 0.58)
+    hx, hz = 5.0, 3.3
+    top = add_tier(core, hx, hz, 0.0, 10, 3.2, (5, 2), panel, reveal, win_w=0.75)
+    add_shades(shades, hx, hz, 0.0, 10, 3.2, (0.30, 0.32, 0.35))
+    add_parapet(roof, hx, hz, top, panel, thick=0.2, height=1.0)
+    roof.add_box((-3.5, top, -1.5), (-1.0, top + 2.2, 1.5), (0.5, 0.5, 0.5))
+    roof.add_cylinder((2.5, 0), 1.0, top, top + 1.8, 5, (0.5, 0.5, 0.52))
+    return {"facade": core, "shades": shades, "roof": roof}
+
+
+BUILDINGS = {
+    # name: (builder, relative frequency in the layout)
+    "building_a": (building_tower_fins, 0.16),
+    "building_b": (building_apartments, 0.28),
+    "building_c": (building_stepped_tower, 0.08),
+    "building_d": (building_shop, 0.28),
+    "building_e": (building_slab, 0.20),
+}
+
+
+def write_building_assets(out_dir):
+    """Write each building as its own .usdc; returns {name: (tris, half_extent)}."""
+    info = {}
+    for name, (builder, _) in BUILDINGS.items():
+        meshes = builder()
+        write_asset(os.path.join(out_dir, "assets", f"{name}.usdc"), name, meshes)
+        pts = np.concatenate([np.array(m.points) for m in meshes.values()])
+        half = float(np.max(np.abs(pts[:, [0, 2]])))
+        info[name] = (sum(m.triangle_count for m in meshes.values()), half)
+    return info
+
+
+# --------------------------------------------------------------------------
+# City stage
+# --------------------------------------------------------------------------
+
+BLOCKS, BLOCK, STREET, SIDEWALK = 6, 44.0, 14.0, 3.0
+CITY = BLOCKS * BLOCK + (BLOCKS + 1) * STREET  # 362 m across
+CURB = 0.15
+
+
+def street_centers():
+    return [-CITY / 2 + STREET / 2 + k * (BLOCK + STREET) for k in range(BLOCKS + 1)]
+
+
+def block_origin(i):
+    return -CITY / 2 + STREET + i * (BLOCK + STREET)
+
+
+def layout_buildings(stage, info, rng):
+    """Instance building assets on a 3x3 lot grid per block (some lots empty)."""
+    names = list(BUILDINGS)
+    weights = np.array([BUILDINGS[n][1] for n in names])
+    weights /= weights.sum()
+    lot = (BLOCK - 2 * SIDEWALK) / 3
+    Usd.ModelAPI(UsdGeom.Xform.Define(stage, "/World/City").GetPrim()).SetKind("group")
+    count, tris = 0, 0
+    for bi in range(BLOCKS):
+        for bj in range(BLOCKS):
+            block_path = f"/World/City/Block_{bi * BLOCKS + bj:02d}"
+            Usd.ModelAPI(UsdGeom.Xform.Define(stage, block_path).GetPrim()).SetKind("group")
+            for li in range(3):
+                for lj in range(3):
+                    if rng.random() < 0.1:
+                        continue  # plaza / parking lot
+                    name = names[rng.choice(len(names), p=weights)]
+                    jitter = rng.uniform(-2.0, 2.0)
+                    yaw = 90.0 * rng.integers(4) + jitter
+                    # Largest scale that keeps the rotated footprint in its lot.
+                    half = info[name][1]
+                    j = math.radians(abs(jitter))
+                    max_s = (lot / 2 - 0.3) / (half * (math.cos(j) + math.sin(j)))
+                    s_xz = min(rng.uniform(0.88, 1.08), max_s)
+                    s_y = s_xz * rng.uniform(0.85, 1.2)
+                    x = block_origin(bi) + SIDEWALK + (li + 0.5) * lot
+                    z = block_origin(bj) + SIDEWALK + (lj + 0.5) * lot
+                    prim = stage.DefinePrim(f"{block_path}/bldg_{count:03d}", "Xform")
+                    prim.GetReferences().AddReference(f"./assets/{name}.usdc")
+                    prim.SetInstanceable(True)
+                    xf = UsdGeom.Xformable(prim)
+                    xf.AddTranslateOp().Set(Gf.Vec3d(x, CURB, z))
+                    xf.AddRotateYOp().Set(float(yaw))
+                    xf.AddScaleOp().Set(Gf.Vec3f(s_xz, s_y, s_xz))
+                    count += 1
+                    tris += info[name][0]
+    return count, tris
+
+
+def city_ground_meshes():
+    """Asphalt, terrain beyond the city, raised sidewalk blocks, lane dashes."""
+    terrain, asphalt, walks, marks = MeshBuilder(), MeshBuilder(), MeshBuilder(), MeshBuilder()
+    big, half = 700.0, CITY / 2
+    terrain_c = (0.30, 0.36, 0.22)
+    # Terrain: ring of four slabs around the city, top at ground level.
+    for lo, hi in (((-big, -0.3, -big), (big, 0.0, -half)), ((-big, -0.3, half), (big, 0.0, big)),
+                   ((-big, -0.3, -half), (-half, 0.0, half)), ((half, -0.3, -half), (big, 0.0, half))):
+        terrain.add_box(lo, hi, terrain_c)
+    asphalt.add_box((-half, -0.3, -half), (half, 0.0, half), (0.18, 0.18, 0.19))
+    # One raised block (sidewalk + lots) per city block; its sides are curbs.
+    for bi in range(BLOCKS):
+        for bj in range(BLOCKS):
+            x0, z0 = block_origin(bi), block_origin(bj)
+            x1, z1 = x0 + BLOCK, z0 + BLOCK
+            walks.add_box((x0, 0.0, z0), (x1, CURB, z1), (0.55, 0.54, 0.52))
+            # Kerb stones: a lighter, slightly lower strip around the block.
+            kerb, k, h = (0.68, 0.68, 0.66), 0.2, CURB - 0.02
+            walks.add_box((x0 - k, 0.0, z0 - k), (x1 + k, h, z0), kerb)
+            walks.add_box((x0 - k, 0.0, z1), (x1 + k, h, z1 + k), kerb)
+            walks.add_box((x0 - k, 0.0, z0), (x0, h, z1), kerb)
+            walks.add_box((x1, 0.0, z0), (x1 + k, h, z1), kerb)
+    # Dashed centre lines between intersections.
+    dash_c = (0.85, 0.80, 0.45)
+    for c in street_centers():
+        for i in range(BLOCKS):
+            start = block_origin(i) + 1.5
+            for k in range(int((BLOCK - 3.0) // 6.0) + 1):
+                a = start + k * 6.0
+                marks.add_box((c - 0.08, 0.0, a), (c + 0.08, 0.01, a + 3.0), dash_c)
+                marks.add_box((a, 0.0, c - 0.08), (a + 3.0, 0.01, c + 0.08), dash_c)
+    return {"Terrain": terrain, "Asphalt": asphalt, "Sidewalks": walks, "Markings": marks}
+
+
+def city_light_positions(rng, n, times):
+    """Lights drifting along the 14 streets, bobbing at 2-8 m.
+
+    Start points keep a margin so no light wraps around within the shot.
+    """
+    centers = np.array(street_centers())
+    street = rng.integers(0, 2 * len(centers), n)
+    axis = street % 2  # 0: runs along X, 1: runs along Z
+    line = centers[street // 2]
+    speed = rng.uniform(0.5, 2.5, n) * rng.choice([-1.0, 1.0], n)
+    margin = 3.0 * times[-1] + 2.0
+    s0 = rng.uniform(-CITY / 2 + margin, CITY / 2 - margin, n)
+    lateral = rng.uniform(-5.5, 5.5, n)
+    h0 = rng.uniform(2.5, 7.5, n)
+    bob_amp = rng.uniform(0.1, 0.4, n)
+    bob_freq = rng.uniform(0.3, 1.0, n)
+    phase = rng.uniform(0, 2 * math.pi, n)
+    t = times[:, None]
+    s = s0 + speed * t
+    y = h0 + bob_amp * np.sin(2 * math.pi * bob_freq * t + phase)
+    across = np.broadcast_to(line + lateral, s.shape)
+    x = np.where(axis == 0, s, across)
+    z = np.where(axis == 0, across, s)
+    return np.stack([x, y, z], axis=-1)
+
+
+def street_samples(rng, m=256):
+    """Random points on the street surface (for intensity calibration)."""
+    centers = np.array(street_centers())
+    line = centers[rng.integers(0, len(centers), m)] + rng.uniform(-6, 6, m)
+    along = rng.uniform(-CITY / 2, CITY / 2, m)
+    flip = rng.random(m) < 0.5
+    pts = np.stack([np.where(flip, line, along), np.zeros(m), np.where(flip, along, line)], -1)
+    return pts, np.tile(UP, (m, 1))
+
+
+def make_city(out_dir):
+    rng = np.random.default_rng(1001)
+    info = write_building_assets(out_dir)
+    path = os.path.join(out_dir, "city.usda")
+    stage = new_stage(path, 1, 48)
+    anim = add_anim_layer(stage, out_dir, "city_lights")
+    n_bldg, bldg_tris = layout_buildings(stage, info, rng)
+
+    UsdGeom.Xform.Define(stage, "/World/Streets")
+    street_tris = 0
+    for name, mb in city_ground_meshes().items():
+        define_mesh(stage, f"/World/Streets/{name}", mb)
+        street_tris += mb.triangle_count
+    total = bldg_tris + street_tris
+    assert total >= 500_000, total
+
+    frames, times = frame_times(1, 48)
+    n = 1024
+    positions = city_light_positions(rng, n, times)
+    protos = ["warm", "cool", "white"]
+    proto_idx = rng.choice(3, n, p=[0.5, 0.25, 0.25])
+    samples, normals = street_samples(rng)
+    # Streets are canyons: buildings block most lights and the bird's-eye view
+    # mostly sees roofs above the 2-8 m bulbs.  An unshadowed street target of
+    # 0.85 measured ~0.1 mean pixel (albedo 0.5, shadow rays) from main_cam.
+    intensity = calibrate_intensity(positions[0], 0.1, samples, normals, target=0.85)
+    define_light_instancer(stage, anim, "/World/Lights", protos, 0.1, intensity,
+                           proto_idx, positions, frames)
+
+    # Bird's-eye 3/4 view from the south-west corner, whole city in frame.
+    el, az, dist = math.radians(36.0), math.radians(-45.0), 560.0
+    target = np.array((0.0, 0.0, 0.0))
+    eye = target + dist * np.array((math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)))
+    define_camera(stage, eye, target, (1.0, 3000.0))
+    define_render_settings(stage, "out/city.####.exr")
+    stage.Save()
+    return {"buildings": n_bldg, "expanded_tris": total, "intensity": intensity}
+
+
+# --------------------------------------------------------------------------
+# Planes stage
+# --------------------------------------------------------------------------
+
+PLANE_LENGTH = 30.0
+
+
+def write_airplane_asset(out_dir):
+    """pyvista's airplane.ply (inches-ish, nose at -Y, up +Z) -> 30 m, nose +Z, up +Y."""
+    from pyvista import examples
+    mesh = examples.load_airplane()
+    pts = np.asarray(mesh.points, dtype=float)
+    faces = np.asarray(mesh.regular_faces)
+    # (X, Y, Z) = (x, z, -y) is a proper rotation: wings on X, up Y, nose +Z.
+    pts = np.stack([pts[:, 0], pts[:, 2], -pts[:, 1]], axis=1)
+    pts -= (pts.min(0) + pts.max(0)) / 2
+    pts *= PLANE_LENGTH / (pts[:, 2].max() - pts[:, 2].min())
+    mb = MeshBuilder()
+    mb.points = [tuple(round(float(c), 5) for c in p) for p in pts]
+    mb.counts = [3] * len(faces)
+    mb.indices = [int(i) for i in faces.ravel()]
+    mb.colors = [(0.80, 0.81, 0.84)] * len(faces)
+    write_asset(os.path.join(out_dir, "assets", "airplane.usdc"), "airplane", {"body": mb})
+    return mb.triangle_count
+
+
+def plane_paths(times):
+    """Two planes in formation on a gentle banked left turn over the city.
+
+    The leader is over the city centre mid-shot; bank follows tan(phi) =
+    v^2 / (g R) so the attitude is physically plausible.
+    """
+    speed, radius, alt = 75.0, 1500.0, 150.0  # tallest towers reach ~110 m
+    center = np.array((radius, alt, 0.0))
+    bank = math.atan(speed ** 2 / (9.81 * radius))
+    theta = math.pi + speed / radius * (times - times[-1] / 2)
+    offsets = [np.array((0.0, 0.0, 0.0)), np.array((-22.0, -4.0, 28.0))]  # (side, up, back)
+    positions, orientations, headings = [], [], []
+    for th in theta:
+        p = center + radius * np.array((math.cos(th), 0.0, math.sin(th)))
+        fwd = np.array((-math.sin(th), 0.0, math.cos(th)))
+        inward = unit(np.array((center[0], 0, center[2])) - np.array((p[0], 0, p[2])))
+        up = math.cos(bank) * UP + math.sin(bank) * inward
+        right = np.cross(up, fwd)  # local +X (wing)
+        q = basis_quat(right, up, fwd)
+        positions.append([p + o[0] * right + o[1] * up - o[2] * fwd for o in offsets])
+        orientations.append([q, q])
+        headings.append(fwd)
+    return np.array(positions), np.array(orientations), np.array(headings)
+
+
+def make_planes(out_dir):
+    tris = write_airplane_asset(out_dir)
+    path = os.path.join(out_dir, "planes.usda")
+    stage = new_stage(path, 1, 48)
+    anim = add_anim_layer(stage, out_dir, "planes_anim")
+    # City (and its animated lights) comes in as the weakest sublayer.
+    stage.GetRootLayer().subLayerPaths.append("./city.usda")
+
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/Planes")
+    UsdGeom.Scope.Define(stage, "/World/Planes/Prototypes")
+    proto = stage.DefinePrim("/World/Planes/Prototypes/airplane", "Xform")
+    proto.GetReferences().AddReference("./assets/airplane.usdc")
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    pi.CreateProtoIndicesAttr(Vt.IntArray([0, 0]))
+    pi.CreateIdsAttr(Vt.Int64Array([0, 1]))
+    frames, times = frame_times(1, 48)
+    positions, orientations, headings = plane_paths(times)
+    set_instancer_xforms(stage, anim, pi, frames, positions, orientations)
+
+    # Chase camera: behind, above and to the right of the pair, looking a
+    # little ahead of them so the city fills the lower part of the frame.
+    mid = positions.mean(axis=1)
+    right = np.cross(UP, headings)
+    eyes = mid - 110.0 * headings + 40.0 * UP + 55.0 * right
+    targets = mid + 30.0 * headings - 25.0 * UP
+    set_camera_xform(UsdGeom.Camera(stage.OverridePrim("/World/main_cam")), eyes, targets, frames)
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/main_cam"))
+    cam.GetClippingRangeAttr().Set(Gf.Vec2f(1.0, 4000.0))
+
+    UsdRender.Product(stage.GetPrimAtPath("/Render/Product")).GetProductNameAttr().Set("out/planes.####.exr")
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.Save()
+    return {"plane_tris": tris}
+
+
+# --------------------------------------------------------------------------
+# Creature stage (UsdSkel bear)
+# --------------------------------------------------------------------------
+
+BEAR_SCALE = 0.25  # warp's bear is ~5.5 units tall; 0.25 -> 1.4 m at the ears
+
+# (joint path, parent index) - parents always precede children.
+BEAR_JOINTS = [
+    "root", "root/spine", "root/spine/head",
+    "root/spine/leg_fl", "root/spine/leg_fl/knee_fl",
+    "root/spine/leg_fr", "root/spine/leg_fr/knee_fr",
+    "root/leg_bl", "root/leg_bl/knee_bl",
+    "root/leg_br", "root/leg_br/knee_br",
+    "root/tail",
+]
+
+
+def load_bear():
+    """Points/topology of the first Mesh in warp's bundled bear.usd."""
+    import warp.examples
+    src = Usd.Stage.Open(os.path.join(warp.examples.get_asset_directory(), "bear.usd"))
+    mesh = next(UsdGeom.Mesh(p) for p in src.Traverse() if p.IsA(UsdGeom.Mesh))
+    xf = np.array(mesh.ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    pts = np.array(mesh.GetPointsAttr().Get(), dtype=float)
+    pts = (np.c_[pts, np.ones(len(pts))] @ xf)[:, :3] * BEAR_SCALE
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
+    indices = np.array(mesh.GetFaceVertexIndicesAttr().Get())
+    return pts, counts, indices
+
+
+def bear_joints(pts):
+    """Joint positions + bone segment ends, measured from the mesh.
+
+    The bear faces +Z (ears/snout at +Z), left is +X.  Leg columns are found
+    from the vertices between ankle and belly height in each quadrant.
+    """
+    y = pts[:, 1]
+    col = pts[(y > 0.12) & (y < 0.5)]
+    front_z = col[col[:, 2] > -0.15, 2].mean()
+    back_z = col[col[:, 2] <= -0.15, 2].mean()
+    legs = {}
+    for name, front, side in (("fl", True, 1), ("fr", True, -1), ("bl", False, 1), ("br", False, -1)):
+        sel = col[((col[:, 2] > -0.15) == front) & (np.sign(col[:, 0]) == side)]
+        legs[name] = (sel[:, 0].mean(), sel[:, 2].mean())
+    zmin, zmax = pts[:, 2].min(), pts[:, 2].max()
+    pos = {
+        "root": (0.0, 0.85, back_z), "root/spine": (0.0, 0.88, front_z),
+        "root/spine/head": (0.0, 1.0, 0.62), "root/tail": (0.0, 0.95, zmin + 0.22),
+    }
+    ends = {"root": pos["root/spine"], "root/spine": pos["root/spine/head"],
+            "root/spine/head": (0.0, 1.0, zmax), "root/tail": (0.0, 0.95, zmin)}
+    for name, (x, z) in legs.items():
+        parent = "root/spine" if name[0] == "f" else "root"
+        hip, knee = f"{parent}/leg_{name}", f"{parent}/leg_{name}/knee_{name}"
+        pos[hip], pos[knee] = (x, 0.62, z), (x, 0.30, z)
+        ends[hip], ends[knee] = pos[knee], (x, 0.0, z)
+    order = BEAR_JOINTS
+    return (np.array([pos[j] for j in order]), np.array([ends[j] for j in order]))
+
+
+def segment_distance(p, a, b):
+    ab = b - a
+    t = np.clip(((p - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+
+
+def skin_weights(pts, starts, ends, influences=4, falloff=0.03):
+    """Smooth bone-distance weights, top-4, normalized.
+
+    w_j = exp(-(d_j - d_min) / falloff); leg bones are additionally masked by
+    a soft side test so the inner faces of the left and right legs (only a
+    few cm apart) do not drag each other along.
+    """
+    d = np.stack([segment_distance(pts, a, b) for a, b in zip(starts, ends)], axis=1)
+    w = np.exp(-(d - d.min(axis=1, keepdims=True)) / falloff)
+    for j, name in enumerate(BEAR_JOINTS):
+        side = {"l": 1.0, "r": -1.0}.get(name[-1]) if "leg_" in name or "knee_" in name else None
+        if side is not None:
+            w[:, j] *= 1.0 / (1.0 + np.exp(-side * pts[:, 0] / 0.02))
+    # Stable sort so ties resolve the same way on every run.
+    order = np.argsort(-w, axis=1, kind="stable")[:, :influences]
+    top = np.take_along_axis(w, order, axis=1)
+    top /= top.sum(axis=1, keepdims=True)
+    return order.astype(np.int32), top.astype(np.float32)
+
+
+def translation_matrix(t):
+    return Gf.Matrix4d().SetTranslate(Gf.Vec3d(*[float(c) for c in t]))
+
+
+def write_bear_asset(out_dir):
+    """Rigged bear: SkelRoot > Skeleton + skinned Mesh (bind pose = rest)."""
+    pts, counts, indices = load_bear()
+    joints, ends = bear_joints(pts)
+    jidx, jw = skin_weights(pts, joints, ends)
+
+    path = os.path.join(out_dir, "assets", "bear.usdc")
+    remove(path)
+    stage = Usd.Stage.CreateNew(path)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    root = UsdSkel.Root.Define(stage, "/bear")
+    stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root).SetKind("component")
+
+    skel = UsdSkel.Skeleton.Define(stage, "/bear/Skel")
+    skel.CreateJointsAttr(BEAR_JOINTS)
+    parents = [BEAR_JOINTS.index(j.rsplit("/", 1)[0]) if "/" in j else -1 for j in BEAR_JOINTS]
+    # Joint frames are axis-aligned: bind = world translation, rest = offset
+    # from the parent, so rest composes exactly to bind.
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([translation_matrix(p) for p in joints]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([
+        translation_matrix(joints[j] - (joints[p] if p >= 0 else 0.0)) for j, p in enumerate(parents)]))
+
+    mesh = UsdGeom.Mesh.Define(stage, "/bear/Body")
+    points = Vt.Vec3fArray.FromNumpy(pts.astype(np.float32))
+    mesh.CreatePointsAttr(points)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray(counts.tolist()))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(indices.tolist()))
+    mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(points))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    set_display_color(mesh, [(0.36, 0.24, 0.15)])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 4).Set(Vt.IntArray(jidx.ravel().tolist()))
+    binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray(jw.ravel().tolist()))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    stage.Save()
+    return joints, parents, len(counts)
+
+
+def walk_cycle(joints, parents, times, speed=0.9, period=1.0):
+    """Per-frame local translations and rotations for a diagonal-pair walk."""
+    rest = [joints[j] - (joints[p] if p >= 0 else 0.0) for j, p in enumerate(parents)]
+    x_axis, y_axis, z_axis = (1, 0, 0), (0, 1, 0), (0, 0, 1)
+    phase_of = {"fl": 0.0, "br": 0.0, "fr": math.pi, "bl": math.pi}
+    trans, rots = [], []
+    for t in times:
+        ph = 2 * math.pi * t / period
+        tr = [np.array(r, dtype=float) for r in rest]
+        tr[0] = tr[0] + np.array((0.0, 0.03 * abs(math.sin(ph)), speed * t))
+        rot = []
+        for name in BEAR_JOINTS:
+            leaf = name.rsplit("/", 1)[-1]
+            if leaf == "root":
+                q = axis_angle_quat(z_axis, math.radians(3) * math.sin(ph))
+            elif leaf == "spine":
+                q = axis_angle_quat(y_axis, math.radians(4) * math.sin(ph))
+            elif leaf == "head":
+                q = quat_mul(axis_angle_quat(x_axis, math.radians(6) * math.sin(2 * ph)),
+                             axis_angle_quat(y_axis, math.radians(8) * math.sin(0.5 * ph)))
+            elif leaf == "tail":
+                q = axis_angle_quat(y_axis, math.radians(25) * math.sin(2 * ph))
+            elif leaf.startswith("leg_"):
+                q = axis_angle_quat(x_axis, math.radians(22) * math.sin(ph + phase_of[leaf[-2:]]))
+            else:  # knee: bends only while the foot swings forward
+                bend = max(0.0, math.sin(ph + phase_of[leaf[-2:]] + math.pi / 2))
+                q = axis_angle_quat(x_axis, -math.radians(28) * bend)
+            rot.append(q)
+        trans.append(tr)
+        rots.append(rot)
+    return trans, rots
+
+
+def creature_light_positions(rng, n, times, center):
+    """Firefly swarm: slow orbits around the bear's path with bobbing."""
+    r = np.sqrt(rng.uniform(2.5 ** 2, 10.0 ** 2, n))
+    a0 = rng.uniform(0, 2 * math.pi, n)
+    omega = rng.uniform(0.1, 0.5, n) * rng.choice([-1.0, 1.0], n)
+    h0 = rng.uniform(0.4, 4.0, n)
+    bob = rng.uniform(0.05, 0.3, n)
+    freq = rng.uniform(0.3, 1.2, n)
+    ph = rng.uniform(0, 2 * math.pi, n)
+    t = times[:, None]
+    a = a0 + omega * t
+    x = center[0] + r * np.cos(a)
+    z = center[2] + r * np.sin(a)
+    y = h0 + bob * np.sin(2 * math.pi * freq * t + ph)
+    return np.stack([x, y, z], axis=-1)
+
+
+def ground_grid(size, quads, color, center=(0.0, 0.0)):
+    mb = MeshBuilder()
+    step = size / quads
+    x0, z0 = center[0] - size / 2, center[1] - size / 2
+    for i in range(quads):
+        for j in range(quads):
+            a, b = x0 + i * step, z0 + j * step
+            mb.add_poly([(a, 0, b), (a + step, 0, b), (a + step, 0, b + step), (a, 0, b + step)], color, UP)
+    return mb
+
+
+def make_creature(out_dir):
+    rng = np.random.default_rng(3003)
+    joints, parents, bear_tris = write_bear_asset(out_dir)
+    path = os.path.join(out_dir, "creature.usda")
+    stage = new_stage(path, 1, 48)
+    anim_layer = add_anim_layer(stage, out_dir, "creature_lights")
+    frames, times = frame_times(1, 48)
+
+    bear = UsdSkel.Root.Define(stage, "/World/Bear")
+    bear.GetPrim().GetReferences().AddReference("./assets/bear.usdc")
+    anim = UsdSkel.Animation.Define(stage, "/World/Bear/Walk")
+    anim.CreateJointsAttr(BEAR_JOINTS)
+    trans, rots = walk_cycle(joints, parents, times)
+    scales = Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(BEAR_JOINTS))
+    anim.CreateScalesAttr(scales)
+    t_attr, r_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr()
+    for f, tr, rot in zip(frames, trans, rots):
+        tc = Usd.TimeCode(float(f))
+        t_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, v)) for v in tr]), tc)
+        # Rounding drops float noise (-0, 1e-17) from the authored text.
+        r_attr.Set(Vt.QuatfArray([Gf.Quatf(*[round(float(c), 7) + 0.0 for c in q]) for q in rot]), tc)
+    skel_prim = stage.OverridePrim("/World/Bear/Skel")
+    UsdSkel.BindingAPI.Apply(skel_prim).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+
+    center = np.array((0.0, 0.0, 0.9))  # middle of the 1.8 m walk
+    ground = ground_grid(30.0, 40, (0.32, 0.40, 0.24), center=(center[0], center[2]))
+    define_mesh(stage, "/World/Ground", ground)
+
+    n = 1024
+    positions = creature_light_positions(rng, n, times, center)
+    proto_idx = rng.choice(3, n, p=[0.6, 0.2, 0.2])
+    sx = rng.uniform(-6, 6, 256)
+    sz = rng.uniform(-6, 6, 256) + center[2]
+    samples = np.stack([sx, np.zeros(256), sz], -1)
+    intensity = calibrate_intensity(positions[0], 0.05, samples, np.tile(UP, (256, 1)), target=0.3)
+    define_light_instancer(stage, anim_layer, "/World/Lights", ["warm", "cool", "white"], 0.05,
+                           intensity, proto_idx, positions, frames)
+
+    # 3/4 front view tracking the bear's root.
+    root_z = np.array([tr[0][2] for tr in trans])
+    targets = np.stack([np.zeros_like(root_z), np.full_like(root_z, 0.65), root_z + 0.2], -1)
+    eyes = targets + np.array((4.2, 1.6, 5.2))
+    define_camera(stage, eyes, targets, (0.1, 200.0), frames)
+    define_render_settings(stage, "out/creature.####.exr")
+    stage.Save()
+    return {"bear_tris": bear_tris, "intensity": intensity}
+
+
+def check_skinning(path, frames=(1, 12, 24, 36, 48)):
+    """Bake skinning on an in-memory flattened copy; points must move, not explode."""
+    flat = Usd.Stage.Open(path).Flatten()
+    stage = Usd.Stage.Open(flat)
+    assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(1, 48)), "BakeSkinning failed"
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Bear/Body"))
+    pts = [np.array(mesh.GetPointsAttr().Get(f)) for f in frames]
+    sizes = [p.max(0) - p.min(0) for p in pts]
+    moved = max(float(np.abs(p - pts[0]).max()) for p in pts[1:])
+    change = max(float(np.max(np.abs(s - sizes[0]) / sizes[0])) for s in sizes[1:])
+    assert moved > 0.1, f"skinned points barely move ({moved})"
+    assert change < 0.5, f"skinned bbox changes by {change:.0%}"
+    return {"max_point_motion": round(moved, 3), "max_bbox_change": round(change, 3)}
+
+
+# --------------------------------------------------------------------------
+# Cornell box
+# --------------------------------------------------------------------------
+
+def cornell_point(x, y, z):
+    """Original Cornell data (mm, camera at -Z) -> metres, turned 180 deg about
+    Y so the open side faces +Z (USD cameras look down -Z) and red is on the
+    left; a rotation keeps the winding/handedness intact."""
+    return np.array((5.56 - x * 0.01, y * 0.01, -z * 0.01))
+
+
+def make_cornell(out_dir):
+    path = os.path.join(out_dir, "cornell.usda")
+    stage = new_stage(path, 1, 1)
+    white, red, green = (0.73, 0.73, 0.73), (0.63, 0.065, 0.05), (0.14, 0.45, 0.091)
+    inside = cornell_point(278, 274, 280)
+    walls = {
+        "Floor": ([(552.8, 0, 0), (0, 0, 0), (0, 0, 559.2), (549.6, 0, 559.2)], white),
+        "Ceiling": ([(556, 548.8, 0), (556, 548.8, 559.2), (0, 548.8, 559.2), (0, 548.8, 0)], white),
+        "BackWall": ([(549.6, 0, 559.2), (0, 0, 559.2), (0, 548.8, 559.2), (556, 548.8, 559.2)], white),
+        "GreenWall": ([(0, 0, 559.2), (0, 0, 0), (0, 548.8, 0), (0, 548.8, 559.2)], green),
+        "RedWall": ([(552.8, 0, 0), (549.6, 0, 559.2), (556, 548.8, 559.2), (556, 548.8, 0)], red),
+    }
+    UsdGeom.Xform.Define(stage, "/World/Box")
+    for name, (quad, color) in walls.items():
+        mb = MeshBuilder()
+        pts = [cornell_point(*p) for p in quad]
+        mb.add_poly(pts, color, inside - sum(pts) / 4)  # walls face the interior
+        define_mesh(stage, f"/World/Box/{name}", mb)
+
+    blocks = {
+        "ShortBlock": ([(130, 65), (82, 225), (240, 272), (290, 114)], 165.0),
+        "TallBlock": ([(423, 247), (265, 296), (314, 456), (472, 406)], 330.0),
+    }
+    for name, (quad, height) in blocks.items():
+        mb = MeshBuilder()
+        pts = [cornell_point(x, 0, z) for x, z in quad]
+        mb.add_prism([(p[0], p[2]) for p in pts], (0, 0, 0), (1, 0, 0), (0, 0, 1),
+                     -height * 0.01, 0.0, white)
+        define_mesh(stage, f"/World/Box/{name}", mb)
+
+    top = cornell_point(185.5, 165, 169)
+    sphere = MeshBuilder()
+    sphere.add_uv_sphere(top + np.array((0, 0.45, 0)), 0.45, 32, 16, (0.80, 0.78, 0.70))
+    define_mesh(stage, "/World/Box/Sphere", sphere)
+
+    # Two spots hanging 0.25 m below the ceiling on thin cords.
+    UsdGeom.Xform.Define(stage, "/World/Lights")
+    cords = MeshBuilder()
+    spot_pos = [np.array((1.95, 5.238, -2.6)), np.array((3.6, 5.238, -3.0))]
+    floor_samples = np.array([(x, 0.0, z) for x in np.linspace(0.4, 5.1, 12)
+                              for z in np.linspace(-5.2, -0.4, 12)])
+    intensity = calibrate_intensity(np.array(spot_pos), 0.1, floor_samples,
+                                    np.tile(UP, (len(floor_samples), 1)), target=0.35)
+    for k, pos in enumerate(spot_pos):
+        light = UsdLux.SphereLight.Define(stage, f"/World/Lights/Spot_{k}")
+        light.CreateTreatAsPointAttr(True)
+        light.CreateRadiusAttr(0.1)
+        light.CreateNormalizeAttr(False)
+        light.CreateIntensityAttr(intensity)
+        light.CreateColorAttr(Gf.Vec3f(1.0, 0.85, 0.65))
+        shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+        shaping.CreateShapingConeAngleAttr(40.0)
+        shaping.CreateShapingConeSoftnessAttr(0.2)
+        shaping.CreateShapingFocusAttr(1.0)
+        light.AddTranslateOp().Set(Gf.Vec3d(*map(float, pos)))
+        # Lights emit along local -Z; rotateX(-90) turns -Z into -Y (down).
+        light.AddRotateXOp().Set(-90.0)
+        cords.add_cylinder((pos[0], pos[2]), 0.01, pos[1] + 0.12, 5.488, 6, (0.1, 0.1, 0.1))
+    define_mesh(stage, "/World/Lights/Cords", cords)
+
+    define_camera(stage, (2.78, 2.74, 9.9), (2.78, 2.74, -2.8), (0.1, 50.0))
+    define_render_settings(stage, "out/cornell.####.exr")
+    stage.Save()
+    return {"intensity": intensity}
+
+
+# --------------------------------------------------------------------------
+# Amusement park
+# --------------------------------------------------------------------------
+
+WHEEL_HUB = np.array((-35.0, 24.0, -25.0))
+WHEEL_R, WHEEL_GONDOLAS = 20.0, 24
+WHEEL_OMEGA = 2 * math.pi / 40.0  # rad/s, counter-clockwise seen from +Z
+CAROUSEL = np.array((35.0, 0.0, -25.0))
+CAROUSEL_OMEGA = 2 * math.pi / 12.0  # rad/s, clockwise seen from above
+RINK = np.array((0.0, 0.0, 35.0))
+RINK_HALF = (18.0, 11.0)
+N_PARK_LIGHTS = 7088
+
+
+def gondola_proto():
+    """Cabin hanging from its pivot (the origin), pentagonal-roof profile."""
+    mb = MeshBuilder()
+    mb.add_beam((0, 0, 0), (0, -0.9, 0), 0.12, 0.12, (0.3, 0.3, 0.3))
+    mb.add_box((-1.0, -2.8, -0.75), (1.0, -1.6, 0.75), (0.85, 0.25, 0.20))
+    for sx in (-0.95, 0.9):  # corner posts around the open window band
+        for sz in (-0.75, 0.7):
+            mb.add_box((sx, -1.6, sz), (sx + 0.05, -1.1, sz + 0.05), (0.9, 0.9, 0.9))
+    roof = [(-1.1, 0.0), (1.1, 0.0), (1.1, 0.15), (0.0, 0.45), (-1.1, 0.15)]
+    mb.add_prism(roof, (0, -1.1, 0), (1, 0, 0), (0, 1, 0), -0.8, 0.8, (0.95, 0.85, 0.3))
+    return mb
+
+
+def horse_proto():
+    """Blocky carousel horse facing +Z with its brass pole; origin at saddle."""
+    mb = MeshBuilder()
+    body, mane = (0.92, 0.90, 0.86), (0.55, 0.30, 0.15)
+    mb.add_box((-0.2, -0.28, -0.6), (0.2, 0.22, 0.6), body)
+    mb.add_beam((0, 0.1, 0.48), (0, 0.65, 0.78), 0.22, 0.26, body)                # neck
+    mb.add_beam((0, 0.65, 0.66), (0, 0.52, 1.08), 0.2, 0.24, body)                # head
+    mb.add_beam((0, 0.18, -0.56), (0, -0.32, -0.88), 0.08, 0.1, mane)             # tail
+    for x in (-0.12, 0.12):
+        mb.add_beam((x, -0.22, 0.48), (x, -0.62, 0.84), 0.09, 0.1, body)          # front legs, leaping
+        mb.add_beam((x, -0.22, -0.48), (x, -0.76, -0.72), 0.09, 0.1, body)        # hind legs
+    mb.add_box((-0.22, 0.22, -0.25), (0.22, 0.29, 0.18), (0.7, 0.1, 0.15))        # saddle
+    mb.add_cylinder((0, 0), 0.04, -1.75, 3.1, 6, (0.85, 0.7, 0.3))                # pole
+    return mb
+
+
+def bumper_car_proto():
+    """Bumper car facing +Z: octagonal rubber skirt, body, seat, trolley pole."""
+    mb = MeshBuilder()
+    skirt = [(0.75 * math.cos(a) * 1.0, 1.15 * math.sin(a)) for a in
+             [math.pi / 8 + k * math.pi / 4 for k in range(8)]]
+    mb.add_prism(skirt, (0, 0, 0), (1, 0, 0), (0, 0, 1), -0.35, -0.05, (0.1, 0.1, 0.1))
+    mb.add_box((-0.62, 0.35, -0.95), (0.62, 0.75, 0.95), (0.15, 0.35, 0.85))
+    mb.add_box((-0.45, 0.75, -0.8), (0.45, 1.25, -0.45), (0.9, 0.9, 0.2))          # seat back
+    mb.add_beam((0, 0.75, 0.55), (0, 1.05, 0.35), 0.06, 0.06, (0.2, 0.2, 0.2))   # steering column
+    mb.add_cylinder((0, 0.35), 0.16, 1.05, 1.09, 8, (0.2, 0.2, 0.2))             # steering wheel
+    mb.add_cylinder((0, -0.85), 0.03, 0.75, 2.6, 6, (0.6, 0.6, 0.6))             # trolley pole
+    return mb
+
+
+def wheel_structure():
+    """Rotating part of the ferris wheel, in hub-local coordinates."""
+    mb = MeshBuilder()
+    steel = (0.85, 0.86, 0.9)
+    segs = 48
+    for zc in (-1.5, 1.5):
+        for k in range(segs):
+            a0, a1 = 2 * math.pi * k / segs, 2 * math.pi * (k + 1) / segs
+            p0 = (WHEEL_R * math.cos(a0), WHEEL_R * math.sin(a0), zc)
+            p1 = (WHEEL_R * math.cos(a1), WHEEL_R * math.sin(a1), zc)
+            mb.add_beam(p0, p1, 0.25, 0.35, steel, up_hint=(0, 0, 1))
+        for k in range(WHEEL_GONDOLAS):
+            a = 2 * math.pi * (k + 0.5) / WHEEL_GONDOLAS
+            mb.add_beam((0, 0, zc * 0.6), (WHEEL_R * math.cos(a), WHEEL_R * math.sin(a), zc),
+                        0.15, 0.15, steel, up_hint=(0, 0, 1))
+    hub = regular_polygon(8, 1.6, math.pi / 8)
+    mb.add_prism(hub, (0, 0, 0), (1, 0, 0), (0, 1, 0), -1.8, 1.8, (0.7, 0.2, 0.2))
+    return mb
+
+
+def carousel_top():
+    """Rotating carousel: platform disc and 16-sided canopy with centre column."""
+    mb = MeshBuilder()
+    mb.add_cylinder((0, 0), 9.0, 0.3, 0.6, 16, (0.55, 0.35, 0.25))
+    mb.add_cylinder((0, 0), 1.2, 0.6, 5.2, 8, (0.9, 0.8, 0.5))
+    mb.add_cylinder((0, 0), 9.4, 5.2, 5.8, 16, (0.85, 0.2, 0.3), cap_color=(0.95, 0.9, 0.8))
+    mb.add_pyramid((0, 0), 9.4, 5.8, 3.0, 16, (0.95, 0.9, 0.8))
+    return mb
+
+
+def park_static(pole_positions):
+    """Ground, paths, rink, wheel supports, carousel base, stalls, light poles."""
+    ground = ground_grid(200.0, 20, (0.30, 0.42, 0.22))
+    paths = MeshBuilder()
+    pave = (0.62, 0.58, 0.52)
+    paths.add_box((-90, 0.0, -5), (90, 0.05, 5), pave)
+    paths.add_box((-5, 0.0, -90), (5, 0.05, 90), pave)
+    paths.add_cylinder((0, 0), 14.0, 0.0, 0.06, 8, pave)  # octagonal plaza
+
+    rides = MeshBuilder()
+    hx, hz = RINK_HALF
+    cx, cz = RINK[0], RINK[2]
+    rides.add_box((cx - hx, 0.0, cz - hz), (cx + hx, 0.2, cz + hz), (0.35, 0.36, 0.4))
+    rail = (0.9, 0.75, 0.1)
+    rides.add_box((cx - hx, 0.2, cz - hz), (cx + hx, 0.8, cz - hz + 0.3), rail)
+    rides.add_box((cx - hx, 0.2, cz + hz - 0.3), (cx + hx, 0.8, cz + hz), rail)
+    rides.add_box((cx - hx, 0.2, cz - hz + 0.3), (cx - hx + 0.3, 0.8, cz + hz - 0.3), rail)
+    rides.add_box((cx + hx - 0.3, 0.2, cz - hz + 0.3), (cx + hx, 0.8, cz + hz - 0.3), rail)
+    # Ferris wheel A-frame legs and base.
+    hub = WHEEL_HUB
+    for sz in (-1, 1):
+        for sx in (-1, 1):
+            rides.add_beam((hub[0] + sx * 9, 0, hub[2] + sz * 4.5), (hub[0], hub[1], hub[2] + sz * 2.0),
+                           0.6, 0.6, (0.8, 0.8, 0.85))
+    rides.add_box((hub[0] - 12, 0, hub[2] - 6), (hub[0] + 12, 0.4, hub[2] + 6), (0.5, 0.5, 0.55))
+    rides.add_box((hub[0] - 0.3, hub[1] - 0.3, hub[2] - 2.2), (hub[0] + 0.3, hub[1] + 0.3, hub[2] + 2.2),
+                  (0.4, 0.4, 0.45))  # axle
+    rides.add_cylinder((CAROUSEL[0], CAROUSEL[2]), 9.6, 0.0, 0.3, 16, (0.4, 0.4, 0.42))
+
+    stalls = MeshBuilder()
+    gable = [(-2.2, 0.0), (2.2, 0.0), (2.2, 0.3), (0.0, 1.4), (-2.2, 0.3)]
+    colors = [(0.9, 0.3, 0.3), (0.3, 0.5, 0.9), (0.95, 0.8, 0.2), (0.4, 0.75, 0.4)]
+    for k, (x, z) in enumerate([(-25, 12), (-15, 12), (15, 12), (25, 12), (-25, -12), (25, -12)]):
+        stalls.add_box((x - 2, 0, z - 1.5), (x + 2, 2.6, z + 1.5), (0.85, 0.8, 0.7))
+        stalls.add_prism(gable, (x, 2.6, z), (1, 0, 0), (0, 1, 0), -1.8, 1.8, colors[k % 4])
+    for x, z, h in pole_positions:
+        stalls.add_cylinder((x, z), 0.08, 0.0, h, 6, (0.25, 0.25, 0.25))
+    return {"Ground": ground, "Paths": paths, "RideStructures": rides, "Stalls": stalls}
+
+
+def ride_instances(times):
+    """Positions/orientations of gondolas, horses and bumper cars per frame."""
+    n_t = len(times)
+    pos, ori, proto = [], [], []
+
+    # Gondolas: pivots on the rotating rim, cabins stay upright with a swing.
+    k = np.arange(WHEEL_GONDOLAS)
+    ang = 2 * math.pi * (k[None] + 0.5) / WHEEL_GONDOLAS + WHEEL_OMEGA * times[:, None]
+    p = np.stack([WHEEL_HUB[0] + WHEEL_R * np.cos(ang), WHEEL_HUB[1] + WHEEL_R * np.sin(ang),
+                  np.full_like(ang, WHEEL_HUB[2])], -1)
+    swing = np.radians(4.0) * np.sin(2 * math.pi * 0.4 * times[:, None] + k[None])
+    z = np.zeros_like(swing)
+    pos.append(p)
+    ori.append(np.stack([z, z, np.sin(swing / 2), np.cos(swing / 2)], -1))
+    proto += [0] * WHEEL_GONDOLAS
+
+    # Horses: 12 + 16 + 20 on three rings (~2.4 m apart), rotating with the
+    # carousel and galloping up and down.
+    for ring, (radius, count) in enumerate(((4.5, 12), (6.2, 16), (7.9, 20))):
+        k = np.arange(count)
+        a = 2 * math.pi * (k[None] + 0.5 * ring) / count - CAROUSEL_OMEGA * times[:, None]
+        bob = 0.3 * np.sin(2 * math.pi * times[:, None] / 1.5 + k[None] * 1.7 + ring)
+        p = np.stack([CAROUSEL[0] + radius * np.cos(a), 2.0 + bob, CAROUSEL[2] + radius * np.sin(a)], -1)
+        pos.append(p)
+        ori.append(yaw_quats(math.pi - a))  # face direction of travel (clockwise)
+        proto += [1] * count
+
+    # Bumper cars: 4 elliptic lanes x 10 cars, alternating direction.
+    for lane, (a_r, b_r) in enumerate(((15.0, 8.6), (12.2, 6.4), (9.4, 4.2), (6.6, 2.0))):
+        k = np.arange(10)
+        direction = 1.0 if lane % 2 == 0 else -1.0
+        w = direction * 3.2 / ((a_r + b_r) / 2)  # ~3.2 m/s
+        th = 2 * math.pi * k[None] / 10 + lane * 0.3 + w * times[:, None]
+        p = np.stack([RINK[0] + a_r * np.cos(th), np.full_like(th, 0.2), RINK[2] + b_r * np.sin(th)], -1)
+        vx, vz = -a_r * np.sin(th) * w, b_r * np.cos(th) * w
+        pos.append(p)
+        ori.append(yaw_quats(np.arctan2(vx, vz)))
+        proto += [2] * 10
+
+    positions = np.concatenate(pos, axis=1)
+    orientations = np.concatenate(ori, axis=1)
+    assert positions.shape[:2] == (n_t, len(proto))
+    return positions, orientations, np.array(proto)
+
+
+def festoon_strings():
+    """Spans (p0, p1, sag) of bulb strings between poles along the paths.
+
+    Returns the spans and pole (x, z, height) list for the static geometry.
+    """
+    spans, poles = [], []
+    for side in (-1, 1):
+        # Main avenue (along X) and cross avenue (along Z), poles every 12 m.
+        xs = np.arange(-84.0, 85.0, 12.0)
+        for axis in (0, 1):
+            pts = [(x, 6.0, side * 6.0) if axis == 0 else (side * 6.0, 6.0, x) for x in xs
+                   if abs(x) > 15 and not (axis == 1 and x > 20)]
+            for p in pts:
+                poles.append((p[0], p[2], p[1]))
+            for a, b in zip(pts, pts[1:]):
+                if np.linalg.norm(np.subtract(a, b)) < 13:
+                    spans.append((np.array(a), np.array(b), 0.7))
+    # Zig-zag strings across the main avenue.
+    for x in np.arange(-84.0, 85.0, 12.0):
+        x_to = x + 12.0 if x < 0 else x - 12.0
+        if abs(x) > 15 and abs(x_to) > 15:  # both ends on an existing pole
+            spans.append((np.array((x, 6.0, -6.0)), np.array((x_to, 6.0, 6.0)), 1.0))
+    # Perimeter fence strings (square of half-size 92 m, poles every 16 m).
+    corners = [(-92, -92), (92, -92), (92, 92), (-92, 92)]
+    for (x0, z0), (x1, z1) in zip(corners, corners[1:] + corners[:1]):
+        n = 12
+        for k in range(n):
+            a = np.array((x0 + (x1 - x0) * k / n, 4.5, z0 + (z1 - z0) * k / n))
+            b = np.array((x0 + (x1 - x0) * (k + 1) / n, 4.5, z0 + (z1 - z0) * (k + 1) / n))
+            poles.append((a[0], a[2], 4.5))
+            spans.append((a, b, 0.5))
+    return spans, poles
+
+
+def allocate(total, weights):
+    """Split an integer total proportionally (largest remainder, deterministic)."""
+    raw = np.asarray(weights, dtype=float) / np.sum(weights) * total
+    counts = np.floor(raw).astype(int)
+    rest = total - counts.sum()
+    counts[np.argsort(-(raw - counts), kind="stable")[:rest]] += 1
+    return counts
+
+
+def park_light_positions(rng, times, spans, n_total=N_PARK_LIGHTS):
+    """All 7,088 bulbs: wheel rims/spokes, carousel canopy, rink rail, festoons."""
+    t = times[:, None]
+    groups = []
+
+    # Ferris wheel bulbs rotate rigidly with the wheel.
+    local = []
+    for zc in (-1.8, 1.8):
+        a = 2 * math.pi * np.arange(160) / 160
+        local.append(np.stack([WHEEL_R * np.cos(a), WHEEL_R * np.sin(a), np.full(160, zc)], -1))
+        for k in range(WHEEL_GONDOLAS):
+            a = 2 * math.pi * (k + 0.5) / WHEEL_GONDOLAS
+            r = np.linspace(2.0, WHEEL_R - 0.6, 12)
+            # Spoke axis z(r) runs 0.6*rim -> rim; sit 0.2 m outside the bar.
+            z_axis = 0.6 * 1.5 * np.sign(zc) + 0.4 * 1.5 * np.sign(zc) * r / WHEEL_R
+            local.append(np.stack([r * math.cos(a), r * math.sin(a), z_axis + 0.2 * np.sign(zc)], -1))
+    local = np.concatenate(local)
+    ang = WHEEL_OMEGA * t
+    x = local[None, :, 0] * np.cos(ang) - local[None, :, 1] * np.sin(ang)
+    y = local[None, :, 0] * np.sin(ang) + local[None, :, 1] * np.cos(ang)
+    groups.append(np.stack([x + WHEEL_HUB[0], y + WHEEL_HUB[1],
+                            np.broadcast_to(local[:, 2] + WHEEL_HUB[2], x.shape)], -1))
+
+    # Carousel canopy bulbs rotate with the carousel (clockwise from above).
+    rad, hgt = [], []
+    for r, h in ((9.5, 5.3), (9.5, 5.7)):
+        rad.append(np.full(96, r))
+        hgt.append(np.full(96, h))
+    a_c = [2 * math.pi * np.arange(96) / 96] * 2
+    for k in range(16):
+        s = np.linspace(0.1, 0.92, 12)
+        rad.append(9.4 * s)
+        hgt.append(5.8 + 3.0 * (1 - s) + 0.1)
+        a_c.append(np.full(12, 2 * math.pi * k / 16))
+    rad, hgt, a_c = np.concatenate(rad), np.concatenate(hgt), np.concatenate(a_c)
+    a = a_c[None] - CAROUSEL_OMEGA * t
+    groups.append(np.stack([CAROUSEL[0] + rad * np.cos(a), np.broadcast_to(hgt, a.shape),
+                            CAROUSEL[2] + rad * np.sin(a)], -1))
+
+    # Rink rail bulbs (every 0.5 m) with a gentle shimmer.
+    hx, hz = RINK_HALF
+    per = np.concatenate([np.linspace(-hx, hx, 72, endpoint=False), np.full(44, hx),
+                          np.linspace(hx, -hx, 72, endpoint=False), np.full(44, -hx)])
+    per_z = np.concatenate([np.full(72, -hz), np.linspace(-hz, hz, 44, endpoint=False),
+                            np.full(72, hz), np.linspace(hz, -hz, 44, endpoint=False)])
+    shimmer = 0.05 * np.sin(2 * math.pi * 1.5 * t + np.arange(len(per))[None] * 0.7)
+    groups.append(np.stack([np.broadcast_to(RINK[0] + per, shimmer.shape), 1.0 + shimmer,
+                            np.broadcast_to(RINK[2] + per_z, shimmer.shape)], -1))
+
+    # Festoon strings get whatever is left, split by span length; they sway.
+    used = sum(g.shape[1] for g in groups)
+    lengths = [np.linalg.norm(b - a) for a, b, _ in spans]
+    counts = allocate(n_total - used, lengths)
+    wind_phase = rng.uniform(0, 2 * math.pi, len(spans))
+    for (a, b, sag), n, ph in zip(spans, counts, wind_phase):
+        s = (np.arange(n) + 0.5) / n
+        belly = 4 * s * (1 - s)
+        base = a[None] + (b - a)[None] * s[:, None] - np.outer(sag * belly, UP)
+        side = unit(np.cross(UP, b - a))
+        sway = 0.25 * belly[None] * np.sin(2 * math.pi * 0.5 * t + ph)
+        lift = 0.06 * belly[None] * np.sin(2 * math.pi * 0.9 * t + ph)
+        groups.append(base[None] + sway[..., None] * side + lift[..., None] * UP)
+    positions = np.concatenate(groups, axis=1)
+    assert positions.shape[1] == n_total, positions.shape
+    return positions
+
+
+def make_park(out_dir):
+    rng = np.random.default_rng(5005)
+    path = os.path.join(out_dir, "park.usda")
+    stage = new_stage(path, 1, 48)
+    anim = add_anim_layer(stage, out_dir, "park_anim")
+    frames, times = frame_times(1, 48)
+
+    spans, poles = festoon_strings()
+    UsdGeom.Xform.Define(stage, "/World/Park")
+    static_tris = 0
+    for name, mb in park_static(poles).items():
+        define_mesh(stage, f"/World/Park/{name}", mb)
+        static_tris += mb.triangle_count
+
+    # Rigidly rotating ride parts: plain Xforms with time-sampled rotation.
+    wheel = UsdGeom.Xform.Define(stage, "/World/Park/FerrisWheel")
+    wheel.AddTranslateOp().Set(Gf.Vec3d(*map(float, WHEEL_HUB)))
+    rot = wheel.AddRotateZOp()
+    wheel_mb = wheel_structure()
+    define_mesh(stage, "/World/Park/FerrisWheel/Structure", wheel_mb)
+    carousel = UsdGeom.Xform.Define(stage, "/World/Park/Carousel")
+    carousel.AddTranslateOp().Set(Gf.Vec3d(*map(float, CAROUSEL)))
+    rot_c = carousel.AddRotateYOp()
+    carousel_mb = carousel_top()
+    define_mesh(stage, "/World/Park/Carousel/Top", carousel_mb)
+    for f, t in zip(frames, times):
+        rot.Set(math.degrees(WHEEL_OMEGA * t), Usd.TimeCode(float(f)))
+        # rotateY(+a) turns +X toward -Z, i.e. clockwise seen from above.
+        rot_c.Set(math.degrees(CAROUSEL_OMEGA * t), Usd.TimeCode(float(f)))
+
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/Rides")
+    UsdGeom.Scope.Define(stage, "/World/Rides/Prototypes")
+    proto_paths, proto_tris = [], []
+    for name, builder in (("gondola", gondola_proto), ("horse", horse_proto), ("bumper_car", bumper_car_proto)):
+        UsdGeom.Xform.Define(stage, f"/World/Rides/Prototypes/{name}")
+        mb = builder()
+        define_mesh(stage, f"/World/Rides/Prototypes/{name}/Geom", mb)
+        proto_paths.append(Sdf.Path(f"/World/Rides/Prototypes/{name}"))
+        proto_tris.append(mb.triangle_count)
+    positions, orientations, proto_idx = ride_instances(times)
+    pi.CreatePrototypesRel().SetTargets(proto_paths)
+    pi.CreateProtoIndicesAttr(Vt.IntArray(proto_idx.tolist()))
+    pi.CreateIdsAttr(Vt.Int64Array(list(range(len(proto_idx)))))
+    set_instancer_xforms(stage, anim, pi, frames, positions, orientations)
+
+    lights = park_light_positions(rng, times, spans)
+    protos = ["warm", "white", "pink", "cool"]
+    light_idx = rng.choice(4, len(lights[0]), p=[0.55, 0.2, 0.15, 0.1])
+    gx = rng.uniform(-90, 90, 400)
+    gz = rng.uniform(-90, 90, 400)
+    samples = np.stack([gx, np.zeros(400), gz], -1)
+    intensity = calibrate_intensity(lights[0], 0.05, samples, np.tile(UP, (400, 1)), target=0.3)
+    define_light_instancer(stage, anim, "/World/Lights", protos, 0.05, intensity,
+                           light_idx, lights, frames)
+
+    define_camera(stage, (105.0, 62.0, 115.0), (-2.0, 8.0, -8.0), (0.5, 2000.0))
+    settings = define_render_settings(stage, "out/park.####.exr")
+    settings.GetPrim().CreateAttribute("usdml:voxel:fullyDynamic", Sdf.ValueTypeNames.Bool).Set(True)
+    stage.Save()
+    ride_tris = int(sum(proto_tris[i] for i in proto_idx))
+    return {"rides": len(proto_idx), "lights": lights.shape[1], "intensity": intensity,
+            "expanded_tris": static_tris + wheel_mb.triangle_count + carousel_mb.triangle_count + ride_tris}
+
+
+# --------------------------------------------------------------------------
+
+def main(argv=None):
+    default_out = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "stages")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", default=default_out, help="output directory (default: <repo>/stages)")
+    args = parser.parse_args(argv)
+    out = os.path.abspath(args.out)
+    for sub in ("", "assets", "anim"):
+        os.makedirs(os.path.join(out, sub), exist_ok=True)
+
+    report = {"city": make_city(out), "planes": make_planes(out), "creature": make_creature(out)}
+    report["creature"].update(check_skinning(os.path.join(out, "creature.usda")))
+    report["cornell"] = make_cornell(out)
+    report["park"] = make_park(out)
+    for name, info in report.items():
+        print(f"{name:9s}", ", ".join(f"{k}={v}" for k, v in info.items()))
+
+
+if __name__ == "__main__":
+    main()
