@@ -5,9 +5,9 @@ from __future__ import annotations
 import time as _time
 from collections import Counter
 
-from usdml.errors import UsdmlError
 from usdml.scene import Snapshot
 from usdml.stage import StageDelegate
+from usdml.stage.delegate import require_geometry
 from usdml.voxel_budget import array_bytes, direction_count, human_bytes, plan_arrays
 
 
@@ -38,10 +38,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
     time = delegate.start_time if time is None else time
     snap = delegate.snapshot(time)
     seconds = _time.perf_counter() - t0
-    if not snap.meshes and not snap.prototypes:
-        raise UsdmlError(f"{delegate.path}: no renderable geometry at time {time:g} (no visible Mesh or "
-                         "implicit gprim with purpose default/render); check visibility, purpose and "
-                         "activation, or open the layer that holds the geometry")
+    require_geometry(delegate, snap)
     settings = delegate.usdml_settings
     plan = plan_arrays(snap, settings)
     per_array = array_bytes(settings.voxel_resolution, settings.direction_step)

@@ -61,6 +61,14 @@ def open_stage(path: str | os.PathLike) -> Usd.Stage:
     return stage
 
 
+def require_geometry(delegate: "StageDelegate", snap: Snapshot) -> None:
+    """Raise the one-line error for a snapshot with nothing to render."""
+    if not snap.meshes and not snap.prototypes:
+        raise UsdmlError(f"{delegate.path}: no renderable geometry at time {snap.time:g} (no visible Mesh or "
+                         "implicit gprim with purpose default/render); check visibility, purpose and "
+                         "activation, or open the layer that holds the geometry")
+
+
 def _matrix(m) -> np.ndarray:
     """Gf.Matrix4d (row-vector convention) -> (4, 4) float64 column-convention array."""
     return np.array(m, np.float64).T

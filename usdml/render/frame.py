@@ -1,0 +1,127 @@
+"""Render one timecode: snapshot → backend update → G-buffer → direct lighting → AOV buffers.
+
+Passes never reach back into USD: a frame reads its snapshot and the backends' state only. Primary
+rays always use the exact (Embree) backend; shadow rays use the configured visibility backend (the
+same object when it is ``exact``).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from usdml.errors import UsdmlError
+from usdml.lighting.direct import shade_direct
+from usdml.render.gbuffer import GBuffer, build_gbuffer
+from usdml.scene import Camera, Snapshot, diff
+from usdml.settings import UsdmlSettings
+from usdml.stage.delegate import StageDelegate, require_geometry
+from usdml.visibility import ExactBackend, make_backend
+
+#: AOVs written when neither --aovs nor RenderSettings choose
+DEFAULT_AOVS = ("color", "direct", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
+
+
+def conform_camera(camera: Camera, width: int, height: int) -> Camera:
+    """Expand the film back to the image aspect (UsdRender's default ``expandAperture`` policy)."""
+    aspect = width / height
+    if abs(camera.aspect - aspect) < 1e-9:
+        return camera
+    if aspect > camera.aspect:
+        return replace(camera, horizontal_aperture=camera.vertical_aperture * aspect)
+    return replace(camera, vertical_aperture=camera.horizontal_aperture / aspect)
+
+
+@dataclass
+class FrameResult:
+    time: float
+    buffers: dict[str, np.ndarray]      #: AOV name -> (H, W[, C]) array, row 0 at the top
+    camera: Camera                      #: the conformed camera the frame was rendered with
+    snapshot: Snapshot
+    stats: dict = field(default_factory=dict)
+
+
+class FrameRenderer:
+    """Renders timecodes of one stage in order, updating the backends with what changed."""
+
+    def __init__(self, delegate: StageDelegate, settings: UsdmlSettings, device: str = "cpu"):
+        self.delegate = delegate
+        self.settings = settings
+        self.device = device
+        self.exact = ExactBackend()
+        self.backend = self.exact if settings.visibility == "exact" else make_backend(settings.visibility)
+        self._previous: Snapshot | None = None
+
+    def close(self) -> None:
+        self.exact.close()
+        if self.backend is not self.exact:
+            self.backend.close()
+
+    def render(self, time: float, width: int, height: int, aovs: set[str],
+               progress: Callable[[int], None] | None = None) -> FrameResult:
+        """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels."""
+        stats: dict = {}
+        t0 = _time.perf_counter()
+        snap = self.delegate.snapshot(time)
+        require_geometry(self.delegate, snap)
+        stats["snapshot_seconds"] = _time.perf_counter() - t0
+        changes = diff(self._previous, snap)
+        t1 = _time.perf_counter()
+        self.exact.update(snap, changes)
+        if self.backend is not self.exact:
+            self.backend.update(snap, changes)
+        stats["update_seconds"] = _time.perf_counter() - t1
+        self._previous = snap
+        camera = conform_camera(snap.camera, width, height)
+        snap = replace(snap, camera=camera)
+
+        t2 = _time.perf_counter()
+        gb = build_gbuffer(snap, self.exact, width, height)
+        stats["gbuffer_seconds"] = _time.perf_counter() - t2
+        t3 = _time.perf_counter()
+        hit = gb.hit.ravel()
+        direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                              gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress)
+        stats["shading_seconds"] = _time.perf_counter() - t3
+        stats["shadow_queries"] = direct.queries
+        stats["lights"] = len(snap.lights)
+        stats["pixels"] = width * height
+        stats["seconds"] = _time.perf_counter() - t0
+        buffers = self._buffers(gb, hit, direct, camera, aovs)
+        return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats)
+
+    @staticmethod
+    def _buffers(gb: GBuffer, hit: np.ndarray, direct, camera: Camera, aovs: set[str]) -> dict[str, np.ndarray]:
+        h, w = gb.height, gb.width
+
+        def scatter(values: np.ndarray, channels: int) -> np.ndarray:
+            out = np.zeros((h * w, channels) if channels > 1 else (h * w,), np.float32)
+            out[hit] = values
+            return out.reshape((h, w, channels) if channels > 1 else (h, w))
+
+        radiance = scatter(direct.radiance, 3)
+        alpha = gb.hit.astype(np.float32)
+        world_to_eye = np.linalg.inv(camera.xform)
+        table = {
+            "color": lambda: np.concatenate([radiance * alpha[..., None], alpha[..., None]], axis=2),
+            "direct": lambda: radiance,
+            "indirect": lambda: np.zeros_like(radiance),
+            "shadow": lambda: scatter(direct.shadow, 1),
+            "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
+            "depth": lambda: gb.depth,
+            "normal": lambda: gb.normal,
+            "Neye": lambda: (gb.normal.reshape(-1, 3) @ world_to_eye[:3, :3].T).reshape(h, w, 3) * alpha[..., None],
+            "P": lambda: gb.position.astype(np.float32),
+            "Peye": lambda: ((gb.position.reshape(-1, 3) @ world_to_eye[:3, :3].T + world_to_eye[:3, 3])
+                             .reshape(h, w, 3) * alpha[..., None]).astype(np.float32),
+            "albedo": lambda: gb.albedo,
+            "primId": lambda: gb.prim_id,
+            "instanceId": lambda: gb.instance_id,
+        }
+        unknown = sorted(set(aovs) - set(table))
+        if unknown:
+            raise UsdmlError(f"unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(table)}")
+        return {name: table[name]() for name in aovs}

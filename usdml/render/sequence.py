@@ -1,0 +1,174 @@
+"""Render a sequence of timecodes to EXR products: what to write where, resume, progress.
+
+Products come from the OUTPUT argument (one product, ``--aovs`` or :data:`DEFAULT_AOVS`) or, when
+there is none, from the stage's RenderSettings (each product's ``productName`` at each frame, its
+ordered RenderVars mapped to usdml AOVs). Every file is written under a temporary name and renamed;
+``resume`` skips frames whose files are all complete, so an interrupted sequence loses at most the
+frame in flight.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time as _time
+from dataclasses import dataclass, field
+
+from tqdm import tqdm
+
+from usdml.aov.exr import camera_matrices, is_complete_exr, write_exr, write_png_preview
+from usdml.aov.names import aov_for_render_var, data_type_matches, get_aov
+from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
+from usdml.errors import UsdmlError, log
+from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
+from usdml.settings import UsdmlSettings
+from usdml.stage import StageDelegate
+
+
+@dataclass
+class Product:
+    """One output file per frame: its path per frame and the layers (EXR layer name -> AOV name) it holds."""
+
+    paths: dict[float, str]
+    layers: dict[str, str]
+    source: str = "OUTPUT"      #: "OUTPUT" or the RenderProduct prim path
+
+
+@dataclass
+class RenderJob:
+    stage: str
+    output: str | None = None
+    frames: str | None = None
+    camera: str | None = None
+    image_width: int | None = None
+    render_settings: str | None = None
+    aovs: list[str] | None = None
+    device: str = "cpu"
+    resume: bool = False
+    preview: bool = False
+    overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
+
+
+def _resolution(delegate: StageDelegate, snap, job: RenderJob) -> tuple[int, int]:
+    rs = snap.render_settings
+    if rs is not None and not job.output:
+        w, h = rs.products[0].resolution or rs.resolution if rs.products else rs.resolution
+        if job.image_width:
+            return int(job.image_width), max(1, round(job.image_width * h / w))
+        return int(w), int(h)
+    width = int(job.image_width or 960)
+    return snap.camera.resolution(width)
+
+
+def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) -> list[Product]:
+    """Where each frame's AOVs go, checked before any rendering starts."""
+    frames_given = job.frames is not None
+    precision = frame_spec_precision(job.frames)
+    if job.output:
+        names = job.aovs or list(DEFAULT_AOVS)
+        for n in names:
+            get_aov(n)
+        paths = output_paths(job.output, frames, frames_given=frames_given, min_precision=precision)
+        return [Product(dict(zip(frames, paths)), {get_aov(n).name: get_aov(n).name for n in names})]
+    if delegate.settings_prim is None:
+        raise UsdmlError(f"{job.stage}: give an OUTPUT path (e.g. out/beauty.####.exr) or author "
+                         "RenderSettings with a RenderProduct (renderSettingsPrimPath)")
+    from pxr import Usd
+    from usdml.stage.render_settings import read_render_settings
+
+    products: list[Product] = []
+    first = read_render_settings(delegate.settings_prim, Usd.TimeCode(frames[0]))
+    if not first.products:
+        raise UsdmlError(f"{first.path}.products: no RenderProduct; give an OUTPUT path instead")
+    for k, rp in enumerate(first.products):
+        layers: dict[str, str] = {}
+        for var in rp.vars:
+            aov = aov_for_render_var(var.source_name, var.source_type)
+            if aov is None:
+                log.warning(f"{var.path}: sourceName {var.source_name!r} ({var.source_type}) is not an AOV "
+                            "usdml renders; skipped")
+                continue
+            if not data_type_matches(aov, var.data_type):
+                log.warning(f"{var.path}: dataType {var.data_type} does not match AOV {aov.name}; "
+                            f"written as {aov.pixel_type}")
+            if job.aovs and aov.name not in job.aovs:
+                continue
+            layers[var.name] = aov.name
+        if not layers:
+            layers = {"color": "color"}
+            log.warning(f"{rp.path}: no RenderVar usdml renders; writing color")
+        if rp.name_time_varying:
+            paths = {}
+            for f in frames:
+                name = read_render_settings(delegate.settings_prim, Usd.TimeCode(f)).products[k].product_name
+                paths[f] = format_frame(name, f) if frame_placeholder(name) else name
+            if len(set(paths.values())) != len(paths):
+                raise UsdmlError(f"{rp.path}.productName: several frames write the same file")
+        else:
+            name = rp.product_name
+            if frame_placeholder(name) is None and len(frames) == 1:
+                paths = {frames[0]: name}
+            else:
+                paths = dict(zip(frames, output_paths(name, frames, frames_given=True, min_precision=precision)))
+        products.append(Product(paths, layers, rp.path))
+    return products
+
+
+def _frame_done(products: list[Product], frame: float) -> bool:
+    return all(is_complete_exr(p.paths[frame]) for p in products)
+
+
+def render_sequence(job: RenderJob) -> dict:
+    """Render every frame of ``job``; returns a summary (frames written, skipped, seconds per frame)."""
+    started = _time.perf_counter()
+    delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings)
+    settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
+    if settings.visibility != "exact":
+        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact")
+    if job.device not in ("cpu", "cuda"):
+        raise UsdmlError(f"--device {job.device!r}: use cpu or cuda")
+    frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
+    for f in frames:
+        delegate.check_time(f)
+    products = plan_products(delegate, job, frames)
+    renderer = FrameRenderer(delegate, settings, job.device)
+    written, skipped, seconds = [], [], []
+    try:
+        with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
+            for f in frames:
+                if job.resume and _frame_done(products, f):
+                    skipped.append(f)
+                    bar.update(1)
+                    continue
+                t0 = _time.perf_counter()
+                snap_aovs = {a for p in products for a in p.layers.values()}
+                with tqdm(desc=f"frame {f:g}", unit="px", leave=False, disable=None, file=sys.stderr) as px:
+                    # the first snapshot decides the resolution; it is cheap to read again
+                    if not seconds and not written:
+                        width, height = _resolution(delegate, delegate.snapshot(f), job)
+                    px.total = width * height
+                    result = renderer.render(f, width, height, snap_aovs, progress=px.update)
+                w2c, w2n = camera_matrices(result.camera)
+                for product in products:
+                    path = product.paths[f]
+                    aovs = {layer: result.buffers[aov] for layer, aov in product.layers.items()}
+                    write_exr(path, aovs, layers=product.layers, world_to_camera=w2c, world_to_ndc=w2n,
+                              timecode=f, stage=os.path.abspath(job.stage), settings=settings.as_dict(),
+                              metadata={"usdml:renderProduct": product.source,
+                                        "usdml:camera": result.camera.path or "(framing)"})
+                    if job.preview and "color" in result.buffers:
+                        write_png_preview(os.path.splitext(path)[0] + ".png", result.buffers["color"],
+                                          tonemap="reinhard")
+                seconds.append(_time.perf_counter() - t0)
+                written.append(f)
+                bar.update(1)
+    finally:
+        renderer.close()
+    total = _time.perf_counter() - started
+    return {
+        "stage": job.stage, "frames": written, "skipped": skipped,
+        "resolution": [width, height] if written else None,
+        "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
+        "seconds": total, "visibility": settings.visibility,
+        "outputs": [p.paths[f] for f in written for p in products],
+    }

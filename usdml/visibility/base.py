@@ -1,0 +1,152 @@
+"""The one interface every visibility backend implements: "is the segment P → L blocked?".
+
+A backend owns its acceleration structures and rebuilds them per frame from a
+:class:`usdml.scene.Snapshot` (``update``), then answers batches of shadow-ray queries
+(``occluded`` for arbitrary pairs, ``occluded_matrix`` for all points × all lights, the loop of
+paper 000, Alg. 3, lines 2-9).
+
+Conventions shared by all backends:
+
+* Positions are world space, scene units; ``(N, 3)`` float32 or float64 in, float64 math inside.
+* A point light ``L`` is a segment end: geometry beyond ``L`` never blocks it.
+* A distant light is a direction: for a ``distant`` row the target is the unit direction *toward*
+  the light and the ray runs to infinity. In ``occluded_matrix`` distant lights are given by
+  ``light_directions``, the direction the light *travels* (``Lights.axis``), so the shadow ray goes
+  along ``-light_directions``.
+* Answers are deterministic: the same snapshot and queries give the same booleans.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import numpy as np
+
+from usdml.scene import Changes, Snapshot
+
+__all__ = ["VisibilityBackend"]
+
+
+def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:
+    """``a`` as an ``(n, 3)`` array of ``dtype`` (``None``: keep float32/float64, else float64);
+    ``ValueError`` naming ``name`` when the shape is wrong."""
+    a = np.asarray(a)
+    if dtype is not None or a.dtype not in (np.float32, np.float64):
+        a = a.astype(dtype or np.float64, copy=False)
+    if a.ndim != 2 or a.shape[1] != 3 or (n is not None and a.shape[0] != n):
+        want = f"({n}, 3)" if n is not None else "(N, 3)"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    return a
+
+
+def as_flags(a, name: str, n: int) -> np.ndarray:
+    """``a`` as an ``(n,)`` bool array."""
+    a = np.asarray(a, dtype=bool)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
+    return a
+
+
+class VisibilityBackend(abc.ABC):
+    """Answers shadow-ray queries against the geometry of the last snapshot given to :meth:`update`."""
+
+    #: registry name (``make_backend(name)``)
+    name: str = ""
+    #: point-light pairs handed to one :meth:`occluded` call by :meth:`occluded_matrix`; bounds its
+    #: temporary memory (about 200 bytes per pair, so ~200 MB at 2^20)
+    matrix_chunk_pairs: int = 1 << 20
+
+    @abc.abstractmethod
+    def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
+        """Bring the acceleration structures to ``snapshot``.
+
+        ``changes`` is ``usdml.scene.diff(previous, snapshot)``; ``None`` means rebuild everything.
+        Implementations rebuild only what ``changes`` names.
+        """
+
+    @abc.abstractmethod
+    def occluded(self, origins: np.ndarray, targets: np.ndarray, *,
+                 normals: np.ndarray | None = None, distant: np.ndarray | None = None) -> np.ndarray:
+        """Whether each segment ``origins[i] → targets[i]`` is blocked.
+
+        Parameters
+        ----------
+        origins : (N, 3) float32 or float64
+            Surface points P, world space.
+        targets : (N, 3) float64
+            Light positions L; for rows where ``distant[i]`` the unit direction toward the light.
+        normals : (N, 3) float, optional
+            Surface normals at P (either orientation; zero rows mean "no normal"). Backends use them
+            to leave the surface without self-occlusion.
+        distant : (N,) bool, optional
+            Rows whose target is a direction to infinity.
+
+        Returns
+        -------
+        (N,) bool
+            True where the segment is blocked.
+        """
+
+    def occluded_matrix(self, points: np.ndarray, normals: np.ndarray | None, light_positions: np.ndarray,
+                        light_distant: np.ndarray | None = None,
+                        light_directions: np.ndarray | None = None) -> np.ndarray:
+        """Visibility of every light from every point (paper 000, Alg. 3, lines 2-9).
+
+        Parameters
+        ----------
+        points : (P, 3) float
+            Surface points, world space.
+        normals : (P, 3) float or None
+            Normals at ``points``.
+        light_positions : (L, 3) float
+            Light positions (ignored for distant lights).
+        light_distant : (L,) bool, optional
+            Lights that are directions (``LightType.DISTANT``).
+        light_directions : (L, 3) float, optional
+            Direction each light travels (``Lights.axis``); required where ``light_distant``.
+
+        Returns
+        -------
+        (P, L) bool
+            True where light ``j`` is blocked from point ``i``.
+
+        Calls :meth:`occluded` on row blocks of at most ``matrix_chunk_pairs`` pairs, so memory
+        stays bounded whatever P × L is.
+        """
+        points = as_vectors(points, "points")
+        n_p = points.shape[0]
+        normals = None if normals is None else as_vectors(normals, "normals", n_p)
+        targets = as_vectors(light_positions, "light_positions").copy()
+        n_l = targets.shape[0]
+        out = np.zeros((n_p, n_l), bool)
+        if n_p == 0 or n_l == 0:
+            return out
+        distant = np.zeros(n_l, bool) if light_distant is None else as_flags(light_distant, "light_distant", n_l)
+        if distant.any():
+            if light_directions is None:
+                raise ValueError("light_directions is required for distant lights")
+            axis = as_vectors(light_directions, "light_directions", n_l)[distant]
+            targets[distant] = -axis / np.linalg.norm(axis, axis=1, keepdims=True)
+        cols = min(n_l, self.matrix_chunk_pairs)
+        rows = max(1, self.matrix_chunk_pairs // cols)
+        for p0 in range(0, n_p, rows):
+            p1 = min(n_p, p0 + rows)
+            for l0 in range(0, n_l, cols):
+                l1 = min(n_l, l0 + cols)
+                k, m = p1 - p0, l1 - l0
+                out[p0:p1, l0:l1] = self.occluded(
+                    np.repeat(points[p0:p1], m, axis=0),
+                    np.tile(targets[l0:l1], (k, 1)),
+                    normals=None if normals is None else np.repeat(normals[p0:p1], m, axis=0),
+                    distant=np.tile(distant[l0:l1], k),
+                ).reshape(k, m)
+        return out
+
+    def close(self) -> None:
+        """Release threads and native memory; the backend needs :meth:`update` again afterwards."""
+
+    def __enter__(self) -> "VisibilityBackend":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
