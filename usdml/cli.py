@@ -36,6 +36,44 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings_overrides(args: argparse.Namespace) -> dict:
+    return {k: v for k, v in {"visibility": args.visibility, "seed": args.seed}.items() if v is not None}
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from usdml.render.sequence import RenderJob, render_sequence
+
+    job = RenderJob(stage=args.stage, output=args.output, frames=args.frames, camera=args.camera,
+                    image_width=args.imageWidth, render_settings=args.render_settings,
+                    aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
+                    device=args.device, resume=args.resume, preview=args.preview,
+                    overrides=_settings_overrides(args))
+    if job.image_width is not None and not 1 <= job.image_width <= 16384:
+        from usdml.errors import UsdmlError
+        raise UsdmlError(f"--imageWidth {job.image_width}: use 1 to 16384 pixels")
+    summary = render_sequence(job)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    done = len(summary["frames"])
+    res = "x".join(map(str, summary["resolution"])) if summary["resolution"] else "-"
+    print(f"rendered {done} frame(s) at {res} with {summary['visibility']} visibility: "
+          f"{summary['secondsPerFrame']:.2f} s/frame, {summary['seconds']:.1f} s in all"
+          + (f"; {len(summary['skipped'])} frame(s) already complete, skipped" if summary["skipped"] else ""))
+    for path in summary["outputs"]:
+        print(f"  {path}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from usdml.bench import bench_visibility, format_bench
+
+    results = bench_visibility(args.stage, backends=args.visibility or ["exact"], image_width=args.imageWidth,
+                               frame=args.frame, camera=args.camera, render_settings=args.render_settings)
+    print(json.dumps(results, indent=2) if args.json else format_bench(results))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usdml", description="Render USD stages with thousands of lights.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -46,6 +84,30 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--time", type=float, help="timecode to inspect (default: the stage's startTimeCode)")
     info.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     info.set_defaults(run=_cmd_info)
+
+    render = sub.add_parser("render", help="render timecodes to multi-channel OpenEXR (AOVs)")
+    _add_stage_args(render)
+    render.add_argument("output", nargs="?", help="output EXR path; '#' marks the frame number "
+                        "(out.####.exr); default: the RenderSettings products")
+    render.add_argument("--frames", help="FrameSpec as usdrecord: 1:48, 1:10x2, 1,5,9 (default: the start frame)")
+    render.add_argument("--imageWidth", type=int, help="image width in pixels (height from the aspect ratio)")
+    render.add_argument("--visibility", help="visibility backend (default: the stage's usdml:visibility, else exact)")
+    render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, "
+                        "shadow, depth, normal, P, albedo, primId, instanceId)")
+    render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
+    render.add_argument("--seed", type=int, help="random seed (stochastic passes)")
+    render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
+    render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
+    render.add_argument("--json", action="store_true", help="print the summary as JSON")
+    render.set_defaults(run=_cmd_render)
+
+    bench = sub.add_parser("bench", help="time the visibility queries of one frame")
+    _add_stage_args(bench)
+    bench.add_argument("--visibility", action="append", help="backend to time (repeat for several; default exact)")
+    bench.add_argument("--imageWidth", type=int, default=512, help="image width in pixels (default 512)")
+    bench.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
+    bench.add_argument("--json", action="store_true", help="print JSON")
+    bench.set_defaults(run=_cmd_bench)
     return parser
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from tqdm import tqdm
 
 from usdml.aov.exr import camera_matrices, is_complete_exr, write_exr, write_png_preview
-from usdml.aov.names import aov_for_render_var, data_type_matches, get_aov
+from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, log
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
@@ -66,10 +66,11 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
     precision = frame_spec_precision(job.frames)
     if job.output:
         names = job.aovs or list(DEFAULT_AOVS)
-        for n in names:
-            get_aov(n)
+        unknown = [n for n in names if find_aov(n) is None]
+        if unknown:
+            raise UsdmlError(f"--aovs: unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(AOVS)}")
         paths = output_paths(job.output, frames, frames_given=frames_given, min_precision=precision)
-        return [Product(dict(zip(frames, paths)), {get_aov(n).name: get_aov(n).name for n in names})]
+        return [Product(dict(zip(frames, paths)), {find_aov(n).name: find_aov(n).name for n in names})]
     if delegate.settings_prim is None:
         raise UsdmlError(f"{job.stage}: give an OUTPUT path (e.g. out/beauty.####.exr) or author "
                          "RenderSettings with a RenderProduct (renderSettingsPrimPath)")

@@ -1,0 +1,262 @@
+"""`usdml render`: analytic one-light images, shadows, EXR products, RenderSettings, resume, determinism."""
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Gf, UsdGeom, UsdLux
+
+from conftest import add_cube_mesh, add_quad
+from usdml.aov.exr import is_complete_exr, read_exr
+from usdml.cli import main
+from usdml.render.frame import FrameRenderer
+from usdml.settings import UsdmlSettings
+from usdml.stage import StageDelegate
+
+ALBEDO = 0.5
+
+
+def _ground_stage(new_stage, light):
+    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``."""
+    stage = new_stage(start=1, end=1)
+    ground = add_quad(stage, "/World/ground", size=40)
+    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
+    cam.CreateFocalLengthAttr(18)
+    cam.CreateHorizontalApertureAttr(36)
+    cam.CreateVerticalApertureAttr(36)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
+    cam.AddTranslateOp().Set((0, 15, 0))
+    cam.AddRotateXOp().Set(-90)
+    light(stage)
+    stage.Save()
+    return stage.GetRootLayer().realPath
+
+
+def _render(path, width=64, aovs=("direct", "P", "normal", "shadow", "color")):
+    d = StageDelegate(path)
+    r = FrameRenderer(d, UsdmlSettings())
+    try:
+        return r.render(d.start_time, width, width, set(aovs)).buffers
+    finally:
+        r.close()
+
+
+def _compare(b, expected_e, min_lit=0.3):
+    """direct == albedo/π · E to 1e-3 relative where E is not tiny."""
+    got = b["direct"][..., 0].astype(np.float64)
+    want = ALBEDO / math.pi * expected_e
+    mask = want > 1e-3 * want.max()
+    assert mask.mean() > min_lit
+    rel = np.abs(got[mask] - want[mask]) / want[mask]
+    assert rel.max() < 1e-3, rel.max()
+    assert np.all(got[~mask] <= 1e-3 * want.max() * (1 + 1e-3))
+
+
+def test_point_light_inverse_square_and_cosine(new_stage):
+    def light(stage):
+        s = UsdLux.SphereLight.Define(stage, "/World/bulb")
+        s.CreateTreatAsPointAttr(True)
+        s.CreateRadiusAttr(0.1)
+        s.CreateIntensityAttr(5000)
+        s.AddTranslateOp().Set((3, 4, -2))
+
+    b = _render(_ground_stage(new_stage, light))
+    p = b["P"].astype(np.float64)
+    to = np.array([3, 4, -2]) - p
+    d2 = (to ** 2).sum(-1)
+    cos = to[..., 1] / np.sqrt(d2)
+    _compare(b, 5000 * math.pi * 0.01 * cos / d2)
+    assert np.allclose(b["normal"][..., 1], 1)
+    assert b["shadow"].max() == 0
+
+
+@pytest.mark.parametrize("softness", [0.0, 0.5])
+def test_spot_cone_and_softness(new_stage, softness):
+    def light(stage):
+        s = UsdLux.SphereLight.Define(stage, "/World/spot")
+        s.CreateTreatAsPointAttr(True)
+        s.CreateRadiusAttr(0.1)
+        s.CreateIntensityAttr(8000)
+        s.CreateNormalizeAttr(True)
+        s.AddTranslateOp().Set((0, 5, 0))
+        s.AddRotateXOp().Set(-90)             # emit along -Y
+        shaping = UsdLux.ShapingAPI.Apply(s.GetPrim())
+        shaping.CreateShapingConeAngleAttr(30)
+        shaping.CreateShapingConeSoftnessAttr(softness)
+
+    b = _render(_ground_stage(new_stage, light), width=96)
+    p = b["P"].astype(np.float64)
+    to = np.array([0, 5, 0]) - p
+    d = np.sqrt((to ** 2).sum(-1))
+    cos = to[..., 1] / d                      # = cosine off the spot axis too
+    outer, inner = math.cos(math.radians(30)), math.cos(math.radians(30 * (1 - softness)))
+    if softness == 0:
+        cone = (cos >= outer).astype(float)
+    else:
+        x = np.clip((cos - outer) / (inner - outer), 0, 1)
+        cone = x * x * (3 - 2 * x)
+    expected = 8000 / 4 * cos / d ** 2 * cone
+    if softness == 0:                         # skip pixels straddling the hard edge
+        edge = np.abs(np.degrees(np.arccos(np.clip(cos, -1, 1))) - 30) < 1.0
+        b["direct"][edge] = 0
+        expected[edge] = 0
+    _compare(b, expected, min_lit=0.02)            # the cone lights ~3 % of the view
+    assert (b["direct"][..., 0][cos < outer - 0.01] == 0).all()
+
+
+def test_distant_light(new_stage):
+    def light(stage):
+        s = UsdLux.DistantLight.Define(stage, "/World/sun")
+        s.CreateIntensityAttr(3)
+        s.CreateNormalizeAttr(True)
+        s.AddRotateXOp().Set(-60)             # -Z tilted 60 deg toward -Y: 30 deg above the horizon
+
+    b = _render(_ground_stage(new_stage, light))
+    cos = math.sin(math.radians(60))
+    _compare(b, np.full(b["direct"].shape[:2], 3 * cos))
+
+
+def test_shadow_under_a_box(new_stage):
+    def light(stage):
+        s = UsdLux.SphereLight.Define(stage, "/World/bulb")
+        s.CreateTreatAsPointAttr(True)
+        s.CreateIntensityAttr(1000)
+        s.AddTranslateOp().Set((10, 10, 0))     # the shadow falls toward the camera's axis, in view
+        box = add_cube_mesh(stage, "/World/box", size=2)
+        box.AddTranslateOp().Set((5, 2, 0))
+
+    b = _render(_ground_stage(new_stage, light), width=96)
+    p = b["P"].astype(np.float64)
+    on_ground = np.abs(p[..., 1]) < 1e-4
+
+    def crosses_box(half):
+        """Slab test: does the segment ground point -> light pass through the box grown by ``half - 1``?"""
+        d = np.array([10.0, 10.0, 0.0]) - p
+        lo, hi = np.array([5 - half, 2 - half, -half]), np.array([5 + half, 2 + half, half])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (lo - p) / d, (hi - p) / d
+        near = np.nanmax(np.minimum(t0, t1), axis=-1)
+        far = np.nanmin(np.maximum(t0, t1), axis=-1)
+        return (near <= far) & (far > 0) & (near < 1)
+
+    inside = on_ground & crosses_box(0.9)
+    clear = on_ground & ~crosses_box(1.1)
+    assert inside.sum() > 20 and clear.sum() > 1000
+    assert (b["shadow"][inside] == 1).all() and (b["direct"][inside] == 0).all()
+    assert (b["shadow"][clear] == 0).all()
+
+
+def test_render_writes_every_aov_and_the_header(new_stage, tmp_path, capsys):
+    path = _ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((0, 3, 0)))
+    out = tmp_path / "out" / "img.####.exr"
+    assert main(["render", path, str(out), "--frames", "1", "--imageWidth", "32", "--preview"]) == 0
+    exr = tmp_path / "out" / "img.0001.exr"
+    aovs, meta = read_exr(exr)
+    assert set(aovs) == {"color", "direct", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId"}
+    assert aovs["color"].shape == (32, 32, 4) and aovs["color"].dtype == np.float16
+    assert (aovs["primId"] == 0).all() and (aovs["instanceId"] == -1).all()
+    assert np.allclose(aovs["depth"], 15, atol=1e-3)          # camera 15 above the ground, looking down
+    assert meta["usdml:timeCode"] == 1.0 and meta["usdml:stage"] == os.path.abspath(path)
+    assert np.asarray(meta["worldToCamera"]).shape == (4, 4)
+    assert (tmp_path / "out" / "img.0001.png").exists()
+    assert "img.0001.exr" in capsys.readouterr().out
+
+
+def test_render_is_deterministic(new_stage, tmp_path):
+    path = _ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((1, 3, 0)))
+    a = _render(path, aovs=("color", "shadow"))
+    b = _render(path, aovs=("color", "shadow"))
+    for k in a:
+        assert np.array_equal(a[k], b[k])
+
+
+def _sequence_stage(new_stage):
+    stage = new_stage(start=1, end=4)
+    add_quad(stage, "/World/ground", size=10)
+    lamp = UsdLux.SphereLight.Define(stage, "/World/lamp")
+    op = lamp.AddTranslateOp()
+    for t in range(1, 5):
+        op.Set((t - 2.0, 3, 0), t)
+    stage.Save()
+    return stage.GetRootLayer().realPath
+
+
+def test_resume_after_an_interrupted_sequence(new_stage, tmp_path, monkeypatch, capsys):
+    path = _sequence_stage(new_stage)
+    tmp_path = tmp_path / "out"
+    out = str(tmp_path / "seq.####.exr")
+    real = FrameRenderer.render
+
+    def interrupted(self, time, *a, **k):
+        if time == 3:
+            raise KeyboardInterrupt
+        return real(self, time, *a, **k)
+
+    monkeypatch.setattr(FrameRenderer, "render", interrupted)
+    assert main(["render", path, out, "--frames", "1:4", "--imageWidth", "16"]) == 130
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert files == ["seq.0001.exr", "seq.0002.exr"]           # nothing partial, no temp files
+    monkeypatch.setattr(FrameRenderer, "render", real)
+    before = {n: os.stat(tmp_path / n).st_mtime_ns for n in files}
+    Path(tmp_path / "seq.0002.exr").write_bytes(Path(tmp_path / "seq.0002.exr").read_bytes()[:500])  # corrupt
+    capsys.readouterr()
+    assert main(["render", path, out, "--frames", "1:4", "--imageWidth", "16", "--resume"]) == 0
+    assert "1 frame(s) already complete" in capsys.readouterr().out
+    assert os.stat(tmp_path / "seq.0001.exr").st_mtime_ns == before["seq.0001.exr"]
+    assert all(is_complete_exr(tmp_path / f"seq.000{i}.exr") for i in range(1, 5))
+
+
+def test_render_settings_drive_products_on_openusd_stages(assets, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    blur = assets / "openusd/MotionBlurTest/motionBlur.usda"
+    assert main(["render", str(blur), "--renderSettingsPrimPath", "/Render/Settings", "--imageWidth", "48"]) == 0
+    aovs, meta = read_exr(tmp_path / "test.exr")               # the product's productName
+    assert set(aovs) == {"Ci"} and aovs["Ci"].shape == (25, 48, 4)   # 2048x1080 fallback, scaled
+    assert meta["usdml:camera"] == "/first_cam"
+    usdview = assets / "openusd/testUsdviewRenderSettingsEdits/test.usda"
+    assert main(["render", str(usdview), "--renderSettingsPrimPath", "/Render/Settings", "--imageWidth", "32"]) == 0
+    aovs, _ = read_exr(tmp_path / "primary.exr")
+    assert set(aovs) == {"Ci"} and aovs["Ci"].shape == (32, 32, 4)    # resolution (512, 512)
+    assert "/Render/Vars/a: sourceName 'a'" in capsys.readouterr().err
+
+
+def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
+    from pxr import UsdRender
+    path = _sequence_stage(new_stage)
+    from pxr import Usd
+    stage = Usd.Stage.Open(path)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    product = UsdRender.Product.Define(stage, "/Render/Product")
+    for t in range(1, 5):
+        product.CreateProductNameAttr().Set(f"shot_{t * 10}.exr", t)
+    settings.CreateProductsRel().SetTargets([product.GetPath()])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.Save()
+    (tmp_path / "out").mkdir()
+    monkeypatch.chdir(tmp_path / "out")
+    assert main(["render", path, "--frames", "2:3", "--imageWidth", "16"]) == 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["shot_20.exr", "shot_30.exr"]
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--frames", "9"], "outside the stage's range"),
+    (["--frames", "1:x"], "FrameSpec"),
+    (["--imageWidth", "0"], "--imageWidth 0"),
+    (["--visibility", "voxel"], "not available yet"),
+    (["--aovs", "beauty"], "beauty"),
+])
+def test_render_errors(new_stage, tmp_path, capsys, argv, message):
+    path = _sequence_stage(new_stage)
+    code = main(["render", path, str(tmp_path / "out" / "x.####.exr"), *argv])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_render_needs_an_output_or_render_settings(new_stage, capsys):
+    path = _sequence_stage(new_stage)
+    assert main(["render", path]) == 2
+    assert "give an OUTPUT path" in capsys.readouterr().err

@@ -1,0 +1,85 @@
+"""``usdml bench``: time the visibility queries of one frame, every backend on the same query set.
+
+The query set is every (pixel, light) pair of one frame where the light faces the pixel's surface
+(the pairs direct lighting asks about), from the G-buffer of the exact backend.
+"""
+
+from __future__ import annotations
+
+import time as _time
+
+import numpy as np
+
+from usdml.lighting.direct import facing_pairs
+from usdml.render.frame import conform_camera
+from usdml.render.gbuffer import build_gbuffer
+from usdml.scene import diff
+from usdml.stage import StageDelegate
+from usdml.stage.delegate import require_geometry
+from usdml.visibility import ExactBackend, make_backend
+
+
+def _query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Origins, targets, normals and distant flags of every facing (pixel, light) pair."""
+    hit = gb.hit.ravel()
+    blocks = list(facing_pairs(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights))
+    if not blocks:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool)
+    return tuple(np.concatenate([b[k] for b in blocks]) for k in range(4))
+
+
+def bench_visibility(stage: str, backends: list[str], image_width: int = 512, frame: float | None = None,
+                     camera: str | None = None, render_settings: str | None = None) -> list[dict]:
+    """One result per backend: build and query seconds on the same queries, ratios to ``exact``."""
+    delegate = StageDelegate(stage, camera=camera, render_settings_path=render_settings)
+    frame = delegate.start_time if frame is None else frame
+    snap = delegate.snapshot(frame)
+    require_geometry(delegate, snap)
+    width, height = snap.camera.resolution(image_width)
+    exact = ExactBackend()
+    t0 = _time.perf_counter()
+    exact.update(snap, diff(None, snap))
+    exact_build = _time.perf_counter() - t0
+    from dataclasses import replace
+    gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
+    origins, targets, normals, distant = _query_set(snap, gb)
+    results = []
+    reference = None
+    for name in dict.fromkeys(["exact"] + list(backends)):
+        if name == "exact":
+            backend, build = exact, exact_build
+        else:
+            backend = make_backend(name)
+            t0 = _time.perf_counter()
+            backend.update(snap, diff(None, snap))
+            build = _time.perf_counter() - t0
+        t0 = _time.perf_counter()
+        blocked = backend.occluded(origins, targets, normals=normals, distant=distant)
+        seconds = _time.perf_counter() - t0
+        if reference is None:
+            reference = (seconds, blocked)
+        results.append({
+            "backend": name, "stage": stage, "frame": frame, "resolution": [width, height],
+            "pixels": int(gb.hit.sum()), "lights": len(snap.lights), "queries": int(len(origins)),
+            "seconds": seconds, "queries_per_second": len(origins) / seconds if seconds > 0 else float("inf"),
+            "build_seconds": build, "blocked_fraction": float(blocked.mean()) if len(blocked) else 0.0,
+            "speedup_vs_exact": reference[0] / seconds if seconds > 0 else float("inf"),
+            "disagreement_vs_exact": float((blocked != reference[1]).mean()) if len(blocked) else 0.0,
+            "triangles": snap.triangle_count(),
+        })
+        if backend is not exact:
+            backend.close()
+    exact.close()
+    if "exact" not in backends:
+        results = [r for r in results if r["backend"] != "exact"] or results
+    return results
+
+
+def format_bench(results: list[dict]) -> str:
+    lines = []
+    for r in results:
+        lines.append(f"{r['backend']:>8}: {r['queries']:,} shadow queries ({r['pixels']:,} pixels x {r['lights']:,} "
+                     f"lights, facing pairs) in {r['seconds']:.2f} s = {r['queries_per_second'] / 1e6:.2f} M/s; "
+                     f"build {r['build_seconds']:.2f} s; {100 * r['blocked_fraction']:.1f} % blocked"
+                     + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact"))
+    return "\n".join(lines)
