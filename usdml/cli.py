@@ -56,7 +56,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
         return 0
     done = len(summary["frames"])
-    res = "x".join(map(str, summary["resolution"])) if summary["resolution"] else "-"
+    res = "x".join(map(str, summary["resolution"]))
     print(f"rendered {done} frame(s) at {res} with {summary['visibility']} visibility: "
           f"{summary['secondsPerFrame']:.2f} s/frame, {summary['seconds']:.1f} s in all"
           + (f"; {len(summary['skipped'])} frame(s) already complete, skipped" if summary["skipped"] else ""))

@@ -86,6 +86,8 @@ class FrameRenderer:
         direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                               gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress)
         stats["shading_seconds"] = _time.perf_counter() - t3
+        if progress is not None:
+            progress(int((~hit).sum()))          # background pixels: nothing to shade
         stats["shadow_queries"] = direct.queries
         stats["lights"] = len(snap.lights)
         stats["pixels"] = width * height

@@ -49,10 +49,11 @@ class RenderJob:
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
 
 
-def _resolution(delegate: StageDelegate, snap, job: RenderJob) -> tuple[int, int]:
+def _resolution(snap, job: RenderJob) -> tuple[int, int]:
+    """RenderSettings (or first product) resolution scaled to ``--imageWidth``, else width 960 and the camera aspect."""
     rs = snap.render_settings
     if rs is not None and not job.output:
-        w, h = rs.products[0].resolution or rs.resolution if rs.products else rs.resolution
+        w, h = (rs.products[0].resolution or rs.resolution) if rs.products else rs.resolution
         if job.image_width:
             return int(job.image_width), max(1, round(job.image_width * h / w))
         return int(w), int(h)
@@ -119,6 +120,20 @@ def _frame_done(products: list[Product], frame: float) -> bool:
     return all(is_complete_exr(p.paths[frame]) for p in products)
 
 
+def check_device(device: str) -> None:
+    """``cpu`` always works; ``cuda`` needs a CUDA device visible to Warp."""
+    if device == "cpu":
+        return
+    if device != "cuda":
+        raise UsdmlError(f"--device {device!r}: use cpu or cuda")
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    if wp.get_cuda_device_count() == 0:
+        raise UsdmlError("--device cuda: no CUDA device found; use --device cpu")
+
+
 def render_sequence(job: RenderJob) -> dict:
     """Render every frame of ``job``; returns a summary (frames written, skipped, seconds per frame)."""
     started = _time.perf_counter()
@@ -126,12 +141,13 @@ def render_sequence(job: RenderJob) -> dict:
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
     if settings.visibility != "exact":
         raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact")
-    if job.device not in ("cpu", "cuda"):
-        raise UsdmlError(f"--device {job.device!r}: use cpu or cuda")
+    check_device(job.device)
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
     for f in frames:
         delegate.check_time(f)
     products = plan_products(delegate, job, frames)
+    width, height = _resolution(delegate.snapshot(frames[0]), job)
+    wanted = {aov for p in products for aov in p.layers.values()}
     renderer = FrameRenderer(delegate, settings, job.device)
     written, skipped, seconds = [], [], []
     try:
@@ -142,13 +158,9 @@ def render_sequence(job: RenderJob) -> dict:
                     bar.update(1)
                     continue
                 t0 = _time.perf_counter()
-                snap_aovs = {a for p in products for a in p.layers.values()}
-                with tqdm(desc=f"frame {f:g}", unit="px", leave=False, disable=None, file=sys.stderr) as px:
-                    # the first snapshot decides the resolution; it is cheap to read again
-                    if not seconds and not written:
-                        width, height = _resolution(delegate, delegate.snapshot(f), job)
-                    px.total = width * height
-                    result = renderer.render(f, width, height, snap_aovs, progress=px.update)
+                with tqdm(total=width * height, desc=f"frame {f:g}", unit="px", leave=False, disable=None,
+                          file=sys.stderr) as px:
+                    result = renderer.render(f, width, height, wanted, progress=px.update)
                 w2c, w2n = camera_matrices(result.camera)
                 for product in products:
                     path = product.paths[f]
@@ -168,7 +180,7 @@ def render_sequence(job: RenderJob) -> dict:
     total = _time.perf_counter() - started
     return {
         "stage": job.stage, "frames": written, "skipped": skipped,
-        "resolution": [width, height] if written else None,
+        "resolution": [width, height],
         "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
         "seconds": total, "visibility": settings.visibility,
         "outputs": [p.paths[f] for f in written for p in products],
