@@ -79,10 +79,14 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
     from usdml.stage.render_settings import read_render_settings
 
     products: list[Product] = []
+    wanted = {find_aov(a).name for a in job.aovs or [] if find_aov(a)}
     first = read_render_settings(delegate.settings_prim, Usd.TimeCode(frames[0]))
     if not first.products:
         raise UsdmlError(f"{first.path}.products: no RenderProduct; give an OUTPUT path instead")
     for k, rp in enumerate(first.products):
+        if rp.camera and rp.camera != first.camera and not job.camera:
+            log.warning(f"{rp.path}.camera: per-product cameras are not supported; every product is "
+                        f"rendered from {first.camera or 'the default camera'}")
         layers: dict[str, str] = {}
         for var in rp.vars:
             aov = aov_for_render_var(var.source_name, var.source_type)
@@ -93,7 +97,7 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
             if not data_type_matches(aov, var.data_type):
                 log.warning(f"{var.path}: dataType {var.data_type} does not match AOV {aov.name}; "
                             f"written as {aov.pixel_type}")
-            if job.aovs and aov.name not in job.aovs:
+            if wanted and aov.name not in wanted:
                 continue
             layers[var.name] = aov.name
         if not layers:

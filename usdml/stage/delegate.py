@@ -126,7 +126,9 @@ class StageDelegate:
         self.start_time = self.stage.GetStartTimeCode()
         self.end_time = self.stage.GetEndTimeCode()
         if not self.has_time_range:
-            self.start_time = self.end_time = 0.0 if not self.stage.HasAuthoredMetadata("startTimeCode") else self.start_time
+            # a stage without startTimeCode/endTimeCode is a single frame: USD reports 0 for both,
+            # and any --time is accepted (USD evaluates time samples at it as usual)
+            self.start_time = self.end_time = self.start_time if self.stage.HasAuthoredMetadata("startTimeCode") else 0.0
         self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
         self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
         self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
