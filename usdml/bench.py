@@ -7,6 +7,7 @@ The query set is every (pixel, light) pair of one frame where the light faces th
 from __future__ import annotations
 
 import time as _time
+from dataclasses import replace
 
 import numpy as np
 
@@ -40,7 +41,6 @@ def bench_visibility(stage: str, backends: list[str], image_width: int = 512, fr
     t0 = _time.perf_counter()
     exact.update(snap, diff(None, snap))
     exact_build = _time.perf_counter() - t0
-    from dataclasses import replace
     gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
     origins, targets, normals, distant = _query_set(snap, gb)
     results = []

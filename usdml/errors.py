@@ -7,6 +7,7 @@ message and exits non-zero without a traceback. Anything else is a bug and keeps
 from __future__ import annotations
 
 import logging
+import re
 
 log = logging.getLogger("usdml")
 
@@ -28,3 +29,12 @@ class Warnings:
         self._seen.add(message)
         self.messages.append(message)
         log.warning(message)
+
+
+def tf_message(e: Exception) -> str:
+    """The first diagnostic of a ``pxr.Tf.ErrorException``, without the C++ function and file names."""
+    for block in re.split(r"\n\s*Error in ", "\n" + str(e)):
+        _, sep, message = block.partition(" : '")
+        if sep:
+            return " ".join(message.strip().rstrip("'").split())
+    return " ".join(str(e).split())

@@ -29,7 +29,7 @@ import math
 import re
 from collections.abc import Sequence
 
-from usdml.errors import UsdmlError
+from usdml.errors import UsdmlError, tf_message
 
 __all__ = [
     "FrameSpecError", "OutputPathError", "frame_spec", "frame_spec_precision",
@@ -51,13 +51,6 @@ class OutputPathError(UsdmlError, ValueError):
 
 
 # --- FrameSpec ----------------------------------------------------------------------------------
-
-def _tf_message(e: Exception) -> str:
-    """The quoted message at the end of a ``Tf.ErrorException``'s text."""
-    text = str(e).strip()
-    m = re.search(r" : '(.*)'\s*$", text, re.S)
-    return m.group(1) if m else text
-
 
 def _parts(spec: str) -> list[str]:
     parts = [p.strip() for p in spec.split(",")]
@@ -88,7 +81,7 @@ def frame_spec(spec: str | None, stage_start: float | None = None,
             r = UsdUtils.TimeCodeRange.CreateFromFrameSpec(part)
         except Tf.ErrorException as e:
             raise FrameSpecError(
-                f"--frames: bad FrameSpec {part!r}: {_tf_message(e)} (expected N, START:END or "
+                f"--frames: bad FrameSpec {part!r}: {tf_message(e)} (expected N, START:END or "
                 f"START:ENDxSTRIDE, e.g. 101, 101:148, 1:10x2, 1:2x0.5; comma-separated lists)"
             ) from None
         if not r.IsValid():

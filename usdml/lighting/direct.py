@@ -55,14 +55,6 @@ def _smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarr
     return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x)).astype(np.float32)
 
 
-def shaping(lights: Lights, idx: np.ndarray, cos_l: np.ndarray) -> np.ndarray:
-    """UsdLux cone, softness and focus: ``(K, 3)`` factor for lights ``idx`` at off-axis cosine ``cos_l``."""
-    cone = _smoothstep_cone(cos_l, lights.cone_angle[idx], lights.cone_softness[idx])
-    focus = np.clip(cos_l, 0.0, 1.0) ** lights.focus[idx]
-    tint = lights.focus_tint[idx]
-    return cone[:, None] * (tint + (1.0 - tint) * focus[:, None])
-
-
 class _LightTable:
     """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels."""
 

@@ -10,14 +10,13 @@ once and reused by later snapshots.
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 
-from usdml.errors import UsdmlError, Warnings
+from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.lights import LightParams, expand, read_light
@@ -30,15 +29,6 @@ _PI_ATTRS = ("positions", "orientations", "orientationsf", "scales", "velocities
 _MESH_ATTRS = ("faceVertexCounts", "faceVertexIndices", "holeIndices", "normals",
                "primvars:normals", "primvars:normals:indices", "primvars:displayColor",
                "primvars:displayColor:indices", "orientation", "doubleSided")
-
-
-def _tf_message(e: Exception) -> str:
-    """The first diagnostic of a Tf.ErrorException, without the C++ function and file names."""
-    for block in re.split(r"\n\s*Error in ", "\n" + str(e)):
-        _, sep, message = block.partition(" : '")
-        if sep:
-            return " ".join(message.strip().rstrip("'").split())
-    return " ".join(str(e).split())
 
 
 def open_stage(path: str | os.PathLike) -> Usd.Stage:
@@ -55,7 +45,7 @@ def open_stage(path: str | os.PathLike) -> Usd.Stage:
     try:
         stage = Usd.Stage.Open(str(p), Usd.Stage.LoadAll)
     except Tf.ErrorException as e:
-        raise UsdmlError(f"{path}: cannot open stage: {_tf_message(e)}; fix the layer") from None
+        raise UsdmlError(f"{path}: cannot open stage: {tf_message(e)}; fix the layer") from None
     if stage is None:
         raise UsdmlError(f"{path}: cannot open stage; is it a valid USD layer?")
     return stage
