@@ -260,3 +260,33 @@ def test_render_needs_an_output_or_render_settings(new_stage, capsys):
     path = _sequence_stage(new_stage)
     assert main(["render", path]) == 2
     assert "give an OUTPUT path" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_centimetre_stage_renders_like_the_metre_stage(new_stage, tmp_path, normalize):
+    """metersPerUnit: a scene authored in cm x100 gives the same radiance as in metres."""
+    images = []
+    for unit, scale in ((1.0, 1.0), (0.01, 100.0)):
+        stage = new_stage(name=f"s{scale:g}.usda", start=1, end=1)
+        UsdGeom.SetStageMetersPerUnit(stage, unit)
+        ground = add_quad(stage, "/World/ground", size=40 * scale)
+        ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+        cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
+        cam.CreateClippingRangeAttr(Gf.Vec2f(0.1 * scale, 1000 * scale))
+        cam.AddTranslateOp().Set((0, 15 * scale, 0))
+        cam.AddRotateXOp().Set(-90)
+        bulb = UsdLux.SphereLight.Define(stage, "/World/bulb")
+        bulb.CreateRadiusAttr(0.2 * scale)
+        bulb.CreateIntensityAttr(300)
+        bulb.CreateNormalizeAttr(normalize)
+        bulb.AddTranslateOp().Set((1 * scale, 3 * scale, 0))
+        disk = UsdLux.DiskLight.Define(stage, "/World/disk")
+        disk.CreateRadiusAttr(0.3 * scale)
+        disk.CreateIntensityAttr(200)
+        disk.CreateNormalizeAttr(normalize)
+        disk.AddTranslateOp().Set((-2 * scale, 4 * scale, 0))
+        disk.AddRotateXOp().Set(-90)
+        stage.Save()
+        images.append(_render(stage.GetRootLayer().realPath, width=32, aovs=("direct",))["direct"])
+    assert images[0].max() > 0
+    np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-7)

@@ -4,7 +4,7 @@ For a surface point P with unit normal n and Lambertian albedo ρ, each light co
 outgoing radiance ``ρ/π · E``, with irradiance
 
 * point, sphere, disk, rect lights (treated as points at their centre):
-  ``E = I · S(θ_l) · max(0, n·ω) / d²`` where ω is the unit direction to the light, d its distance,
+  ``E = I · S(θ_l) · max(0, n·ω) / d²`` (d in metres) where ω is the unit direction to the light, d its distance,
   θ_l the angle between the light's axis and −ω, ``I`` the light's radiant intensity
   (:class:`usdml.scene.Lights`); disk and rect lights emit one-sided with a ``max(0, cos θ_l)``
   profile, sphere and point lights isotropically;
@@ -58,8 +58,9 @@ def _smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarr
 class _LightTable:
     """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels."""
 
-    def __init__(self, lights: Lights):
+    def __init__(self, lights: Lights, meters_per_unit: float = 1.0):
         self.n = len(lights)
+        self.inv_m2 = np.float32(1.0 / meters_per_unit ** 2)   # 1/d² with d in metres
         self.position = lights.position.T.astype(np.float32)           # (3, L)
         self.axis = lights.axis.T.astype(np.float32)                   # (3, L)
         self.distant = lights.type == LightType.DISTANT
@@ -93,7 +94,7 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable):
     inv_d = 1.0 / np.sqrt(np.maximum(d2, 1e-30))
     cos_s = (n[:, 0:1] * dx + n[:, 1:2] * dy + n[:, 2:3] * dz) * inv_d
     g = np.maximum(cos_s, 0.0)
-    g *= np.where(t.distant[None, :], 1.0, 1.0 / np.maximum(d2, 1e-24)).astype(np.float32)
+    g *= np.where(t.distant[None, :], 1.0, t.inv_m2 / np.maximum(d2, 1e-24)).astype(np.float32)
     f = None
     if t.one_sided.any() or t.shaped.any() or t.focused.any():
         cols = t.one_sided | t.shaped | t.focused
@@ -123,7 +124,7 @@ def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lig
 
 def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
     """Yield ``(origins, targets, normals, distant)`` of every shadow query of :func:`shade_direct`, by block."""
-    table = _LightTable(lights)
+    table = _LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
     for lo in range(0, len(points), step):
         hi = min(len(points), lo + step)
@@ -134,7 +135,7 @@ def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
 
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                  occluded: Callable[..., np.ndarray] | None,
-                 progress: Callable[[int], None] | None = None) -> DirectResult:
+                 progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -144,6 +145,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     occluded : ``occluded(origins, targets, normals=, distant=) -> (K,) bool`` of a visibility
         backend (:meth:`usdml.visibility.VisibilityBackend.occluded`); None shades unshadowed.
     progress : called with the number of points finished after each block.
+    meters_per_unit : the stage's; light falloff uses distances in metres.
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
@@ -155,7 +157,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     queries = 0
     if n_l == 0 or n_p == 0:
         return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0)
-    table = _LightTable(lights)
+    table = _LightTable(lights, meters_per_unit)
     step = max(1, PAIRS_PER_CHUNK // n_l)
 
     def block(lo: int) -> int:

@@ -84,7 +84,8 @@ class FrameRenderer:
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
         direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                              gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress)
+                              gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress,
+                              meters_per_unit=snap.meters_per_unit)
         stats["shading_seconds"] = _time.perf_counter() - t3
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade

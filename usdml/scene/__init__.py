@@ -113,9 +113,10 @@ class Lights:
     """All lights of a snapshot, PointInstancer-instanced ones expanded to one entry per instance.
 
     Radiometry (UsdLux): ``radiance`` L = intensity · 2^exposure · color (· blackbody) (· diffuse),
-    divided by the world-space emitting area when ``normalize`` is on. ``intensity`` is what a
-    point-like evaluation needs: radiant intensity along the axis (sphere/point: L·π·r², disk: L·π·r²,
-    rect: L·w·h) or, for distant lights, the irradiance at normal incidence.
+    divided by the world-space emitting area in m² when ``normalize`` is on. ``intensity`` is what a
+    point-like evaluation needs: radiant intensity along the axis in nit·m² (sphere/point: L·π·r²,
+    disk: L·π·r², rect: L·w·h, lengths in metres), to be divided by the squared distance in metres;
+    or, for distant lights, the irradiance at normal incidence.
     """
 
     type: np.ndarray            #: (N,) int8 :class:`LightType`

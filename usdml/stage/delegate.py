@@ -196,7 +196,7 @@ class StageDelegate:
             if mesh is not None:
                 meshes.append(mesh)
         for params, rel in top.lights:
-            light_parts.append(expand(params, rel[None]))
+            light_parts.append(expand(params, rel[None], meters_per_unit=self.meters_per_unit))
 
         # Prototypes, breadth first: nested instance sets are composed with their outer instances.
         pending = dict(top.instances)
@@ -234,7 +234,7 @@ class StageDelegate:
                         meshes=proto_meshes, xforms=xforms, instance_ids=ids, instancers=list(inst.instancers),
                         animated=inst.animated, deforming=deforming))
             for params, rel in content.lights:
-                light_parts.append(expand(params, xforms @ rel, ids))
+                light_parts.append(expand(params, xforms @ rel, ids, self.meters_per_unit))
             for nested_path, nested in content.instances.items():
                 nx, nids = nested.arrays()
                 composed = (xforms[:, None] @ nx[None]).reshape(-1, 4, 4)

@@ -120,8 +120,14 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
                        cone_angle, softness, focus, np.asarray(tint, np.float64), shadow)
 
 
-def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | None = None) -> Lights:
-    """One light per ``(N, 4, 4)`` light-to-world matrix (column convention), vectorized."""
+def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | None = None,
+           meters_per_unit: float = 1.0) -> Lights:
+    """One light per ``(N, 4, 4)`` light-to-world matrix (column convention), vectorized.
+
+    Areas are measured in square metres (``meters_per_unit`` converts scene units), since UsdLux
+    radiance is in nits (per square metre): ``intensity`` comes out in nit·m², and a renderer divides
+    it by the squared distance in metres.
+    """
     n = len(xforms)
     m = np.asarray(xforms, np.float64)
     if not np.isfinite(m).all():
@@ -133,14 +139,15 @@ def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | N
     radius = params.radius * np.cbrt(sx * sy * sz)
     base = np.broadcast_to(params.base_radiance, (n, 3))
     t = params.type
+    m2 = meters_per_unit ** 2
     if t in (LightType.SPHERE, LightType.POINT):
-        area = 4 * np.pi * radius ** 2
-        proj = np.pi * radius ** 2
+        area = 4 * np.pi * radius ** 2 * m2
+        proj = np.pi * radius ** 2 * m2
     elif t == LightType.DISK:
         radius = params.radius * np.sqrt(sx * sy)
-        area = proj = np.pi * params.radius ** 2 * xy_area
+        area = proj = np.pi * params.radius ** 2 * xy_area * m2
     elif t == LightType.RECT:
-        area = proj = params.width * params.height * xy_area
+        area = proj = params.width * params.height * xy_area * m2
     else:
         half = np.radians(params.angle) / 2
         area = proj = np.full(n, np.pi * np.sin(half) ** 2 if params.angle > 0 else 1.0)
