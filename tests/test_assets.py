@@ -30,8 +30,17 @@ ASSET_STAGES = {
     "usd-wg/StandardShaderBall/standard_shader_ball_scene.usda": None,
     "tinyusdz/skintest.usda": None,
     "tinyusdz/blendshape-and-animation-test-001.usda": None,
-    # a layer with only a camera: nothing to render
-    "usd-wg/StandardShaderBall/layers/camera.usda": "no renderable geometry",
+    "usd-wg/StandardShaderBall/layers/environment.usda": None,
+    "usd-wg/StandardShaderBall/layers/shaderball.usda": None,
+    "usd-wg/SubdivisionSurfaces/Pyramid/Pyramid.usd": None,
+    "usd-wg/SubdivisionSurfaces/Pyramid/geo.usda": None,
+    "usd-wg/SubdivisionSurfaces/Pyramid/payload.usda": None,
+    # layers meant to be composed into a shot, with nothing to render on their own:
+    "usd-wg/StandardShaderBall/layers/camera.usda": "no renderable geometry",              # a camera only
+    "usd-wg/StandardShaderBall/layers/example_materials.usda": "no renderable geometry",   # materials only
+    "usd-wg/SubdivisionSurfaces/Pyramid/mtl.usda": "no renderable geometry",               # materials only
+    # its Mesh is a `def` under an `over`, so not defined (UsdPrim.IsDefined) and not drawn by usdview either
+    "usd-wg/StandardShaderBall/material_surface_geo/subdiv.usda": "no renderable geometry",
 }
 
 
@@ -62,6 +71,8 @@ def _reference_counts(stage: Usd.Stage, root: Usd.Prim, t: float) -> tuple[int, 
             it.PruneChildren()
             continue
         name = prim.GetTypeName()
+        if name == "Mesh" and not len(UsdGeom.Mesh(prim).GetPointsAttr().Get(t) or []):
+            continue                                  # a mesh without points draws nothing
         if name in GPRIMS:
             gprims += 1
             if name == "Mesh":

@@ -256,6 +256,15 @@ def test_render_errors(new_stage, tmp_path, capsys, argv, message):
     assert not (tmp_path / "out").exists()
 
 
+def test_render_of_a_stage_without_geometry(new_stage, tmp_path, capsys):
+    stage = new_stage()
+    UsdGeom.Camera.Define(stage, "/cam")
+    stage.Save()
+    assert main(["render", stage.GetRootLayer().realPath, str(tmp_path / "out" / "x.exr")]) == 2
+    assert "no renderable geometry" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_render_needs_an_output_or_render_settings(new_stage, capsys):
     path = _sequence_stage(new_stage)
     assert main(["render", path]) == 2

@@ -23,6 +23,7 @@ from usdml.errors import UsdmlError, log
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
+from usdml.stage.delegate import require_geometry
 
 
 @dataclass
@@ -150,7 +151,9 @@ def render_sequence(job: RenderJob) -> dict:
     for f in frames:
         delegate.check_time(f)
     products = plan_products(delegate, job, frames)
-    width, height = _resolution(delegate.snapshot(frames[0]), job)
+    first = delegate.snapshot(frames[0])
+    require_geometry(delegate, first)
+    width, height = _resolution(first, job)
     wanted = {aov for p in products for aov in p.layers.values()}
     renderer = FrameRenderer(delegate, settings, job.device)
     written, skipped, seconds = [], [], []
