@@ -299,3 +299,22 @@ def test_centimetre_stage_renders_like_the_metre_stage(new_stage, tmp_path, norm
         images.append(_render(stage.GetRootLayer().realPath, width=32, aovs=("direct",))["direct"])
     assert images[0].max() > 0
     np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-7)
+
+
+def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, capsys):
+    dark = _ground_stage(new_stage, lambda stage: None)
+    b = _render(dark, aovs=("direct", "normal", "P"))
+    # usdrecord's camera light: albedo · cos(angle to the eye), no falloff, no shadow
+    to_eye = np.array([0, 15, 0]) - b["P"].astype(np.float64)
+    cos = to_eye[..., 1] / np.linalg.norm(to_eye, axis=-1)
+    np.testing.assert_allclose(b["direct"][..., 0], ALBEDO * cos, rtol=1e-4)
+    capsys.readouterr()
+    assert main(["render", dark, str(tmp_path / "a.exr"), "--imageWidth", "8", "--disableCameraLight"]) == 0
+    assert read_exr(tmp_path / "a.exr")[0]["direct"].max() == 0
+    assert "camera light" not in capsys.readouterr().err
+    assert main(["render", dark, str(tmp_path / "b.exr"), "--imageWidth", "8"]) == 0
+    assert "no lights at time 1; lit by a camera light" in capsys.readouterr().err
+    lit = _ground_stage(new_stage, lambda s: UsdLux.DistantLight.Define(s, "/World/sun"))
+    d = StageDelegate(lit)
+    r = FrameRenderer(d, UsdmlSettings())
+    assert "camera_light" not in r.render(1, 8, 8, {"color"}).stats

@@ -186,3 +186,35 @@ def test_time_sampled_points_are_deforming(new_stage):
     a, b = d.snapshot(1).meshes[0], d.snapshot(1.5).meshes[0]
     assert a.deforming and b.deforming
     assert np.allclose(b.points[0], [0, 0.5, 0])
+
+
+def test_purposes_override_and_unsupported_prims(new_stage, warnings_log, capsys):
+    import json
+    from usdml.cli import main
+
+    stage = new_stage()
+    add_quad(stage, "/kept")
+    add_quad(stage, "/proxy").GetPurposeAttr().Set(UsdGeom.Tokens.proxy)
+    add_quad(stage, "/render").GetPurposeAttr().Set(UsdGeom.Tokens.render)
+    curves = UsdGeom.BasisCurves.Define(stage, "/hair")
+    curves.CreatePointsAttr([(0, 0, 0), (0, 1, 0), (0, 2, 0), (0, 3, 0)])
+    curves.CreateCurveVertexCountsAttr([4])
+    UsdGeom.Points.Define(stage, "/dust1")
+    UsdGeom.Points.Define(stage, "/dust2")
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    assert sorted(m.path for m in StageDelegate(path, purposes=["proxy"]).snapshot(0).meshes) == ["/kept", "/proxy"]
+    assert main(["info", path, "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["unsupported"] == {"BasisCurves": 1, "Points": 2} and info["meshes"] == 2
+    assert sum("Points prims are not rendered" in w for w in info["warnings"]) == 1   # once per type
+
+
+def test_implicit_detail_is_settable(new_stage):
+    stage = new_stage()
+    UsdGeom.Sphere.Define(stage, "/ball")
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    coarse = StageDelegate(path).snapshot(0).meshes[0].triangle_count
+    fine = StageDelegate(path, implicit_detail=40).snapshot(0).meshes[0].triangle_count
+    assert coarse == 10 * 5 * 2 - 2 * 10 and fine > 10 * coarse

@@ -29,10 +29,10 @@ def _query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     return tuple(np.concatenate([b[k] for b in blocks]) for k in range(4))
 
 
-def bench_visibility(stage: str, backends: list[str], image_width: int = 512, frame: float | None = None,
-                     camera: str | None = None, render_settings: str | None = None) -> list[dict]:
+def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
+                     frame: float | None = None) -> list[dict]:
     """One result per backend: build and query seconds on the same queries, ratios to ``exact``."""
-    delegate = StageDelegate(stage, camera=camera, render_settings_path=render_settings)
+    stage = delegate.path
     frame = delegate.start_time if frame is None else frame
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)

@@ -20,14 +20,27 @@ def _add_stage_args(p: argparse.ArgumentParser) -> None:
                                     "the first camera, else a camera framing the scene)")
     p.add_argument("--renderSettingsPrimPath", dest="render_settings",
                    help="RenderSettings prim (default: the stage's renderSettingsPrimPath metadata)")
+    p.add_argument("--purposes", metavar="PURPOSE[,PURPOSE...]",
+                   help="imageable purposes to include besides 'default', as usdrecord (default: the "
+                        "RenderSettings' includedPurposes, else 'render' -- final-frame geometry; "
+                        "'proxy' for usdview's interactive look)")
+    p.add_argument("--implicit-detail", type=int, default=10, metavar="N",
+                   help="segments around implicit prims (Sphere, Cylinder ...), default 10 as usdImaging")
+
+
+def _delegate(args: argparse.Namespace):
+    from usdml.stage import StageDelegate
+
+    purposes = None if args.purposes is None else args.purposes.replace(",", " ").split()
+    return StageDelegate(args.stage, camera=args.camera, render_settings_path=args.render_settings,
+                         purposes=purposes, implicit_detail=args.implicit_detail)
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from usdml.info import format_info, stage_info
-    from usdml.stage import StageDelegate
 
     started = time.perf_counter()
-    delegate = StageDelegate(args.stage, camera=args.camera, render_settings_path=args.render_settings)
+    delegate = _delegate(args)
     info = stage_info(delegate, args.time, started=started)
     if args.json:
         print(json.dumps(info, indent=2))
@@ -45,6 +58,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     job = RenderJob(stage=args.stage, output=args.output, frames=args.frames, camera=args.camera,
                     image_width=args.imageWidth, render_settings=args.render_settings,
+                    purposes=None if args.purposes is None else args.purposes.replace(",", " ").split(),
+                    implicit_detail=args.implicit_detail, camera_light=args.cameraLightEnabled,
                     aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
                     device=args.device, resume=args.resume, preview=args.preview,
                     overrides=_settings_overrides(args))
@@ -68,8 +83,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from usdml.bench import bench_visibility, format_bench
 
-    results = bench_visibility(args.stage, backends=args.visibility or ["exact"], image_width=args.imageWidth,
-                               frame=args.frame, camera=args.camera, render_settings=args.render_settings)
+    results = bench_visibility(_delegate(args), backends=args.visibility or ["exact"],
+                               image_width=args.imageWidth, frame=args.frame)
     print(json.dumps(results, indent=2) if args.json else format_bench(results))
     return 0
 
@@ -98,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, help="random seed (stochastic passes)")
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
     render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
+    render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",
+                        help="no camera light for stages without lights (usdrecord's flag)")
     render.add_argument("--json", action="store_true", help="print the summary as JSON")
     render.set_defaults(run=_cmd_render)
 
@@ -111,9 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class _OneLine(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        return f"usdml: {record.levelname.lower()}: {record.getMessage()}"
+class _OneLine(logging.Handler):
+    """``usdml: warning: ...`` on whatever ``sys.stderr`` is when the record is emitted."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"usdml: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,10 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "run", None):
         parser.print_help()
         return 2
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(_OneLine())
     log = logging.getLogger("usdml")
-    log.handlers[:] = [handler]
+    log.handlers[:] = [_OneLine()]
     log.setLevel(logging.ERROR if args.quiet else logging.WARNING)
     log.propagate = False
 

@@ -72,6 +72,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
             "arrays": len(plan), "totalBytes": per_array * len(plan),
             "plan": [{"role": r, "source": s} for r, s in plan],
         },
+        "unsupported": dict(sorted(delegate.unsupported.items())),
         "warnings": list(delegate.warn.messages),
         "loadSeconds": round(seconds, 3),
     }
@@ -96,6 +97,9 @@ def format_info(info: dict) -> str:
                                                if info["lightTypes"] else ""),
         f"camera      {info['camera']}  (cameras on stage: {len(info['cameras'])})",
     ]
+    if info["unsupported"]:
+        lines.append("unsupported " + ", ".join(f"{k} {n(v)}" for k, v in info["unsupported"].items())
+                     + " (not rendered)")
     if rs:
         res = "x".join(map(str, rs["resolution"]))
         lines.append(f"render      {rs['path']}: {res}, camera {rs['camera']}")

@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from usdml.errors import UsdmlError
+from usdml.errors import UsdmlError, log
 from usdml.lighting.direct import shade_direct
 from usdml.render.gbuffer import GBuffer, build_gbuffer
 from usdml.scene import Camera, Snapshot, diff
@@ -23,6 +23,22 @@ from usdml.visibility import ExactBackend, make_backend
 
 #: AOVs written when neither --aovs nor RenderSettings choose
 DEFAULT_AOVS = ("color", "direct", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
+
+
+def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, camera: Camera) -> np.ndarray:
+    """usdrecord's default camera light: a light at the eye without falloff, unit diffuse intensity.
+
+    Storm's simple lighting gives ``albedo · max(0, n·l)``; as radiance that is ``albedo/π · E`` with
+    ``E = π · max(0, n·l)``. It never casts a visible shadow (it sits at the eye). Returns (P, 3) float32.
+    """
+    eye = camera.xform[:3, 3]
+    if camera.projection == "orthographic":
+        to_eye = np.broadcast_to(camera.xform[:3, 2], points.shape)
+    else:
+        to_eye = eye - points
+    to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
+    cos = np.maximum(np.einsum("ij,ij->i", normals.astype(np.float64), to_eye), 0.0)
+    return (albedo * cos[:, None]).astype(np.float32)
 
 
 def conform_camera(camera: Camera, width: int, height: int) -> Camera:
@@ -47,13 +63,16 @@ class FrameResult:
 class FrameRenderer:
     """Renders timecodes of one stage in order, updating the backends with what changed."""
 
-    def __init__(self, delegate: StageDelegate, settings: UsdmlSettings, device: str = "cpu"):
+    def __init__(self, delegate: StageDelegate, settings: UsdmlSettings, device: str = "cpu",
+                 camera_light: bool = True):
         self.delegate = delegate
+        self.camera_light = camera_light
         self.settings = settings
         self.device = device
         self.exact = ExactBackend()
         self.backend = self.exact if settings.visibility == "exact" else make_backend(settings.visibility)
         self._previous: Snapshot | None = None
+        self._told_camera_light = False
 
     def close(self) -> None:
         self.exact.close()
@@ -86,6 +105,14 @@ class FrameRenderer:
         direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                               gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress,
                               meters_per_unit=snap.meters_per_unit)
+        if self.camera_light and len(snap.lights) == 0:
+            direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                              gb.albedo.reshape(-1, 3)[hit], camera)
+            stats["camera_light"] = True
+            if not self._told_camera_light:
+                log.warning(f"{self.delegate.path}: no lights at time {time:g}; lit by a camera light as "
+                            "usdrecord does (--disableCameraLight to turn it off)")
+                self._told_camera_light = True
         stats["shading_seconds"] = _time.perf_counter() - t3
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade

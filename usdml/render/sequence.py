@@ -47,6 +47,9 @@ class RenderJob:
     device: str = "cpu"
     resume: bool = False
     preview: bool = False
+    purposes: list[str] | None = None
+    implicit_detail: int = 10
+    camera_light: bool = True
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
 
 
@@ -142,7 +145,8 @@ def check_device(device: str) -> None:
 def render_sequence(job: RenderJob) -> dict:
     """Render every frame of ``job``; returns a summary (frames written, skipped, seconds per frame)."""
     started = _time.perf_counter()
-    delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings)
+    delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
+                             purposes=job.purposes, implicit_detail=job.implicit_detail)
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
     if settings.visibility != "exact":
         raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact")
@@ -155,7 +159,7 @@ def render_sequence(job: RenderJob) -> dict:
     require_geometry(delegate, first)
     width, height = _resolution(first, job)
     wanted = {aov for p in products for aov in p.layers.values()}
-    renderer = FrameRenderer(delegate, settings, job.device)
+    renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light)
     written, skipped, seconds = [], [], []
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:

@@ -20,10 +20,12 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.lights import LightParams, expand, read_light
-from usdml.stage.mesh import is_gprim, points_vary, read_gprim, read_mesh
+from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 
+#: imageable non-mesh geometry usdml does not draw (counted under "unsupported" by usdml info)
+UNSUPPORTED = ("BasisCurves", "NurbsCurves", "HermiteCurves", "Points", "NurbsPatch", "TetMesh", "Volume")
 _PI_ATTRS = ("positions", "orientations", "orientationsf", "scales", "velocities", "accelerations",
              "angularVelocities", "protoIndices", "invisibleIds", "inactiveIds", "ids")
 _MESH_ATTRS = ("faceVertexCounts", "faceVertexIndices", "holeIndices", "normals",
@@ -104,8 +106,15 @@ class StageDelegate:
     """
 
     def __init__(self, path: str | os.PathLike, camera: str | None = None,
-                 render_settings_path: str | None = None, warn: Warnings | None = None):
+                 render_settings_path: str | None = None, warn: Warnings | None = None,
+                 purposes: list[str] | None = None, implicit_detail: int = DEFAULT_IMPLICIT_DETAIL):
         self.path = str(path)
+        if implicit_detail < 3:
+            raise UsdmlError(f"implicit detail {implicit_detail}: use at least 3 segments")
+        self._gprim = {"detail": int(implicit_detail)}
+        self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
+        self._unsupported_seen: set[str] = set()
+        self.unsupported: dict[str, int] = {}
         self.warn = warn or Warnings()
         self.stage = open_stage(path)
         for err in self.stage.GetCompositionErrors():
@@ -169,7 +178,8 @@ class StageDelegate:
         t = Usd.TimeCode(time)
         xf = UsdGeom.XformCache(t)
         rs = read_render_settings(self.settings_prim, t) if self.settings_prim is not None else None
-        purposes = set(rs.included_purposes if rs else ("default", "render")) | {"default"}
+        purposes = self._purposes or set(rs.included_purposes if rs else ("default", "render")) | {"default"}
+        self.unsupported = {}
 
         top = self._walk(self.stage.GetPseudoRoot(), t, xf, purposes)
         meshes: list[Mesh] = []
@@ -182,7 +192,8 @@ class StageDelegate:
             if skinned:
                 posed = self.skel.posed_world_points(prim, t, xf)
                 mesh = read_mesh(prim, t, None, self._mesh_id(path), self.warn, points=posed,
-                                 deforming=deforming, authored_normals=False)
+                                 deforming=deforming, authored_normals=False,
+                                 materials=self._gprim.get("materials"))
             elif animated and not deforming:
                 mesh = self._cached_mesh(prim, t, None, "")
                 if mesh is not None:
@@ -191,7 +202,7 @@ class StageDelegate:
                         instance_ids=np.zeros(1, np.int64), instancers=[path], animated=True))
                 continue
             else:
-                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if deforming
+                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True, **self._gprim) if deforming
                         else self._cached_mesh(prim, t, rel, "/"))
             if mesh is not None:
                 meshes.append(mesh)
@@ -217,7 +228,7 @@ class StageDelegate:
                 if self.skel.query(prim) is not None:
                     self.warn(f"{path}: skinned meshes inside instance prototypes are rendered at rest")
                 deforming |= varying
-                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True) if varying
+                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True, **self._gprim) if varying
                         else self._cached_mesh(prim, t, rel, proto_path))
                 if mesh is not None:
                     proto_meshes.append(mesh)
@@ -277,7 +288,7 @@ class StageDelegate:
         cached = self._mesh_cache.get(key)
         if cached is not None and not mesh_attrs_vary and np.array_equal(cached[1], np.eye(4) if rel is None else rel):
             return cached[0]
-        mesh = read_gprim(prim, t, rel, self._mesh_id(key[0]), self.warn)
+        mesh = read_gprim(prim, t, rel, self._mesh_id(key[0]), self.warn, **self._gprim)
         if not mesh_attrs_vary:
             self._mesh_cache[key] = (mesh, np.eye(4) if rel is None else rel.copy())
         return mesh
@@ -341,6 +352,13 @@ class StageDelegate:
                 continue
             if is_gprim(prim):
                 content.meshes.append((prim, self._relative(prim, root, xf), anim))
+            elif prim.IsA(UsdGeom.Gprim) or prim.GetTypeName() in UNSUPPORTED:
+                kind = prim.GetTypeName()
+                self.unsupported[kind] = self.unsupported.get(kind, 0) + 1
+                if kind not in self._unsupported_seen:
+                    self._unsupported_seen.add(kind)
+                    self.warn(f"{ppath}: {kind} prims are not rendered (this and every other {kind}); "
+                              "convert them to meshes to see them")
             elif prim.HasAPI(UsdLux.LightAPI):
                 params = read_light(prim, t, self.warn)
                 if params is not None:

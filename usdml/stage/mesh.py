@@ -16,6 +16,9 @@ from usdml.errors import UsdmlError
 from usdml.scene import Mesh
 from usdml.stage.implicit import IMPLICIT_TYPES, tessellate
 
+#: segments around an implicit surface's axis: usdImaging's (its sphere and cylinder adapters use 10)
+DEFAULT_IMPLICIT_DETAIL = 10
+
 #: attributes whose time samples make a gprim's points vary
 _SHAPE_ATTRS = ("points", "size", "radius", "height", "radiusTop", "radiusBottom", "width", "length", "axis")
 
@@ -117,24 +120,26 @@ def points_vary(prim: Usd.Prim) -> bool:
 
 
 def read_gprim(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,
-               warn: Callable[[str], None], deforming: bool = False) -> Mesh | None:
-    """A Mesh (:func:`read_mesh`) or an implicit gprim tessellated by :mod:`usdml.stage.implicit`."""
+               warn: Callable[[str], None], deforming: bool = False,
+               detail: int = DEFAULT_IMPLICIT_DETAIL, materials=None) -> Mesh | None:
+    """A Mesh (:func:`read_mesh`) or an implicit gprim tessellated by :mod:`usdml.stage.implicit`
+    with ``detail`` segments around its axis; ``materials`` resolves bound materials to albedo."""
     if prim.IsA(UsdGeom.Mesh):
-        return read_mesh(prim, time, to_space, mesh_id, warn, deforming=deforming)
+        return read_mesh(prim, time, to_space, mesh_id, warn, deforming=deforming, materials=materials)
     try:
-        poly = tessellate(prim, time)
+        poly = tessellate(prim, time, detail)
     except ValueError as e:
         raise UsdmlError(f"{prim.GetPath()}: {e}; fix the {prim.GetTypeName()}'s attribute") from None
     if poly is None:
         return None
     sided = UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(time)
     return build_mesh(prim, time, mesh_id, poly.points, poly.counts, poly.indices, np.zeros(0, np.int64),
-                      False, to_space, (poly.normals, "faceVarying"), bool(sided), deforming, warn)
+                      False, to_space, (poly.normals, "faceVarying"), bool(sided), deforming, warn, materials)
 
 
 def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,
               warn: Callable[[str], None], points: np.ndarray | None = None,
-              deforming: bool = False, authored_normals: bool = True) -> Mesh | None:
+              deforming: bool = False, authored_normals: bool = True, materials=None) -> Mesh | None:
     """Triangulate the ``UsdGeom.Mesh`` ``prim`` at ``time``; ``to_space`` maps its local space to the target space.
 
     ``points`` overrides the authored points (posed UsdSkel points, already in the target space when
@@ -156,17 +161,18 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
         _array(mesh.GetFaceVertexIndicesAttr().Get(time), np.int64),
         _array(mesh.GetHoleIndicesAttr().Get(time), np.int64),
         mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
-        bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn)
+        bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials)
 
 
 def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndarray, counts: np.ndarray,
                indices: np.ndarray, holes: np.ndarray, left: bool, to_space: np.ndarray | None,
                normals: tuple | None, double_sided: bool, deforming: bool,
-               warn: Callable[[str], None]) -> Mesh | None:
+               warn: Callable[[str], None], materials=None) -> Mesh | None:
     """Triangulate polygon arrays of ``prim`` (a Mesh or a tessellated implicit gprim).
 
-    ``normals`` is ``(values, interpolation)`` or None to compute smooth normals; ``displayColor`` is
-    read from ``prim``'s primvars.
+    ``normals`` is ``(values, interpolation)`` or None to compute smooth normals. The albedo is the
+    bound UsdPreviewSurface's ``diffuseColor`` when ``materials`` (a
+    :class:`usdml.stage.materials.MaterialResolver`) finds one, else ``primvars:displayColor``.
     """
     path = str(prim.GetPath())
     if len(points) == 0:
@@ -202,8 +208,8 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
     if corner_normals is None:
         corner_normals = smooth_normals(world, tris)
 
-    albedo = None
-    dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor")
+    albedo = materials.albedo(prim, time, topo, len(points)) if materials is not None else None
+    dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor") if albedo is None else None
     if dc and dc.HasValue():
         raw = dc.ComputeFlattened(time)
         if raw is not None and len(raw):
