@@ -20,6 +20,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.lights import LightParams, expand, read_light
+from usdml.stage.materials import MaterialResolver
 from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
@@ -111,11 +112,11 @@ class StageDelegate:
         self.path = str(path)
         if implicit_detail < 3:
             raise UsdmlError(f"implicit detail {implicit_detail}: use at least 3 segments")
-        self._gprim = {"detail": int(implicit_detail)}
+        self.warn = warn or Warnings()
+        self._gprim = {"detail": int(implicit_detail), "materials": MaterialResolver(self.warn)}
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
         self._unsupported_seen: set[str] = set()
         self.unsupported: dict[str, int] = {}
-        self.warn = warn or Warnings()
         self.stage = open_stage(path)
         for err in self.stage.GetCompositionErrors():
             self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")

@@ -11,9 +11,9 @@ Emitted radiance toward the scene from direction ω (ω points from the scene *t
 and ``texture(ω)`` the lat-long map's linear RGB (1 for a constant dome). The map is piecewise constant
 per texel (nearest filtering): the sampler and the brute-force reference integrate the same function.
 
-``inputs:normalize`` has no effect on dome lights: UsdLux defines normalize as dividing by the light's
-surface area, and a dome has none ("this attribute has no effect on ... DomeLight", UsdLux LightAPI
-docs). It is ignored here, without a warning.
+``inputs:normalize`` has no effect on dome lights: UsdLux LightAPI defines it as normalizing the power
+"by the surface area of the light" (``pxr/usd/usdLux/schema.usda``), and a dome, being infinitely far
+away, has no surface area to divide by. It is ignored here, without a warning.
 
 Lat-long convention (the source: OpenUSD ``pxr/usd/usdLux/schema.usda``, classes ``DomeLight`` and
 ``DomeLight_1``, which quote the OpenEXR lat-long specification)
@@ -67,6 +67,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdLux
 
 from usdml.errors import UsdmlError
+from usdml.lighting.dome import latlong_directions, latlong_texel
 
 __all__ = ["Dome", "read_dome", "is_dome", "load_texture", "latlong_directions", "dome_pole_rotation",
            "clear_texture_cache"]
@@ -108,30 +109,6 @@ class Dome:
         return self.texture[j, i].astype(np.float64) * self.radiance
 
 
-def latlong_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Dome-space unit directions for image coordinates ``u = x/W`` (from the left), ``v = y/H`` (from the top)."""
-    phi = np.pi * (1.0 - 2.0 * np.asarray(u, np.float64))
-    theta = np.pi * np.asarray(v, np.float64)
-    s = np.sin(theta)
-    return np.stack([s * np.sin(phi), np.cos(theta), s * np.cos(phi)], axis=-1)
-
-
-def latlong_uv(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`latlong_directions`: ``(u, v)`` in [0, 1] of dome-space unit directions."""
-    d = np.asarray(directions, np.float64)
-    phi = np.arctan2(d[..., 0], d[..., 2])                     # longitude, (−π, π]
-    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
-    return (1.0 - phi / np.pi) / 2.0, theta / np.pi
-
-
-def latlong_texel(directions: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Column ``i`` and row ``j`` (row 0 = top) of the texel holding each dome-space direction."""
-    u, v = latlong_uv(directions)
-    i = np.floor(u * width).astype(np.int64) % width
-    j = np.clip(np.floor(v * height).astype(np.int64), 0, height - 1)
-    return i, j
-
-
 def dome_pole_rotation(pole_axis: str) -> np.ndarray:
     """(3, 3) rotation applied to the dome before its transform for a resolved pole axis "Y" or "Z"."""
     return _Z_UP.copy() if pole_axis == "Z" else np.eye(3)
@@ -147,7 +124,7 @@ class _TextureError(Exception):
     pass
 
 
-_cache: "OrderedDict[tuple, np.ndarray | _TextureError]" = OrderedDict()
+_cache: "OrderedDict[tuple, tuple[np.ndarray, int] | _TextureError]" = OrderedDict()
 _cache_lock = threading.Lock()
 
 
@@ -164,7 +141,7 @@ def _srgb_decode(x: np.ndarray) -> np.ndarray:
 _LINEAR_NAMES = ("linear", "lin_", "scene_linear", "acescg", "aces2065", "raw")
 
 
-def _read_image(path: str) -> np.ndarray:
+def _read_image(path: str) -> tuple[np.ndarray, int]:
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(path)
@@ -189,16 +166,24 @@ def _read_image(path: str) -> np.ndarray:
     if integer and not any(colorspace.startswith(n) or n in colorspace for n in _LINEAR_NAMES):
         rgb = _srgb_decode(np.clip(rgb, 0.0, 1.0)).astype(np.float32)
     rgb = np.ascontiguousarray(rgb, np.float32)
+    bad = ~np.isfinite(rgb) | (rgb < 0)
+    nbad = int(bad.any(axis=2).sum())
+    if nbad:
+        rgb = np.where(bad, np.float32(0.0), rgb)
     rgb.setflags(write=False)
-    return rgb
+    return rgb, nbad
 
 
 def load_texture(path: str) -> np.ndarray:
     """``(H, W, 3) float32`` linear RGB of an image file, read once and cached (read-only array).
 
-    Raises ``OSError`` when the file is missing or cannot be decoded (the failure is cached too, until
-    the file changes).
+    NaN, infinite and negative values are replaced by 0. Raises ``OSError`` when the file is missing or
+    cannot be decoded (the failure is cached too, until the file changes).
     """
+    return _load(path)[0]
+
+
+def _load(path: str) -> tuple[np.ndarray, int]:
     try:
         st = os.stat(path)
     except OSError as e:
@@ -309,7 +294,7 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
              "file); using a constant dome of the light's color")
         return dome
     try:
-        image = load_texture(resolved)
+        image, nbad = _load(resolved)
     except OSError as e:
         warn(f"{path}.inputs:texture:file: '{resolved}': {e}; using a constant dome of the light's color")
         return dome
@@ -319,7 +304,7 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
     if fmt not in SUPPORTED_FORMATS or (fmt == "automatic" and w != 2 * h):
         why = (f"format '{fmt}' is not supported yet" if fmt != "automatic"
                else f"format 'automatic' on a {w}×{h} image (not 2:1, so not a lat-long map) is not supported")
-        mean = np.nan_to_num(image.astype(np.float64), nan=0.0, posinf=0.0).reshape(-1, 3).mean(0)
+        mean = image.reshape(-1, 3).astype(np.float64).mean(0)
         warn(f"{path}.inputs:texture: {why}; using a constant dome of the map's mean color "
              f"({mean[0]:.4g}, {mean[1]:.4g}, {mean[2]:.4g}); use a lat-long (2:1) map")
         dome.radiance = dome.radiance * np.maximum(mean, 0.0)
@@ -327,12 +312,9 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
     if fmt == "latlong" and w != 2 * h:
         warn(f"{path}.inputs:texture:file: lat-long map of {w}×{h} is not 2:1; sampled as lat-long anyway")
 
-    bad = ~np.isfinite(image) | (image < 0)
-    if bad.any():
-        warn(f"{path}.inputs:texture:file: '{resolved}' has {int(bad.any(axis=2).sum())} texel(s) with "
-             "NaN, infinite or negative values; they emit nothing")
-        image = np.where(bad, 0.0, image).astype(np.float32)
-        image.setflags(write=False)
+    if nbad:
+        warn(f"{path}.inputs:texture:file: '{resolved}' has {nbad} texel(s) with NaN, infinite or "
+             "negative values; they emit nothing")
     dome.texture = image
     dome.texture_file = resolved
     return dome
