@@ -204,3 +204,21 @@ def test_light_inside_a_native_prototype_is_one_light_per_instance(new_stage, tm
     snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
     assert len(snap.lights) == 4
     assert sorted(snap.lights.position[:, 0]) == [0, 1, 2, 3] and np.allclose(snap.lights.position[:, 1], 2)
+
+
+def test_prototypes_defined_under_an_over_are_drawn_only_as_instances(new_stage):
+    """The usdImaging pattern: PointInstancer prototypes as `def`s under an `over`, hidden from traversal."""
+    stage = new_stage()
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/pi")
+    stage.OverridePrim("/World/pi/hidden")
+    add_cube_mesh(stage, "/World/pi/hidden/box")
+    stage.OverridePrim("/World/pi/hidden/box/extra")           # a pure override inside: not drawn
+    add_cube_mesh(stage, "/World/pi/hidden/box/extra/ghost")
+    pi.CreatePrototypesRel().SetTargets(["/World/pi/hidden/box"])
+    pi.CreatePositionsAttr([(0, 0, 0), (3, 0, 0), (6, 0, 0)])
+    pi.CreateProtoIndicesAttr([0, 0, 0])
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    assert snap.meshes == []
+    (proto,) = snap.prototypes
+    assert proto.instance_count == 3 and [m.path for m in proto.meshes] == ["/World/pi/hidden/box"]

@@ -25,6 +25,9 @@ from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, rea
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 
+#: prims below a PointInstancer prototype root: active, loaded, not abstract (defined or not)
+_PROTOTYPE_PREDICATE = Usd.PrimIsActive & Usd.PrimIsLoaded & ~Usd.PrimIsAbstract
+
 #: imageable non-mesh geometry usdml does not draw (counted under "unsupported" by usdml info)
 UNSUPPORTED = ("BasisCurves", "NurbsCurves", "HermiteCurves", "Points", "NurbsPatch", "TetMesh", "Volume")
 _PI_ATTRS = ("positions", "orientations", "orientationsf", "scales", "velocities", "accelerations",
@@ -310,12 +313,20 @@ class StageDelegate:
         content = _Content()
         animated: dict[Sdf.Path, bool] = {}
         purpose_of: dict[Sdf.Path, str] = {}
-        it = iter(Usd.PrimRange(root))
+        # PointInstancer prototypes are often `def`s under an `over` (hidden from the plain traversal):
+        # below a prototype root, walk prims that are not *defined* because of an ancestor over, but
+        # skip pure overrides themselves, as usdImaging does
+        inside_prototype = not root.IsPseudoRoot() and not root.IsPrototype()
+        predicate = _PROTOTYPE_PREDICATE if inside_prototype else Usd.PrimDefaultPredicate
+        it = iter(Usd.PrimRange(root, predicate))
         for prim in it:
             ppath = prim.GetPath()
             parent = ppath.GetParentPath()
             if prim.IsPseudoRoot():
                 animated[ppath], purpose_of[ppath] = False, "default"
+                continue
+            if inside_prototype and prim.GetSpecifier() == Sdf.SpecifierOver:
+                it.PruneChildren()
                 continue
             inherited_anim = animated.get(parent, False) if prim != root else False
             xformable = UsdGeom.Xformable(prim)
