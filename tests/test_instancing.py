@@ -210,10 +210,11 @@ def test_prototypes_defined_under_an_over_are_drawn_only_as_instances(new_stage)
     """The usdImaging pattern: PointInstancer prototypes as `def`s under an `over`, hidden from traversal."""
     stage = new_stage()
     pi = UsdGeom.PointInstancer.Define(stage, "/World/pi")
-    stage.OverridePrim("/World/pi/hidden")
     add_cube_mesh(stage, "/World/pi/hidden/box")
-    stage.OverridePrim("/World/pi/hidden/box/extra")           # a pure override inside: not drawn
     add_cube_mesh(stage, "/World/pi/hidden/box/extra/ghost")
+    for over in ("/World/pi/hidden", "/World/pi/hidden/box/extra"):   # Define made them defs
+        stage.GetPrimAtPath(over).SetSpecifier(Sdf.SpecifierOver)
+    assert not stage.GetPrimAtPath("/World/pi/hidden/box").IsDefined()
     pi.CreatePrototypesRel().SetTargets(["/World/pi/hidden/box"])
     pi.CreatePositionsAttr([(0, 0, 0), (3, 0, 0), (6, 0, 0)])
     pi.CreateProtoIndicesAttr([0, 0, 0])
