@@ -15,7 +15,7 @@ from usdml.cli import main
 from usdml.stage import StageDelegate
 
 GPRIMS = ("Mesh", "Sphere", "Cube", "Cylinder", "Cone", "Capsule", "Plane", "Cylinder_1", "Capsule_1")
-LIGHTS = ("SphereLight", "DiskLight", "RectLight", "DistantLight")
+LIGHTS = ("SphereLight", "DiskLight", "RectLight", "DistantLight", "DomeLight", "DomeLight_1")
 
 #: stage -> why usdml refuses it (documented in the README), or None when it must load
 ASSET_STAGES = {

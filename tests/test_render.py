@@ -318,3 +318,16 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     d = StageDelegate(lit)
     r = FrameRenderer(d, UsdmlSettings())
     assert "camera_light" not in r.render(1, 8, 8, {"color"}).stats
+
+
+def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
+    """A dome of radiance L gives irradiance π·L on an open upward plane: direct = albedo · L."""
+    def light(stage):
+        dome = UsdLux.DomeLight.Define(stage, "/World/sky")
+        dome.CreateIntensityAttr(2.0)
+        dome.CreateColorAttr((1.0, 0.5, 0.25))
+
+    b = _render(_ground_stage(new_stage, light), width=16, aovs=("direct", "shadow"))
+    expected = ALBEDO * 2.0 * np.array([1.0, 0.5, 0.25])
+    np.testing.assert_allclose(b["direct"].reshape(-1, 3), np.broadcast_to(expected, (256, 3)), rtol=0.01)
+    assert b["shadow"].max() == 0

@@ -50,7 +50,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _settings_overrides(args: argparse.Namespace) -> dict:
-    return {k: v for k, v in {"visibility": args.visibility, "seed": args.seed}.items() if v is not None}
+    values = {"visibility": args.visibility, "seed": args.seed, "dome_samples": args.dome_samples}
+    return {k: v for k, v in values.items() if v is not None}
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -110,7 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
-    render.add_argument("--seed", type=int, help="random seed (stochastic passes)")
+    render.add_argument("--seed", type=int, help="random seed (stochastic passes, dome light sampling)")
+    render.add_argument("--dome-samples", type=int, metavar="K",
+                        help="distant lights each DomeLight is importance-sampled into per frame (default 256)")
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
     render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
     render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",

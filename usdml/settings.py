@@ -34,6 +34,7 @@ class UsdmlSettings:
     lgh_alpha: float = 1.0          #: LGH blending radius factor, r_l = alpha h_l (paper 004)
     lgh_levels: int = 0             #: LGH levels; 0 = largest count with |S1| < VPLs / 2 (paper 004)
     shadow_samples: int = 4         #: stochastic shadow samples per pixel (paper 004)
+    dome_samples: int = 256         #: distant lights a dome light is importance-sampled into, per frame
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -41,7 +42,7 @@ class UsdmlSettings:
 
         if self.visibility not in VISIBILITY_BACKENDS:
             raise UsdmlError(f"unknown visibility backend {self.visibility!r}; use one of {', '.join(VISIBILITY_BACKENDS)}")
-        for name in ("voxel_resolution", "vpl_count", "shadow_samples"):
+        for name in ("voxel_resolution", "vpl_count", "shadow_samples", "dome_samples"):
             if getattr(self, name) < 1:
                 raise UsdmlError(f"setting {name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.direction_step <= 90:

@@ -16,7 +16,8 @@ import numpy as np
 from usdml.errors import UsdmlError, log
 from usdml.lighting.direct import shade_direct
 from usdml.render.gbuffer import GBuffer, build_gbuffer
-from usdml.scene import Camera, Snapshot, diff
+from usdml.lighting.dome import dome_to_distant_lights
+from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
 from usdml.visibility import ExactBackend, make_backend
@@ -74,6 +75,17 @@ class FrameRenderer:
         self._previous: Snapshot | None = None
         self._told_camera_light = False
 
+    def frame_lights(self, snap: Snapshot) -> Lights:
+        """The snapshot's lights plus each dome light importance-sampled into distant lights.
+
+        The dome's samples use the same seed every frame, so a static dome does not flicker.
+        """
+        if not snap.domes:
+            return snap.lights
+        domes = [dome_to_distant_lights(d, self.settings.dome_samples, self.settings.seed, snap.meters_per_unit)
+                 for d in snap.domes]
+        return Lights.concat([snap.lights] + domes)
+
     def close(self) -> None:
         self.exact.close()
         if self.backend is not self.exact:
@@ -95,6 +107,7 @@ class FrameRenderer:
         stats["update_seconds"] = _time.perf_counter() - t1
         self._previous = snap
         camera = conform_camera(snap.camera, width, height)
+        lights = self.frame_lights(snap)
         snap = replace(snap, camera=camera)
 
         t2 = _time.perf_counter()
@@ -103,9 +116,9 @@ class FrameRenderer:
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
         direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                              gb.albedo.reshape(-1, 3)[hit], snap.lights, self.backend.occluded, progress,
+                              gb.albedo.reshape(-1, 3)[hit], lights, self.backend.occluded, progress,
                               meters_per_unit=snap.meters_per_unit)
-        if self.camera_light and len(snap.lights) == 0:
+        if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)
             stats["camera_light"] = True
@@ -117,7 +130,7 @@ class FrameRenderer:
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade
         stats["shadow_queries"] = direct.queries
-        stats["lights"] = len(snap.lights)
+        stats["lights"] = len(lights)
         stats["pixels"] = width * height
         stats["seconds"] = _time.perf_counter() - t0
         buffers = self._buffers(gb, hit, direct, camera, aovs)

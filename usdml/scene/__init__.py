@@ -267,6 +267,8 @@ class Snapshot:
     time_codes_per_second: float = 24.0
     meters_per_unit: float = 0.01
     up_axis: str = "Y"
+    #: dome lights (``usdml.stage.dome.Dome``: plain NumPy data), turned into distant lights per frame
+    domes: list = field(default_factory=list)
 
     @property
     def static_meshes(self) -> list[Mesh]:

@@ -19,6 +19,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
+from usdml.stage.dome import Dome, is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
 from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
@@ -96,6 +97,7 @@ class _Content:
     meshes: list[tuple[Usd.Prim, np.ndarray, bool]] = field(default_factory=list)   # prim, rel xform, xform animated
     lights: list[tuple[LightParams, np.ndarray]] = field(default_factory=list)
     instances: dict[str, _InstanceSet] = field(default_factory=dict)
+    domes: list[Dome] = field(default_factory=list)
 
 
 class StageDelegate:
@@ -263,7 +265,7 @@ class StageDelegate:
                                  "xformOps or PointInstancer positions/orientations/scales")
         snap = Snapshot(
             time=float(time), stage_path=self.path, meshes=meshes, prototypes=prototypes,
-            lights=Lights.concat(light_parts), camera=None, render_settings=rs,
+            lights=Lights.concat(light_parts), camera=None, render_settings=rs, domes=top.domes,
             mesh_paths=sorted(self._mesh_ids, key=self._mesh_ids.get), start_time=self.start_time,
             end_time=self.end_time, time_codes_per_second=self.time_codes_per_second,
             meters_per_unit=self.meters_per_unit, up_axis=self.up_axis)
@@ -371,6 +373,13 @@ class StageDelegate:
                     self._unsupported_seen.add(kind)
                     self.warn(f"{ppath}: {kind} prims are not rendered (this and every other {kind}); "
                               "convert them to meshes to see them")
+            elif is_dome(prim):
+                if root.IsPseudoRoot():
+                    dome = read_dome(prim, t, self._relative(prim, root, xf), self.warn)
+                    if dome is not None:
+                        content.domes.append(dome)
+                else:
+                    self.warn(f"{ppath}: dome lights inside instance prototypes are ignored")
             elif prim.HasAPI(UsdLux.LightAPI):
                 params = read_light(prim, t, self.warn)
                 if params is not None:

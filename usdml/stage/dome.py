@@ -15,10 +15,11 @@ per texel (nearest filtering): the sampler and the brute-force reference integra
 "by the surface area of the light" (``pxr/usd/usdLux/schema.usda``), and a dome, being infinitely far
 away, has no surface area to divide by. It is ignored here, without a warning.
 
-Lat-long convention (the source: OpenUSD ``pxr/usd/usdLux/schema.usda``, classes ``DomeLight`` and
-``DomeLight_1``, which quote the OpenEXR lat-long specification)
--------------------------------------------------------------------------------------------------
-The dome's default orientation has its top pole on +Y. A pixel's x is longitude, its y latitude: the
+Lat-long convention
+-------------------
+Source: OpenUSD ``pxr/usd/usdLux/schema.usda``, the docs of classes ``DomeLight`` and ``DomeLight_1``,
+which quote the OpenEXR lat-long specification (read at OpenUSD commit 59992d2). The dome's default
+orientation has its top pole on +Y. A pixel's x is longitude, its y latitude: the
 top-left corner of the data window is latitude +π/2, longitude +π, the bottom-right latitude −π/2,
 longitude −π. Latitude 0 / longitude 0 points to +Z (the image's centre column faces +Z), latitude 0 /
 longitude +π/2 to +X (the column at a quarter of the width faces +X, the three-quarter column −X,
@@ -30,7 +31,8 @@ right) and ``v = y / H`` (0 at the top):
 
 Hydra Storm samples its lat-long maps the same way (``pxr/imaging/hdSt/shaders/surfaceHelpers.glslfx``
 ``ProjectToLatLong``: ``u = (atan2(z, x) + π/2) / 2π``, ``v = acos(y) / π``, which is the inverse of the
-formula above).
+formula above). Like Storm, usdml puts the poles and ±π on the image's *edges* (texture coordinates);
+OpenEXR's ``LatLongMap`` puts them on the centres of the first and last pixels, half a texel away.
 
 ``DomeLight_1`` adds ``poleAxis``: "Y" keeps the default; "Z" rotates the dome +90° about X before
 its transform (+Y → +Z, and longitude 0 then faces −Y, as the schema says); "scene" (the fallback) is
