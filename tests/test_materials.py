@@ -492,3 +492,60 @@ def test_delegate_uses_the_bound_material_as_albedo(tmp_path):
     r = FrameRenderer(d, UsdmlSettings())
     albedo = r.render(0, 16, 16, {"albedo"}).buffers["albedo"]
     assert np.allclose(albedo[8, 8], (0.8, 0.4, 0.1))
+
+
+def test_textures_are_sampled_per_pixel(tmp_path):
+    """A 4x4 texture on a quad filling the view: every texel shows in the albedo AOV, not a corner blend."""
+    from pxr import Usd, UsdGeom, UsdShade, Sdf
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    texels = (np.arange(48, dtype=np.float32).reshape(4, 4, 3) * 5 + 10) / 255.0
+    out = oiio.ImageOutput.create(str(tmp_path / "t.exr"))
+    out.open(str(tmp_path / "t.exr"), oiio.ImageSpec(4, 4, 3, oiio.FLOAT))
+    out.write_image(texels)
+    out.close()
+    stage = Usd.Stage.CreateNew(str(tmp_path / "q.usda"))
+    quad = UsdGeom.Mesh.Define(stage, "/quad")
+    quad.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        [(0, 0), (1, 0), (1, 1), (0, 1)])
+    mat = UsdShade.Material.Define(stage, "/mat")
+    surf = UsdShade.Shader.Define(stage, "/mat/surf")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    reader = UsdShade.Shader.Define(stage, "/mat/st")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    tex = UsdShade.Shader.Define(stage, "/mat/tex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("t.exr")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(quad.GetPrim()).Bind(mat)
+    cam = UsdGeom.Camera.Define(stage, "/cam")
+    cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+    cam.CreateHorizontalApertureAttr(20)      # tenths of a scene unit: the view is exactly 2 x 2
+    cam.CreateVerticalApertureAttr(20)
+    cam.AddTranslateOp().Set((0, 0, 5))
+    stage.Save()
+    r = FrameRenderer(StageDelegate(str(tmp_path / "q.usda")), UsdmlSettings())
+    albedo = r.render(0, 8, 8, {"albedo"}).buffers["albedo"]
+    # independent bilinear lookup with repeat wrap: texel centres at (i + 0.5) / 4, t = 0 at the image bottom
+    s = (np.arange(8) + 0.5) / 8
+    x = s * 4 - 0.5
+    y = (1 - s) * 4 - 0.5                       # image row coordinate of each pixel row (row 0 = top)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    expected = np.zeros((8, 8, 3))
+    for i in range(8):
+        for j in range(8):
+            a, b = y0[i] % 4, (y0[i] + 1) % 4
+            c, d = x0[j] % 4, (x0[j] + 1) % 4
+            expected[i, j] = ((1 - fy[i]) * ((1 - fx[j]) * texels[a, c] + fx[j] * texels[a, d])
+                              + fy[i] * ((1 - fx[j]) * texels[b, c] + fx[j] * texels[b, d]))
+    np.testing.assert_allclose(albedo, expected, atol=1e-5)
+    assert len(np.unique(albedo.reshape(-1, 3).round(4), axis=0)) > 16    # not a blend of 4 corners

@@ -89,7 +89,10 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuff
             m = snapshot.prototypes[src.prototype].xforms[src.instance]
             nrm = nrm @ np.linalg.inv(m[:3, :3])      # inverse transpose, row vectors
         normal[px] = nrm
-        albedo[px] = (mesh.albedo[tri] * w).sum(1)
+        if mesh.texture is not None:       # textures are sampled per pixel, not per corner
+            albedo[px] = mesh.texture.sample((mesh.uv[tri] * w).sum(1))
+        else:
+            albedo[px] = (mesh.albedo[tri] * w).sum(1)
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
     facing_away = np.einsum("ij,ij->i", normal, dirs) > 0

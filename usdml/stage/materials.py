@@ -127,6 +127,31 @@ class Texture:
         return out
 
 
+@dataclass(eq=False)
+class TextureLookup:
+    """A UsdUVTexture feeding diffuseColor, ready to sample per pixel (plain NumPy, kept on the Mesh).
+
+    ``sample(st)`` applies wrap modes, colour space, ``scale``/``bias``, the output channel and the
+    [0, 1] albedo clip, exactly as the per-corner albedo does.
+    """
+
+    texture: Texture
+    wrap_s: str
+    wrap_t: str
+    srgb: bool
+    scale: np.ndarray       #: (4,)
+    bias: np.ndarray        #: (4,)
+    channel: int | None = None   #: 0-3 for an ``r``/``g``/``b``/``a`` output, None for ``rgb``
+
+    def sample(self, st: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` float32 linear albedo at texture coordinates ``st`` ``(N, 2)``."""
+        rgba = self.texture.sample(np.asarray(st, np.float32).reshape(-1, 2), self.wrap_s, self.wrap_t,
+                                   self.srgb) * self.scale + self.bias
+        rgb = np.repeat(rgba[:, self.channel:self.channel + 1], 3, axis=1) if self.channel is not None \
+            else rgba[:, :3]
+        return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
+
 def _wrap(i: np.ndarray, n: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
     """Texel index ``i`` wrapped into ``[0, n)`` and whether the texel exists (False only for ``black``)."""
     if mode == "clamp":
@@ -317,17 +342,26 @@ class MaterialResolver:
         arrives, which is non-physical (and makes light bounces diverge); below 0 is meaningless.
         ``instance`` optionally names the instance prim through which a prototype prim is seen.
         """
+        return self.albedo_and_texture(prim, time, topo, n_points, instance)[0]
+
+    def albedo_and_texture(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
+                           instance: Usd.Prim | None = None):
+        """``(albedo, texture)``: the per-corner albedo of :meth:`albedo`, and when diffuseColor comes
+        from a readable UsdUVTexture, ``(TextureLookup, (T, 3, 2) float32 st per corner)`` so the
+        renderer can sample it per pixel (per-corner values alone would blur a texture to its
+        vertices); ``texture`` is None otherwise."""
         material = self.bound_material(prim, instance)
         if material is None:
-            return None
+            return None, None
         shader = self.surface_shader(material)
         if shader is None:
-            return None
+            return None, None
         ctx = _Eval(self, prim, time, topo, n_points, str(material.GetPath()))
         rgb = ctx.diffuse(shader)
         n = len(topo.face)
         out = np.broadcast_to(np.asarray(rgb, np.float32), (n, 3, 3)) if np.ndim(rgb) == 1 else rgb
-        return np.ascontiguousarray(np.clip(out, 0.0, 1.0), np.float32)
+        texture = (ctx.lookup, ctx.st.reshape(-1, 3, 2)) if ctx.lookup is not None else None
+        return np.ascontiguousarray(np.clip(out, 0.0, 1.0), np.float32), texture
 
     def texture(self, path: str, material: str) -> Texture | None:
         """The image at resolved ``path``, read once; None (one warning) when it cannot be read."""
@@ -349,6 +383,8 @@ class _Eval:
                  n_points: int, material: str):
         self.r, self.prim, self.time, self.topo, self.n_points, self.material = \
             resolver, prim, time, topo, n_points, material
+        self.lookup: TextureLookup | None = None     # set when diffuseColor is a readable texture
+        self.st: np.ndarray | None = None
 
     def warn(self, kind: str, message: str) -> None:
         self.r._warn_once(self.material, kind, f"{self.material}: {message}")
@@ -383,6 +419,8 @@ class _Eval:
                       "or a constant)")
             return constant
         channel = {"r": 0, "g": 1, "b": 2, "a": 3}.get(str(out_name))
+        if self.lookup is not None:
+            self.lookup.channel = channel
         rgb = np.repeat(rgba[:, channel:channel + 1], 3, axis=1) if channel is not None else rgba[:, :3]
         return rgb.reshape(-1, 3, 3)
 
@@ -495,4 +533,6 @@ class _Eval:
         rgba = tex.sample(st, wraps[0], wraps[1], srgb)
         scale = _vec(_value(node, "scale", self.time, (1.0, 1.0, 1.0, 1.0)), 4)
         bias = _vec(_value(node, "bias", self.time, (0.0, 0.0, 0.0, 0.0)), 4)
+        self.lookup = TextureLookup(tex, wraps[0], wraps[1], srgb, scale, bias)
+        self.st = np.ascontiguousarray(st, np.float32)
         return rgba * scale + bias

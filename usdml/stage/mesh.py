@@ -208,7 +208,8 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
     if corner_normals is None:
         corner_normals = smooth_normals(world, tris)
 
-    albedo = materials.albedo(prim, time, topo, len(points)) if materials is not None else None
+    albedo, texture = materials.albedo_and_texture(prim, time, topo, len(points)) \
+        if materials is not None else (None, None)
     dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor") if albedo is None else None
     if dc and dc.HasValue():
         raw = dc.ComputeFlattened(time)
@@ -224,4 +225,5 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
         path=path, id=mesh_id, points=np.ascontiguousarray(world, np.float32), triangles=tris,
         normals=np.ascontiguousarray(corner_normals, np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
         face_index=topo.face.astype(np.int32), double_sided=double_sided,
-        orientation="leftHanded" if left else "rightHanded", deforming=deforming)
+        orientation="leftHanded" if left else "rightHanded", deforming=deforming,
+        texture=texture[0] if texture else None, uv=texture[1] if texture else None)
