@@ -537,7 +537,7 @@ def test_textures_are_sampled_per_pixel(tmp_path):
     # independent bilinear lookup with repeat wrap: texel centres at (i + 0.5) / 4, t = 0 at the image bottom
     s = (np.arange(8) + 0.5) / 8
     x = s * 4 - 0.5
-    y = (1 - s) * 4 - 0.5                       # image row coordinate of each pixel row (row 0 = top)
+    y = s * 4 - 0.5                             # pixel row i sees t = 1 - s_i: image row (1 - t) * 4 - 0.5
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     fx, fy = x - x0, y - y0
     expected = np.zeros((8, 8, 3))
