@@ -60,12 +60,24 @@ def camera_rays(camera: Camera, width: int, height: int) -> tuple[np.ndarray, np
     return origins, dirs / scale[:, None], length * scale
 
 
-def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuffer:
-    """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer."""
-    camera = snapshot.camera
-    origins, dirs, tmax = camera_rays(camera, width, height)
+@dataclass
+class Hits:
+    """Surface attributes where rays hit (rays that missed have ``hit`` False and zeros)."""
+
+    hit: np.ndarray         #: (N,) bool
+    position: np.ndarray    #: (N, 3) float64 world position
+    normal: np.ndarray      #: (N, 3) float64 unit world shading normal (as authored, not flipped)
+    albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
+    geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
+    t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
+
+
+def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.ndarray,
+                    tmax: np.ndarray | float | None = None) -> Hits:
+    """Closest hits of rays ``origins + t·dirs`` with ``backend.intersect`` (the exact backend), and
+    the surface there: interpolated shading normal and albedo (per-pixel texture lookups included)."""
     r = backend.intersect(origins, dirs, tmax)
-    n = width * height
+    n = len(origins)
     hit = r["geom"] >= 0
     position = np.zeros((n, 3), np.float64)
     position[hit] = origins[hit] + dirs[hit] * r["t"][hit].astype(np.float64)[:, None]
@@ -95,14 +107,24 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuff
             albedo[px] = (mesh.albedo[tri] * w).sum(1)
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
+    return Hits(hit=hit, position=position, normal=normal, albedo=albedo, geom=r["geom"], t=r["t"])
+
+
+def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuffer:
+    """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer."""
+    camera = snapshot.camera
+    origins, dirs, tmax = camera_rays(camera, width, height)
+    h = surface_at_hits(snapshot, backend, origins, dirs, tmax)
+    n = width * height
+    normal = h.normal
     facing_away = np.einsum("ij,ij->i", normal, dirs) > 0
     normal[facing_away] *= -1.0
     world_to_cam = np.linalg.inv(camera.xform)
     depth = np.full(n, np.inf, np.float32)
-    depth[hit] = -(position[hit] @ world_to_cam[2, :3] + world_to_cam[2, 3])
-    prim_id, instance_id = backend.ids(r["geom"])
+    depth[h.hit] = -(h.position[h.hit] @ world_to_cam[2, :3] + world_to_cam[2, 3])
+    prim_id, instance_id = backend.ids(h.geom)
     shape = (height, width)
     return GBuffer(
-        width=width, height=height, hit=hit.reshape(shape), position=position.reshape(shape + (3,)),
-        normal=normal.astype(np.float32).reshape(shape + (3,)), albedo=albedo.reshape(shape + (3,)),
+        width=width, height=height, hit=h.hit.reshape(shape), position=h.position.reshape(shape + (3,)),
+        normal=normal.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
         depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape))
