@@ -58,9 +58,10 @@ def _smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarr
 class _LightTable:
     """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels."""
 
-    def __init__(self, lights: Lights, meters_per_unit: float = 1.0):
+    def __init__(self, lights: Lights, meters_per_unit: float = 1.0, min_distance: float = 0.0):
         self.n = len(lights)
         self.inv_m2 = np.float32(1.0 / meters_per_unit ** 2)   # 1/d² with d in metres
+        self.min_d2 = np.float32(max(min_distance, 1e-12) ** 2)  # clamped geometry term (scene units²)
         self.position = lights.position.T.astype(np.float32)           # (3, L)
         self.axis = lights.axis.T.astype(np.float32)                   # (3, L)
         self.distant = lights.type == LightType.DISTANT
@@ -94,7 +95,7 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable):
     inv_d = 1.0 / np.sqrt(np.maximum(d2, 1e-30))
     cos_s = (n[:, 0:1] * dx + n[:, 1:2] * dy + n[:, 2:3] * dz) * inv_d
     g = np.maximum(cos_s, 0.0)
-    g *= np.where(t.distant[None, :], 1.0, t.inv_m2 / np.maximum(d2, 1e-24)).astype(np.float32)
+    g *= np.where(t.distant[None, :], 1.0, t.inv_m2 / np.maximum(d2, t.min_d2)).astype(np.float32)
     f = None
     if t.one_sided.any() or t.shaped.any() or t.focused.any():
         cols = t.one_sided | t.shaped | t.focused
@@ -135,7 +136,8 @@ def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
 
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                  occluded: Callable[..., np.ndarray] | None,
-                 progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0) -> DirectResult:
+                 progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
+                 min_distance: float = 0.0) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -146,6 +148,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         backend (:meth:`usdml.visibility.VisibilityBackend.occluded`); None shades unshadowed.
     progress : called with the number of points finished after each block.
     meters_per_unit : the stage's; light falloff uses distances in metres.
+    min_distance : clamp of the geometry term, ``d² >= min_distance²`` (scene units): VPL gathering
+        uses it against the singularity of point lights on nearby surfaces (paper 004 §2).
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
@@ -157,7 +161,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     queries = 0
     if n_l == 0 or n_p == 0:
         return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0)
-    table = _LightTable(lights, meters_per_unit)
+    table = _LightTable(lights, meters_per_unit, min_distance)
     step = max(1, PAIRS_PER_CHUNK // n_l)
 
     def block(lo: int) -> int:
