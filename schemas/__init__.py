@@ -46,9 +46,12 @@ ATTRIBUTES: tuple[Attribute, ...] = (
     Attribute("usdml:voxel:resolution", int, 128),           # paper 000
     Attribute("usdml:voxel:directionStep", float, 2.0),      # degrees, k in paper 000
     Attribute("usdml:voxel:fullyDynamic", bool, False),      # paper 000, Alg. 5
+    Attribute("usdml:gi", str, "none"),                      # token
+    Attribute("usdml:vpl:bounces", int, 3),                  # paper 004
     Attribute("usdml:vpl:count", int, 100_000),              # paper 004
     Attribute("usdml:lgh:alpha", float, 1.0),                # r_l = alpha h_l, paper 004
     Attribute("usdml:lgh:levels", int, 0),                   # 0 = automatic, paper 004
+    Attribute("usdml:lgh:interleave", int, 1),               # paper 004, interleaved sampling
     Attribute("usdml:shadow:samples", int, 4),               # paper 004
     Attribute("usdml:seed", int, 0),
 )
@@ -56,6 +59,7 @@ ATTRIBUTES: tuple[Attribute, ...] = (
 #: Allowed values of the token attributes.
 ALLOWED_TOKENS: dict[str, tuple[str, ...]] = {
     "usdml:visibility": ("exact", "voxel", "insm", "svo"),
+    "usdml:gi": ("none", "lgh", "vpl-bruteforce"),
 }
 
 _lock = threading.Lock()

@@ -14,14 +14,18 @@ SCHEMA_ATTRIBUTES = {
     "usdml:voxel:resolution": "voxel_resolution",
     "usdml:voxel:directionStep": "direction_step",
     "usdml:voxel:fullyDynamic": "fully_dynamic",
+    "usdml:gi": "gi",
+    "usdml:vpl:bounces": "vpl_bounces",
     "usdml:vpl:count": "vpl_count",
     "usdml:lgh:alpha": "lgh_alpha",
     "usdml:lgh:levels": "lgh_levels",
+    "usdml:lgh:interleave": "interleave",
     "usdml:shadow:samples": "shadow_samples",
     "usdml:seed": "seed",
 }
 
 VISIBILITY_BACKENDS = ("exact", "voxel", "insm", "svo")
+GI_METHODS = ("none", "lgh", "vpl-bruteforce")
 
 
 @dataclass(frozen=True)
@@ -30,9 +34,12 @@ class UsdmlSettings:
     voxel_resolution: int = 128     #: voxels per axis of each direction voxelization (paper 000)
     direction_step: float = 2.0     #: degrees between direction bins, k in paper 000 (90 x 90 at 2 deg)
     fully_dynamic: bool = False     #: re-voxelize the whole scene each frame (paper 000, Alg. 5)
+    gi: str = "none"                #: global illumination: none, lgh, vpl-bruteforce (paper 004)
     vpl_count: int = 100_000        #: VPLs per frame (paper 004 uses 100K)
+    vpl_bounces: int = 3            #: diffuse bounces of the VPL light paths (paper 004)
     lgh_alpha: float = 1.0          #: LGH blending radius factor, r_l = alpha h_l (paper 004)
     lgh_levels: int = 0             #: LGH levels; 0 = largest count with |S1| < VPLs / 2 (paper 004)
+    interleave: int = 1             #: interleaved sampling tile size (1, 2 or 4; paper 004 §4)
     shadow_samples: int = 4         #: stochastic shadow samples per pixel (paper 004)
     dome_samples: int = 256         #: distant lights a dome light is importance-sampled into, per frame
     seed: int = 0
@@ -49,6 +56,12 @@ class UsdmlSettings:
             raise UsdmlError(f"direction step must be in (0, 90] degrees, got {self.direction_step}")
         if self.lgh_alpha <= 0 or self.lgh_levels < 0:
             raise UsdmlError("LGH alpha must be > 0 and levels >= 0")
+        if self.gi not in GI_METHODS:
+            raise UsdmlError(f"unknown global illumination {self.gi!r}; use one of {', '.join(GI_METHODS)}")
+        if self.interleave not in (1, 2, 4):
+            raise UsdmlError(f"interleave must be 1, 2 or 4, got {self.interleave}")
+        if self.vpl_bounces < 1:
+            raise UsdmlError(f"VPL bounces must be >= 1, got {self.vpl_bounces}")
 
     def updated(self, **values) -> "UsdmlSettings":
         """A copy with the given non-None values replaced."""
