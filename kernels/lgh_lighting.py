@@ -49,6 +49,8 @@ def lgh_gather(
     samples: int,
     seed: int,
     first: int,                               # global index of this launch's first point (RNG stream)
+    tile: wp.array(dtype=int),                # (P,) interleaved-sampling tile of each point
+    tiles: int,                               # n² tiles: a point gathers lights with index % n² == its tile, × n²
     out_irradiance: wp.array(dtype=wp.vec3),  # (P,) unshadowed irradiance
     out_sample_pos: wp.array2d(dtype=wp.vec3),  # (P, k) chosen shadow-sample positions
     out_sample_ok: wp.array2d(dtype=int),     # (P, k) 1 when a sample was chosen
@@ -86,6 +88,8 @@ def lgh_gather(
                     v = vertex_light[base + (i * dims[1] + j) * dims[2] + k]
                     if v < 0:
                         continue
+                    if tiles > 1 and v % tiles != tile[tid]:
+                        continue
                     q = light_pos[v]
                     w = q - p
                     d2 = wp.dot(w, w)
@@ -96,7 +100,7 @@ def lgh_gather(
                     cos_s = wp.dot(n, w) / d
                     if cos_s <= 0.0:
                         continue
-                    g = b * cos_s * inv_m2 / wp.max(d2, clamp_d2)
+                    g = b * cos_s * inv_m2 / wp.max(d2, clamp_d2) * float(tiles)
                     e = light_int[v] * g
                     acc = acc + e
                     f = wp.dot(e, LUMA)

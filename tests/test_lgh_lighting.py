@@ -70,3 +70,17 @@ def test_lights_behind_the_surface_are_not_sampled():
     out = lgh_lighting(np.zeros((50, 3)), np.tile([0.0, 1.0, 0.0], (50, 1)), lgh, samples=1, clamp_distance=1e-3)
     assert np.allclose(out.sample_pos[:, 0], [0, 5, 0])
     np.testing.assert_allclose(out.irradiance[:, 1], 1 / 25, rtol=1e-5)
+
+
+def test_interleaved_sampling_is_unbiased_over_a_tile():
+    """Each pixel of an n x n tile gathers 1/n² of the lights × n²: the tile average equals the full sum."""
+    rng = np.random.default_rng(4)
+    lights = rng.uniform([-5, 1, -5], [5, 6, 5], (37, 3)).astype(np.float32)
+    inten = rng.uniform(0.1, 1.0, (37, 3)).astype(np.float32)
+    lgh = _one_level(lights, inten)
+    pts = np.zeros((16, 3), np.float32)
+    nrm = np.tile(np.float32([0, 1, 0]), (16, 1))
+    full = lgh_lighting(pts[:1], nrm[:1], lgh, samples=0, clamp_distance=1e-3).irradiance[0]
+    tiled = lgh_lighting(pts, nrm, lgh, samples=0, clamp_distance=1e-3, tile=np.arange(16), tiles=16).irradiance
+    np.testing.assert_allclose(tiled.mean(0), full, rtol=1e-5)
+    assert not np.allclose(tiled[0], full)

@@ -50,8 +50,25 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _settings_overrides(args: argparse.Namespace) -> dict:
-    values = {"visibility": args.visibility, "seed": args.seed, "dome_samples": args.dome_samples}
+    values = {"visibility": getattr(args, "visibility", None), "seed": args.seed,
+              "dome_samples": args.dome_samples, "gi": args.gi, "vpl_count": args.vpls,
+              "lgh_alpha": args.lgh_alpha, "lgh_levels": args.lgh_levels,
+              "shadow_samples": args.shadow_samples, "interleave": args.interleave}
     return {k: v for k, v in values.items() if v is not None}
+
+
+def _add_lighting_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=int, help="random seed (VPLs, shadow samples, dome light sampling)")
+    p.add_argument("--dome-samples", type=int, metavar="K",
+                   help="distant lights each DomeLight is importance-sampled into per frame (default 256)")
+    p.add_argument("--gi", choices=["none", "lgh", "vpl-bruteforce"],
+                   help="indirect light: VPLs through a lighting grid hierarchy (paper 004), or every VPL "
+                        "with exact visibility (reference); default: the stage's usdml:gi, else none")
+    p.add_argument("--vpls", type=int, metavar="N", help="virtual point lights per frame (default 100000)")
+    p.add_argument("--lgh-alpha", type=float, help="LGH blending radius factor alpha (default 1)")
+    p.add_argument("--lgh-levels", type=int, help="LGH levels (default 0 = the paper's rule)")
+    p.add_argument("--shadow-samples", type=int, help="stochastic shadow samples per pixel (default 4)")
+    p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -111,9 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
-    render.add_argument("--seed", type=int, help="random seed (stochastic passes, dome light sampling)")
-    render.add_argument("--dome-samples", type=int, metavar="K",
-                        help="distant lights each DomeLight is importance-sampled into per frame (default 256)")
+    _add_lighting_args(render)
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
     render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
     render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",

@@ -62,11 +62,14 @@ def _flatten(lgh, start_level: int = 1):
 
 def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
-                 device: str = "cpu") -> LGHShading:
+                 device: str = "cpu", tile: np.ndarray | None = None, tiles: int = 1) -> LGHShading:
     """Unshadowed LGH irradiance and k shadow samples per point (``points``, ``normals``: (P, 3)).
 
     ``clamp_distance`` (scene units) bounds the geometry term; default: half the S1 grid spacing,
     below which the hierarchy cannot resolve where the light is anyway. Deterministic for ``seed``.
+    Interleaved sampling (paper 004 §4): with ``tiles`` = n² > 1, point i gathers only the grid
+    lights whose index is ``tile[i]`` modulo n², scaled by n² (an unbiased 1/n² subset per pixel of an
+    n × n tile; the screen-space filter then removes the structured noise).
     """
     import warp as wp
 
@@ -96,6 +99,7 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     )
     pts = np.ascontiguousarray(points, np.float32)
     nrm = np.ascontiguousarray(normals, np.float32)
+    tile_ids = np.zeros(n, np.int32) if tile is None or tiles <= 1 else np.ascontiguousarray(tile, np.int32)
 
     def run(lo: int, hi: int) -> None:
         m = hi - lo
@@ -107,7 +111,8 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
             shared["level_origin"], shared["level_spacing"], shared["level_dims"], shared["level_offset"],
             shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_std"],
             len(spacing), float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2), k,
-            int(seed), lo, out_irr, out_pos, out_ok])
+            int(seed), lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), int(max(tiles, 1)),
+            out_irr, out_pos, out_ok])
         irr[lo:hi] = out_irr.numpy()
         spos[lo:hi] = out_pos.numpy()
         sok[lo:hi] = out_ok.numpy()
@@ -140,7 +145,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  occluded: Callable[..., np.ndarray] | None, *, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  image: tuple[np.ndarray, np.ndarray] | None = None, filter_iterations: int = 5,
-                 device: str = "cpu") -> IndirectResult:
+                 interleave: int = 1, device: str = "cpu") -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``image = (hit (H, W) bool, positions (H, W, 3))`` lays the points out as an image so the
@@ -149,8 +154,14 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     """
     stats: dict = {}
     t0 = _time.perf_counter()
+    tile = None
+    if interleave > 1 and image is not None:
+        hit = image[0]
+        ys, xs = np.nonzero(hit)                  # row-major, the order of the hit points
+        tile = (ys % interleave) * interleave + (xs % interleave)
     shading = lgh_lighting(points, normals, lgh, alpha, samples if occluded is not None else 0, seed,
-                           meters_per_unit, clamp_distance, device)
+                           meters_per_unit, clamp_distance, device, tile=tile,
+                           tiles=interleave * interleave if tile is not None else 1)
     stats["lighting_seconds"] = _time.perf_counter() - t0
     unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading.irradiance
     if occluded is None:
@@ -173,8 +184,11 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         flat[hit.ravel(), 1] = lum_u                    # unshadowed
         nimg = np.zeros((h * w, 3), np.float32)
         nimg[hit.ravel()] = normals
+        # guided by the G-buffer only (normal, position): with a few samples per pixel a value
+        # edge-stop would keep the sampling noise it is meant to remove
         filtered = atrous_filter(plane, nimg.reshape(h, w, 3), positions.astype(np.float32), hit,
-                                 iterations=filter_iterations, device=device).reshape(-1, 2)[hit.ravel()]
+                                 iterations=filter_iterations, sigma_value=np.inf,
+                                 device=device).reshape(-1, 2)[hit.ravel()]
         ratio = np.where(filtered[:, 1] > 0, filtered[:, 0] / np.maximum(filtered[:, 1], 1e-30), visible)
         ratio = np.clip(ratio, 0.0, 1.0).astype(np.float32)
     stats["filter_seconds"] = _time.perf_counter() - t2

@@ -127,17 +127,30 @@ class FrameRenderer:
                             "usdrecord does (--disableCameraLight to turn it off)")
                 self._told_camera_light = True
         stats["shading_seconds"] = _time.perf_counter() - t3
+        indirect = np.zeros_like(direct.radiance)
+        if self.settings.gi != "none":
+            from usdml.lighting.gi import indirect_lighting
+
+            t4 = _time.perf_counter()
+            gi = indirect_lighting(
+                snap, self.exact, self.backend.occluded, lights, gb.position.reshape(-1, 3)[hit],
+                gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
+                image=(gb.hit, gb.position), device=self.device)
+            indirect = gi.radiance
+            stats["gi"] = gi.stats
+            stats["gi_seconds"] = _time.perf_counter() - t4
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade
         stats["shadow_queries"] = direct.queries
         stats["lights"] = len(lights)
         stats["pixels"] = width * height
         stats["seconds"] = _time.perf_counter() - t0
-        buffers = self._buffers(gb, hit, direct, camera, aovs)
+        buffers = self._buffers(gb, hit, direct, indirect, camera, aovs)
         return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats)
 
     @staticmethod
-    def _buffers(gb: GBuffer, hit: np.ndarray, direct, camera: Camera, aovs: set[str]) -> dict[str, np.ndarray]:
+    def _buffers(gb: GBuffer, hit: np.ndarray, direct, indirect: np.ndarray, camera: Camera,
+                 aovs: set[str]) -> dict[str, np.ndarray]:
         h, w = gb.height, gb.width
 
         def scatter(values: np.ndarray, channels: int) -> np.ndarray:
@@ -146,12 +159,14 @@ class FrameRenderer:
             return out.reshape((h, w, channels) if channels > 1 else (h, w))
 
         radiance = scatter(direct.radiance, 3)
+        indirect_img = scatter(indirect, 3)
+        beauty = radiance + indirect_img
         alpha = gb.hit.astype(np.float32)
         world_to_eye = np.linalg.inv(camera.xform)
         table = {
-            "color": lambda: np.concatenate([radiance * alpha[..., None], alpha[..., None]], axis=2),
+            "color": lambda: np.concatenate([beauty * alpha[..., None], alpha[..., None]], axis=2),
             "direct": lambda: radiance,
-            "indirect": lambda: np.zeros_like(radiance),
+            "indirect": lambda: indirect_img,
             "shadow": lambda: scatter(direct.shadow, 1),
             "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
             "depth": lambda: gb.depth,
