@@ -107,6 +107,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from usdml.compare import compare_gi
+    from usdml.errors import UsdmlError
+
+    if args.visibility:
+        raise UsdmlError("--visibility comparisons need an approximate visibility backend; only exact exists yet")
+    if not args.gi:
+        raise UsdmlError("give --gi METHOD (and --against METHOD) to compare")
+    overrides = {k: v for k, v in _settings_overrides(args).items() if k != "gi"}
+    result = compare_gi(_delegate(args), args.gi, args.against or "vpl-bruteforce", args.frame,
+                        args.imageWidth, args.device, args.png, overrides)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        s = result["seconds"]
+        print(f"{result['gi']} vs {result['against']} on {result['pixels']:,} pixels, {result['vpls']:,} VPLs: "
+              f"relative RMSE of indirect {100 * result['rel_rmse']:.2f} %; indirect pass "
+              f"{s[result['gi']]:.2f} s vs {s[result['against']]:.2f} s ({result['speedup']:.1f}x)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="usdml", description="Render USD stages with thousands of lights.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -135,6 +156,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="no camera light for stages without lights (usdrecord's flag)")
     render.add_argument("--json", action="store_true", help="print the summary as JSON")
     render.set_defaults(run=_cmd_render)
+
+    compare = sub.add_parser("compare", help="one frame two ways: error of a method against its reference")
+    _add_stage_args(compare)
+    compare.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
+    compare.add_argument("--visibility", help="approximate visibility backend to compare against exact")
+    compare.add_argument("--against", help="reference method (default: vpl-bruteforce for --gi)")
+    compare.add_argument("--imageWidth", type=int, default=128, help="image width (default 128)")
+    compare.add_argument("--device", default="cpu", help="cpu or cuda")
+    compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")
+    compare.add_argument("--json", action="store_true", help="print JSON")
+    _add_lighting_args(compare)
+    compare.set_defaults(run=_cmd_compare)
 
     bench = sub.add_parser("bench", help="time the visibility queries of one frame")
     _add_stage_args(bench)
