@@ -155,7 +155,7 @@ def test_render_writes_every_aov_and_the_header(new_stage, tmp_path, capsys):
     assert main(["render", path, str(out), "--frames", "1", "--imageWidth", "32", "--preview"]) == 0
     exr = tmp_path / "out" / "img.0001.exr"
     aovs, meta = read_exr(exr)
-    assert set(aovs) == {"color", "direct", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId"}
+    assert set(aovs) == {"color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId"}
     assert aovs["color"].shape == (32, 32, 4) and aovs["color"].dtype == np.float16
     assert (aovs["primId"] == 0).all() and (aovs["instanceId"] == -1).all()
     assert np.allclose(aovs["depth"], 15, atol=1e-3)          # camera 15 above the ground, looking down

@@ -146,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--frames", help="FrameSpec as usdrecord: 1:48, 1:10x2, 1,5,9 (default: the start frame)")
     render.add_argument("--imageWidth", type=int, help="image width in pixels (height from the aspect ratio)")
     render.add_argument("--visibility", help="visibility backend (default: the stage's usdml:visibility, else exact)")
-    render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, "
+    render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
     _add_lighting_args(render)

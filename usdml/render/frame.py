@@ -23,7 +23,7 @@ from usdml.stage.delegate import StageDelegate, require_geometry
 from usdml.visibility import ExactBackend, make_backend
 
 #: AOVs written when neither --aovs nor RenderSettings choose
-DEFAULT_AOVS = ("color", "direct", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
+DEFAULT_AOVS = ("color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
 
 
 def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, camera: Camera) -> np.ndarray:

@@ -1,0 +1,72 @@
+"""Indirect light with VPLs (paper 004): the LGH against brute force, end to end through the renderer."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from conftest import STAGES
+from usdml.cli import main
+from usdml.lighting.direct import shade_direct
+from usdml.lighting.lgh import build_lgh
+from usdml.lighting.lgh_lighting import lgh_indirect
+from usdml.lighting.vpl import generate_vpls
+from usdml.render.frame import FrameRenderer, conform_camera
+from usdml.render.gbuffer import build_gbuffer
+from usdml.scene import diff
+from usdml.settings import UsdmlSettings
+from usdml.stage import StageDelegate
+from usdml.visibility import ExactBackend
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    d = StageDelegate(STAGES / "cornell.usda")
+    snap = d.snapshot(1)
+    ex = ExactBackend()
+    ex.update(snap, diff(None, snap))
+    w, h = snap.camera.resolution(48)
+    gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
+    hit = gb.hit.ravel()
+    pts, nrm, alb = (gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit])
+    vpls = generate_vpls(snap, ex, snap.lights, 3000, 3, seed=0)
+    return snap, ex, gb, pts, nrm, alb, vpls
+
+
+def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
+    snap, ex, gb, pts, nrm, alb, vpls = cornell
+    lights = vpls.as_lights(isotropic=True)
+    lgh = build_lgh(lights.position, lights.intensity)
+    clamp = 0.5 * lgh.h1
+    reference = shade_direct(pts, nrm, alb, lights, None, meters_per_unit=snap.meters_per_unit,
+                             min_distance=clamp).radiance.astype(np.float64)
+
+    def error(alpha):
+        got = lgh_indirect(pts, nrm, alb, lgh, None, alpha=alpha, meters_per_unit=snap.meters_per_unit,
+                           clamp_distance=clamp).radiance
+        return np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
+
+    errors = [error(a) for a in (0.5, 1.0, 2.0, 4.0)]
+    assert errors[0] > errors[1] > errors[2] >= errors[3] * 0.9
+    assert errors[-1] < 0.2
+
+
+def test_render_with_gi_writes_indirect_and_color_is_their_sum(tmp_path):
+    d = StageDelegate(STAGES / "cornell.usda")
+    r = FrameRenderer(d, UsdmlSettings(gi="lgh", vpl_count=2000, shadow_samples=2))
+    b = r.render(1, 48, 27, {"color", "direct", "indirect"}).buffers
+    assert b["indirect"].max() > 0
+    np.testing.assert_allclose(b["color"][..., :3], (b["direct"] + b["indirect"]) * b["color"][..., 3:],
+                               rtol=1e-5, atol=1e-7)
+    again = FrameRenderer(d, UsdmlSettings(gi="lgh", vpl_count=2000, shadow_samples=2))
+    assert np.array_equal(again.render(1, 48, 27, {"indirect"}).buffers["indirect"], b["indirect"])
+
+
+def test_compare_gi_json(capsys):
+    assert main(["compare", str(STAGES / "cornell.usda"), "--gi", "lgh", "--against", "vpl-bruteforce",
+                 "--vpls", "1000", "--imageWidth", "32", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"rel_rmse", "seconds", "speedup", "vpls", "pixels"} <= set(out)
+    assert out["vpls"] == 1000 and out["seconds"]["lgh"] > 0 and out["seconds"]["vpl-bruteforce"] > 0
+    assert 0 < out["rel_rmse"] < 2
