@@ -70,3 +70,15 @@ def test_compare_gi_json(capsys):
     assert {"rel_rmse", "seconds", "speedup", "vpls", "pixels"} <= set(out)
     assert out["vpls"] == 1000 and out["seconds"]["lgh"] > 0 and out["seconds"]["vpl-bruteforce"] > 0
     assert 0 < out["rel_rmse"] < 2
+
+
+def test_json_output_is_not_polluted_by_warp(tmp_path):
+    """Warp's banner and module-load lines must not reach stdout: --json output is parsed by tools."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "-q", "render", str(STAGES / "cornell.usda"),
+                        str(tmp_path / "c.exr"), "--imageWidth", "16", "--gi", "lgh", "--vpls", "500", "--json"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["outputs"] == [str(tmp_path / "c.exr")]

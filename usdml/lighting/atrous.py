@@ -187,16 +187,15 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     -------
     (H, W) or (H, W, C) float32, the shape of ``values``.
     """
-    import warp as wp
-
     from usdml.kernels import atrous as kernels
+    from usdml.kernels import warp
 
     values, v, normal, pos, valid, footprint = _prepare(values, normal, position, valid, iterations, footprint)
     out_shape = values.shape
     if iterations == 0 or not valid.any():
         return values.astype(np.float32, copy=True)
 
-    wp.init()
+    wp = warp()
     dev = wp.get_device(device)
     h, w, _ = v.shape
     src = wp.array(np.ascontiguousarray(v, np.float32), dtype=float, device=dev)

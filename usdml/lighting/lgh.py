@@ -77,11 +77,9 @@ class LGH:
 
 
 def _warp():
-    import warp as wp
+    from usdml.kernels import warp
 
-    wp.config.quiet = True
-    wp.init()
-    return wp
+    return warp()
 
 
 def _check_inputs(position, intensity) -> tuple[np.ndarray, np.ndarray]:

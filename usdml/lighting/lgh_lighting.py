@@ -71,12 +71,10 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     lights whose index is ``tile[i]`` modulo n², scaled by n² (an unbiased 1/n² subset per pixel of an
     n × n tile; the screen-space filter then removes the structured noise).
     """
-    import warp as wp
-
+    from usdml.kernels import warp
     from usdml.kernels.lgh_lighting import lgh_gather
 
-    wp.config.quiet = True
-    wp.init()
+    wp = warp()
     n = len(points)
     k = max(int(samples), 0)
     origin, spacing, dims, offset, vertex_light, pos, inten, std = _flatten(lgh)

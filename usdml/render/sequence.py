@@ -134,11 +134,9 @@ def check_device(device: str) -> None:
         return
     if device != "cuda":
         raise UsdmlError(f"--device {device!r}: use cpu or cuda")
-    import warp as wp
+    from usdml.kernels import warp
 
-    wp.config.quiet = True
-    wp.init()
-    if wp.get_cuda_device_count() == 0:
+    if warp().get_cuda_device_count() == 0:
         raise UsdmlError("--device cuda: no CUDA device found; use --device cpu")
 
 
