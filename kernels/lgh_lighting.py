@@ -54,6 +54,7 @@ def lgh_gather(
     out_irradiance: wp.array(dtype=wp.vec3),  # (P,) unshadowed irradiance
     out_sample_pos: wp.array2d(dtype=wp.vec3),  # (P, k) chosen shadow-sample positions
     out_sample_ok: wp.array2d(dtype=int),     # (P, k) 1 when a sample was chosen
+    out_sample_light: wp.array2d(dtype=int),  # (P, k) index of the grid light chosen
 ):
     tid = wp.tid()
     p = points[tid]
@@ -113,4 +114,5 @@ def lgh_gather(
                             sd = light_std[v]
                             out_sample_pos[tid, s] = q + wp.vec3(wp.randn(rng), wp.randn(rng), wp.randn(rng)) * sd
                             out_sample_ok[tid, s] = 1
+                            out_sample_light[tid, s] = v
     out_irradiance[tid] = acc

@@ -54,7 +54,8 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
         r = lgh_indirect(points, normals, albedo, lgh, occluded, alpha=settings.lgh_alpha,
                          samples=settings.shadow_samples, seed=settings.seed,
                          meters_per_unit=snap.meters_per_unit, clamp_distance=clamp, image=image,
-                         interleave=settings.interleave, device=device)
+                         interleave=settings.interleave, device=device,
+                         sources=(as_lights.position, as_lights.intensity))
         stats.update(r.stats)
         return GIResult(r.radiance, stats)
     t2 = _time.perf_counter()

@@ -28,6 +28,7 @@ class LGHShading:
     irradiance: np.ndarray      #: (P, 3) float32 unshadowed irradiance
     sample_pos: np.ndarray      #: (P, k, 3) float32 chosen shadow-sample positions
     sample_ok: np.ndarray       #: (P, k) bool a sample was chosen (a light faces the pixel)
+    sample_light: np.ndarray | None = None   #: (P, k) int index of the chosen grid light (all levels merged)
 
 
 @dataclass
@@ -83,8 +84,9 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     irr = np.zeros((n, 3), np.float32)
     spos = np.zeros((n, max(k, 1), 3), np.float32)
     sok = np.zeros((n, max(k, 1)), np.int32)
+    slight = np.full((n, max(k, 1)), -1, np.int32)
     if n == 0 or len(pos) == 0:
-        return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool))
+        return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k])
     shared = dict(
         level_origin=wp.array(origin, dtype=wp.vec3, device=device),
         level_spacing=wp.array(spacing, dtype=float, device=device),
@@ -104,16 +106,18 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
         out_irr = wp.zeros(m, dtype=wp.vec3, device=device)
         out_pos = wp.zeros((m, max(k, 1)), dtype=wp.vec3, device=device)
         out_ok = wp.zeros((m, max(k, 1)), dtype=int, device=device)
+        out_light = wp.zeros((m, max(k, 1)), dtype=int, device=device)
         wp.launch(lgh_gather, dim=m, device=device, inputs=[
             wp.array(pts[lo:hi], dtype=wp.vec3, device=device), wp.array(nrm[lo:hi], dtype=wp.vec3, device=device),
             shared["level_origin"], shared["level_spacing"], shared["level_dims"], shared["level_offset"],
             shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_std"],
             len(spacing), float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2), k,
             int(seed), lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), int(max(tiles, 1)),
-            out_irr, out_pos, out_ok])
+            out_irr, out_pos, out_ok, out_light])
         irr[lo:hi] = out_irr.numpy()
         spos[lo:hi] = out_pos.numpy()
         sok[lo:hi] = out_ok.numpy()
+        slight[lo:hi] = out_light.numpy()
 
     # Warp runs a CPU launch on one thread: independent launches over pixel blocks use every core
     workers = (os.cpu_count() or 1) if device == "cpu" else 1
@@ -121,18 +125,76 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     blocks = [(lo, min(n, lo + step)) for lo in range(0, n, step)]
     with ThreadPoolExecutor(max_workers=workers) as pool:
         list(pool.map(lambda b: run(*b), blocks))
-    return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool))
+    return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k])
+
+
+class ClusterSampler:
+    """Shadow-ray targets drawn from the input lights (VPLs) a grid light stands for.
+
+    A grid light's illumination centre is an average of surface points and often lies inside
+    geometry (the middle of a box, behind a corner), so rays to it are blocked where rays to the
+    lights it represents are not: measured on cornell with 10k VPLs, 0.48 of the light visible
+    through jittered centres against 0.67 by brute force. Each input light is assigned to the nearest
+    grid vertex of every level; a chosen grid light's shadow target is one of its assigned lights,
+    drawn in proportion to their luminance (deterministic for the seed). Grid lights with no
+    assigned light keep the jittered centre.
+    """
+
+    def __init__(self, lgh, positions: np.ndarray, intensity: np.ndarray):
+        self.positions = np.asarray(positions, np.float64)
+        lum = np.maximum(np.asarray(intensity, np.float64) @ LUMA, 0.0)
+        groups, weights = [], []
+        base = 0
+        for lv in lgh.levels:
+            dims = np.asarray(lv.dims, np.int64)
+            ijk = np.clip(np.rint((self.positions - np.asarray(lv.origin)) / lv.spacing).astype(np.int64), 0, dims - 1)
+            flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+            light_of_vertex = np.full(int(dims.prod()), -1, np.int64)
+            light_of_vertex[np.asarray(lv.vertex, np.int64)] = base + np.arange(len(lv.position))
+            groups.append(light_of_vertex[flat])
+            weights.append(lum)
+            base += len(lv.position)
+        group = np.concatenate(groups)
+        member = np.tile(np.arange(len(self.positions)), len(lgh.levels))
+        keep = group >= 0
+        order = np.lexsort((member[keep], group[keep]))
+        self.member = member[keep][order]
+        g = group[keep][order]
+        w = np.concatenate(weights)[keep][order]
+        self.start = np.searchsorted(g, np.arange(base), side="left")
+        self.stop = np.searchsorted(g, np.arange(base), side="right")
+        self.cum = np.concatenate([[0.0], np.cumsum(w)])
+
+    def targets(self, lights: np.ndarray, fallback: np.ndarray, seed: int) -> np.ndarray:
+        """``(S, 3)`` targets for chosen grid lights ``lights`` (S,), ``fallback`` where a group is empty."""
+        lo, hi = self.start[lights], self.stop[lights]
+        total = self.cum[hi] - self.cum[lo]
+        ok = (hi > lo) & (total > 0)
+        u = np.random.default_rng(seed).random(len(lights))
+        pick = np.searchsorted(self.cum, self.cum[lo] + u * total, side="right") - 1
+        pick = np.clip(pick, lo, np.maximum(hi - 1, lo))
+        out = np.asarray(fallback, np.float64).copy()
+        out[ok] = self.positions[self.member[pick[ok]]]
+        return out
 
 
 def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading,
-                    occluded: Callable[..., np.ndarray]) -> tuple[np.ndarray, int]:
-    """Fraction of each point's chosen shadow samples that are visible (1 where none was chosen)."""
+                    occluded: Callable[..., np.ndarray], sampler: ClusterSampler | None = None,
+                    seed: int = 0) -> tuple[np.ndarray, int]:
+    """Fraction of each point's chosen shadow samples that are visible (1 where none was chosen).
+
+    With a :class:`ClusterSampler`, rays go to input lights of the chosen grid lights instead of
+    their jittered centres.
+    """
     n, k = shading.sample_ok.shape
     visible = np.ones(n, np.float32)
     if k == 0 or not shading.sample_ok.any():
         return visible, 0
     pi, si = np.nonzero(shading.sample_ok)
-    blocked = occluded(points[pi], shading.sample_pos[pi, si].astype(np.float64), normals=normals[pi])
+    targets = shading.sample_pos[pi, si].astype(np.float64)
+    if sampler is not None and shading.sample_light is not None:
+        targets = sampler.targets(shading.sample_light[pi, si], targets, seed)
+    blocked = occluded(points[pi], targets, normals=normals[pi])
     chosen = np.bincount(pi, minlength=n)
     seen = np.bincount(pi, weights=~blocked, minlength=n)
     visible = np.where(chosen > 0, seen / np.maximum(chosen, 1), 1.0).astype(np.float32)
@@ -143,7 +205,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  occluded: Callable[..., np.ndarray] | None, *, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  image: tuple[np.ndarray, np.ndarray] | None = None, filter_iterations: int = 5,
-                 interleave: int = 1, device: str = "cpu") -> IndirectResult:
+                 interleave: int = 1, device: str = "cpu", sources: tuple | None = None) -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``image = (hit (H, W) bool, positions (H, W, 3))`` lays the points out as an image so the
@@ -165,7 +227,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     if occluded is None:
         return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats)
     t1 = _time.perf_counter()
-    visible, rays = shadow_fraction(points, normals, shading, occluded)
+    sampler = ClusterSampler(lgh, *sources) if sources is not None else None
+    visible, rays = shadow_fraction(points, normals, shading, occluded, sampler, seed)
     stats["shadow_seconds"] = _time.perf_counter() - t1
     stats["shadow_rays"] = rays
     t2 = _time.perf_counter()
