@@ -42,17 +42,20 @@ class DirectResult:
     queries: int            #: shadow queries asked of the backend
 
 
-def _smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarray) -> np.ndarray:
-    """UsdLux cone with softness: 0 outside ``cone_deg``, smoothstep across the soft edge."""
+def smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarray) -> np.ndarray:
+    """UsdLux cone with softness: 0 outside ``cone_deg``, smoothstep across the soft edge.
+
+    Float32 in, float32 out (the shading blocks); float64 in, float64 out.
+    """
     angle = np.radians(np.minimum(cone_deg, 180.0))
     soft = np.clip(softness, 0.0, 1.0)
     outer = np.cos(angle)
     width = np.cos(angle * (1.0 - soft)) - outer
     hard = width <= 1e-12
-    x = np.where(hard, (cos_l >= outer).astype(np.float32),
-                 (cos_l - outer) / np.where(hard, 1.0, width))
+    dtype = np.result_type(cos_l, np.float32)
+    x = np.where(hard, (cos_l >= outer).astype(dtype), (cos_l - outer) / np.where(hard, 1.0, width))
     x = np.clip(x, 0.0, 1.0)
-    return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x)).astype(np.float32)
+    return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x)).astype(dtype)
 
 
 class _LightTable:
@@ -102,7 +105,7 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable):
         cos_l = -(t.axis[0][None, cols] * dx[:, cols] + t.axis[1][None, cols] * dy[:, cols]
                   + t.axis[2][None, cols] * dz[:, cols]) * inv_d[:, cols]
         factor = np.where(t.one_sided[cols][None, :], np.maximum(cos_l, 0.0), 1.0)
-        factor *= _smoothstep_cone(cos_l, t.cone[cols][None, :], t.softness[cols][None, :])
+        factor *= smoothstep_cone(cos_l, t.cone[cols][None, :], t.softness[cols][None, :])
         g[:, cols] *= factor
         if t.focused.any():
             f = np.ones_like(g)

@@ -89,6 +89,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdml.lighting.direct import smoothstep_cone
 from usdml.render.gbuffer import surface_at_hits
 from usdml.scene import Lights, LightType, Snapshot
 
@@ -185,18 +186,6 @@ def _around(axis: np.ndarray, cos_t: np.ndarray, phi: np.ndarray) -> np.ndarray:
             + axis * cos_t[:, None])
 
 
-def _smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarray) -> np.ndarray:
-    """UsdLux cone with softness, the formula of ``usdml.lighting.direct._smoothstep_cone`` (float64)."""
-    angle = np.radians(np.minimum(cone_deg, 180.0))
-    soft = np.clip(softness, 0.0, 1.0)
-    outer = np.cos(angle)
-    width = np.cos(angle * (1.0 - soft)) - outer
-    hard = width <= 1e-12
-    x = np.where(hard, (cos_l >= outer).astype(np.float64), (cos_l - outer) / np.where(hard, 1.0, width))
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x))
-
-
 @dataclass
 class _Emitters:
     """Per-light constants of path emission."""
@@ -224,7 +213,7 @@ def _envelope_cos(kind: np.ndarray, span: np.ndarray, u: np.ndarray) -> np.ndarr
 
 def _ratio(c: np.ndarray, cone, softness, focus, tint) -> np.ndarray:
     """(N, 3) profile / envelope at cos θ = ``c``: cone smoothstep × focus (1 inside a hard cone, no focus)."""
-    s = _smoothstep_cone(c, cone, softness)
+    s = smoothstep_cone(c, cone, softness)
     focused = focus > 0
     f = np.where(focused, np.clip(c, 0.0, 1.0) ** np.where(focused, focus, 0.0), 1.0)
     fr = np.where(focused[:, None], tint + (1.0 - tint) * f[:, None], 1.0)

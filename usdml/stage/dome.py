@@ -66,9 +66,10 @@ import threading
 from typing import Callable
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom, UsdLux
+from pxr import Sdf, Usd, UsdGeom
 
 from usdml.errors import UsdmlError
+from usdml.stage.lights import emitted_radiance
 from usdml.lighting.dome import latlong_directions, latlong_texel
 
 __all__ = ["Dome", "read_dome", "is_dome", "load_texture", "latlong_directions", "dome_pole_rotation",
@@ -219,13 +220,6 @@ def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode, fallback):
     return fallback if value is None else value
 
 
-def _finite(path: str, name: str, value) -> np.ndarray:
-    a = np.asarray(value, np.float64)
-    if not np.isfinite(a).all():
-        raise UsdmlError(f"{path}.{name}: value {value} is not finite; set a finite value")
-    return a
-
-
 def _rotation(m: np.ndarray, path: str) -> np.ndarray:
     """Nearest orthogonal matrix (polar decomposition) of the upper 3×3 of a column-convention 4×4."""
     a = np.asarray(m, np.float64)[:3, :3]
@@ -258,23 +252,7 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
         return None
     path = str(prim.GetPath())
 
-    def value(name: str, fallback) -> np.ndarray:
-        return _finite(path, name, _value(prim, name, time, fallback))
-
-    intensity = float(value("inputs:intensity", 1.0))
-    exposure = float(value("inputs:exposure", 0.0))
-    color = value("inputs:color", (1.0, 1.0, 1.0))
-    diffuse = float(value("inputs:diffuse", 1.0))
-    if intensity < 0:
-        raise UsdmlError(f"{path}.inputs:intensity: negative intensity {intensity}; use a value >= 0")
-    if (color < 0).any():
-        raise UsdmlError(f"{path}.inputs:color: negative color {tuple(color)}; use components >= 0")
-    if exposure > 64:
-        raise UsdmlError(f"{path}.inputs:exposure: {exposure} stops overflows; use a smaller exposure")
-    radiance = intensity * 2.0 ** exposure * color * max(diffuse, 0.0)
-    if bool(_value(prim, "inputs:enableColorTemperature", time, False)):
-        temp = float(value("inputs:colorTemperature", 6500.0))
-        radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
+    radiance = emitted_radiance(prim, time)
     # inputs:normalize: no effect on dome lights (UsdLux), deliberately not read.
 
     m = np.asarray(to_world4x4, np.float64)

@@ -58,19 +58,18 @@ def _finite(path: str, name: str, value, what: str = "") -> float | np.ndarray:
     return a
 
 
-def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) -> LightParams | None:
-    """Parameters of a supported UsdLux light, None (with a warning) for other light types."""
+def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0) -> np.ndarray:
+    """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) · diffuse, (3,).
+
+    Raises :class:`UsdmlError` naming the attribute for NaN/inf, negative intensity or colour, or an
+    exposure that overflows.
+    """
     path = str(prim.GetPath())
-    kind = prim.GetTypeName()
-    if kind not in SUPPORTED:
-        warn(f"{path}: {kind or 'untyped light'} is not supported yet; ignored")
-        return None
-    api = UsdLux.LightAPI(prim)
 
-    def value(name: str, fallback, what: str = ""):
-        return _finite(path, name, _get(prim, name, time, fallback), what)
+    def value(name: str, fallback):
+        return _finite(path, name, _get(prim, name, time, fallback))
 
-    intensity = float(value("inputs:intensity", 50000.0 if kind == "DistantLight" else 1.0))
+    intensity = float(value("inputs:intensity", default_intensity))
     exposure = float(value("inputs:exposure", 0.0))
     color = value("inputs:color", (1.0, 1.0, 1.0))
     diffuse = float(value("inputs:diffuse", 1.0))
@@ -84,6 +83,22 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
     if bool(_get(prim, "inputs:enableColorTemperature", time, False)):
         temp = float(value("inputs:colorTemperature", 6500.0))
         radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
+    return np.asarray(radiance, np.float64)
+
+
+def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) -> LightParams | None:
+    """Parameters of a supported UsdLux light, None (with a warning) for other light types."""
+    path = str(prim.GetPath())
+    kind = prim.GetTypeName()
+    if kind not in SUPPORTED:
+        warn(f"{path}: {kind or 'untyped light'} is not supported yet; ignored")
+        return None
+    api = UsdLux.LightAPI(prim)
+
+    def value(name: str, fallback, what: str = ""):
+        return _finite(path, name, _get(prim, name, time, fallback), what)
+
+    radiance = emitted_radiance(prim, time, 50000.0 if kind == "DistantLight" else 1.0)
     normalize = bool(api.GetNormalizeAttr().Get(time))
 
     radius = width = height = angle = 0.0
