@@ -53,6 +53,15 @@ def hat(t: float) -> float:
     return wp.max(1.0 - wp.abs(t), 0.0)
 
 
+@wp.func
+def corner_weight(di: int, dj: int, dk: int, fx: float, fy: float, fz: float) -> float:
+    """Trilinear weight of cell corner (di, dj, dk) in {0, 1}³ at fractions (fx, fy, fz)."""
+    wx = wp.where(di == 1, fx, 1.0 - fx)
+    wy = wp.where(dj == 1, fy, 1.0 - fy)
+    wz = wp.where(dk == 1, fz, 1.0 - fz)
+    return wx * wy * wz
+
+
 @wp.kernel
 def scatter_s1(
     position: wp.array(dtype=wp.vec3),   # (N,) light positions relative to the grid origin, scene units
@@ -75,10 +84,7 @@ def scatter_s1(
         di = c >> 2
         dj = (c >> 1) & 1
         dk = c & 1
-        wx = wp.where(di == 1, fx, 1.0 - fx)
-        wy = wp.where(dj == 1, fy, 1.0 - fy)
-        wz = wp.where(dk == 1, fz, 1.0 - fz)
-        w = wx * wy * wz
+        w = corner_weight(di, dj, dk, fx, fy, fz)
         # a light exactly on a vertex (or face) adds nothing to the other corners: they stay empty
         if w > 0.0:
             i = i0 + di
@@ -109,10 +115,7 @@ def mark_s1(
         di = c >> 2
         dj = (c >> 1) & 1
         dk = c & 1
-        wx = wp.where(di == 1, fx, 1.0 - fx)
-        wy = wp.where(dj == 1, fy, 1.0 - fy)
-        wz = wp.where(dk == 1, fz, 1.0 - fz)
-        if wx * wy * wz > 0.0:
+        if corner_weight(di, dj, dk, fx, fy, fz) > 0.0:
             # every writer stores the same value: a benign race, no atomic needed
             flags[flat_index(i0 + di, j0 + dj, k0 + dk, dims)] = wp.uint8(1)
 

@@ -69,7 +69,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
 from usdml.errors import UsdmlError
-from usdml.stage.lights import emitted_radiance
+from usdml.stage.lights import attribute_value, emitted_radiance
 from usdml.lighting.dome import latlong_directions, latlong_texel
 
 __all__ = ["Dome", "read_dome", "is_dome", "load_texture", "latlong_directions", "dome_pole_rotation",
@@ -214,12 +214,6 @@ def _load(path: str) -> tuple[np.ndarray, int]:
 
 # ------------------------------------------------------------------------------------------------- read
 
-def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode, fallback):
-    attr = prim.GetAttribute(name)
-    value = attr.Get(time) if attr else None
-    return fallback if value is None else value
-
-
 def _rotation(m: np.ndarray, path: str) -> np.ndarray:
     """Nearest orthogonal matrix (polar decomposition) of the upper 3×3 of a column-convention 4×4."""
     a = np.asarray(m, np.float64)[:3, :3]
@@ -234,7 +228,7 @@ def _rotation(m: np.ndarray, path: str) -> np.ndarray:
 def _resolve_pole(prim: Usd.Prim, time: Usd.TimeCode) -> str:
     if prim.GetTypeName() != "DomeLight_1":
         return "Y"
-    pole = str(_value(prim, "poleAxis", time, "scene"))
+    pole = str(attribute_value(prim, "poleAxis", time, "scene"))
     if pole == "scene":
         return "Z" if UsdGeom.GetStageUpAxis(prim.GetStage()) == UsdGeom.Tokens.z else "Y"
     return "Z" if pole == "Z" else "Y"
@@ -258,11 +252,11 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
     m = np.asarray(to_world4x4, np.float64)
     pole = _resolve_pole(prim, time)
     to_world = _rotation(m, path) @ dome_pole_rotation(pole)
-    shadow = bool(_value(prim, "inputs:shadow:enable", time, True))
+    shadow = bool(attribute_value(prim, "inputs:shadow:enable", time, True))
     dome = Dome(path=path, radiance=np.asarray(radiance, np.float64).reshape(3), texture=None,
                 to_world=to_world, origin=m[:3, 3].copy(), shadow=shadow, pole_axis=pole)
 
-    asset = _value(prim, "inputs:texture:file", time, None)
+    asset = attribute_value(prim, "inputs:texture:file", time, None)
     authored = asset.path if isinstance(asset, Sdf.AssetPath) else (str(asset) if asset else "")
     if not authored:
         return dome
@@ -279,7 +273,7 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
         warn(f"{path}.inputs:texture:file: '{resolved}': {e}; using a constant dome of the light's color")
         return dome
 
-    fmt = str(_value(prim, "inputs:texture:format", time, "automatic"))
+    fmt = str(attribute_value(prim, "inputs:texture:format", time, "automatic"))
     h, w = image.shape[:2]
     if fmt not in SUPPORTED_FORMATS or (fmt == "automatic" and w != 2 * h):
         why = (f"format '{fmt}' is not supported yet" if fmt != "automatic"

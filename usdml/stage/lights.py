@@ -45,7 +45,8 @@ class LightParams:
     shadow: bool
 
 
-def _get(prim: Usd.Prim, name: str, time: Usd.TimeCode, fallback):
+def attribute_value(prim: Usd.Prim, name: str, time: Usd.TimeCode, fallback):
+    """``name``'s value at ``time``, or ``fallback`` when the attribute is missing or has no value."""
     attr = prim.GetAttribute(name)
     value = attr.Get(time) if attr else None
     return fallback if value is None else value
@@ -67,7 +68,7 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
     path = str(prim.GetPath())
 
     def value(name: str, fallback):
-        return _finite(path, name, _get(prim, name, time, fallback))
+        return _finite(path, name, attribute_value(prim, name, time, fallback))
 
     intensity = float(value("inputs:intensity", default_intensity))
     exposure = float(value("inputs:exposure", 0.0))
@@ -80,7 +81,7 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
     if exposure > 64:
         raise UsdmlError(f"{path}.inputs:exposure: {exposure} stops overflows; use a smaller exposure")
     radiance = intensity * 2.0 ** exposure * color * max(diffuse, 0.0)
-    if bool(_get(prim, "inputs:enableColorTemperature", time, False)):
+    if bool(attribute_value(prim, "inputs:enableColorTemperature", time, False)):
         temp = float(value("inputs:colorTemperature", 6500.0))
         radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
     return np.asarray(radiance, np.float64)
@@ -96,7 +97,7 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
     api = UsdLux.LightAPI(prim)
 
     def value(name: str, fallback, what: str = ""):
-        return _finite(path, name, _get(prim, name, time, fallback), what)
+        return _finite(path, name, attribute_value(prim, name, time, fallback), what)
 
     radiance = emitted_radiance(prim, time, 50000.0 if kind == "DistantLight" else 1.0)
     normalize = bool(api.GetNormalizeAttr().Get(time))
@@ -108,7 +109,7 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
         radius = float(value("inputs:radius", 0.5))
         if radius < 0:
             raise UsdmlError(f"{path}.inputs:radius: negative radius {radius}; use a radius >= 0")
-        if ltype == LightType.SPHERE and (radius == 0 or bool(_get(prim, "treatAsPoint", time, False))):
+        if ltype == LightType.SPHERE and (radius == 0 or bool(attribute_value(prim, "treatAsPoint", time, False))):
             ltype = LightType.POINT
         if ltype == LightType.POINT and radius == 0 and not normalize:
             warn(f"{path}: point light with radius 0 and normalize off emits nothing (I = L·π·r²); "
@@ -128,9 +129,9 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
         softness = float(value("inputs:shaping:cone:softness", 0.0))
         focus = float(value("inputs:shaping:focus", 0.0))
         tint = value("inputs:shaping:focusTint", (0.0, 0.0, 0.0))
-        if _get(prim, "inputs:shaping:ies:file", time, None):
+        if attribute_value(prim, "inputs:shaping:ies:file", time, None):
             warn(f"{path}: IES profiles are not supported; using the cone only")
-    shadow = bool(_get(prim, "inputs:shadow:enable", time, True))
+    shadow = bool(attribute_value(prim, "inputs:shadow:enable", time, True))
     return LightParams(path, ltype, radiance, normalize, radius, width, height, angle,
                        cone_angle, softness, focus, np.asarray(tint, np.float64), shadow)
 
