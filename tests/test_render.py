@@ -245,7 +245,7 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
     (["--frames", "9"], "outside the stage's range"),
     (["--frames", "1:x"], "FrameSpec"),
     (["--imageWidth", "0"], "--imageWidth 0"),
-    (["--visibility", "voxel"], "not available yet"),
+    (["--visibility", "svo"], "not available yet"),
     (["--aovs", "beauty"], "beauty"),
 ])
 def test_render_errors(new_stage, tmp_path, capsys, argv, message):

@@ -17,7 +17,7 @@ from usdml.render.gbuffer import build_gbuffer
 from usdml.scene import diff
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
-from usdml.visibility import ExactBackend, make_backend
+from usdml.visibility import ExactBackend, backend_for
 
 
 def _query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -30,7 +30,7 @@ def _query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
 
 
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
-                     frame: float | None = None) -> list[dict]:
+                     frame: float | None = None, settings=None, backend_options: dict | None = None) -> list[dict]:
     """One result per backend: build and query seconds on the same queries, ratios to ``exact``."""
     stage = delegate.path
     frame = delegate.start_time if frame is None else frame
@@ -49,7 +49,8 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
         if name == "exact":
             backend, build = exact, exact_build
         else:
-            backend = make_backend(name)
+            base = settings if settings is not None else delegate.usdml_settings
+            backend = backend_for(base.updated(visibility=name), **(backend_options or {}))
             t0 = _time.perf_counter()
             backend.update(snap, diff(None, snap))
             build = _time.perf_counter() - t0
@@ -66,7 +67,13 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             "speedup_vs_exact": reference[0] / seconds if seconds > 0 else float("inf"),
             "disagreement_vs_exact": float((blocked != reference[1]).mean()) if len(blocked) else 0.0,
             "triangles": snap.triangle_count(),
+            "bytes": int(getattr(backend, "stats", {}).get("bytes", 0)) if name != "exact" else 0,
         })
+        if name == "voxel":
+            results[-1].update(voxel_resolution=backend.resolution, direction_step=backend.step,
+                               directions=backend.bins.count, arrays=backend.stats["arrays"],
+                               arrays_loaded_from_cache=backend.stats["loaded"],
+                               array_build_seconds=backend.stats["build_seconds"])
         if backend is not exact:
             backend.close()
     exact.close()
@@ -81,5 +88,6 @@ def format_bench(results: list[dict]) -> str:
         lines.append(f"{r['backend']:>8}: {r['queries']:,} shadow queries ({r['pixels']:,} pixels x {r['lights']:,} "
                      f"lights, facing pairs) in {r['seconds']:.2f} s = {r['queries_per_second'] / 1e6:.2f} M/s; "
                      f"build {r['build_seconds']:.2f} s; {100 * r['blocked_fraction']:.1f} % blocked"
+                     + (f"; {r['bytes'] / 2**20:.0f} MiB" if r.get("bytes") else "")
                      + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact"))
     return "\n".join(lines)

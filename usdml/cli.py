@@ -50,10 +50,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _settings_overrides(args: argparse.Namespace) -> dict:
-    values = {"visibility": getattr(args, "visibility", None), "seed": args.seed,
-              "dome_samples": args.dome_samples, "gi": args.gi, "vpl_count": args.vpls,
-              "lgh_alpha": args.lgh_alpha, "lgh_levels": args.lgh_levels,
-              "shadow_samples": args.shadow_samples, "interleave": args.interleave}
+    a = lambda name: getattr(args, name, None)     # noqa: E731 -- not every command has every flag
+    values = {"visibility": a("visibility"), "seed": a("seed"),
+              "dome_samples": a("dome_samples"), "gi": a("gi"), "vpl_count": a("vpls"),
+              "lgh_alpha": a("lgh_alpha"), "lgh_levels": a("lgh_levels"),
+              "shadow_samples": a("shadow_samples"), "interleave": a("interleave"),
+              "voxel_resolution": getattr(args, "voxel_resolution", None),
+              "direction_step": getattr(args, "direction_step", None)}
     return {k: v for k, v in values.items() if v is not None}
 
 
@@ -69,6 +72,53 @@ def _add_lighting_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lgh-levels", type=int, help="LGH levels (default 0 = the paper's rule)")
     p.add_argument("--shadow-samples", type=int, help="stochastic shadow samples per pixel (default 4)")
     p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
+
+
+def _add_voxel_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--voxel-resolution", type=int, metavar="N",
+                   help="voxels per axis of each direction's voxelization (default: usdml:voxel:resolution, else 128)")
+    p.add_argument("--direction-step", type=float, metavar="DEG",
+                   help="degrees between direction bins (default: usdml:voxel:directionStep, else 2)")
+
+
+def _cmd_bake(args: argparse.Namespace) -> int:
+    from usdml.render.sequence import frame_spec, voxel_messages
+    from usdml.scene import diff
+    from usdml.stage.delegate import require_geometry
+    from usdml.visibility import VoxelBackend
+
+    delegate = _delegate(args)
+    settings = delegate.usdml_settings.updated(**_settings_overrides(args))
+    frames = frame_spec(args.frames, delegate.start_time, delegate.end_time)
+    t0 = time.perf_counter()
+    backend = VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step,
+                           device=args.device, cache=args.cache, **voxel_messages())
+    previous = None
+    for f in frames:
+        delegate.check_time(f)
+        snap = delegate.snapshot(f)
+        require_geometry(delegate, snap)
+        backend.update(snap, diff(previous, snap))
+        previous = snap
+    arrays = [{"source": a.source, "key": a.key, "bytes": a.nbytes, "samples": a.samples,
+               "build_seconds": a.build_seconds, "loaded_from_cache": a.cached,
+               "path": str(backend.cache.path("voxel", a.key)) if backend.cache and a.key else None}
+              for a in backend.arrays]
+    backend.close()
+    summary = {"stage": args.stage, "frames": frames, "voxel_resolution": settings.voxel_resolution,
+               "direction_step": settings.direction_step, "directions": backend.bins.count, "arrays": arrays,
+               "built": backend.stats["builds"], "loaded": backend.stats["loaded"],
+               "seconds": time.perf_counter() - t0}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    for a in arrays:
+        how = "in cache" if a["loaded_from_cache"] else f"built in {a['build_seconds']:.1f} s"
+        print(f"{a['source']}: {a['bytes'] / 2**20:.1f} MiB, {how}" + (f" -> {a['path']}" if a["path"] else
+                                                                        " (deforming: rebuilt per frame, not cached)"))
+    print(f"{len(arrays)} array(s) at {settings.voxel_resolution}^3 / {settings.direction_step:g} deg "
+          f"({backend.bins.count} directions) in {summary['seconds']:.1f} s")
+    return 0
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -101,8 +151,14 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from usdml.bench import bench_visibility, format_bench
 
-    results = bench_visibility(_delegate(args), backends=args.visibility or ["exact"],
-                               image_width=args.imageWidth, frame=args.frame)
+    from usdml.render.sequence import voxel_messages
+
+    delegate = _delegate(args)
+    settings = delegate.usdml_settings.updated(**{k: v for k, v in _settings_overrides(args).items()
+                                                  if k in ("voxel_resolution", "direction_step")})
+    results = bench_visibility(delegate, backends=args.visibility or ["exact"],
+                               image_width=args.imageWidth, frame=args.frame, settings=settings,
+                               backend_options=voxel_messages())
     print(json.dumps(results, indent=2) if args.json else format_bench(results))
     return 0
 
@@ -112,7 +168,25 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from usdml.errors import UsdmlError
 
     if args.visibility:
-        raise UsdmlError("--visibility comparisons need an approximate visibility backend; only exact exists yet")
+        from usdml.compare import compare_visibility
+        from usdml.render.sequence import voxel_messages
+
+        if args.gi:
+            raise UsdmlError("compare one thing at a time: --visibility or --gi")
+        overrides = {k: v for k, v in _settings_overrides(args).items() if k != "visibility"}
+        r = compare_visibility(_delegate(args), args.visibility, args.against or "exact", args.frame,
+                               args.imageWidth, args.device, args.heatmap, overrides, voxel_messages())
+        if args.json:
+            print(json.dumps(r, indent=2))
+        else:
+            s = r["seconds"]
+            print(f"{r['visibility']} vs {r['against']} on {r['pixels']:,} pixels x {r['lights']:,} lights "
+                  f"({r['queries']:,} facing pairs): eps_v {100 * r['eps_v']:.2f} %, eps_s {100 * r['eps_s']:.2f} %; "
+                  f"wrongly hidden {100 * r['wrongly_hidden']:.2f} % of pairs ({100 * r['wrongly_hidden_near']:.2f} % "
+                  f"near the start), wrongly visible {100 * r['wrongly_visible']:.2f} %; queries "
+                  f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)"
+                  + (f"; heat map {r['heatmap']}" if r["heatmap"] else ""))
+        return 0
     if not args.gi:
         raise UsdmlError("give --gi METHOD (and --against METHOD) to compare")
     overrides = {k: v for k, v in _settings_overrides(args).items() if k != "gi"}
@@ -149,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
+    _add_voxel_args(render)
     _add_lighting_args(render)
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
     render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
@@ -160,8 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
     compare = sub.add_parser("compare", help="one frame two ways: error of a method against its reference")
     _add_stage_args(compare)
     compare.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
-    compare.add_argument("--visibility", help="approximate visibility backend to compare against exact")
-    compare.add_argument("--against", help="reference method (default: vpl-bruteforce for --gi)")
+    compare.add_argument("--visibility", help="approximate visibility backend to compare against exact (voxel)")
+    compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi)")
+    compare.add_argument("--heatmap", metavar="PNG", help="with --visibility: write the shadow error heat map "
+                         "(paper 000 Fig. 6: blue darker, red brighter, error x 10)")
+    _add_voxel_args(compare)
     compare.add_argument("--imageWidth", type=int, default=128, help="image width (default 128)")
     compare.add_argument("--device", default="cpu", help="cpu or cuda")
     compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")
@@ -175,7 +253,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--imageWidth", type=int, default=512, help="image width in pixels (default 512)")
     bench.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
     bench.add_argument("--json", action="store_true", help="print JSON")
+    _add_voxel_args(bench)
     bench.set_defaults(run=_cmd_bench)
+
+    bake = sub.add_parser("bake", help="build the voxel arrays of a stage into the cache (usdml:voxel settings)")
+    _add_stage_args(bake)
+    bake.add_argument("--frames", help="FrameSpec whose prototypes to bake (default: the start frame)")
+    bake.add_argument("--device", default="cpu", help="cpu or cuda")
+    bake.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
+    bake.add_argument("--json", action="store_true", help="print JSON")
+    _add_voxel_args(bake)
+    bake.set_defaults(run=_cmd_bake)
     return parser
 
 

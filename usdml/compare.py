@@ -65,3 +65,131 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
         "speedup": gi_ref / gi_test if gi_test > 0 else float("inf"),
         "breakdown": {gi: test.stats.get("gi", {}), against: ref.stats.get("gi", {})},
     }
+
+
+# ---------------------------------------------------------------------------------------- visibility
+
+def _pairs_with_pixels(points: np.ndarray, normals: np.ndarray, lights):
+    """Every shadow query direct lighting asks (facing, shadow-casting pairs) with its pixel index."""
+    from usdml.lighting.direct import PAIRS_PER_CHUNK, _geometry, _LightTable, shadow_queries
+
+    table = _LightTable(lights)
+    step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
+    cols = {k: [] for k in ("pixel", "origin", "target", "normal", "distant")}
+    for lo in range(0, len(points), step):
+        hi = min(len(points), lo + step)
+        g, _, w = _geometry(points[lo:hi], normals[lo:hi], table)
+        pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
+        cols["pixel"].append(lo + pi)
+        cols["origin"].append(points[lo + pi])
+        cols["target"].append(targets)
+        cols["normal"].append(normals[lo + pi])
+        cols["distant"].append(dist)
+    return {k: np.concatenate(v) if v else np.zeros((0, 3)) for k, v in cols.items()}
+
+
+def error_heatmap(signed: np.ndarray, base: np.ndarray, hit: np.ndarray, scale: float = 10.0) -> np.ndarray:
+    """Paper 000 Fig. 6: the shadow image in grey, pixels the approximation makes darker in blue and
+    brighter in red, with opacity ``scale × |error|``. ``signed`` = (wrongly hidden - wrongly visible)
+    / lights per pixel. Returns (H, W, 3) uint8."""
+    grey = np.clip(1.0 - base, 0.0, 1.0) * 0.8 * hit
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    a = np.clip(scale * np.abs(signed), 0.0, 1.0)[..., None]
+    colour = np.where(signed[..., None] > 0, np.array([0.1, 0.3, 1.0]), np.array([1.0, 0.15, 0.1]))
+    rgb = rgb * (1.0 - a) + colour * a
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def compare_visibility(delegate: StageDelegate, backend: str, against: str = "exact", frame: float | None = None,
+                       image_width: int = 128, device: str = "cpu", heatmap: str | None = None,
+                       overrides: dict | None = None, backend_options: dict | None = None) -> dict:
+    """Paper 000 §6.1 on one frame: both backends answer the same shadow queries (every pixel that
+    sees geometry against every light facing it); per pixel, ``ε_v`` = (wrongly visible + wrongly
+    hidden) / lights and ``ε_s`` = |wrongly hidden - wrongly visible| / lights, averaged over pixels.
+
+    Wrongly hidden queries are split into near-field (the approximation's first occupied voxel within
+    ``NEAR_VOXELS`` of the ray's start) and far-field, the lever DESIGN.md points at.
+    """
+    from dataclasses import replace
+
+    from usdml.render.frame import conform_camera
+    from usdml.render.gbuffer import build_gbuffer
+    from usdml.scene import diff
+    from usdml.stage.delegate import require_geometry
+    from usdml.visibility import ExactBackend, backend_for
+
+    if against != "exact":
+        raise UsdmlError(f"--against {against}: visibility is measured against exact (Embree) only")
+    if backend == "exact":
+        raise UsdmlError("--visibility exact against exact: give an approximate backend (voxel)")
+    frame = delegate.start_time if frame is None else frame
+    delegate.check_time(frame)
+    settings = delegate.usdml_settings.updated(**(overrides or {})).updated(visibility=backend)
+    snap = delegate.snapshot(frame)
+    require_geometry(delegate, snap)
+    width, height = snap.camera.resolution(image_width)
+    exact = ExactBackend()
+    approx = backend_for(settings, device, **(backend_options or {}))
+    try:
+        exact.update(snap, diff(None, snap))
+        t0 = _time.perf_counter()
+        approx.update(snap, diff(None, snap))
+        build = _time.perf_counter() - t0
+        gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
+        hit = gb.hit.ravel()
+        q = _pairs_with_pixels(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights)
+        args = (q["origin"], q["target"])
+        kw = dict(normals=q["normal"], distant=q["distant"].astype(bool))
+        t0 = _time.perf_counter()
+        ref = exact.occluded(*args, **kw)
+        ref_s = _time.perf_counter() - t0
+        t0 = _time.perf_counter()
+        got = approx.occluded(*args, **kw)
+        got_s = _time.perf_counter() - t0
+        near = np.zeros(len(got), bool)
+        if hasattr(approx, "hit_distances"):
+            dist = approx.hit_distances(*args, **kw)
+            near = (dist >= 0) & (dist < NEAR_VOXELS)
+    finally:
+        exact.close()
+        approx.close()
+    n_px, n_l = int(hit.sum()), len(snap.lights)
+    pix = q["pixel"].astype(np.int64)
+    wrong_hidden = np.bincount(pix[got & ~ref], minlength=n_px)
+    wrong_visible = np.bincount(pix[~got & ref], minlength=n_px)
+    eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
+    eps_s = np.abs(wrong_hidden - wrong_visible) / max(n_l, 1)
+    if heatmap:
+        import OpenImageIO as oiio
+
+        signed = np.zeros(width * height)
+        signed[hit] = (wrong_hidden - wrong_visible) / max(n_l, 1)
+        shadow = np.zeros(width * height)
+        shadow[hit] = np.bincount(pix[ref], minlength=n_px) / np.maximum(np.bincount(pix, minlength=n_px), 1)
+        img = error_heatmap(signed.reshape(height, width), shadow.reshape(height, width), gb.hit)
+        out = oiio.ImageOutput.create(heatmap)
+        if out is None:
+            raise UsdmlError(f"cannot write {heatmap}: {oiio.geterror()}")
+        out.open(heatmap, oiio.ImageSpec(width, height, 3, "uint8"))
+        out.write_image(img)
+        out.close()
+    nq = max(len(got), 1)
+    result = {
+        "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": n_px, "lights": n_l,
+        "queries": int(len(got)), "visibility": backend, "against": against,
+        "eps_v": float(eps_v.mean()) if n_px else 0.0, "eps_s": float(eps_s.mean()) if n_px else 0.0,
+        "wrongly_hidden": float((got & ~ref).sum() / nq), "wrongly_visible": float((~got & ref).sum() / nq),
+        "wrongly_hidden_near": float((got & ~ref & near).sum() / nq),
+        "wrongly_hidden_far": float((got & ~ref & ~near).sum() / nq),
+        "near_voxels": NEAR_VOXELS,
+        "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
+        "build_seconds": build, "heatmap": heatmap,
+    }
+    if backend == "voxel":
+        result.update(voxel_resolution=settings.voxel_resolution, direction_step=settings.direction_step,
+                      bytes=int(approx.stats["bytes"]))
+    return result
+
+
+#: near-field: the first occupied voxel lies within this many voxels of the ray's (skipped) start
+NEAR_VOXELS = 2.0

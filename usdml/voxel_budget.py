@@ -1,27 +1,21 @@
 """What paper 000's per-direction voxel arrays cost, said before anything is built.
 
-An array holds one bit-packed voxelization per direction bin; at k degrees the paper's
-(theta, phi) grid over [0, 180) x [0, 180) has ceil(180/k)^2 bins (90 x 90 at 2 deg), and one
-voxelization at resolution r takes r^3 / 8 bytes (256 KiB at 128^3): about 2 GB per array.
+An array holds one bit-packed voxelization per direction bin. The paper's (theta, phi) grid over
+[0, 180) x [0, 180) has 90 x 90 bins at 2 deg and a voxelization at 128^3 takes 256 KiB: about 2 GB
+per array. usdml bins one hemisphere in rings at the same step (5,357 bins at 2 deg) and stores
+only the row words inside the array's bounding sphere (70 % at 128^3): 0.98 GB per array
+(:mod:`usdml.visibility.voxel_grid`).
 """
 
 from __future__ import annotations
 
-import math
-
 from usdml.scene import Snapshot
 from usdml.settings import UsdmlSettings
+from usdml.visibility.voxel_grid import DirectionBins, array_bytes  # noqa: F401  (re-exported)
 
 
 def direction_count(step_deg: float) -> int:
-    per_axis = math.ceil(180.0 / step_deg - 1e-9)
-    return per_axis * per_axis
-
-
-def array_bytes(resolution: int, step_deg: float) -> int:
-    """Bytes of one dense array of bit-packed voxelizations (rows padded to 32-bit words)."""
-    row_words = math.ceil(resolution / 32)
-    return direction_count(step_deg) * resolution * resolution * row_words * 4
+    return DirectionBins.make(step_deg).count
 
 
 def plan_arrays(snap: Snapshot, settings: UsdmlSettings) -> list[tuple[str, str]]:

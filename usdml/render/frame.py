@@ -20,7 +20,7 @@ from usdml.lighting.dome import dome_to_distant_lights
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
-from usdml.visibility import ExactBackend, make_backend
+from usdml.visibility import ExactBackend, backend_for
 
 #: AOVs written when neither --aovs nor RenderSettings choose
 DEFAULT_AOVS = ("color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
@@ -65,13 +65,13 @@ class FrameRenderer:
     """Renders timecodes of one stage in order, updating the backends with what changed."""
 
     def __init__(self, delegate: StageDelegate, settings: UsdmlSettings, device: str = "cpu",
-                 camera_light: bool = True):
+                 camera_light: bool = True, backend_options: dict | None = None):
         self.delegate = delegate
         self.camera_light = camera_light
         self.settings = settings
         self.device = device
         self.exact = ExactBackend()
-        self.backend = self.exact if settings.visibility == "exact" else make_backend(settings.visibility)
+        self.backend = self.exact if settings.visibility == "exact" else backend_for(settings, device, **(backend_options or {}))
         self._previous: Snapshot | None = None
         self._told_camera_light = False
 
@@ -115,9 +115,15 @@ class FrameRenderer:
         stats["gbuffer_seconds"] = _time.perf_counter() - t2
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
-        direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                              gb.albedo.reshape(-1, 3)[hit], lights, self.backend.occluded, progress,
-                              meters_per_unit=snap.meters_per_unit)
+        # a backend with its own Alg. 3 kernel (voxel) shades in one pass; others answer shadow rays
+        shade = getattr(self.backend, "shade_direct", None)
+        if shade is not None:
+            direct = shade(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                           gb.albedo.reshape(-1, 3)[hit], lights, progress, meters_per_unit=snap.meters_per_unit)
+        else:
+            direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                  gb.albedo.reshape(-1, 3)[hit], lights, self.backend.occluded, progress,
+                                  meters_per_unit=snap.meters_per_unit)
         if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)

@@ -140,14 +140,34 @@ def check_device(device: str) -> None:
         raise UsdmlError("--device cuda: no CUDA device found; use --device cpu")
 
 
+def voxel_messages() -> dict:
+    """Voxel backend options that tell the user on stderr what arrays cost and how a build goes."""
+    import sys
+
+    def report(line: str) -> None:
+        print(f"usdml: {line}", file=sys.stderr, flush=True)
+
+    last = {"t": 0.0}
+
+    def progress(done: int, total: int, label: str) -> None:
+        now = _time.perf_counter()
+        if done < total and now - last["t"] < 0.5:
+            return
+        last["t"] = now
+        end = "\n" if done >= total else ""
+        print(f"\rusdml: building voxel array ({label}): {done}/{total} directions {100 * done // max(total, 1)} %",
+              end=end, file=sys.stderr, flush=True)
+    return {"report": report, "progress": progress}
+
+
 def render_sequence(job: RenderJob) -> dict:
     """Render every frame of ``job``; returns a summary (frames written, skipped, seconds per frame)."""
     started = _time.perf_counter()
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
-    if settings.visibility != "exact":
-        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact")
+    if settings.visibility not in ("exact", "voxel"):
+        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact or voxel")
     check_device(job.device)
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
     for f in frames:
@@ -157,7 +177,8 @@ def render_sequence(job: RenderJob) -> dict:
     require_geometry(delegate, first)
     width, height = _resolution(first, job)
     wanted = {aov for p in products for aov in p.layers.values()}
-    renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light)
+    renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light,
+                             backend_options=voxel_messages())
     written, skipped, seconds = [], [], []
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:

@@ -10,12 +10,15 @@ from __future__ import annotations
 from usdml.errors import UsdmlError
 from usdml.visibility.base import VisibilityBackend
 from usdml.visibility.exact import ExactBackend
+from usdml.visibility.voxel import VoxelBackend
 
-__all__ = ["VisibilityBackend", "ExactBackend", "make_backend", "available_backends"]
+__all__ = ["VisibilityBackend", "ExactBackend", "VoxelBackend", "make_backend", "available_backends",
+           "backend_for"]
 
 #: name -> backend class; approximate backends register here as they land
 _BACKENDS: dict[str, type[VisibilityBackend]] = {
     ExactBackend.name: ExactBackend,
+    VoxelBackend.name: VoxelBackend,
 }
 
 
@@ -30,3 +33,11 @@ def make_backend(name: str, **kw) -> VisibilityBackend:
     if cls is None:
         raise UsdmlError(f"unknown visibility backend {name!r}; available: {', '.join(available_backends())}")
     return cls(**kw)
+
+
+def backend_for(settings, device: str = "cpu", **kw) -> VisibilityBackend:
+    """The backend ``settings.visibility`` names, configured from ``settings`` (voxel resolution and
+    direction step) and ``kw`` (e.g. ``report``, ``progress`` for the voxel backend)."""
+    if settings.visibility == "voxel":
+        return VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step, device=device, **kw)
+    return make_backend(settings.visibility)

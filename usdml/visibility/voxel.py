@@ -1,0 +1,675 @@
+"""The ``voxel`` visibility backend: paper 000's per-direction voxel arrays, shared by instances.
+
+Arrays (paper 000 Alg. 4)
+    * **static**: every mesh that does not deform and every prototype whose instances never move,
+      flattened into world space: one array, built once (or loaded from the cache).
+    * **one per moving prototype**: built in prototype space and shared by all its instances; a
+      query is moved into each instance's space by the instance's inverse transform. Only the
+      instances whose world box the ray meets are visited (a Warp BVH over the boxes, rebuilt per
+      frame: cheap), so the cost does not grow with the number of instances in the scene.
+    * **deforming** meshes and prototypes: one world-space array rebuilt from geometry on frames where
+      they changed (Alg. 1; issue 5 replaces this with Alg. 5's rotation).
+
+    Every array covers its geometry's bounding sphere (so every direction's rotated cube holds it);
+    directions, rows and packing are in :mod:`usdml.visibility.voxel_grid`, the kernels in
+    :mod:`usdml.kernels.voxel`.
+
+Building (Alg. 1)
+    The paper depth-peels the rotated scene along three axes. Here every triangle is sampled on a
+    lattice no coarser than half a voxel (deduplicated), and each direction's voxelization sets the
+    bit of the voxel holding each rotated sample: every row whose centre line pierces a surface gets
+    a bit, with the cost set by surface area / h² rather than by triangle count (a 1M-triangle city of
+    sub-voxel triangles costs what its area costs). Directions are split over the CPU cores.
+
+Leaving the surface (self-occlusion) and its cost
+    The voxels around a shading point hold its own surface. A shadow ray therefore starts
+    ``normal_offset`` voxels (of the static array, in world units) off the surface along the normal
+    turned toward the light, and ignores its first ``skip`` voxels, or more at grazing angles: until it
+    is ``slab`` voxels above the tangent plane (``slab / sin β`` voxels along the ray, at most
+    ``max_skip``). It also ignores its last ``end_skip`` voxels so a light mounted on a wall is not
+    hidden by the wall. The cost: occluders closer than about ``normal_offset + slab`` voxels to the
+    shading point (contact shadows, fins and sills on a facade) or ``end_skip`` voxels to the light do
+    not shadow. ``usdml compare`` splits the errors into near-field and far-field to measure it.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+import logging
+import os
+import time
+from typing import Callable
+
+import numpy as np
+
+from usdml.cache import Cache, CacheCorrupt, cache_key
+from usdml.errors import UsdmlError
+from usdml.scene import Changes, Lights, LightType, Snapshot, content_hash
+from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors
+from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, core_bounds, surface_samples
+
+log = logging.getLogger("usdml")
+
+__all__ = ["VoxelArray", "VoxelBackend", "build_array", "array_cost", "available_memory"]
+
+#: bump when the bits an array holds for the same inputs change
+FORMAT_VERSION = 1
+#: sample spacing and dedup grid as fractions of the voxel size times the core fraction: a plane
+#: crossing a row's axis then has a sample within 0.58 · 0.5 + 1.73 · 0.12 = 0.5 of its core's
+#: half width of the crossing, inside the core (no holes along rows; see voxel_grid)
+SAMPLE_SPACING = 0.5
+SNAP = 0.12
+#: central fraction of a row's square a sample must fall in to mark its voxel (kernels.voxel.voxelize)
+CORE = 1.0
+#: margin on the bounding sphere so that float rounding never puts a sample outside the cube
+SPHERE_MARGIN = 1.002
+
+
+@dataclass
+class VoxelArray:
+    """One array: bit-packed voxelizations of one geometry in every direction bin."""
+
+    words: np.ndarray           #: (directions * words_per_direction,) uint32
+    center: np.ndarray          #: (3,) float64 bounding-sphere centre (array space)
+    half: float                 #: half size of the cube = sphere radius × margin
+    resolution: int
+    step: float
+    samples: int = 0            #: surface samples voxelized
+    build_seconds: float = 0.0  #: 0 when loaded from the cache
+    key: str = ""
+    source: str = ""            #: what it holds (for messages)
+    cached: bool = False
+    #: (4, 4) world (or prototype) space -> array space; world-space arrays are stretched so that
+    #: their box is closer to a cube (:func:`normalizing_transform`)
+    to_array: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.words.nbytes)
+
+    @property
+    def voxel_size(self) -> float:
+        return 2.0 * self.half / self.resolution
+
+
+def array_cost(resolution: int, step: float) -> int:
+    """Bytes of one array at ``resolution``³ / ``step`` degrees (said before building)."""
+    return DirectionBins.make(step).count * RowLayout.make(resolution).words * 4
+
+
+#: largest stretch between the axes of a world-space array's box (normalizing_transform)
+MAX_ANISOTROPY = 4.0
+
+
+def normalizing_transform(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """World -> array space for a world-space array covering box ``[lo, hi]``: centred on the box,
+    each axis scaled so its extent approaches the longest one (by at most ``MAX_ANISOTROPY``).
+
+    A city is wide and flat (350 × 106 × 350 here) and its lights hang a few metres above the street:
+    with cubic voxels the vertical resolution is that of the widest axis and rays grazing the street
+    run inside the street's voxel layer. Stretching the box to a cube gives every axis the same number
+    of voxels; rows stay straight lines in world space, so queries just move their endpoints (the
+    same path as instances, Alg. 4).
+    """
+    ext = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    top = float(ext.max()) if ext.max() > 0 else 1.0
+    scale = top / np.maximum(ext, top / MAX_ANISOTROPY)
+    m = np.eye(4)
+    m[:3, :3] = np.diag(scale)
+    m[:3, 3] = -scale * 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
+    return m
+
+
+#: points per tile of the CPU shading kernel (kernels.voxel.shade_tiles)
+SHADE_TILE = 64
+
+
+def _morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices sorting ``points`` along a Z-order curve of a 2^10 grid over their bounds."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def available_memory() -> int:
+    """Bytes of memory this process can still take (``MemAvailable``), or physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 40
+
+
+def _wp():
+    from usdml.kernels import warp
+
+    return warp()
+
+
+def _kernels():
+    from usdml.kernels import voxel
+
+    return voxel
+
+
+def bounding_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre of the bounding box and the largest distance of a point from it."""
+    lo, hi = points.min(axis=0).astype(np.float64), points.max(axis=0).astype(np.float64)
+    c = 0.5 * (lo + hi)
+    r = float(np.sqrt(((points.astype(np.float64) - c) ** 2).sum(axis=1).max()))
+    return c, max(r, 1e-6 * max(1.0, float(np.abs(c).max())), 1e-9)
+
+
+def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, *,
+                device: str = "cpu", workers: int | None = None,
+                progress: Callable[[int, int], None] | None = None, source: str = "",
+                bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None) -> VoxelArray:
+    """Alg. 1: voxelize triangles ``(points, triangles)`` (array space) in every direction bin.
+
+    ``bounds`` (a box) restricts the array to that box (triangles are clipped to it); default: all
+    of the geometry. ``progress(done, total)`` is called with directions finished.
+    """
+    wp = _wp()
+    k = _kernels()
+    t0 = time.perf_counter()
+    core = CORE if core is None else float(core)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    bins = DirectionBins.make(step)
+    layout = RowLayout.make(resolution)
+    if bounds is not None:
+        lo, hi = (np.asarray(b, np.float64) for b in bounds)
+        points, triangles, _ = clip_to_box(points, triangles, lo, hi)
+        center, radius = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-9)
+    else:
+        center, radius = bounding_sphere(points[np.unique(triangles)] if len(triangles) else points)
+    half = radius * SPHERE_MARGIN
+    h = 2.0 * half / resolution
+    samples = surface_samples(points, triangles, SAMPLE_SPACING * core * h, snap=SNAP * core * h)
+    sample_seconds = time.perf_counter() - t0
+    n_dirs, wpd = bins.count, layout.words
+    out_np = np.zeros(n_dirs * wpd, np.uint32)
+    if len(samples):
+        dev = wp.get_device(device)
+        s_wp = wp.array(samples, dtype=wp.vec3, device=dev)
+        frames = wp.array(bins.frames, dtype=wp.mat33, device=dev)
+        w0 = wp.array(layout.w0, dtype=wp.int32, device=dev)
+        nw = wp.array(layout.nw, dtype=wp.int32, device=dev)
+        off = wp.array(layout.offset, dtype=wp.int32, device=dev)
+        out = wp.array(out_np, dtype=wp.uint32, device=dev, copy=not dev.is_cpu)
+        c32 = wp.vec3(*center.astype(np.float32))
+        # directions per launch: enough work per launch, frequent progress
+        per = max(1, min(n_dirs, (1 << 24) // max(len(samples), 1)))
+        chunks = [(d0, min(n_dirs, d0 + per)) for d0 in range(0, n_dirs, per)]
+        chunk = len(samples) if dev.is_cpu else 4096
+        n_chunks = -(-len(samples) // chunk)
+
+        def launch(c):
+            d0, d1 = c
+            wp.launch(k.voxelize, dim=(d1 - d0, n_chunks), device=dev,
+                      inputs=[s_wp, c32, float(half), resolution, core, frames, d0, chunk, w0, nw, off, wpd, out])
+            return d1 - d0
+
+        done = 0
+        if dev.is_cpu and len(chunks) > 1:
+            # the first launch compiles or loads the module on this thread, before threads race for it
+            done += launch(chunks[0])
+            if progress:
+                progress(done, n_dirs)
+            with ThreadPoolExecutor(max_workers=max(1, int(workers or os.cpu_count() or 1))) as pool:
+                for n in pool.map(launch, chunks[1:]):
+                    done += n
+                    if progress:
+                        progress(done, n_dirs)
+        else:
+            for c in chunks:
+                done += launch(c)
+                if progress:
+                    progress(done, n_dirs)
+            if not dev.is_cpu:
+                wp.synchronize_device(dev)
+                out_np = out.numpy()
+    arr = VoxelArray(out_np, center, float(half), resolution, float(step), int(len(samples)),
+                     time.perf_counter() - t0, source=source)
+    arr.sample_seconds = sample_seconds
+    log.debug(f"voxel array {source}: {len(samples)} samples in {sample_seconds:.2f} s, "
+              f"{n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
+    return arr
+
+
+def array_key(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, bounds=None,
+              core: float | None = None) -> str:
+    box = None if bounds is None else [np.asarray(b, np.float64).round(9).tolist() for b in bounds]
+    return cache_key("voxel-array", FORMAT_VERSION, SAMPLE_SPACING, SNAP, SPHERE_MARGIN, int(resolution), float(step),
+                     box, float(CORE if core is None else core), content_hash(np.asarray(points, np.float32), np.asarray(triangles, np.int32)))
+
+
+def cached_array(points, triangles, resolution: int, step: float, cache: Cache | None, *,
+                 device: str = "cpu", progress=None, source: str = "", bounds=None, core=None) -> VoxelArray:
+    """The array of ``(points, triangles)``, from ``cache`` when it holds a valid copy, else built
+    (and stored). A damaged entry is reported and rebuilt."""
+    key = array_key(points, triangles, resolution, step, bounds, core)
+    if cache is not None:
+        try:
+            got = cache.get("voxel", key)
+        except CacheCorrupt as e:
+            log.warning(f"voxel cache: {e}; rebuilding")
+            got = None
+        if got is not None:
+            words, meta = got
+            return VoxelArray(words, np.asarray(meta["center"], np.float64), float(meta["half"]),
+                              int(meta["resolution"]), float(meta["step"]), int(meta.get("samples", 0)), 0.0,
+                              key, source, cached=True)
+    arr = build_array(points, triangles, resolution, step, device=device, progress=progress, source=source,
+                      bounds=bounds, core=core)
+    arr.key = key
+    if cache is not None:
+        try:
+            cache.put("voxel", key, arr.words, {"center": arr.center.tolist(), "half": arr.half,
+                                                "resolution": resolution, "step": step, "samples": arr.samples,
+                                                "format": FORMAT_VERSION, "source": source})
+        except OSError as e:
+            log.warning(f"voxel cache: could not write {cache.path('voxel', key)} ({e}); continuing without it")
+    return arr
+
+
+@dataclass
+class _Group:
+    members: tuple
+    array: VoxelArray | None
+    geometry_key: str = ""
+
+
+def _world_geometry(snapshot: Snapshot, members) -> tuple[np.ndarray, np.ndarray]:
+    from usdml.visibility.exact import _merged_geometry
+
+    return _merged_geometry(snapshot, members)
+
+
+class VoxelBackend(VisibilityBackend):
+    """Shadow rays by paper 000's voxel arrays (see the module doc for what is built and the costs).
+
+    Parameters
+    ----------
+    resolution : voxels per axis of each direction's voxelization (default 128)
+    step : direction bin step in degrees (default 2)
+    device : Warp device, ``cpu`` or ``cuda``
+    cache : a :class:`usdml.cache.Cache`, a folder, or None for the default folder; ``False``: no cache
+    memory_limit : bytes the arrays may take; default: what the machine has available
+    normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
+    segment : voxels looked up per row (a divisor of 32): the ray picks its row anew every segment
+    report : called with one line before anything is built (cost of each array), default: log.info
+    progress : ``progress(done, total, label)`` while building
+    """
+
+    name = "voxel"
+
+    def __init__(self, *, resolution: int = 128, step: float = 2.0, device: str = "cpu", cache=None,
+                 memory_limit: int | None = None, normal_offset: float = 1.0, skip: float = 1.0,
+                 slab: float = 1.0, max_skip: float = 4.0, end_skip: float = 1.0, segment: int = 32,
+                 core: float | None = None,
+                 workers: int | None = None, report: Callable[[str], None] | None = None,
+                 progress: Callable[[int, int, str], None] | None = None) -> None:
+        self.resolution = int(resolution)
+        self.step = float(step)
+        if not (4 <= self.resolution <= 2048):
+            raise UsdmlError(f"voxel resolution must be in [4, 2048], got {self.resolution}")
+        if not (0.1 <= self.step <= 90):
+            raise UsdmlError(f"direction step must be in [0.1, 90] degrees, got {self.step:g}")
+        if segment not in (1, 2, 4, 8, 16, 32):
+            raise UsdmlError(f"voxel segment must divide 32, got {segment}")
+        self.device = device
+        self.core = CORE if core is None else float(core)
+        self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
+        self.memory_limit = memory_limit
+        self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
+        self.max_skip, self.end_skip, self.segment = float(max_skip), float(end_skip), int(segment)
+        self.workers = max(1, int(workers or os.cpu_count() or 1))
+        self.report = report or (lambda line: log.info(line))
+        self.progress = progress
+        self.bins = DirectionBins.make(self.step)
+        self.layout = RowLayout.make(self.resolution)
+        self._static: _Group | None = None
+        self._deforming: _Group | None = None
+        self._protos: dict[str, VoxelArray] = {}      # prototype geometry hash -> array
+        self._gpu: dict = {}
+        self._scene = None
+        self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "arrays": 0}
+
+    # ------------------------------------------------------------------ building
+
+    def _array(self, points, triangles, source: str, cacheable: bool = True, trim: bool = False) -> VoxelArray:
+        def prog(done, total):
+            if self.progress:
+                self.progress(done, total, source)
+        bounds, to_array = None, np.eye(4)
+        if trim:
+            lo, hi = core_bounds(points, triangles)
+            tri = np.asarray(points, np.float64)[np.asarray(triangles, np.int64)]
+            outside = int((~np.all((tri.min(1) >= lo) & (tri.max(1) <= hi), axis=1)).sum())
+            if outside:
+                self.report(f"voxel array of the {source} covers {np.round(lo, 2).tolist()} .. "
+                            f"{np.round(hi, 2).tolist()}; {outside} of {len(tri)} triangles reach outside "
+                            "it and shadow only within it")
+            to_array = normalizing_transform(lo, hi)
+            points = np.asarray(points, np.float64) @ to_array[:3, :3].T + to_array[:3, 3]
+            bounds = (to_array[:3, :3] @ lo + to_array[:3, 3], to_array[:3, :3] @ hi + to_array[:3, 3])
+        arr = cached_array(points, triangles, self.resolution, self.step, self.cache if cacheable else None,
+                           device=self.device, progress=prog, source=source, bounds=bounds, core=self.core)
+        arr.to_array = to_array
+        if arr.cached:
+            self.stats["loaded"] += 1
+        else:
+            self.stats["builds"] += 1
+            self.stats["build_seconds"] += arr.build_seconds
+        return arr
+
+    def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
+        """The arrays ``snapshot`` needs: ``(role, members)``, role ``static``, ``prototype <path>``,
+        ``deforming``."""
+        static = tuple([("mesh", m.path) for m in snapshot.meshes if not m.deforming]
+                       + [("proto", p.path) for p in snapshot.prototypes if not (p.animated or p.deforming)])
+        deforming = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
+                          + [("proto", p.path) for p in snapshot.prototypes if p.deforming])
+        out = []
+        if static:
+            out.append(("static", static))
+        out += [(f"prototype {p.path}", (("proto", p.path),)) for p in snapshot.prototypes
+                if p.animated and not p.deforming and p.triangle_count]
+        if deforming:
+            out.append(("deforming", deforming))
+        return out
+
+    def check_memory(self, count: int) -> int:
+        """Say what ``count`` arrays cost and refuse (``UsdmlError``) when they would not fit."""
+        each = array_cost(self.resolution, self.step)
+        total = each * count
+        limit = self.memory_limit if self.memory_limit is not None else int(0.8 * available_memory())
+        self.report(f"voxel arrays: {count} x {each / 2**20:.1f} MiB = {total / 2**30:.2f} GiB "
+                    f"({self.resolution}^3 voxels, {self.bins.count} directions at {self.step:g} deg)")
+        if total > limit:
+            raise UsdmlError(
+                f"voxel arrays need {total / 2**30:.2f} GiB ({count} x {each / 2**20:.1f} MiB at "
+                f"{self.resolution}^3 / {self.step:g} deg) but only {limit / 2**30:.2f} GiB is available; "
+                f"lower --voxel-resolution or raise --direction-step")
+        return total
+
+    def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
+        plan = self.plan(snapshot)
+        roles = dict(plan)
+        static = roles.get("static")
+        deforming = roles.get("deforming")
+        moving = [p for p in snapshot.prototypes if p.animated and not p.deforming and p.triangle_count]
+        need_static = static is not None and (self._static is None or self._static.members != static
+                                              or (changes is not None and changes.static) or changes is None)
+        if self._static is not None and static is not None and self._static.members == static and changes is not None:
+            need_static = bool(changes.static) or any(changes.prototypes.get(path) for kind, path in static
+                                                      if kind == "proto")
+        proto_hashes = {p.path: p.geometry_hash() for p in moving}
+        new_protos = {h for h in proto_hashes.values() if h not in self._protos}
+        need_deforming = deforming is not None and (self._deforming is None or changes is None
+                                                    or self._deforming.members != deforming
+                                                    or bool(changes.deforming)
+                                                    or any(changes.prototypes.get(path) for kind, path in deforming
+                                                           if kind == "proto"))
+        building = int(need_static) + len(new_protos) + int(need_deforming)
+        if building:
+            self.check_memory(len(plan))
+        if static is None:
+            self._static = None
+        elif need_static:
+            pts, tris = _world_geometry(snapshot, static)
+            self._static = _Group(static, self._array(pts, tris, "static scene", trim=True) if len(tris) else None)
+        for p in moving:
+            h = proto_hashes[p.path]
+            if h not in self._protos:
+                pts, tris = p.merged()
+                self._protos[h] = self._array(pts, tris, f"prototype {p.name}")
+        self._protos = {h: a for h, a in self._protos.items() if h in set(proto_hashes.values())}
+        if deforming is None:
+            self._deforming = None
+        elif need_deforming:
+            pts, tris = _world_geometry(snapshot, deforming)
+            self._deforming = _Group(deforming, self._array(pts, tris, "deforming geometry", cacheable=False, trim=True)
+                                     if len(tris) else None)
+        self._assemble(snapshot, moving, proto_hashes, rebuild_words=bool(building) or not self._gpu)
+
+    def _assemble(self, snapshot: Snapshot, moving, proto_hashes, rebuild_words: bool) -> None:
+        """Concatenate the arrays for the kernels and rebuild the instance table and BVH."""
+        wp = _wp()
+        dev = wp.get_device(self.device)
+        arrays: list[VoxelArray] = []
+        static_ids = []
+        for g in (self._static, self._deforming):
+            if g is not None and g.array is not None:
+                static_ids.append(len(arrays))
+                arrays.append(g.array)
+        proto_index = {}
+        for h, a in self._protos.items():
+            proto_index[h] = len(arrays)
+            arrays.append(a)
+        if rebuild_words or self._gpu.get("n_arrays") != len(arrays):
+            total = sum(a.words.size for a in arrays)
+            if total >= 2 ** 31:
+                raise UsdmlError(f"voxel arrays hold {total} words, more than one Warp array can index (2^31); "
+                                 "lower --voxel-resolution or raise --direction-step")
+            words = np.concatenate([a.words for a in arrays]) if arrays else np.zeros(1, np.uint32)
+            bases = np.concatenate([[0], np.cumsum([a.words.size for a in arrays])[:-1]]).astype(np.int64) \
+                if arrays else np.zeros(0, np.int64)
+            arr_int = np.zeros((max(1, len(arrays)), 4), np.int32)
+            for i, a in enumerate(arrays):
+                arr_int[i] = (a.resolution, self.layout.words, bases[i], 0)
+            g = {
+                "words_np": words,
+                "words": wp.array(words, dtype=wp.uint32, device=dev, copy=not dev.is_cpu),
+                "center": wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev),
+                "half": wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev),
+                "int": wp.array(arr_int, dtype=wp.int32, device=dev),
+                "w0": wp.array(self.layout.w0, dtype=wp.int32, device=dev),
+                "nw": wp.array(self.layout.nw, dtype=wp.int32, device=dev),
+                "off": wp.array(self.layout.offset, dtype=wp.int32, device=dev),
+                "frames": wp.array(self.bins.frames, dtype=wp.mat33, device=dev),
+                "ring_count": wp.array(self.bins.ring_count, dtype=wp.int32, device=dev),
+                "ring_start": wp.array(self.bins.ring_start, dtype=wp.int32, device=dev),
+                "n_arrays": len(arrays),
+            }
+            self._gpu = g
+            self.stats["bytes"] = int(sum(a.nbytes for a in arrays))
+            self.stats["arrays"] = len(arrays)
+        g = self._gpu
+        # the static and deforming arrays are both world space; with both, the deforming one is
+        # visited as an identity "instance" so a query still tests both
+        inv, ids, lo, hi = [], [], [], []
+        extra = static_ids[1:]
+        for a_id in extra:
+            a = arrays[a_id]
+            inv.append(a.to_array)
+            ids.append(a_id)
+            back = np.linalg.inv(a.to_array)
+            corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * a.half + a.center
+            world = corners @ back[:3, :3].T + back[:3, 3]
+            lo.append(world.min(0))
+            hi.append(world.max(0))
+        for p in moving:
+            a_id = proto_index[proto_hashes[p.path]]
+            a = arrays[a_id]
+            xf = np.asarray(p.xforms, np.float64).reshape(-1, 4, 4)
+            # world = M @ local (column vectors)
+            c_world = xf[:, :3, :3] @ a.center + xf[:, :3, 3]
+            scale = np.linalg.norm(xf[:, :3, :3], axis=1).max(axis=1)
+            r_world = a.half * scale
+            inv.append(np.linalg.inv(xf))
+            ids.append(np.full(len(xf), a_id))
+            lo.append(c_world - r_world[:, None])
+            hi.append(c_world + r_world[:, None])
+        n_inst = 0
+        if inv:
+            inv_m = np.concatenate([np.asarray(m).reshape(-1, 4, 4) for m in inv]).astype(np.float32)
+            ids_a = np.concatenate([np.atleast_1d(i) for i in ids]).astype(np.int32)
+            lo_a = np.concatenate([np.asarray(x).reshape(-1, 3) for x in lo]).astype(np.float32)
+            hi_a = np.concatenate([np.asarray(x).reshape(-1, 3) for x in hi]).astype(np.float32)
+            n_inst = len(ids_a)
+            g["inst_inv"] = wp.array(inv_m, dtype=wp.mat44, device=dev)
+            g["inst_array"] = wp.array(ids_a, dtype=wp.int32, device=dev)
+            g["lowers"] = wp.array(lo_a, dtype=wp.vec3, device=dev)
+            g["uppers"] = wp.array(hi_a, dtype=wp.vec3, device=dev)
+            g["bvh"] = wp.Bvh(g["lowers"], g["uppers"])
+            g["bvh_id"] = g["bvh"].id
+        else:
+            g["inst_inv"] = wp.zeros(1, dtype=wp.mat44, device=dev)
+            g["inst_array"] = wp.zeros(1, dtype=wp.int32, device=dev)
+            g["bvh"] = None
+            g["bvh_id"] = wp.uint64(0)
+        g["n_inst"] = n_inst
+        g["static"] = static_ids[0] if static_ids else -1
+        g["static_inv"] = wp.mat44(*(arrays[static_ids[0]].to_array if static_ids else np.eye(4)).astype(np.float32).ravel())
+        # world units: offset by the static array's voxel (its smallest world extent), else the finest array's
+        if static_ids:
+            a = arrays[static_ids[0]]
+            self.reference_voxel = a.voxel_size / float(np.max(np.abs(np.diag(a.to_array)[:3])))
+        else:
+            self.reference_voxel = min((a.voxel_size for a in arrays), default=0.0)
+        bounds = snapshot.world_bounds()
+        if bounds is not None:
+            lo_b, hi_b = (np.asarray(b, np.float64) for b in bounds)
+            self._scene = (0.5 * (lo_b + hi_b), 0.5 * float(np.linalg.norm(hi_b - lo_b)))
+        else:
+            self._scene = (np.zeros(3), 1.0)
+        self.arrays = arrays
+
+    # ------------------------------------------------------------------ queries
+
+    def _common(self) -> list:
+        g = self._gpu
+        return [g["words"], g["center"], g["half"], g["int"], g["w0"], g["nw"], g["off"], g["frames"],
+                float(self.bins.d_theta), g["ring_count"], g["ring_start"], int(g["static"]), g["static_inv"], g["bvh_id"],
+                int(g["n_inst"]), g["inst_inv"], g["inst_array"]]
+
+    def _params(self, origins: np.ndarray, want_distance: bool = False) -> list:
+        c, r = self._scene
+        far = 2.0 * (r + float(np.sqrt(((origins - c) ** 2).sum(axis=1).max()) if len(origins) else 0.0)) + 1.0
+        return [float(self.normal_offset * self.reference_voxel), self.skip, self.slab, self.max_skip,
+                self.end_skip, far, self.segment] + ([int(want_distance)] if want_distance is not None else [])
+
+    def _split(self, n: int, launch: Callable[[int, int], None]) -> None:
+        """Run ``launch(first, count)`` over ``n`` items: one launch on a GPU, bands over threads on CPU."""
+        wp = _wp()
+        dev = wp.get_device(self.device)
+        if n == 0:
+            return
+        if not dev.is_cpu:
+            launch(0, n)
+            wp.synchronize_device(dev)
+            return
+        bands = min(n, self.workers * 8)
+        edges = np.linspace(0, n, bands + 1).astype(np.int64)
+        jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        launch(*jobs[0])      # first launch compiles / loads the module on this thread
+        if len(jobs) > 1:
+            with ThreadPoolExecutor(max_workers=self.workers) as pool:
+                list(pool.map(lambda j: launch(*j), jobs[1:]))
+
+    def hit_distances(self, origins, targets, *, normals=None, distant=None, want_distance: bool = True) -> np.ndarray:
+        """Distance in voxels from each ray's (offset, skipped) start to the first occupied voxel; -1: free."""
+        if not self._gpu:
+            raise RuntimeError("VoxelBackend.update() must be called before queries")
+        wp = _wp()
+        k = _kernels()
+        dev = wp.get_device(self.device)
+        origins = as_vectors(origins, "origins")
+        n = origins.shape[0]
+        targets = as_vectors(targets, "targets", n)
+        normals = np.zeros((n, 3)) if normals is None else as_vectors(normals, "normals", n)
+        distant = np.zeros(n, bool) if distant is None else as_flags(distant, "distant", n)
+        out = wp.zeros(n, dtype=float, device=dev)
+        if n == 0 or self._gpu["n_arrays"] == 0:
+            return np.full(n, -1.0, np.float32)
+        o = wp.array(origins.astype(np.float32), dtype=wp.vec3, device=dev)
+        t = wp.array(targets.astype(np.float32), dtype=wp.vec3, device=dev)
+        nm = wp.array(normals.astype(np.float32), dtype=wp.vec3, device=dev)
+        di = wp.array(distant.astype(np.int32), dtype=wp.int32, device=dev)
+        params = self._params(origins, want_distance)
+        common = self._common()
+
+        def launch(first, count):
+            wp.launch(k.query_segments, dim=count, device=dev,
+                      inputs=[o, t, nm, di, first, *params, *common, out])
+        self._split(n, launch)
+        return out.numpy()
+
+    def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
+
+    def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
+                     progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
+                     min_distance: float = 0.0):
+        """Alg. 3 in one kernel: every pixel against every light with voxel shadow rays; the same
+        shading as :func:`usdml.lighting.direct.shade_direct` (returns its ``DirectResult``)."""
+        from usdml.lighting.direct import DirectResult, _LightTable
+
+        wp = _wp()
+        k = _kernels()
+        dev = wp.get_device(self.device)
+        n_p, n_l = len(points), len(lights)
+        if n_p == 0 or n_l == 0 or not self._gpu:
+            from usdml.lighting.direct import shade_direct
+            return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
+                                progress, meters_per_unit=meters_per_unit, min_distance=min_distance)
+        t = _LightTable(lights, meters_per_unit, min_distance)
+        flags = (t.distant.astype(np.int32) | (t.one_sided.astype(np.int32) << 1) | (t.shaped.astype(np.int32) << 2)
+                 | (t.focused.astype(np.int32) << 3) | (t.casts.astype(np.int32) << 4))
+        angle = np.radians(np.minimum(lights.cone_angle, 180.0))
+        soft = np.clip(lights.cone_softness, 0.0, 1.0)
+        outer = np.cos(angle)
+        width = np.cos(angle * (1.0 - soft)) - outer
+        width = np.where(width <= 1e-12, 0.0, width)
+        cone = np.stack([outer, width, lights.focus], axis=1).astype(np.float32)
+        pts = np.asarray(points, np.float32)
+        light_in = [wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev),
+                    wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev),
+                    wp.array(flags.astype(np.int32), dtype=wp.int32, device=dev),
+                    wp.array(cone, dtype=wp.vec3, device=dev),
+                    wp.array(t.base, dtype=wp.vec3, device=dev),
+                    wp.array(t.focus_rgb, dtype=wp.vec3, device=dev),
+                    float(t.inv_m2), float(t.min_d2)]
+        rad = wp.zeros(n_p, dtype=wp.vec3, device=dev)
+        blocked = wp.zeros(n_p, dtype=wp.int32, device=dev)
+        facing = wp.zeros(n_p, dtype=wp.int32, device=dev)
+        params = self._params(pts, None)
+        common = self._common()
+        # tiles of spatially coherent points (Morton order of their cells): one light's rays from a
+        # tile share bins and rows (kernels.voxel.shade_tiles); on a GPU one point per tile
+        tile = SHADE_TILE if dev.is_cpu else 1
+        order = _morton_order(pts) if tile > 1 else np.arange(n_p)
+        p_wp = wp.array(pts[order], dtype=wp.vec3, device=dev)
+        n_wp = wp.array(np.asarray(normals, np.float32)[order], dtype=wp.vec3, device=dev)
+        n_tiles = -(-n_p // tile)
+
+        def launch(first_tile, count):
+            wp.launch(k.shade_tiles, dim=count, device=dev,
+                      inputs=[p_wp, n_wp, first_tile * tile, tile, *light_in, *params, *common, rad, blocked, facing])
+            if progress is not None:
+                progress(min(n_p, (first_tile + count) * tile) - first_tile * tile)
+        self._split(n_tiles, launch)
+        inverse = np.empty_like(order)
+        inverse[order] = np.arange(n_p)
+        radiance = rad.numpy()[inverse] * (np.asarray(albedo, np.float32) / np.float32(np.pi))
+        fac = facing.numpy()[inverse]
+        blk = blocked.numpy()[inverse]
+        shadow = np.where(fac > 0, blk / np.maximum(fac, 1), 0.0).astype(np.float32)
+        queries = int(fac.sum()) if t.casts.all() else -1
+        return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries)
+
+    def close(self) -> None:
+        self._gpu = {}
