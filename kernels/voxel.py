@@ -108,31 +108,77 @@ def direction_bin(d: wp.vec3, d_theta: float, ring_count: wp.array(dtype=wp.int3
     return ring_start[ring] + col
 
 
+@wp.struct
+class VoxelScene:
+    """Every array of a scene and how queries reach them (module doc), as one kernel argument."""
+
+    words: wp.array(dtype=wp.uint32)
+    arr_center: wp.array(dtype=wp.vec3)
+    arr_half: wp.array(dtype=float)
+    arr_int: wp.array2d(dtype=wp.int32)     # per array: resolution, words per direction, base, row table base
+    row_w0: wp.array(dtype=wp.int32)
+    row_nw: wp.array(dtype=wp.int32)
+    row_off: wp.array(dtype=wp.int32)
+    frames: wp.array(dtype=wp.mat33)
+    d_theta: float
+    ring_count: wp.array(dtype=wp.int32)
+    ring_start: wp.array(dtype=wp.int32)
+    static_array: int                       # -1: none
+    static_inv: wp.mat44                    # world -> the static array's space
+    bvh: wp.uint64                          # over the world boxes of the instances below
+    n_inst: int
+    inst_inv: wp.array(dtype=wp.mat44)      # world -> instance (prototype array) space
+    inst_array: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class RayRule:
+    """How a shadow ray leaves its surface and its light (``usdml.visibility.voxel`` module doc)."""
+
+    offset: float       # world units along the normal turned toward the light
+    skip: float         # voxels skipped at the start (at least)
+    slab: float         # ... or until this many voxels above the tangent plane
+    max_skip: float
+    end_skip: float     # voxels cut before a point light
+    far: float          # a length that takes a distant ray out of every array
+    seg: int            # voxels read per row lookup (divides 32)
+
+
+@wp.struct
+class LightTable:
+    """Per-light constants of :func:`light_term` (as ``usdml.lighting.direct._LightTable``)."""
+
+    pos: wp.array(dtype=wp.vec3)
+    axis: wp.array(dtype=wp.vec3)
+    flags: wp.array(dtype=wp.int32)     # 1 distant, 2 one-sided, 4 shaped, 8 focused, 16 casts shadows
+    cone: wp.array(dtype=wp.vec3)       # cos outer, smoothstep width (<= 0: hard), focus exponent
+    base: wp.array(dtype=wp.vec3)
+    focus_rgb: wp.array(dtype=wp.vec3)
+    inv_m2: float
+    min_d2: float
+
+
 @wp.func
-def array_hit(words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.vec3),
-              arr_half: wp.array(dtype=float), arr_int: wp.array2d(dtype=wp.int32), a: int,
-              row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
-              row_off: wp.array(dtype=wp.int32), frames: wp.array(dtype=wp.mat33), d_theta: float,
-              ring_count: wp.array(dtype=wp.int32), ring_start: wp.array(dtype=wp.int32),
-              pa: wp.vec3, pb: wp.vec3, skip0: float, skip1: float, seg: int, want_t: int) -> float:
+def array_hit(vs: VoxelScene, a: int, pa: wp.vec3, pb: wp.vec3, skip0: float, skip1: float, seg: int,
+              want_t: int) -> float:
     """Distance in voxels from ``pa`` (after the skip) to the first occupied voxel of segment
     ``pa → pb`` (array space) in array ``a``; -1 when the segment is free (Alg. 2).
 
     ``skip0`` / ``skip1`` voxels are cut from the start / end of the segment.
     """
-    n = arr_int[a, 0]
-    wpd = arr_int[a, 1]
-    base = arr_int[a, 2]
-    rbase = arr_int[a, 3]
-    half = arr_half[a]
-    c = arr_center[a]
+    n = vs.arr_int[a, 0]
+    wpd = vs.arr_int[a, 1]
+    base = vs.arr_int[a, 2]
+    rbase = vs.arr_int[a, 3]
+    half = vs.arr_half[a]
+    c = vs.arr_center[a]
     inv_h = float(n) / (2.0 * half)
     delta = pb - pa
     length = wp.length(delta) * inv_h           # voxels
     if length <= skip0 + skip1 or length <= 0.0:
         return -1.0
-    d = direction_bin(delta, d_theta, ring_count, ring_start)
-    m = frames[d]
+    d = direction_bin(delta, vs.d_theta, vs.ring_count, vs.ring_start)
+    m = vs.frames[d]
     # grid coordinates in voxels: [0, n) on every axis inside the cube
     qa = (m * (pa - c) + wp.vec3(half, half, half)) * inv_h
     qb = (m * (pb - c) + wp.vec3(half, half, half)) * inv_h
@@ -179,9 +225,9 @@ def array_hit(words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.ve
         fv = qa[1] + dq[1] * t
         if fu >= 0.0 and fu < fn and fv >= 0.0 and fv < fn:
             r = rbase + int(fu) * n + int(fv)
-            k = (s >> 5) - row_w0[r]
-            if k >= 0 and k < row_nw[r]:
-                word = words[dir_base + row_off[r] + k]
+            k = (s >> 5) - vs.row_w0[r]
+            if k >= 0 and k < vs.row_nw[r]:
+                word = vs.words[dir_base + vs.row_off[r] + k]
                 mask = (ALL_BITS >> wp.uint32(31 - (e & 31))) & (ALL_BITS << wp.uint32(s & 31))
                 hit = word & mask
                 if hit != wp.uint32(0):
@@ -207,8 +253,7 @@ def array_hit(words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.ve
 
 
 @wp.func
-def ray_start(p: wp.vec3, target: wp.vec3, normal: wp.vec3, distant: int, far: float,
-              offset: float) -> wp.vec3:
+def ray_start(p: wp.vec3, target: wp.vec3, normal: wp.vec3, distant: int, offset: float) -> wp.vec3:
     """``p`` moved ``offset`` along the normal turned toward the light (no normal: unchanged)."""
     dir = target - p
     if distant != 0:
@@ -239,99 +284,69 @@ def start_skip(p: wp.vec3, target: wp.vec3, normal: wp.vec3, distant: int, skip:
 
 
 @wp.func
-def segment_blocked(o: wp.vec3, e: wp.vec3, skip0: float, skip1: float, seg: int, want_t: int,
-                    words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.vec3),
-                    arr_half: wp.array(dtype=float), arr_int: wp.array2d(dtype=wp.int32),
-                    row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
-                    row_off: wp.array(dtype=wp.int32), frames: wp.array(dtype=wp.mat33), d_theta: float,
-                    ring_count: wp.array(dtype=wp.int32), ring_start: wp.array(dtype=wp.int32),
-                    static_array: int, static_inv: wp.mat44, bvh: wp.uint64, n_inst: int,
-                    inst_inv: wp.array(dtype=wp.mat44), inst_array: wp.array(dtype=wp.int32)) -> float:
+def segment_blocked(vs: VoxelScene, o: wp.vec3, e: wp.vec3, skip0: float, skip1: float, seg: int,
+                    want_t: int) -> float:
     """Alg. 4: the static array first, then only the moving instances whose bounds the ray meets
     (a BVH over their world boxes), each in its own space; the first hit ends the query.
     Returns the hit distance in voxels of the array that was hit, -1 when free."""
-    if static_array >= 0:
-        t = array_hit(words, arr_center, arr_half, arr_int, static_array, row_w0, row_nw, row_off, frames,
-                      d_theta, ring_count, ring_start, wp.transform_point(static_inv, o),
-                      wp.transform_point(static_inv, e), skip0, skip1, seg, want_t)
+    if vs.static_array >= 0:
+        t = array_hit(vs, vs.static_array, wp.transform_point(vs.static_inv, o),
+                      wp.transform_point(vs.static_inv, e), skip0, skip1, seg, want_t)
         if t >= 0.0:
             return t
-    if n_inst > 0:
+    if vs.n_inst > 0:
         delta = e - o
         ln = wp.length(delta)
         if ln > 0.0:
-            query = wp.bvh_query_ray(bvh, o, delta / ln)
+            query = wp.bvh_query_ray(vs.bvh, o, delta / ln)
             inst = int(0)
             while wp.bvh_query_next(query, inst):
-                m = inst_inv[inst]
-                oa = wp.transform_point(m, o)
-                eb = wp.transform_point(m, e)
-                t = array_hit(words, arr_center, arr_half, arr_int, inst_array[inst], row_w0, row_nw, row_off,
-                              frames, d_theta, ring_count, ring_start, oa, eb, skip0, skip1, seg, want_t)
+                m = vs.inst_inv[inst]
+                t = array_hit(vs, vs.inst_array[inst], wp.transform_point(m, o), wp.transform_point(m, e),
+                              skip0, skip1, seg, want_t)
                 if t >= 0.0:
                     return t
     return -1.0
 
 
+@wp.func
+def shadow_ray(vs: VoxelScene, rule: RayRule, p: wp.vec3, target: wp.vec3, normal: wp.vec3, distant: int,
+               want_t: int) -> float:
+    """The shadow ray from surface point ``p`` to a light (position, or for ``distant`` the direction
+    toward it), leaving the surface by ``rule``: hit distance in voxels, -1 when free."""
+    o = ray_start(p, target, normal, distant, rule.offset)
+    e = target
+    s1 = rule.end_skip
+    if distant != 0:
+        e = o + wp.normalize(target) * rule.far
+        s1 = 0.0
+    s0 = start_skip(p, target, normal, distant, rule.skip, rule.slab, rule.max_skip)
+    return segment_blocked(vs, o, e, s0, s1, rule.seg, want_t)
+
+
 @wp.kernel
 def query_segments(origins: wp.array(dtype=wp.vec3), targets: wp.array(dtype=wp.vec3),
                    normals: wp.array(dtype=wp.vec3), distant: wp.array(dtype=wp.int32), first: int,
-                   offset: float, skip: float, slab: float, max_skip: float, end_skip: float, far: float,
-                   seg: int, want_t: int,
-                   words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.vec3),
-                   arr_half: wp.array(dtype=float), arr_int: wp.array2d(dtype=wp.int32),
-                   row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
-                   row_off: wp.array(dtype=wp.int32), frames: wp.array(dtype=wp.mat33), d_theta: float,
-                   ring_count: wp.array(dtype=wp.int32), ring_start: wp.array(dtype=wp.int32),
-                   static_array: int, static_inv: wp.mat44, bvh: wp.uint64, n_inst: int,
-                   inst_inv: wp.array(dtype=wp.mat44), inst_array: wp.array(dtype=wp.int32), hit_voxels: wp.array(dtype=float)):
+                   rule: RayRule, want_t: int, vs: VoxelScene, hit_voxels: wp.array(dtype=float)):
     """Alg. 2 / 4 for explicit segments ``first + tid``: ``hit_voxels`` gets the distance (voxels) to
-    the first occupied voxel, -1 when free. ``offset`` is world units along the normal; the skips are
-    voxels of each array; ``far`` is a length that takes a distant ray out of every array."""
+    the first occupied voxel (0 for any hit unless ``want_t``), -1 when free."""
     i = first + wp.tid()
-    p = origins[i]
-    tgt = targets[i]
-    nrm = normals[i]
-    dist = distant[i]
-    o = ray_start(p, tgt, nrm, dist, far, offset)
-    e = tgt
-    s1 = end_skip
-    if dist != 0:
-        e = o + wp.normalize(tgt) * far
-        s1 = 0.0
-    s0 = start_skip(p, tgt, nrm, dist, skip, slab, max_skip)
-    hit_voxels[i] = segment_blocked(o, e, s0, s1, seg, want_t, words, arr_center, arr_half, arr_int, row_w0, row_nw,
-                                    row_off, frames, d_theta, ring_count, ring_start, static_array, static_inv,
-                                    bvh, n_inst, inst_inv, inst_array)
+    hit_voxels[i] = shadow_ray(vs, rule, origins[i], targets[i], normals[i], distant[i], want_t)
 
 
 @wp.func
-def light_term(p: wp.vec3, n: wp.vec3, l: int,
-               l_pos: wp.array(dtype=wp.vec3), l_axis: wp.array(dtype=wp.vec3),
-               l_flags: wp.array(dtype=wp.int32), l_cone: wp.array(dtype=wp.vec3),
-               l_base: wp.array(dtype=wp.vec3), l_focus_rgb: wp.array(dtype=wp.vec3),
-               inv_m2: float, min_d2: float,
-               offset: float, skip: float, slab: float, max_skip: float, end_skip: float, far: float,
-               seg: int,
-               words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.vec3),
-               arr_half: wp.array(dtype=float), arr_int: wp.array2d(dtype=wp.int32),
-               row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
-               row_off: wp.array(dtype=wp.int32), frames: wp.array(dtype=wp.mat33), d_theta: float,
-               ring_count: wp.array(dtype=wp.int32), ring_start: wp.array(dtype=wp.int32),
-               static_array: int, static_inv: wp.mat44, bvh: wp.uint64, n_inst: int,
-               inst_inv: wp.array(dtype=wp.mat44), inst_array: wp.array(dtype=wp.int32)) -> wp.vec4:
+def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs: VoxelScene) -> wp.vec4:
     """Light ``l`` at surface point ``p`` with normal ``n`` (Alg. 3, lines 6-8, with shading): the
     unshadowed irradiance as ``usdml.lighting.direct`` computes it (inverse square in metres, cosine,
     one-sided disk/rect, cone with smoothstep softness, focus), and a voxel shadow ray when the light
     faces ``p`` and casts shadows. Returns (RGB contribution, code): code 0 not facing, 1 facing and
-    visible, 2 facing and blocked (RGB 0). ``l_flags`` bits: 1 distant, 2 one-sided, 4 shaped,
-    8 focused, 16 casts shadows; ``l_cone`` = (cos outer, smoothstep width (<= 0: hard), focus)."""
-    flags = l_flags[l]
+    visible, 2 facing and blocked (RGB 0)."""
+    flags = lt.flags[l]
     dist = flags & 1
-    dvec = l_pos[l] - p
+    dvec = lt.pos[l] - p
     d2 = wp.dot(dvec, dvec)
     if dist != 0:
-        dvec = -l_axis[l]
+        dvec = -lt.axis[l]
         d2 = 1.0
     if d2 <= 0.0:
         return wp.vec4(0.0)
@@ -341,14 +356,14 @@ def light_term(p: wp.vec3, n: wp.vec3, l: int,
         return wp.vec4(0.0)
     g = cos_s
     if dist == 0:
-        g = g * inv_m2 / wp.max(d2, min_d2)
+        g = g * lt.inv_m2 / wp.max(d2, lt.min_d2)
     f = float(0.0)
     if (flags & 14) != 0:
-        cos_l = -wp.dot(l_axis[l], dvec) * inv_d
+        cos_l = -wp.dot(lt.axis[l], dvec) * inv_d
         if (flags & 2) != 0:
             g = g * wp.max(cos_l, 0.0)
         if (flags & 4) != 0:
-            cone = l_cone[l]
+            cone = lt.cone[l]
             if cone[1] <= 0.0:
                 if cos_l < cone[0]:
                     g = 0.0
@@ -356,44 +371,22 @@ def light_term(p: wp.vec3, n: wp.vec3, l: int,
                 x = wp.clamp((cos_l - cone[0]) / cone[1], 0.0, 1.0)
                 g = g * x * x * (3.0 - 2.0 * x)
         if (flags & 8) != 0:
-            f = wp.pow(wp.clamp(cos_l, 0.0, 1.0), l_cone[l][2])
+            f = wp.pow(wp.clamp(cos_l, 0.0, 1.0), lt.cone[l][2])
     if g <= 0.0:
         return wp.vec4(0.0)
     if (flags & 16) != 0:
-        tgt = l_pos[l]
+        tgt = lt.pos[l]
         if dist != 0:
             tgt = dvec
-        o = ray_start(p, tgt, n, dist, far, offset)
-        e = tgt
-        s1 = end_skip
-        if dist != 0:
-            e = o + dvec * far
-            s1 = 0.0
-        s0 = start_skip(p, tgt, n, dist, skip, slab, max_skip)
-        t = segment_blocked(o, e, s0, s1, seg, 0, words, arr_center, arr_half, arr_int, row_w0, row_nw, row_off,
-                            frames, d_theta, ring_count, ring_start, static_array, static_inv, bvh, n_inst,
-                            inst_inv, inst_array)
-        if t >= 0.0:
+        if shadow_ray(vs, rule, p, tgt, n, dist, 0) >= 0.0:
             return wp.vec4(0.0, 0.0, 0.0, 2.0)
-    c = l_base[l] * g + l_focus_rgb[l] * (g * f)
+    c = lt.base[l] * g + lt.focus_rgb[l] * (g * f)
     return wp.vec4(c[0], c[1], c[2], 1.0)
 
 
 @wp.kernel
 def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), first: int, tile: int,
-                l_pos: wp.array(dtype=wp.vec3), l_axis: wp.array(dtype=wp.vec3),
-                l_flags: wp.array(dtype=wp.int32), l_cone: wp.array(dtype=wp.vec3),
-                l_base: wp.array(dtype=wp.vec3), l_focus_rgb: wp.array(dtype=wp.vec3),
-                inv_m2: float, min_d2: float,
-                offset: float, skip: float, slab: float, max_skip: float, end_skip: float, far: float,
-                seg: int,
-                words: wp.array(dtype=wp.uint32), arr_center: wp.array(dtype=wp.vec3),
-                arr_half: wp.array(dtype=float), arr_int: wp.array2d(dtype=wp.int32),
-                row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
-                row_off: wp.array(dtype=wp.int32), frames: wp.array(dtype=wp.mat33), d_theta: float,
-                ring_count: wp.array(dtype=wp.int32), ring_start: wp.array(dtype=wp.int32),
-                static_array: int, static_inv: wp.mat44, bvh: wp.uint64, n_inst: int,
-                inst_inv: wp.array(dtype=wp.mat44), inst_array: wp.array(dtype=wp.int32),
+                lt: LightTable, rule: RayRule, vs: VoxelScene,
                 radiance: wp.array(dtype=wp.vec3), blocked: wp.array(dtype=wp.int32),
                 facing: wp.array(dtype=wp.int32)):
     """Alg. 3 over a tile of ``tile`` spatially coherent points (``first + tid * tile …``), lights in
@@ -406,12 +399,9 @@ def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3
         radiance[i] = wp.vec3(0.0)
         blocked[i] = 0
         facing[i] = 0
-    for l in range(l_pos.shape[0]):
+    for l in range(lt.pos.shape[0]):
         for i in range(i0, i1):
-            r = light_term(points[i], normals[i], l, l_pos, l_axis, l_flags, l_cone, l_base, l_focus_rgb, inv_m2,
-                           min_d2, offset, skip, slab, max_skip, end_skip, far, seg, words, arr_center, arr_half,
-                           arr_int, row_w0, row_nw, row_off, frames, d_theta, ring_count, ring_start, static_array,
-                           static_inv, bvh, n_inst, inst_inv, inst_array)
+            r = light_term(points[i], normals[i], l, lt, rule, vs)
             if r[3] > 0.0:
                 facing[i] = facing[i] + 1
                 if r[3] > 1.5:

@@ -20,13 +20,14 @@ from usdml.stage.delegate import require_geometry
 from usdml.visibility import ExactBackend, backend_for
 
 
-def _query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Origins, targets, normals and distant flags of every facing (pixel, light) pair."""
+def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Origins, targets, normals, distant flags and hit-pixel index of every facing (pixel, light)
+    pair: the shadow queries direct lighting asks on the G-buffer ``gb``."""
     hit = gb.hit.ravel()
     blocks = list(facing_pairs(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights))
     if not blocks:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool)
-    return tuple(np.concatenate([b[k] for b in blocks]) for k in range(4))
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, np.int64)
+    return tuple(np.concatenate([b[k] for b in blocks]) for k in range(5))
 
 
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
@@ -42,7 +43,7 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     exact.update(snap, diff(None, snap))
     exact_build = _time.perf_counter() - t0
     gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
-    origins, targets, normals, distant = _query_set(snap, gb)
+    origins, targets, normals, distant, _ = query_set(snap, gb)
     results = []
     reference = None
     for name in dict.fromkeys(["exact"] + list(backends)):

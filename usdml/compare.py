@@ -69,25 +69,6 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
 
 # ---------------------------------------------------------------------------------------- visibility
 
-def _pairs_with_pixels(points: np.ndarray, normals: np.ndarray, lights):
-    """Every shadow query direct lighting asks (facing, shadow-casting pairs) with its pixel index."""
-    from usdml.lighting.direct import PAIRS_PER_CHUNK, _geometry, _LightTable, shadow_queries
-
-    table = _LightTable(lights)
-    step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
-    cols = {k: [] for k in ("pixel", "origin", "target", "normal", "distant")}
-    for lo in range(0, len(points), step):
-        hi = min(len(points), lo + step)
-        g, _, w = _geometry(points[lo:hi], normals[lo:hi], table)
-        pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
-        cols["pixel"].append(lo + pi)
-        cols["origin"].append(points[lo + pi])
-        cols["target"].append(targets)
-        cols["normal"].append(normals[lo + pi])
-        cols["distant"].append(dist)
-    return {k: np.concatenate(v) if v else np.zeros((0, 3)) for k, v in cols.items()}
-
-
 def error_heatmap(signed: np.ndarray, base: np.ndarray, hit: np.ndarray, scale: float = 10.0) -> np.ndarray:
     """Paper 000 Fig. 6: the shadow image in grey, pixels the approximation makes darker in blue and
     brighter in red, with opacity ``scale × |error|``. ``signed`` = (wrongly hidden - wrongly visible)
@@ -112,6 +93,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     """
     from dataclasses import replace
 
+    from usdml.bench import query_set
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
@@ -137,9 +119,9 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         build = _time.perf_counter() - t0
         gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
         hit = gb.hit.ravel()
-        q = _pairs_with_pixels(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights)
-        args = (q["origin"], q["target"])
-        kw = dict(normals=q["normal"], distant=q["distant"].astype(bool))
+        origin, target, normal, distant, pixel = query_set(snap, gb)
+        args = (origin, target)
+        kw = dict(normals=normal, distant=distant.astype(bool))
         t0 = _time.perf_counter()
         ref = exact.occluded(*args, **kw)
         ref_s = _time.perf_counter() - t0
@@ -154,7 +136,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         exact.close()
         approx.close()
     n_px, n_l = int(hit.sum()), len(snap.lights)
-    pix = q["pixel"].astype(np.int64)
+    pix = pixel.astype(np.int64)
     wrong_hidden = np.bincount(pix[got & ~ref], minlength=n_px)
     wrong_visible = np.bincount(pix[~got & ref], minlength=n_px)
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)

@@ -42,15 +42,19 @@ class DirectResult:
     queries: int            #: shadow queries asked of the backend
 
 
+def cone_edges(cone_deg: np.ndarray, softness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``cos`` of the cone's outer edge and the width in ``cos`` of its soft edge (<= 1e-12: hard)."""
+    angle = np.radians(np.minimum(cone_deg, 180.0))
+    outer = np.cos(angle)
+    return outer, np.cos(angle * (1.0 - np.clip(softness, 0.0, 1.0))) - outer
+
+
 def smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarray) -> np.ndarray:
     """UsdLux cone with softness: 0 outside ``cone_deg``, smoothstep across the soft edge.
 
     Float32 in, float32 out (the shading blocks); float64 in, float64 out.
     """
-    angle = np.radians(np.minimum(cone_deg, 180.0))
-    soft = np.clip(softness, 0.0, 1.0)
-    outer = np.cos(angle)
-    width = np.cos(angle * (1.0 - soft)) - outer
+    outer, width = cone_edges(cone_deg, softness)
     hard = width <= 1e-12
     dtype = np.result_type(cos_l, np.float32)
     x = np.where(hard, (cos_l >= outer).astype(dtype), (cos_l - outer) / np.where(hard, 1.0, width))
@@ -127,14 +131,15 @@ def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lig
 
 
 def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
-    """Yield ``(origins, targets, normals, distant)`` of every shadow query of :func:`shade_direct`, by block."""
+    """Yield ``(origins, targets, normals, distant, point_index)`` of every shadow query of
+    :func:`shade_direct`, by block."""
     table = _LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
     for lo in range(0, len(points), step):
         hi = min(len(points), lo + step)
         g, _, w = _geometry(points[lo:hi], normals[lo:hi], table)
         pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
-        yield points[lo + pi], targets, normals[lo + pi], dist
+        yield points[lo + pi], targets, normals[lo + pi], dist, lo + pi
 
 
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,

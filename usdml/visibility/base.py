@@ -47,6 +47,24 @@ def as_flags(a, name: str, n: int) -> np.ndarray:
     return a
 
 
+def static_members(snapshot: Snapshot) -> tuple:
+    """``("mesh" | "proto", path)`` of the geometry that never changes over the shot: meshes that do not
+    deform and prototypes whose instances neither move nor deform (built once, in world space)."""
+    return tuple([("mesh", m.path) for m in snapshot.meshes if not m.deforming]
+                 + [("proto", p.path) for p in snapshot.prototypes if not (p.animated or p.deforming)])
+
+
+def members_changed(before, members: tuple, changes: Changes | None, mesh_changed) -> bool:
+    """Whether a structure built from ``before`` (``("mesh" | "proto", path)`` members, None: not
+    built) must be rebuilt for ``members``: no ``changes`` given, other members, a member prototype
+    that ``changes`` names, or a member mesh for which ``mesh_changed(path)`` says so."""
+    if before is None or changes is None or before != members:
+        return True
+    if any(changes.prototypes.get(path) for kind, path in members if kind == "proto"):
+        return True
+    return any(mesh_changed(path) for kind, path in members if kind == "mesh")
+
+
 class VisibilityBackend(abc.ABC):
     """Answers shadow-ray queries against the geometry of the last snapshot given to :meth:`update`."""
 

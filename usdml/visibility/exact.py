@@ -90,7 +90,7 @@ import numpy as np
 
 from usdml.errors import UsdmlError
 from usdml.scene import Changes, Mesh, Prototype, Snapshot
-from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors
+from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 
 try:
     from embreex import rtcore_scene as rtcs
@@ -314,19 +314,14 @@ class ExactBackend(VisibilityBackend):
         from the snapshot (cheap), so ``geom`` ids follow the current snapshot's mesh / prototype
         order; static sources come first, so their ids stay put while dynamic geometry changes.
         """
-        static = tuple([("mesh", m.path) for m in snapshot.meshes if not m.deforming]
-                       + [("proto", p.path) for p in snapshot.prototypes if not _is_dynamic(p)])
+        static = static_members(snapshot)
         dynamic = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
                         + [("proto", p.path) for p in snapshot.prototypes if _is_dynamic(p)])
         deformed = set(changes.deforming) if changes is not None else set()
         tables = _source_table(snapshot, static), _source_table(snapshot, dynamic)
 
         def dirty(group: _EmbreeGroup | None, members, table: SourceTable, meshes_changed) -> bool:
-            if group is None or changes is None or group.members != members:
-                return True
-            if any(changes.prototypes.get(path) for kind, path in members if kind == "proto"):
-                return True
-            if any(meshes_changed(path) for kind, path in members if kind == "mesh"):
+            if members_changed(None if group is None else group.members, members, changes, meshes_changed):
                 return True
             # guard against a Changes that does not describe this snapshot: same members, other sizes
             return table.triangle_count != group.triangle_count

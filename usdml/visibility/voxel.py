@@ -45,8 +45,8 @@ import numpy as np
 
 from usdml.cache import Cache, CacheCorrupt, cache_key
 from usdml.errors import UsdmlError
-from usdml.scene import Changes, Lights, LightType, Snapshot, content_hash
-from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors
+from usdml.scene import Changes, Lights, Snapshot, content_hash
+from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, core_bounds, surface_samples
 
 log = logging.getLogger("usdml")
@@ -77,6 +77,7 @@ class VoxelArray:
     step: float
     samples: int = 0            #: surface samples voxelized
     build_seconds: float = 0.0  #: 0 when loaded from the cache
+    sample_seconds: float = 0.0  #: part of build_seconds spent sampling the surfaces
     key: str = ""
     source: str = ""            #: what it holds (for messages)
     cached: bool = False
@@ -241,8 +242,7 @@ def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step
                 wp.synchronize_device(dev)
                 out_np = out.numpy()
     arr = VoxelArray(out_np, center, float(half), resolution, float(step), int(len(samples)),
-                     time.perf_counter() - t0, source=source)
-    arr.sample_seconds = sample_seconds
+                     time.perf_counter() - t0, sample_seconds, source=source)
     log.debug(f"voxel array {source}: {len(samples)} samples in {sample_seconds:.2f} s, "
               f"{n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
     return arr
@@ -269,8 +269,8 @@ def cached_array(points, triangles, resolution: int, step: float, cache: Cache |
         if got is not None:
             words, meta = got
             return VoxelArray(words, np.asarray(meta["center"], np.float64), float(meta["half"]),
-                              int(meta["resolution"]), float(meta["step"]), int(meta.get("samples", 0)), 0.0,
-                              key, source, cached=True)
+                              int(meta["resolution"]), float(meta["step"]), int(meta.get("samples", 0)),
+                              key=key, source=source, cached=True)
     arr = build_array(points, triangles, resolution, step, device=device, progress=progress, source=source,
                       bounds=bounds, core=core)
     arr.key = key
@@ -378,8 +378,7 @@ class VoxelBackend(VisibilityBackend):
     def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
         """The arrays ``snapshot`` needs: ``(role, members)``, role ``static``, ``prototype <path>``,
         ``deforming``."""
-        static = tuple([("mesh", m.path) for m in snapshot.meshes if not m.deforming]
-                       + [("proto", p.path) for p in snapshot.prototypes if not (p.animated or p.deforming)])
+        static = static_members(snapshot)
         deforming = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
                           + [("proto", p.path) for p in snapshot.prototypes if p.deforming])
         out = []
@@ -411,18 +410,12 @@ class VoxelBackend(VisibilityBackend):
         static = roles.get("static")
         deforming = roles.get("deforming")
         moving = [p for p in snapshot.prototypes if p.animated and not p.deforming and p.triangle_count]
-        need_static = static is not None and (self._static is None or self._static.members != static
-                                              or (changes is not None and changes.static) or changes is None)
-        if self._static is not None and static is not None and self._static.members == static and changes is not None:
-            need_static = bool(changes.static) or any(changes.prototypes.get(path) for kind, path in static
-                                                      if kind == "proto")
+        need_static = static is not None and members_changed(
+            self._static and self._static.members, static, changes, lambda path: changes.static)
         proto_hashes = {p.path: p.geometry_hash() for p in moving}
         new_protos = {h for h in proto_hashes.values() if h not in self._protos}
-        need_deforming = deforming is not None and (self._deforming is None or changes is None
-                                                    or self._deforming.members != deforming
-                                                    or bool(changes.deforming)
-                                                    or any(changes.prototypes.get(path) for kind, path in deforming
-                                                           if kind == "proto"))
+        need_deforming = deforming is not None and members_changed(
+            self._deforming and self._deforming.members, deforming, changes, lambda path: path in changes.deforming)
         building = int(need_static) + len(new_protos) + int(need_deforming)
         if building:
             self.check_memory(len(plan))
@@ -550,17 +543,26 @@ class VoxelBackend(VisibilityBackend):
 
     # ------------------------------------------------------------------ queries
 
-    def _common(self) -> list:
-        g = self._gpu
-        return [g["words"], g["center"], g["half"], g["int"], g["w0"], g["nw"], g["off"], g["frames"],
-                float(self.bins.d_theta), g["ring_count"], g["ring_start"], int(g["static"]), g["static_inv"], g["bvh_id"],
-                int(g["n_inst"]), g["inst_inv"], g["inst_array"]]
+    def _scene_struct(self):
+        """The arrays as the kernels' ``VoxelScene``."""
+        g, k = self._gpu, _kernels()
+        vs = k.VoxelScene()
+        vs.words, vs.arr_center, vs.arr_half, vs.arr_int = g["words"], g["center"], g["half"], g["int"]
+        vs.row_w0, vs.row_nw, vs.row_off, vs.frames = g["w0"], g["nw"], g["off"], g["frames"]
+        vs.d_theta, vs.ring_count, vs.ring_start = float(self.bins.d_theta), g["ring_count"], g["ring_start"]
+        vs.static_array, vs.static_inv = int(g["static"]), g["static_inv"]
+        vs.bvh, vs.n_inst, vs.inst_inv, vs.inst_array = g["bvh_id"], int(g["n_inst"]), g["inst_inv"], g["inst_array"]
+        return vs
 
-    def _params(self, origins: np.ndarray, want_distance: bool = False) -> list:
+    def _ray_rule(self, origins: np.ndarray):
+        """The kernels' ``RayRule``; ``far`` takes a distant ray from any of ``origins`` out of the scene."""
         c, r = self._scene
-        far = 2.0 * (r + float(np.sqrt(((origins - c) ** 2).sum(axis=1).max()) if len(origins) else 0.0)) + 1.0
-        return [float(self.normal_offset * self.reference_voxel), self.skip, self.slab, self.max_skip,
-                self.end_skip, far, self.segment] + ([int(want_distance)] if want_distance is not None else [])
+        rule = _kernels().RayRule()
+        rule.offset = float(self.normal_offset * self.reference_voxel)
+        rule.skip, rule.slab, rule.max_skip, rule.end_skip = self.skip, self.slab, self.max_skip, self.end_skip
+        rule.far = 2.0 * (r + float(np.sqrt(((origins - c) ** 2).sum(axis=1).max()) if len(origins) else 0.0)) + 1.0
+        rule.seg = self.segment
+        return rule
 
     def _split(self, n: int, launch: Callable[[int, int], None]) -> None:
         """Run ``launch(first, count)`` over ``n`` items: one launch on a GPU, bands over threads on CPU."""
@@ -599,12 +601,11 @@ class VoxelBackend(VisibilityBackend):
         t = wp.array(targets.astype(np.float32), dtype=wp.vec3, device=dev)
         nm = wp.array(normals.astype(np.float32), dtype=wp.vec3, device=dev)
         di = wp.array(distant.astype(np.int32), dtype=wp.int32, device=dev)
-        params = self._params(origins, want_distance)
-        common = self._common()
+        rule, vs = self._ray_rule(origins), self._scene_struct()
 
         def launch(first, count):
             wp.launch(k.query_segments, dim=count, device=dev,
-                      inputs=[o, t, nm, di, first, *params, *common, out])
+                      inputs=[o, t, nm, di, first, rule, int(want_distance), vs, out])
         self._split(n, launch)
         return out.numpy()
 
@@ -616,7 +617,7 @@ class VoxelBackend(VisibilityBackend):
                      min_distance: float = 0.0):
         """Alg. 3 in one kernel: every pixel against every light with voxel shadow rays; the same
         shading as :func:`usdml.lighting.direct.shade_direct` (returns its ``DirectResult``)."""
-        from usdml.lighting.direct import DirectResult, _LightTable
+        from usdml.lighting.direct import DirectResult, _LightTable, cone_edges
 
         wp = _wp()
         k = _kernels()
@@ -629,25 +630,21 @@ class VoxelBackend(VisibilityBackend):
         t = _LightTable(lights, meters_per_unit, min_distance)
         flags = (t.distant.astype(np.int32) | (t.one_sided.astype(np.int32) << 1) | (t.shaped.astype(np.int32) << 2)
                  | (t.focused.astype(np.int32) << 3) | (t.casts.astype(np.int32) << 4))
-        angle = np.radians(np.minimum(lights.cone_angle, 180.0))
-        soft = np.clip(lights.cone_softness, 0.0, 1.0)
-        outer = np.cos(angle)
-        width = np.cos(angle * (1.0 - soft)) - outer
-        width = np.where(width <= 1e-12, 0.0, width)
-        cone = np.stack([outer, width, lights.focus], axis=1).astype(np.float32)
+        outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
+        cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
         pts = np.asarray(points, np.float32)
-        light_in = [wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev),
-                    wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev),
-                    wp.array(flags.astype(np.int32), dtype=wp.int32, device=dev),
-                    wp.array(cone, dtype=wp.vec3, device=dev),
-                    wp.array(t.base, dtype=wp.vec3, device=dev),
-                    wp.array(t.focus_rgb, dtype=wp.vec3, device=dev),
-                    float(t.inv_m2), float(t.min_d2)]
+        lt = k.LightTable()
+        lt.pos = wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev)
+        lt.axis = wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev)
+        lt.flags = wp.array(flags.astype(np.int32), dtype=wp.int32, device=dev)
+        lt.cone = wp.array(cone, dtype=wp.vec3, device=dev)
+        lt.base = wp.array(t.base, dtype=wp.vec3, device=dev)
+        lt.focus_rgb = wp.array(t.focus_rgb, dtype=wp.vec3, device=dev)
+        lt.inv_m2, lt.min_d2 = float(t.inv_m2), float(t.min_d2)
         rad = wp.zeros(n_p, dtype=wp.vec3, device=dev)
         blocked = wp.zeros(n_p, dtype=wp.int32, device=dev)
         facing = wp.zeros(n_p, dtype=wp.int32, device=dev)
-        params = self._params(pts, None)
-        common = self._common()
+        rule, vs = self._ray_rule(pts), self._scene_struct()
         # tiles of spatially coherent points (Morton order of their cells): one light's rays from a
         # tile share bins and rows (kernels.voxel.shade_tiles); on a GPU one point per tile
         tile = SHADE_TILE if dev.is_cpu else 1
@@ -658,7 +655,7 @@ class VoxelBackend(VisibilityBackend):
 
         def launch(first_tile, count):
             wp.launch(k.shade_tiles, dim=count, device=dev,
-                      inputs=[p_wp, n_wp, first_tile * tile, tile, *light_in, *params, *common, rad, blocked, facing])
+                      inputs=[p_wp, n_wp, first_tile * tile, tile, lt, rule, vs, rad, blocked, facing])
             if progress is not None:
                 progress(min(n_p, (first_tile + count) * tile) - first_tile * tile)
         self._split(n_tiles, launch)
