@@ -32,8 +32,9 @@ ALL_BITS = wp.constant(wp.uint32(0xFFFFFFFF))
 def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: int, core: float,
              frames: wp.array(dtype=wp.mat33), dir0: int, chunk: int, row_w0: wp.array(dtype=wp.int32),
              row_nw: wp.array(dtype=wp.int32), row_off: wp.array(dtype=wp.int32), words_per_dir: int,
-             out: wp.array(dtype=wp.uint32)):
-    """Set the bit of the voxel holding each sample, in direction ``dir0 + i`` (Alg. 1).
+             word0: int, out: wp.array(dtype=wp.uint32)):
+    """Set the bit of the voxel holding each sample, in direction ``dir0 + i`` (Alg. 1) of the
+    array starting at word ``word0`` of ``out``.
 
     Launched with ``dim = (directions, ceil(samples / chunk))``; thread ``(i, c)`` rotates samples
     ``c * chunk …`` (on CPU one chunk holds every sample, so one direction's voxelization stays in
@@ -49,7 +50,7 @@ def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: 
     hi = 0.5 + 0.5 * core
     s0 = c * chunk
     s1 = wp.min(s0 + chunk, samples.shape[0])
-    base = d * words_per_dir
+    base = word0 + d * words_per_dir
     for s in range(s0, s1):
         q = (m * (samples[s] - center) + wp.vec3(half, half, half)) * inv_h
         fu = wp.floor(q[0])

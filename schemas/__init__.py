@@ -46,6 +46,8 @@ ATTRIBUTES: tuple[Attribute, ...] = (
     Attribute("usdml:voxel:resolution", int, 128),           # paper 000
     Attribute("usdml:voxel:directionStep", float, 2.0),      # degrees, k in paper 000
     Attribute("usdml:voxel:fullyDynamic", bool, False),      # paper 000, Alg. 5
+    Attribute("usdml:voxel:rebuild", str, "rotate"),         # token, paper 000 Alg. 5 or Alg. 1
+    Attribute("usdml:voxel:mapping", str, "point"),          # token, Alg. 5's voxel mapping
     Attribute("usdml:gi", str, "none"),                      # token
     Attribute("usdml:vpl:bounces", int, 3),                  # paper 004
     Attribute("usdml:vpl:count", int, 100_000),              # paper 004
@@ -60,6 +62,8 @@ ATTRIBUTES: tuple[Attribute, ...] = (
 ALLOWED_TOKENS: dict[str, tuple[str, ...]] = {
     "usdml:visibility": ("exact", "voxel", "insm", "svo"),
     "usdml:gi": ("none", "lgh", "vpl-bruteforce"),
+    "usdml:voxel:rebuild": ("rotate", "geometry"),
+    "usdml:voxel:mapping": ("point", "conservative"),
 }
 
 _lock = threading.Lock()

@@ -30,6 +30,39 @@ def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
     return tuple(np.concatenate([b[k] for b in blocks]) for k in range(5))
 
 
+def resample_lights(lights, n: int, seed: int = 0):
+    """``lights`` resampled to ``n`` for timing against the light count (paper 000 Table VI): the first
+    ``n`` when there are enough, else all of them plus copies of randomly drawn ones, each moved by
+    a random offset of up to half the lights' mean spacing (so copies do not coincide). Radiometry is
+    kept per light: images get brighter with more lights; only the timing is meant."""
+    from dataclasses import fields, replace as _replace
+
+    from usdml.scene import Lights
+
+    count = len(lights)
+    if n <= count or count == 0:
+        idx = np.arange(min(n, count))
+        offset = np.zeros((len(idx), 3))
+    else:
+        rng = np.random.default_rng(seed)
+        extra = rng.integers(0, count, n - count)
+        idx = np.concatenate([np.arange(count), extra])
+        ext = np.ptp(lights.position, axis=0)
+        ext = np.maximum(ext, 1e-3 * max(float(ext.max()), 1e-9))
+        spacing = float(np.prod(ext) / count) ** (1.0 / 3.0)
+        offset = np.zeros((n, 3))
+        offset[count:] = rng.uniform(-0.5, 0.5, (n - count, 3)) * spacing
+    kw = {}
+    for f in fields(Lights):
+        v = getattr(lights, f.name)
+        kw[f.name] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
+    out = _replace(lights, **kw)
+    out.position = out.position + offset
+    out.xform = out.xform.copy()
+    out.xform[:, :3, 3] += offset
+    return out
+
+
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
                      frame: float | None = None, settings=None, backend_options: dict | None = None) -> list[dict]:
     """One result per backend: build and query seconds on the same queries, ratios to ``exact``."""
@@ -74,7 +107,11 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             results[-1].update(voxel_resolution=backend.resolution, direction_step=backend.step,
                                directions=backend.bins.count, arrays=backend.stats["arrays"],
                                arrays_loaded_from_cache=backend.stats["loaded"],
-                               array_build_seconds=backend.stats["build_seconds"])
+                               array_build_seconds=backend.stats["build_seconds"],
+                               fully_dynamic=backend.fully_dynamic, voxel_rebuild=backend.rebuild)
+            # the per-frame array (deforming meshes, or everything when fully dynamic): Alg. 5 and
+            # Alg. 1 rebuilds of this frame's geometry, in place as a sequence render does
+            results[-1].update(backend.per_frame_rebuild_seconds(snap))
         if backend is not exact:
             backend.close()
     exact.close()
@@ -90,5 +127,7 @@ def format_bench(results: list[dict]) -> str:
                      f"lights, facing pairs) in {r['seconds']:.2f} s = {r['queries_per_second'] / 1e6:.2f} M/s; "
                      f"build {r['build_seconds']:.2f} s; {100 * r['blocked_fraction']:.1f} % blocked"
                      + (f"; {r['bytes'] / 2**20:.0f} MiB" if r.get("bytes") else "")
-                     + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact"))
+                     + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact")
+                     + (f"\n          per-frame array: Alg. 5 ({r['mapping']}) {r['rebuild_seconds']:.2f} s, Alg. 1 "
+                        f"{r['full_rebuild_seconds']:.2f} s = {r['rebuild_speedup']:.1f}x" if "rebuild_seconds" in r else ""))
     return "\n".join(lines)

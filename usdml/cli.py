@@ -56,7 +56,9 @@ def _settings_overrides(args: argparse.Namespace) -> dict:
               "lgh_alpha": a("lgh_alpha"), "lgh_levels": a("lgh_levels"),
               "shadow_samples": a("shadow_samples"), "interleave": a("interleave"),
               "voxel_resolution": getattr(args, "voxel_resolution", None),
-              "direction_step": getattr(args, "direction_step", None)}
+              "direction_step": getattr(args, "direction_step", None),
+              "voxel_rebuild": a("voxel_rebuild"), "voxel_mapping": a("voxel_mapping"),
+              "fully_dynamic": a("fully_dynamic")}
     return {k: v for k, v in values.items() if v is not None}
 
 
@@ -79,6 +81,16 @@ def _add_voxel_args(p: argparse.ArgumentParser) -> None:
                    help="voxels per axis of each direction's voxelization (default: usdml:voxel:resolution, else 128)")
     p.add_argument("--direction-step", type=float, metavar="DEG",
                    help="degrees between direction bins (default: usdml:voxel:directionStep, else 2)")
+    p.add_argument("--voxel-rebuild", choices=["rotate", "geometry"],
+                   help="per-frame voxel arrays (deforming meshes, fully dynamic scenes): rotate one "
+                        "voxelization (paper 000 Alg. 5) or voxelize every direction (Alg. 1); "
+                        "default: usdml:voxel:rebuild, else rotate")
+    p.add_argument("--voxel-mapping", choices=["point", "conservative"],
+                   help="Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) or every "
+                        "voxel it overlaps (conservative); default: usdml:voxel:mapping, else point")
+    p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None,
+                   help="voxelize the whole scene every frame (Alg. 5) instead of a static array plus "
+                        "prototype arrays; default: usdml:voxel:fullyDynamic")
 
 
 def _cmd_bake(args: argparse.Namespace) -> int:

@@ -14,6 +14,8 @@ SCHEMA_ATTRIBUTES = {
     "usdml:voxel:resolution": "voxel_resolution",
     "usdml:voxel:directionStep": "direction_step",
     "usdml:voxel:fullyDynamic": "fully_dynamic",
+    "usdml:voxel:rebuild": "voxel_rebuild",
+    "usdml:voxel:mapping": "voxel_mapping",
     "usdml:gi": "gi",
     "usdml:vpl:bounces": "vpl_bounces",
     "usdml:vpl:count": "vpl_count",
@@ -26,6 +28,8 @@ SCHEMA_ATTRIBUTES = {
 
 VISIBILITY_BACKENDS = ("exact", "voxel", "insm", "svo")
 GI_METHODS = ("none", "lgh", "vpl-bruteforce")
+VOXEL_REBUILDS = ("rotate", "geometry")
+VOXEL_MAPPINGS = ("point", "conservative")
 
 
 @dataclass(frozen=True)
@@ -34,6 +38,8 @@ class UsdmlSettings:
     voxel_resolution: int = 128     #: voxels per axis of each direction voxelization (paper 000)
     direction_step: float = 2.0     #: degrees between direction bins, k in paper 000 (90 x 90 at 2 deg)
     fully_dynamic: bool = False     #: re-voxelize the whole scene each frame (paper 000, Alg. 5)
+    voxel_rebuild: str = "rotate"   #: per-frame arrays by rotation (Alg. 5) or from geometry (Alg. 1)
+    voxel_mapping: str = "point"    #: Alg. 5's mapping of rotated voxels: point (paper) or conservative
     gi: str = "none"                #: global illumination: none, lgh, vpl-bruteforce (paper 004)
     vpl_count: int = 100_000        #: VPLs per frame (paper 004 uses 100K)
     vpl_bounces: int = 3            #: diffuse bounces of the VPL light paths (paper 004)
@@ -56,6 +62,10 @@ class UsdmlSettings:
             raise UsdmlError(f"direction step must be in (0, 90] degrees, got {self.direction_step}")
         if self.lgh_alpha <= 0 or self.lgh_levels < 0:
             raise UsdmlError("LGH alpha must be > 0 and levels >= 0")
+        if self.voxel_rebuild not in VOXEL_REBUILDS:
+            raise UsdmlError(f"unknown voxel rebuild {self.voxel_rebuild!r}; use one of {', '.join(VOXEL_REBUILDS)}")
+        if self.voxel_mapping not in VOXEL_MAPPINGS:
+            raise UsdmlError(f"unknown voxel mapping {self.voxel_mapping!r}; use one of {', '.join(VOXEL_MAPPINGS)}")
         if self.gi not in GI_METHODS:
             raise UsdmlError(f"unknown global illumination {self.gi!r}; use one of {', '.join(GI_METHODS)}")
         if self.interleave not in (1, 2, 4):

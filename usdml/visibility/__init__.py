@@ -37,7 +37,9 @@ def make_backend(name: str, **kw) -> VisibilityBackend:
 
 def backend_for(settings, device: str = "cpu", **kw) -> VisibilityBackend:
     """The backend ``settings.visibility`` names, configured from ``settings`` (voxel resolution and
-    direction step) and ``kw`` (e.g. ``report``, ``progress`` for the voxel backend)."""
+    direction step, per-frame rebuild, mapping, fully dynamic) and ``kw`` (e.g. ``report``, ``progress`` for the voxel backend)."""
     if settings.visibility == "voxel":
-        return VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step, device=device, **kw)
+        return VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step, device=device,
+                            rebuild=settings.voxel_rebuild, mapping=settings.voxel_mapping,
+                            fully_dynamic=settings.fully_dynamic, **kw)
     return make_backend(settings.visibility)

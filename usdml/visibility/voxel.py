@@ -55,6 +55,8 @@ __all__ = ["VoxelArray", "VoxelBackend", "build_array", "array_cost", "available
 
 #: bump when the bits an array holds for the same inputs change
 FORMAT_VERSION = 1
+#: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
+REBUILDS = ("rotate", "geometry")
 #: sample spacing and dedup grid as fractions of the voxel size times the core fraction: a plane
 #: crossing a row's axis then has a sample within 0.58 · 0.5 + 1.73 · 0.12 = 0.5 of its core's
 #: half width of the crossing, inside the core (no holes along rows; see voxel_grid)
@@ -78,6 +80,7 @@ class VoxelArray:
     samples: int = 0            #: surface samples voxelized
     build_seconds: float = 0.0  #: 0 when loaded from the cache
     sample_seconds: float = 0.0  #: part of build_seconds spent sampling the surfaces
+    occupied: int = 0           #: occupied voxels of the reference voxelization (Alg. 5 rebuilds)
     key: str = ""
     source: str = ""            #: what it holds (for messages)
     cached: bool = False
@@ -172,23 +175,17 @@ def bounding_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
     return c, max(r, 1e-6 * max(1.0, float(np.abs(c).max())), 1e-9)
 
 
-def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, *,
-                device: str = "cpu", workers: int | None = None,
-                progress: Callable[[int, int], None] | None = None, source: str = "",
-                bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None) -> VoxelArray:
-    """Alg. 1: voxelize triangles ``(points, triangles)`` (array space) in every direction bin.
+def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
+                     bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None
+                     ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Alg. 1's input: the array's cube (centre, half size) and the surface samples that mark voxels.
 
     ``bounds`` (a box) restricts the array to that box (triangles are clipped to it); default: all
-    of the geometry. ``progress(done, total)`` is called with directions finished.
+    of the geometry.
     """
-    wp = _wp()
-    k = _kernels()
-    t0 = time.perf_counter()
     core = CORE if core is None else float(core)
     points = np.asarray(points, np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
-    bins = DirectionBins.make(step)
-    layout = RowLayout.make(resolution)
     if bounds is not None:
         lo, hi = (np.asarray(b, np.float64) for b in bounds)
         points, triangles, _ = clip_to_box(points, triangles, lo, hi)
@@ -197,55 +194,102 @@ def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step
         center, radius = bounding_sphere(points[np.unique(triangles)] if len(triangles) else points)
     half = radius * SPHERE_MARGIN
     h = 2.0 * half / resolution
-    samples = surface_samples(points, triangles, SAMPLE_SPACING * core * h, snap=SNAP * core * h)
+    return center, float(half), surface_samples(points, triangles, SAMPLE_SPACING * core * h, snap=SNAP * core * h)
+
+
+def run_direction_chunks(n_dirs: int, per: int, launch: Callable[[int, int], int], device,
+                         workers: int | None = None, progress: Callable[[int, int], None] | None = None) -> None:
+    """``launch(d0, d1)`` over directions ``0 … n_dirs`` in chunks of ``per``: over the CPU cores (the
+    first chunk alone first: it compiles or loads the module before threads race for it), or one
+    after another on a GPU; ``progress(done, n_dirs)`` after each chunk."""
+    chunks = [(d0, min(n_dirs, d0 + per)) for d0 in range(0, n_dirs, max(1, per))]
+    done = 0
+    if device.is_cpu and len(chunks) > 1:
+        done += launch(*chunks[0])
+        if progress:
+            progress(done, n_dirs)
+        with ThreadPoolExecutor(max_workers=max(1, int(workers or os.cpu_count() or 1))) as pool:
+            for k in pool.map(lambda c: launch(*c), chunks[1:]):
+                done += k
+                if progress:
+                    progress(done, n_dirs)
+        return
+    for c in chunks:
+        done += launch(*c)
+        if progress:
+            progress(done, n_dirs)
+
+
+def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, *,
+                device: str = "cpu", workers: int | None = None,
+                progress: Callable[[int, int], None] | None = None, source: str = "",
+                bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None,
+                out=None, base: int = 0) -> VoxelArray:
+    """Alg. 1: voxelize triangles ``(points, triangles)`` (array space) in every direction bin.
+
+    ``bounds``: see :func:`prepare_geometry`. ``progress(done, total)`` is called with directions
+    finished. ``out``: a Warp ``uint32`` array to fill in place from word ``base`` (see
+    :func:`usdml.visibility.voxel_rotate.rotate_array`); default: a new array.
+    """
+    wp = _wp()
+    k = _kernels()
+    t0 = time.perf_counter()
+    core = CORE if core is None else float(core)
+    bins = DirectionBins.make(step)
+    layout = RowLayout.make(resolution)
+    center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
     sample_seconds = time.perf_counter() - t0
     n_dirs, wpd = bins.count, layout.words
-    out_np = np.zeros(n_dirs * wpd, np.uint32)
+    dev = wp.get_device(device)
+    out_np = None
+    if out is None:
+        out_np = np.zeros(n_dirs * wpd, np.uint32)
+        out = wp.array(out_np, dtype=wp.uint32, device=dev, copy=not dev.is_cpu)
+        base = 0
+    else:
+        clear_words(out, base, n_dirs * wpd, dev)
     if len(samples):
-        dev = wp.get_device(device)
         s_wp = wp.array(samples, dtype=wp.vec3, device=dev)
         frames = wp.array(bins.frames, dtype=wp.mat33, device=dev)
         w0 = wp.array(layout.w0, dtype=wp.int32, device=dev)
         nw = wp.array(layout.nw, dtype=wp.int32, device=dev)
         off = wp.array(layout.offset, dtype=wp.int32, device=dev)
-        out = wp.array(out_np, dtype=wp.uint32, device=dev, copy=not dev.is_cpu)
         c32 = wp.vec3(*center.astype(np.float32))
-        # directions per launch: enough work per launch, frequent progress
-        per = max(1, min(n_dirs, (1 << 24) // max(len(samples), 1)))
-        chunks = [(d0, min(n_dirs, d0 + per)) for d0 in range(0, n_dirs, per)]
         chunk = len(samples) if dev.is_cpu else 4096
         n_chunks = -(-len(samples) // chunk)
 
-        def launch(c):
-            d0, d1 = c
+        def launch(d0, d1):
             wp.launch(k.voxelize, dim=(d1 - d0, n_chunks), device=dev,
-                      inputs=[s_wp, c32, float(half), resolution, core, frames, d0, chunk, w0, nw, off, wpd, out])
+                      inputs=[s_wp, c32, float(half), resolution, core, frames, d0, chunk, w0, nw, off, wpd,
+                              int(base), out])
             return d1 - d0
 
-        done = 0
-        if dev.is_cpu and len(chunks) > 1:
-            # the first launch compiles or loads the module on this thread, before threads race for it
-            done += launch(chunks[0])
-            if progress:
-                progress(done, n_dirs)
-            with ThreadPoolExecutor(max_workers=max(1, int(workers or os.cpu_count() or 1))) as pool:
-                for n in pool.map(launch, chunks[1:]):
-                    done += n
-                    if progress:
-                        progress(done, n_dirs)
-        else:
-            for c in chunks:
-                done += launch(c)
-                if progress:
-                    progress(done, n_dirs)
-            if not dev.is_cpu:
-                wp.synchronize_device(dev)
-                out_np = out.numpy()
-    arr = VoxelArray(out_np, center, float(half), resolution, float(step), int(len(samples)),
-                     time.perf_counter() - t0, sample_seconds, source=source)
+        # directions per launch: enough work per launch, frequent progress
+        run_direction_chunks(n_dirs, max(1, min(n_dirs, (1 << 24) // max(len(samples), 1))), launch, dev,
+                             workers, progress)
+    arr = VoxelArray(_host_words(out, out_np, base, n_dirs * wpd, dev), center, float(half), resolution,
+                     float(step), int(len(samples)), time.perf_counter() - t0, sample_seconds, source=source)
     log.debug(f"voxel array {source}: {len(samples)} samples in {sample_seconds:.2f} s, "
               f"{n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
     return arr
+
+
+def clear_words(out, base: int, count: int, dev) -> None:
+    """Zero words ``base … base + count`` of Warp array ``out``."""
+    if dev.is_cpu:
+        out.numpy()[base:base + count] = 0
+    else:
+        out[base:base + count].zero_()
+
+
+def _host_words(out, out_np, base: int, count: int, dev) -> np.ndarray:
+    """The words an in-place or new build wrote: a view on CPU, a copy from a GPU for a new array,
+    and empty for an in-place GPU build (they stay on the device)."""
+    wp = _wp()
+    if not dev.is_cpu:
+        wp.synchronize_device(dev)
+        return out.numpy() if out_np is not None else np.zeros(0, np.uint32)
+    return out_np if out_np is not None else out.numpy()[base:base + count]
 
 
 def array_key(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, bounds=None,
@@ -309,8 +353,17 @@ class VoxelBackend(VisibilityBackend):
     memory_limit : bytes the arrays may take; default: what the machine has available
     normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
     segment : voxels looked up per row (a divisor of 32): the ray picks its row anew every segment
+    rebuild : how the per-frame array (deforming meshes, or everything when ``fully_dynamic``) is
+        rebuilt: ``rotate`` (Alg. 5, :mod:`usdml.visibility.voxel_rotate`) or ``geometry`` (Alg. 1)
+    mapping : Alg. 5's ``point`` (the paper) or ``conservative`` mapping of rotated voxels
+    fully_dynamic : put every mesh and instance in the per-frame array (``usdml:voxel:fullyDynamic``:
+        scenes where much moves), instead of a static array plus one array per moving prototype
     report : called with one line before anything is built (cost of each array), default: log.info
     progress : ``progress(done, total, label)`` while building
+
+    After each :meth:`update`, ``built`` lists the arrays it built or loaded (empty when nothing
+    changed that arrays hold: moving lights or a moving camera cost nothing) and ``stats`` holds the
+    counts, bytes and ``dynamic_seconds`` of the last per-frame rebuild.
     """
 
     name = "voxel"
@@ -318,8 +371,8 @@ class VoxelBackend(VisibilityBackend):
     def __init__(self, *, resolution: int = 128, step: float = 2.0, device: str = "cpu", cache=None,
                  memory_limit: int | None = None, normal_offset: float = 1.0, skip: float = 1.0,
                  slab: float = 1.0, max_skip: float = 4.0, end_skip: float = 1.0, segment: int = 32,
-                 core: float | None = None,
-                 workers: int | None = None, report: Callable[[str], None] | None = None,
+                 core: float | None = None, rebuild: str = "rotate", mapping: str = "point",
+                 fully_dynamic: bool = False, workers: int | None = None, report: Callable[[str], None] | None = None,
                  progress: Callable[[int, int, str], None] | None = None) -> None:
         self.resolution = int(resolution)
         self.step = float(step)
@@ -329,6 +382,12 @@ class VoxelBackend(VisibilityBackend):
             raise UsdmlError(f"direction step must be in [0.1, 90] degrees, got {self.step:g}")
         if segment not in (1, 2, 4, 8, 16, 32):
             raise UsdmlError(f"voxel segment must divide 32, got {segment}")
+        if rebuild not in REBUILDS:
+            raise UsdmlError(f"voxel rebuild must be one of {', '.join(REBUILDS)}, got {rebuild!r}")
+        from usdml.visibility.voxel_rotate import MAPPINGS
+        if mapping not in MAPPINGS:
+            raise UsdmlError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
+        self.rebuild, self.mapping, self.fully_dynamic = rebuild, mapping, bool(fully_dynamic)
         self.device = device
         self.core = CORE if core is None else float(core)
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
@@ -345,11 +404,18 @@ class VoxelBackend(VisibilityBackend):
         self._protos: dict[str, VoxelArray] = {}      # prototype geometry hash -> array
         self._gpu: dict = {}
         self._scene = None
-        self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "arrays": 0}
+        self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "arrays": 0,
+                            "dynamic_rebuilds": 0, "dynamic_seconds": 0.0}
+        self.built: list[str] = []
+        self._reported: set[str] = set()
 
     # ------------------------------------------------------------------ building
 
-    def _array(self, points, triangles, source: str, cacheable: bool = True, trim: bool = False) -> VoxelArray:
+    def _array(self, points, triangles, source: str, cacheable: bool = True, trim: bool = False,
+               per_frame: bool = False, out=None, base: int = 0) -> VoxelArray:
+        """Build (or load) the array of ``(points, triangles)``; ``trim``: a world-space array (trimmed
+        box stretched to a cube); ``per_frame``: the per-frame array, rebuilt by ``self.rebuild``
+        (into ``out`` from word ``base`` when given)."""
         def prog(done, total):
             if self.progress:
                 self.progress(done, total, source)
@@ -358,16 +424,32 @@ class VoxelBackend(VisibilityBackend):
             lo, hi = core_bounds(points, triangles)
             tri = np.asarray(points, np.float64)[np.asarray(triangles, np.int64)]
             outside = int((~np.all((tri.min(1) >= lo) & (tri.max(1) <= hi), axis=1)).sum())
-            if outside:
+            if outside and source not in self._reported:
+                self._reported.add(source)
                 self.report(f"voxel array of the {source} covers {np.round(lo, 2).tolist()} .. "
                             f"{np.round(hi, 2).tolist()}; {outside} of {len(tri)} triangles reach outside "
                             "it and shadow only within it")
             to_array = normalizing_transform(lo, hi)
             points = np.asarray(points, np.float64) @ to_array[:3, :3].T + to_array[:3, 3]
             bounds = (to_array[:3, :3] @ lo + to_array[:3, 3], to_array[:3, :3] @ hi + to_array[:3, 3])
-        arr = cached_array(points, triangles, self.resolution, self.step, self.cache if cacheable else None,
-                           device=self.device, progress=prog, source=source, bounds=bounds, core=self.core)
+        if per_frame:
+            t0 = time.perf_counter()
+            if self.rebuild == "rotate":
+                from usdml.visibility.voxel_rotate import rotate_array
+                arr = rotate_array(points, triangles, self.resolution, self.step, mapping=self.mapping,
+                                   device=self.device, workers=self.workers, bounds=bounds, core=self.core,
+                                   out=out, base=base, progress=prog, source=source)
+            else:
+                arr = build_array(points, triangles, self.resolution, self.step, device=self.device,
+                                  workers=self.workers, progress=prog, source=source, bounds=bounds,
+                                  core=self.core, out=out, base=base)
+            self.stats["dynamic_rebuilds"] += 1
+            self.stats["dynamic_seconds"] = time.perf_counter() - t0
+        else:
+            arr = cached_array(points, triangles, self.resolution, self.step, self.cache if cacheable else None,
+                               device=self.device, progress=prog, source=source, bounds=bounds, core=self.core)
         arr.to_array = to_array
+        self.built.append(source)
         if arr.cached:
             self.stats["loaded"] += 1
         else:
@@ -377,7 +459,12 @@ class VoxelBackend(VisibilityBackend):
 
     def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
         """The arrays ``snapshot`` needs: ``(role, members)``, role ``static``, ``prototype <path>``,
-        ``deforming``."""
+        ``deforming`` (rebuilt per frame), or with ``fully_dynamic`` just ``dynamic`` (every mesh and
+        prototype, rebuilt per frame)."""
+        if self.fully_dynamic:
+            everything = tuple([("mesh", m.path) for m in snapshot.meshes]
+                               + [("proto", p.path) for p in snapshot.prototypes if p.triangle_count])
+            return [("dynamic", everything)] if everything else []
         static = static_members(snapshot)
         deforming = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
                           + [("proto", p.path) for p in snapshot.prototypes if p.deforming])
@@ -390,10 +477,13 @@ class VoxelBackend(VisibilityBackend):
             out.append(("deforming", deforming))
         return out
 
-    def check_memory(self, count: int) -> int:
-        """Say what ``count`` arrays cost and refuse (``UsdmlError``) when they would not fit."""
+    def check_memory(self, count: int, quiet: bool = False) -> int:
+        """Say what ``count`` arrays cost and refuse (``UsdmlError``) when they would not fit;
+        ``quiet``: a per-frame rebuild into memory already held (nothing said or checked)."""
         each = array_cost(self.resolution, self.step)
         total = each * count
+        if quiet:
+            return total
         limit = self.memory_limit if self.memory_limit is not None else int(0.8 * available_memory())
         self.report(f"voxel arrays: {count} x {each / 2**20:.1f} MiB = {total / 2**30:.2f} GiB "
                     f"({self.resolution}^3 voxels, {self.bins.count} directions at {self.step:g} deg)")
@@ -405,20 +495,27 @@ class VoxelBackend(VisibilityBackend):
         return total
 
     def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
+        """Build what ``changes`` says changed: the static array and prototype arrays only when their
+        geometry changed (else kept, or loaded from the cache), the per-frame array only when one of
+        its meshes or instances changed (Alg. 5 into its slot of the assembled words: nothing is
+        reallocated or copied)."""
         plan = self.plan(snapshot)
         roles = dict(plan)
         static = roles.get("static")
-        deforming = roles.get("deforming")
-        moving = [p for p in snapshot.prototypes if p.animated and not p.deforming and p.triangle_count]
+        per_frame = roles.get("deforming", roles.get("dynamic"))
+        moving = [] if self.fully_dynamic else \
+            [p for p in snapshot.prototypes if p.animated and not p.deforming and p.triangle_count]
+        self.built = []
         need_static = static is not None and members_changed(
             self._static and self._static.members, static, changes, lambda path: changes.static)
         proto_hashes = {p.path: p.geometry_hash() for p in moving}
         new_protos = {h for h in proto_hashes.values() if h not in self._protos}
-        need_deforming = deforming is not None and members_changed(
-            self._deforming and self._deforming.members, deforming, changes, lambda path: path in changes.deforming)
-        building = int(need_static) + len(new_protos) + int(need_deforming)
+        need_frame = per_frame is not None and members_changed(
+            self._deforming and self._deforming.members, per_frame, changes,
+            lambda path: path in changes.deforming or changes.static)
+        building = int(need_static) + len(new_protos) + int(need_frame)
         if building:
-            self.check_memory(len(plan))
+            self.check_memory(len(plan), quiet=not (need_static or new_protos) and self._deforming is not None)
         if static is None:
             self._static = None
         elif need_static:
@@ -430,13 +527,46 @@ class VoxelBackend(VisibilityBackend):
                 pts, tris = p.merged()
                 self._protos[h] = self._array(pts, tris, f"prototype {p.name}")
         self._protos = {h: a for h, a in self._protos.items() if h in set(proto_hashes.values())}
-        if deforming is None:
+        source = "dynamic scene" if self.fully_dynamic else "deforming geometry"
+        in_place = False
+        if per_frame is None:
             self._deforming = None
-        elif need_deforming:
-            pts, tris = _world_geometry(snapshot, deforming)
-            self._deforming = _Group(deforming, self._array(pts, tris, "deforming geometry", cacheable=False, trim=True)
-                                     if len(tris) else None)
-        self._assemble(snapshot, moving, proto_hashes, rebuild_words=bool(building) or not self._gpu)
+        elif need_frame:
+            pts, tris = _world_geometry(snapshot, per_frame)
+            slot = self._gpu.get("frame_slot")
+            # in place when only the per-frame array changes and it already has its slot
+            in_place = (slot is not None and not need_static and not new_protos and len(tris) > 0
+                        and self._deforming is not None and self._deforming.array is not None)
+            arr = None
+            if len(tris):
+                arr = self._array(pts, tris, source, cacheable=False, trim=True, per_frame=True,
+                                  out=self._gpu["words"] if in_place else None, base=slot or 0)
+            self._deforming = _Group(per_frame, arr)
+        self._assemble(snapshot, moving, proto_hashes, rebuild_words=(bool(building) and not in_place) or not self._gpu)
+
+    def per_frame_rebuild_seconds(self, snapshot: Snapshot) -> dict:
+        """Seconds to rebuild this frame's per-frame array by Alg. 5 (``rebuild_seconds``) and by Alg. 1
+        from the geometry (``full_rebuild_seconds``), each in place as a render does, and their
+        ratio; the array is left as ``self.rebuild`` builds it. Empty when nothing is rebuilt per
+        frame. Call after :meth:`update` for ``snapshot``."""
+        if self._deforming is None or self._deforming.array is None or "frame_slot" not in self._gpu:
+            return {}
+        pts, tris = _world_geometry(snapshot, self._deforming.members)
+        source = "dynamic scene" if self.fully_dynamic else "deforming geometry"
+        seconds = {}
+        keep = self.rebuild
+        try:
+            for method in [m for m in REBUILDS if m != keep] + [keep]:
+                self.rebuild = method
+                arr = self._array(pts, tris, source, cacheable=False, trim=True, per_frame=True,
+                                  out=self._gpu["words"], base=self._gpu["frame_slot"])
+                seconds[method] = self.stats["dynamic_seconds"]
+        finally:
+            self.rebuild = keep
+        self._deforming = _Group(self._deforming.members, arr)
+        return {"rebuild_seconds": seconds["rotate"], "full_rebuild_seconds": seconds["geometry"],
+                "rebuild_speedup": seconds["geometry"] / max(seconds["rotate"], 1e-12),
+                "mapping": self.mapping, "occupied_voxels": int(arr.occupied) if keep == "rotate" else None}
 
     def _assemble(self, snapshot: Snapshot, moving, proto_hashes, rebuild_words: bool) -> None:
         """Concatenate the arrays for the kernels and rebuild the instance table and BVH."""
@@ -463,11 +593,12 @@ class VoxelBackend(VisibilityBackend):
             arr_int = np.zeros((max(1, len(arrays)), 4), np.int32)
             for i, a in enumerate(arrays):
                 arr_int[i] = (a.resolution, self.layout.words, bases[i], 0)
+                if dev.is_cpu:
+                    # the assembled words are the only copy (per-frame rebuilds write into them)
+                    a.words = words[bases[i]:bases[i] + a.words.size]
             g = {
                 "words_np": words,
                 "words": wp.array(words, dtype=wp.uint32, device=dev, copy=not dev.is_cpu),
-                "center": wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev),
-                "half": wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev),
                 "int": wp.array(arr_int, dtype=wp.int32, device=dev),
                 "w0": wp.array(self.layout.w0, dtype=wp.int32, device=dev),
                 "nw": wp.array(self.layout.nw, dtype=wp.int32, device=dev),
@@ -477,10 +608,15 @@ class VoxelBackend(VisibilityBackend):
                 "ring_start": wp.array(self.bins.ring_start, dtype=wp.int32, device=dev),
                 "n_arrays": len(arrays),
             }
+            if self._deforming is not None and self._deforming.array is not None:
+                g["frame_slot"] = int(bases[[a is self._deforming.array for a in arrays].index(True)])
             self._gpu = g
-            self.stats["bytes"] = int(sum(a.nbytes for a in arrays))
+            self.stats["bytes"] = int(sum(a.words.size for a in arrays) * 4)
             self.stats["arrays"] = len(arrays)
         g = self._gpu
+        # cubes move with the per-frame array: refreshed every frame (a few floats per array)
+        g["center"] = wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev)
+        g["half"] = wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev)
         # the static and deforming arrays are both world space; with both, the deforming one is
         # visited as an identity "instance" so a query still tests both
         inv, ids, lo, hi = [], [], [], []

@@ -1,0 +1,105 @@
+#!/usr/bin/env python
+"""Seconds per frame against the number of lights (the shape of paper 000 Table VI).
+
+For each light count N, the stage's lights are resampled to N (:func:`usdml.bench.resample_lights`:
+the first N, or all of them plus jittered copies), and each backend renders two consecutive frames
+through the renderer; the second frame is timed (the steady state of a sequence: per-frame arrays
+rebuilt, static ones kept). Reported per backend and N: frame seconds and its split (scene update,
+of which the voxel per-frame rebuild; G-buffer; shading), and the voxel/exact ratio of the same run.
+
+Usage::
+
+    python tools/light_scaling.py stages/creature.usda --lights 512,1024,2048,4096,10000 --imageWidth 192
+    python tools/light_scaling.py stages/park.usda --fully-dynamic --json
+
+Voxel settings come from the stage (``usdml:voxel:*``) and the flags below.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+import json
+import sys
+import time
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("stage")
+    p.add_argument("--lights", default="512,1024,2048,4096,10000", help="comma-separated light counts")
+    p.add_argument("--imageWidth", type=int, default=192)
+    p.add_argument("--frame", type=float, help="first of the two frames (default: the stage's start)")
+    p.add_argument("--backends", default="voxel,exact")
+    p.add_argument("--voxel-resolution", type=int)
+    p.add_argument("--direction-step", type=float)
+    p.add_argument("--voxel-mapping", choices=["point", "conservative"])
+    p.add_argument("--voxel-rebuild", choices=["rotate", "geometry"])
+    p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+
+    from usdml.bench import resample_lights
+    from usdml.render.frame import FrameRenderer
+    from usdml.stage import StageDelegate
+
+    delegate = StageDelegate(args.stage)
+    settings = delegate.usdml_settings.updated(
+        voxel_resolution=args.voxel_resolution, direction_step=args.direction_step,
+        voxel_mapping=args.voxel_mapping, voxel_rebuild=args.voxel_rebuild, fully_dynamic=args.fully_dynamic)
+    f0 = delegate.start_time if args.frame is None else args.frame
+    f1 = min(f0 + 1, delegate.end_time) if delegate.end_time > f0 else f0
+    rows = []
+    for n in [int(x) for x in args.lights.split(",")]:
+        original = delegate.snapshot
+
+        def snapshot(t, _n=n, _orig=original):
+            s = _orig(t)
+            return replace(s, lights=resample_lights(s.lights, _n, args.seed))
+
+        delegate.snapshot = snapshot
+        try:
+            row = {"stage": args.stage, "lights": n, "frame": f1}
+            for name in args.backends.split(","):
+                r = FrameRenderer(delegate, settings.updated(visibility=name), backend_options={"report": lambda s: None})
+                try:
+                    snap = delegate.snapshot(f0)
+                    w, h = snap.camera.resolution(args.imageWidth)
+                    r.render(f0, w, h, {"color"})
+                    t = time.perf_counter()
+                    res = r.render(f1, w, h, {"color"})
+                    seconds = time.perf_counter() - t
+                    st = res.stats
+                    row[name] = {"seconds": seconds, "update_seconds": st["update_seconds"],
+                                 "gbuffer_seconds": st["gbuffer_seconds"], "shading_seconds": st["shading_seconds"],
+                                 "resolution": [w, h]}
+                    if name == "voxel":
+                        b = r.backend
+                        row[name].update(rebuilt=b.built, rebuild_seconds=b.stats["dynamic_seconds"] if b.built else 0.0,
+                                         voxel_resolution=b.resolution, direction_step=b.step,
+                                         fully_dynamic=b.fully_dynamic, mapping=b.mapping)
+                finally:
+                    r.close()
+            if "voxel" in row and "exact" in row:
+                row["voxel_speedup_vs_exact"] = row["exact"]["seconds"] / row["voxel"]["seconds"]
+            rows.append(row)
+            if not args.json:
+                parts = [f"{n:>6} lights"]
+                for name in args.backends.split(","):
+                    b = row[name]
+                    extra = f", rebuild {b['rebuild_seconds']:.2f}" if name == "voxel" else ""
+                    parts.append(f"{name} {b['seconds']:.2f} s (update {b['update_seconds']:.2f}{extra}, "
+                                 f"shading {b['shading_seconds']:.2f})")
+                if "voxel_speedup_vs_exact" in row:
+                    parts.append(f"voxel {row['voxel_speedup_vs_exact']:.2f}x exact")
+                print("; ".join(parts), flush=True)
+        finally:
+            delegate.snapshot = original
+    if args.json:
+        print(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
