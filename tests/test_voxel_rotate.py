@@ -302,6 +302,10 @@ def test_cli_renders_compares_and_benches_a_deforming_stage(deforming_stage, tmp
     voxel = [r for r in rows if r["backend"] == "voxel"][0]
     assert voxel["rebuild_seconds"] > 0 and voxel["full_rebuild_seconds"] > 0
     assert voxel["rebuild_speedup"] == pytest.approx(voxel["full_rebuild_seconds"] / voxel["rebuild_seconds"])
+    # a fully dynamic scene has nothing to cache
+    assert main(["bake", deforming_stage, "--fully-dynamic", "--json", *small]) == 0
+    said = capsys.readouterr()
+    assert json.loads(said.out)["arrays"] == [] and "nothing to bake" in said.err
     with pytest.raises(SystemExit) as bad:
         main(["render", deforming_stage, str(out), "--visibility", "voxel", "--voxel-mapping", "nearest"])
     assert bad.value.code == 2

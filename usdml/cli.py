@@ -102,6 +102,13 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**_settings_overrides(args))
     frames = frame_spec(args.frames, delegate.start_time, delegate.end_time)
+    if settings.fully_dynamic:
+        print(f"{args.stage} is fully dynamic (usdml:voxel:fullyDynamic or --fully-dynamic): its voxel array is "
+              "rebuilt every frame and not cached; nothing to bake (--no-fully-dynamic bakes the static and "
+              "prototype arrays)", file=sys.stderr)
+        if args.json:
+            print(json.dumps({"stage": args.stage, "frames": frames, "fully_dynamic": True, "arrays": []}, indent=2))
+        return 0
     t0 = time.perf_counter()
     backend = VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step,
                            device=args.device, cache=args.cache, **voxel_messages())

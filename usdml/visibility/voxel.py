@@ -7,8 +7,10 @@ Arrays (paper 000 Alg. 4)
       query is moved into each instance's space by the instance's inverse transform. Only the
       instances whose world box the ray meets are visited (a Warp BVH over the boxes, rebuilt per
       frame: cheap), so the cost does not grow with the number of instances in the scene.
-    * **deforming** meshes and prototypes: one world-space array rebuilt from geometry on frames where
-      they changed (Alg. 1; issue 5 replaces this with Alg. 5's rotation).
+    * **per frame**: deforming meshes and prototypes (or, ``fully_dynamic``, every mesh and instance,
+      and then no other array) in one world-space array rebuilt on frames where one of them changed:
+      by Alg. 5 (one voxelization rotated, :mod:`usdml.visibility.voxel_rotate`) or Alg. 1, written
+      into its slot of the assembled words (nothing reallocated or copied per frame).
 
     Every array covers its geometry's bounding sphere (so every direction's rotated cube holds it);
     directions, rows and packing are in :mod:`usdml.visibility.voxel_grid`, the kernels in
@@ -513,6 +515,10 @@ class VoxelBackend(VisibilityBackend):
         need_frame = per_frame is not None and members_changed(
             self._deforming and self._deforming.members, per_frame, changes,
             lambda path: path in changes.deforming or changes.static)
+        if (need_static or new_protos) and self._deforming is not None and self._deforming.array is not None \
+                and self._deforming.array.words.size == 0:
+            # rebuilt in place on a GPU, its words live only there: re-assembling needs it built anew
+            need_frame = per_frame is not None
         building = int(need_static) + len(new_protos) + int(need_frame)
         if building:
             self.check_memory(len(plan), quiet=not (need_static or new_protos) and self._deforming is not None)
