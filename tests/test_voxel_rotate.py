@@ -297,9 +297,11 @@ def test_cli_renders_compares_and_benches_a_deforming_stage(deforming_stage, tmp
                      *small, *flags]) == 0
         r = json.loads(capsys.readouterr().out)
         assert r["queries"] > 0 and 0.0 <= r["eps_v"] < 0.2
-    assert main(["bench", deforming_stage, "--visibility", "voxel", "--imageWidth", "16", "--json", *small]) == 0
+    assert main(["bench", deforming_stage, "--visibility", "voxel", "--imageWidth", "16", "--json", *small,
+                 "--voxel-mapping", "conservative"]) == 0
     rows = json.loads(capsys.readouterr().out)
     voxel = [r for r in rows if r["backend"] == "voxel"][0]
+    assert voxel["mapping"] == "conservative" and voxel["voxel_resolution"] == 16
     assert voxel["rebuild_seconds"] > 0 and voxel["full_rebuild_seconds"] > 0
     assert voxel["rebuild_speedup"] == pytest.approx(voxel["full_rebuild_seconds"] / voxel["rebuild_seconds"])
     # a fully dynamic scene has nothing to cache

@@ -173,8 +173,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from usdml.render.sequence import voxel_messages
 
     delegate = _delegate(args)
-    settings = delegate.usdml_settings.updated(**{k: v for k, v in _settings_overrides(args).items()
-                                                  if k in ("voxel_resolution", "direction_step")})
+    voxel_keys = ("voxel_resolution", "direction_step", "voxel_rebuild", "voxel_mapping", "fully_dynamic")
+    settings = delegate.usdml_settings.updated(**{k: v for k, v in _settings_overrides(args).items() if k in voxel_keys})
     results = bench_visibility(delegate, backends=args.visibility or ["exact"],
                                image_width=args.imageWidth, frame=args.frame, settings=settings,
                                backend_options=voxel_messages())
