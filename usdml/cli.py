@@ -81,11 +81,13 @@ def _add_voxel_args(p: argparse.ArgumentParser) -> None:
                    help="voxels per axis of each direction's voxelization (default: usdml:voxel:resolution, else 128)")
     p.add_argument("--direction-step", type=float, metavar="DEG",
                    help="degrees between direction bins (default: usdml:voxel:directionStep, else 2)")
-    p.add_argument("--voxel-rebuild", choices=["rotate", "geometry"],
+    from usdml.settings import VOXEL_MAPPINGS, VOXEL_REBUILDS
+
+    p.add_argument("--voxel-rebuild", choices=VOXEL_REBUILDS,
                    help="per-frame voxel arrays (deforming meshes, fully dynamic scenes): rotate one "
                         "voxelization (paper 000 Alg. 5) or voxelize every direction (Alg. 1); "
                         "default: usdml:voxel:rebuild, else rotate")
-    p.add_argument("--voxel-mapping", choices=["point", "conservative"],
+    p.add_argument("--voxel-mapping", choices=VOXEL_MAPPINGS,
                    help="Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) or every "
                         "voxel it overlaps (conservative); default: usdml:voxel:mapping, else point")
     p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None,

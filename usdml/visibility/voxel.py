@@ -48,6 +48,7 @@ import numpy as np
 from usdml.cache import Cache, CacheCorrupt, cache_key
 from usdml.errors import UsdmlError
 from usdml.scene import Changes, Lights, Snapshot, content_hash
+from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, core_bounds, surface_samples
 
@@ -58,7 +59,7 @@ __all__ = ["VoxelArray", "VoxelBackend", "build_array", "array_cost", "available
 #: bump when the bits an array holds for the same inputs change
 FORMAT_VERSION = 1
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
-REBUILDS = ("rotate", "geometry")
+REBUILDS = VOXEL_REBUILDS
 #: sample spacing and dedup grid as fractions of the voxel size times the core fraction: a plane
 #: crossing a row's axis then has a sample within 0.58 · 0.5 + 1.73 · 0.12 = 0.5 of its core's
 #: half width of the crossing, inside the core (no holes along rows; see voxel_grid)

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.settings import VOXEL_MAPPINGS
 from usdml.visibility.voxel import (CORE, VoxelArray, _host_words, _wp, clear_words, prepare_geometry,
                                     run_direction_chunks)
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
@@ -37,7 +38,7 @@ __all__ = ["MAPPINGS", "RotationTables", "reference_voxels", "rotate_array"]
 #: fraction bits of the fixed-point tables (kernels.voxel_rotate.FIX)
 FIX_BITS = 16
 #: how a rotated voxel marks the target grid (module doc)
-MAPPINGS = ("point", "conservative")
+MAPPINGS = VOXEL_MAPPINGS
 
 
 @dataclass(frozen=True)
