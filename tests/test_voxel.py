@@ -15,7 +15,7 @@ from usdml.cache import Cache, CacheCorrupt
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, LightType, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel import array_cost, build_array, cached_array
+from usdml.visibility.voxel import CORE, array_cost, build_array, cached_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, surface_samples, worst_case_angle
 
 from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
@@ -112,8 +112,8 @@ def test_voxelize_kernel_matches_numpy():
     arr = build_array(pts, ids, 16, 30.0)
     bins, layout = DirectionBins.make(30.0), RowLayout.make(16)
     h = 2 * arr.half / 16
-    samples = surface_samples(pts, ids, 0.5 * h, snap=0.12 * h)
-    ref = numpy_voxelize(samples, arr.center, arr.half, 16, bins, layout)
+    samples = surface_samples(pts, ids, 0.5 * CORE * h, snap=0.12 * CORE * h)
+    ref = numpy_voxelize(samples, arr.center, arr.half, 16, bins, layout, core=CORE)
     # float32 rounding may move a sample lying on a voxel face: allow a handful of bits
     diff = np.unpackbits((ref ^ arr.words).view(np.uint8)).sum()
     total = np.unpackbits(ref.view(np.uint8)).sum()

@@ -67,7 +67,7 @@ def test_point_mapping_kernel_sets_exactly_the_numpy_voxels():
     pts, tris = rotated_object()
     bins, layout, tables = DirectionBins.make(step), RowLayout.make(n), RotationTables.make(n, step)
     arr = rotate_array(pts, tris, n, step, mapping="point")
-    centre, half, samples = prepare_geometry(pts, tris, n)
+    centre, half, samples = prepare_geometry(pts, tris, n, core=1.0)
     occ = reference_voxels(samples, centre, half, n, bins.frames[0], layout)
     assert arr.occupied == len(occ) > 100
     want = np.zeros_like(arr.words)
@@ -87,7 +87,7 @@ def test_rigid_object_rotated_by_alg5_is_bounded_by_its_direct_voxelization():
     sets; point sets no voxel farther than one voxel from Alg. 1's and misses a bounded share."""
     n, step = 32, 10.0
     pts, tris = rotated_object()
-    direct = build_array(pts, tris, n, step)
+    direct = build_array(pts, tris, n, step, core=1.0)      # V0's rule
     cons = rotate_array(pts, tris, n, step, mapping="conservative")
     point = rotate_array(pts, tris, n, step, mapping="point")
     total = bits(direct.words)

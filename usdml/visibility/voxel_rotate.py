@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from usdml.settings import VOXEL_MAPPINGS
-from usdml.visibility.voxel import (CORE, VoxelArray, _host_words, _wp, clear_words, prepare_geometry,
+from usdml.visibility.voxel import (PER_FRAME_CORE, VoxelArray, _host_words, _wp, clear_words, prepare_geometry,
                                     run_direction_chunks)
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 
@@ -113,8 +113,8 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
 
     ``out``: a Warp ``uint32`` array to fill in place from word ``base`` (the backend's assembled
     words, so a per-frame rebuild allocates and copies nothing); the returned array's ``words`` is
-    then a view of it on CPU (empty on a GPU). Default: a new array. ``bounds``, ``core``: as
-    :func:`usdml.visibility.voxel.build_array`.
+    then a view of it on CPU (empty on a GPU). Default: a new array. ``bounds``: as
+    :func:`usdml.visibility.voxel.build_array`; ``core``: ``V0``'s rule (default ``PER_FRAME_CORE``).
     """
     if mapping not in MAPPINGS:
         raise ValueError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
@@ -124,9 +124,10 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     bins = DirectionBins.make(step)
     layout = RowLayout.make(resolution)
     tables = RotationTables.make(resolution, step)
+    core = PER_FRAME_CORE if core is None else float(core)
     center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
     occupied = reference_voxels(samples, center, half, resolution, bins.frames[0], layout,
-                                CORE if core is None else float(core))
+                                core)
     sample_seconds = time.perf_counter() - t0
     dev = wp.get_device(device)
     n_dirs, wpd = bins.count, layout.words
