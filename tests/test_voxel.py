@@ -380,3 +380,18 @@ def test_cli_refuses_impossible_voxel_settings(lit_stage, tmp_path, capsys):
     assert "voxel resolution" in capsys.readouterr().err
     assert main(["render", lit_stage, out, "--visibility", "voxel", "--direction-step", "0"]) == 2
     assert "direction step" in capsys.readouterr().err
+
+
+def test_thin_voxelization_hides_fewer_lights_wrongly(small_city):
+    """CORE < 1 marks a voxel only where the surface crosses the central part of its row: occluders
+    do not grow by a voxel, so fewer rays are wrongly hidden, for more samples."""
+    snap, o, t, nrm, ref = small_city
+    hidden, samples = {}, {}
+    for core in (1.0, 0.5):
+        backend = VoxelBackend(resolution=32, step=10.0, core=core, cache=False, report=lambda line: None)
+        backend.update(snap)
+        got = backend.occluded(o, t, normals=nrm)
+        hidden[core] = (got & ~ref).mean()
+        samples[core] = backend.arrays[0].samples
+    assert hidden[0.5] < hidden[1.0], hidden
+    assert samples[0.5] > 2 * samples[1.0]
