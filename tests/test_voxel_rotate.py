@@ -311,3 +311,23 @@ def test_cli_renders_compares_and_benches_a_deforming_stage(deforming_stage, tmp
     with pytest.raises(SystemExit) as bad:
         main(["render", deforming_stage, str(out), "--visibility", "voxel", "--voxel-mapping", "nearest"])
     assert bad.value.code == 2
+
+
+def test_a_deforming_mesh_that_empties_and_comes_back():
+    ground = soup("/ground", box((-10, -0.5, -10), (10, 0, 10)), id=1)
+
+    def frame(t, tris):
+        return snapshot([ground, soup("/blob", tris, id=2, deforming=True)], time=t)
+
+    full = box((-2, 1, -2), (2, 3, 2))
+    frames = [frame(1.0, full), frame(2.0, np.zeros((0, 3, 3))), frame(3.0, full + 0.5)]
+    o, t, nrm = ground_queries(np.random.default_rng(6), 1500)
+    b = VoxelBackend(resolution=16, step=15.0, **QUIET)
+    previous = None
+    for snap in frames:
+        b.update(snap, diff(previous, snap))
+        previous = snap
+        fresh = VoxelBackend(resolution=16, step=15.0, **QUIET)
+        fresh.update(snap)
+        assert np.array_equal(b.occluded(o, t, normals=nrm), fresh.occluded(o, t, normals=nrm))
+    assert len(b.arrays) == 2
