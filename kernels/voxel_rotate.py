@@ -6,10 +6,10 @@ Inputs (built by ``usdml.visibility.voxel_rotate``)
 * ``occupied``: the occupied voxels ``(i, j, l)`` of the reference voxelization ``V0`` (direction bin
   0, voxelized from the geometry).
 * ``table[d, a, x]``: where step ``x`` along axis ``a`` of ``V0`` lands in direction ``d``'s grid, in
-  voxels as 16.16 fixed point (integer adds and shifts instead of float-to-int conversions:
-  measured 8.4 against 9.9 ns per voxel on one core): ``R_d[:, a] · (x + ½ - n/2)`` (axis 0 also carries the ``+ n/2`` that moves the origin to
+  voxels: ``R_d[:, a] · (x + ½ - n/2)`` (axis 0 also carries the ``+ n/2`` that moves the origin to
   the grid's corner), ``R_d = M_d M_0ᵀ``. A voxel centre's position in direction ``d`` is the sum
-  of three table entries.
+  of three table entries. They are 16.16 fixed point: integer adds and shifts instead of
+  float-to-int conversions (measured 8.4 against 9.9 ns per voxel on one core).
 * ``inv_axes[d]`` (``R_dᵀ``), ``reach[d]`` (half extent of a rotated voxel on each grid axis,
   ``½ Σ_m |R_d[k, m]|``) and ``radius[d]`` (half extent of a grid voxel on each rotated axis
   ``m``, ``½ Σ_k |R_d[k, m]|``): the conservative mapping's constants.
@@ -62,7 +62,7 @@ def map_voxels(occupied: wp.array(dtype=wp.int32), v0: int, v1: int, table: wp.a
     if conservative == 0:
         for v in range(v0, v1):
             o = occupied[v]
-            p = table[t0 + (o >> 22)] + table[t1 + ((o >> 11) & 2047)] + table[t2 + (o & 2047)]
+            p = table[t0 + (o >> 20)] + table[t1 + ((o >> 10) & 1023)] + table[t2 + (o & 1023)]
             set_voxel(out, dir_base, n, p[0] >> FIX, p[1] >> FIX, p[2] >> FIX, rows, mode)
     else:
         e = reach[d]
@@ -70,7 +70,7 @@ def map_voxels(occupied: wp.array(dtype=wp.int32), v0: int, v1: int, table: wp.a
         m = inv_axes[d]
         for v in range(v0, v1):
             o = occupied[v]
-            qi = table[t0 + (o >> 22)] + table[t1 + ((o >> 11) & 2047)] + table[t2 + (o & 2047)]
+            qi = table[t0 + (o >> 20)] + table[t1 + ((o >> 10) & 1023)] + table[t2 + (o & 1023)]
             q = wp.vec3(float(qi[0]), float(qi[1]), float(qi[2])) * INV_FIX
             a0 = int(wp.floor(q[0] - e[0]))
             a1 = int(wp.floor(q[0] + e[0]))
@@ -95,7 +95,7 @@ def rotate_voxels(occupied: wp.array(dtype=wp.int32), table: wp.array(dtype=wp.v
                   out: wp.array(dtype=wp.uint32)):
     """Fill direction ``dir0 + i`` from the occupied voxels ``c * chunk …`` (Alg. 5, line 7).
 
-    ``occupied[v]`` packs ``(i, j, l)`` as ``i << 22 | j << 11 | l``; ``table[(d * 3 + a) * n + x]``
+    ``occupied[v]`` packs ``(i, j, l)`` as ``i << 20 | j << 10 | l`` (resolution <= 1024); ``table[(d * 3 + a) * n + x]``
     is the fixed-point (16 fraction bits) table entry (module doc). Launched with ``dim =
     (directions, ceil(voxels / chunk))``. On CPU one chunk holds every voxel: a thread owns its
     direction, clears it first (``clear``) and sets bits without atomics while the direction stays

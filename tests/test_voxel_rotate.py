@@ -331,3 +331,14 @@ def test_a_deforming_mesh_that_empties_and_comes_back():
         fresh.update(snap)
         assert np.array_equal(b.occluded(o, t, normals=nrm), fresh.occluded(o, t, normals=nrm))
     assert len(b.arrays) == 2
+
+
+def test_voxel_packing_round_trips_up_to_the_largest_resolution():
+    from usdml.visibility.voxel_rotate import MAX_RESOLUTION, pack_voxels
+
+    ijl = np.array([[0, 0, 0], [MAX_RESOLUTION - 1] * 3, [5, MAX_RESOLUTION - 1, 7]])
+    packed = pack_voxels(ijl).astype(np.int64)
+    assert (packed >= 0).all()
+    assert np.array_equal(np.stack([packed >> 20, (packed >> 10) & 1023, packed & 1023], 1), ijl)
+    with pytest.raises(UsdmlError, match="voxel-rebuild geometry"):
+        VoxelBackend(resolution=MAX_RESOLUTION * 2, **QUIET)

@@ -118,6 +118,8 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     """
     if mapping not in MAPPINGS:
         raise ValueError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
+    if resolution > MAX_RESOLUTION:
+        raise ValueError(f"Alg. 5 rotates voxelizations of up to {MAX_RESOLUTION}^3, got {resolution}^3")
     wp = _wp()
     kr = _rotate_kernels()
     t0 = time.perf_counter()
@@ -160,10 +162,14 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     return arr
 
 
+#: largest resolution Alg. 5 packs (10 bits per voxel index, see pack_voxels)
+MAX_RESOLUTION = 1024
+
+
 def pack_voxels(ijl: np.ndarray) -> np.ndarray:
-    """``(i, j, l)`` packed as the kernel reads them: ``i << 22 | j << 11 | l`` (resolution <= 2048)."""
+    """``(i, j, l)`` packed as the kernel reads them: ``i << 20 | j << 10 | l`` (indices < 1024)."""
     ijl = np.asarray(ijl, np.int64).reshape(-1, 3)
-    return ((ijl[:, 0] << 22) | (ijl[:, 1] << 11) | ijl[:, 2]).astype(np.int32)
+    return ((ijl[:, 0] << 20) | (ijl[:, 1] << 10) | ijl[:, 2]).astype(np.int32)
 
 
 _DEVICE_TABLES: dict = {}
