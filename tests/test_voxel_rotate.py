@@ -340,5 +340,6 @@ def test_voxel_packing_round_trips_up_to_the_largest_resolution():
     packed = pack_voxels(ijl).astype(np.int64)
     assert (packed >= 0).all()
     assert np.array_equal(np.stack([packed >> 20, (packed >> 10) & 1023, packed & 1023], 1), ijl)
+    blob = snapshot([soup("/blob", box((0, 0, 0), (1, 1, 1)), deforming=True)])
     with pytest.raises(UsdmlError, match="voxel-rebuild geometry"):
-        VoxelBackend(resolution=MAX_RESOLUTION * 2, **QUIET)
+        VoxelBackend(resolution=MAX_RESOLUTION * 2, **QUIET).update(blob)

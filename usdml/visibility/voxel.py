@@ -399,12 +399,9 @@ class VoxelBackend(VisibilityBackend):
             raise UsdmlError(f"voxel segment must divide 32, got {segment}")
         if rebuild not in REBUILDS:
             raise UsdmlError(f"voxel rebuild must be one of {', '.join(REBUILDS)}, got {rebuild!r}")
-        from usdml.visibility.voxel_rotate import MAPPINGS, MAX_RESOLUTION
+        from usdml.visibility.voxel_rotate import MAPPINGS
         if mapping not in MAPPINGS:
             raise UsdmlError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
-        if rebuild == "rotate" and self.resolution > MAX_RESOLUTION:
-            raise UsdmlError(f"--voxel-rebuild rotate (Alg. 5) handles up to {MAX_RESOLUTION}^3 voxels, got "
-                             f"{self.resolution}^3; lower --voxel-resolution or use --voxel-rebuild geometry")
         self.rebuild, self.mapping, self.fully_dynamic = rebuild, mapping, bool(fully_dynamic)
         self.device = device
         self.core = CORE if core is None else float(core)
@@ -522,6 +519,11 @@ class VoxelBackend(VisibilityBackend):
         roles = dict(plan)
         static = roles.get("static")
         per_frame = roles.get("deforming", roles.get("dynamic"))
+        if per_frame is not None and self.rebuild == "rotate":
+            from usdml.visibility.voxel_rotate import MAX_RESOLUTION
+            if self.resolution > MAX_RESOLUTION:
+                raise UsdmlError(f"--voxel-rebuild rotate (Alg. 5) handles up to {MAX_RESOLUTION}^3 voxels, got "
+                                 f"{self.resolution}^3; lower --voxel-resolution or use --voxel-rebuild geometry")
         moving = [] if self.fully_dynamic else \
             [p for p in snapshot.prototypes if p.animated and not p.deforming and p.triangle_count]
         self.built = []
