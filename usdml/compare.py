@@ -93,7 +93,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     """
     from dataclasses import replace
 
-    from usdml.bench import query_set
+    from usdml.lighting.direct import facing_pairs
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
@@ -119,35 +119,43 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         build = _time.perf_counter() - t0
         gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
         hit = gb.hit.ravel()
-        origin, target, normal, distant, pixel = query_set(snap, gb)
-        args = (origin, target)
-        kw = dict(normals=normal, distant=distant.astype(bool))
-        t0 = _time.perf_counter()
-        ref = exact.occluded(*args, **kw)
-        ref_s = _time.perf_counter() - t0
-        t0 = _time.perf_counter()
-        got = approx.occluded(*args, **kw)
-        got_s = _time.perf_counter() - t0
-        near = np.zeros(len(got), bool)
-        if hasattr(approx, "hit_distances"):
-            dist = approx.hit_distances(*args, **kw)
-            near = (dist >= 0) & (dist < NEAR_VOXELS)
+        n_px = int(hit.sum())
+        # block by block (memory stays bounded on 10^8 pairs): per-pixel counts of facing, blocked,
+        # wrongly hidden (near / far) and wrongly visible pairs, and each backend's query seconds
+        counts = {k: np.zeros(n_px, np.int64) for k in ("facing", "blocked", "hidden", "visible")}
+        hidden_near = 0
+        ref_s = got_s = 0.0
+        for origin, target, normal, distant, pixel in facing_pairs(
+                gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights):
+            args = (origin, target)
+            kw = dict(normals=normal, distant=distant.astype(bool))
+            t0 = _time.perf_counter()
+            ref = exact.occluded(*args, **kw)
+            ref_s += _time.perf_counter() - t0
+            t0 = _time.perf_counter()
+            got = approx.occluded(*args, **kw)
+            got_s += _time.perf_counter() - t0
+            if hasattr(approx, "hit_distances") and (got & ~ref).any():
+                dist = approx.hit_distances(*args, **kw)
+                hidden_near += int((got & ~ref & (dist >= 0) & (dist < NEAR_VOXELS)).sum())
+            for key, sel in (("facing", slice(None)), ("blocked", ref), ("hidden", got & ~ref),
+                             ("visible", ~got & ref)):
+                counts[key] += np.bincount(pixel[sel].astype(np.int64), minlength=n_px)
     finally:
         exact.close()
         approx.close()
-    n_px, n_l = int(hit.sum()), len(snap.lights)
-    pix = pixel.astype(np.int64)
-    wrong_hidden = np.bincount(pix[got & ~ref], minlength=n_px)
-    wrong_visible = np.bincount(pix[~got & ref], minlength=n_px)
+    n_l = len(snap.lights)
+    wrong_hidden, wrong_visible = counts["hidden"], counts["visible"]
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
     eps_s = np.abs(wrong_hidden - wrong_visible) / max(n_l, 1)
+    n_queries = int(counts["facing"].sum())
     if heatmap:
         import OpenImageIO as oiio
 
         signed = np.zeros(width * height)
         signed[hit] = (wrong_hidden - wrong_visible) / max(n_l, 1)
         shadow = np.zeros(width * height)
-        shadow[hit] = np.bincount(pix[ref], minlength=n_px) / np.maximum(np.bincount(pix, minlength=n_px), 1)
+        shadow[hit] = counts["blocked"] / np.maximum(counts["facing"], 1)
         img = error_heatmap(signed.reshape(height, width), shadow.reshape(height, width), gb.hit)
         out = oiio.ImageOutput.create(heatmap)
         if out is None:
@@ -155,14 +163,14 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         out.open(heatmap, oiio.ImageSpec(width, height, 3, "uint8"))
         out.write_image(img)
         out.close()
-    nq = max(len(got), 1)
+    nq = max(n_queries, 1)
     result = {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": n_px, "lights": n_l,
-        "queries": int(len(got)), "visibility": backend, "against": against,
+        "queries": n_queries, "visibility": backend, "against": against,
         "eps_v": float(eps_v.mean()) if n_px else 0.0, "eps_s": float(eps_s.mean()) if n_px else 0.0,
-        "wrongly_hidden": float((got & ~ref).sum() / nq), "wrongly_visible": float((~got & ref).sum() / nq),
-        "wrongly_hidden_near": float((got & ~ref & near).sum() / nq),
-        "wrongly_hidden_far": float((got & ~ref & ~near).sum() / nq),
+        "wrongly_hidden": float(wrong_hidden.sum() / nq), "wrongly_visible": float(wrong_visible.sum() / nq),
+        "wrongly_hidden_near": float(hidden_near / nq),
+        "wrongly_hidden_far": float((wrong_hidden.sum() - hidden_near) / nq),
         "near_voxels": NEAR_VOXELS,
         "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
         "build_seconds": build, "heatmap": heatmap,
