@@ -50,12 +50,9 @@ class DirectionBins:
     frames: np.ndarray = field(repr=False)          #: (B, 3, 3) float32 rows u, v, w of each bin
 
     @staticmethod
+    @lru_cache(maxsize=8)
     def make(step: float) -> "DirectionBins":
         """The bins at ``step`` degrees (made once per step: per-frame rebuilds ask for them)."""
-        return _bins(float(step))
-
-    @staticmethod
-    def _make(step: float) -> "DirectionBins":
         if not (0.1 <= step <= 90.0):
             raise ValueError(f"direction step must be in [0.1, 90] degrees, got {step}")
         n_gaps = math.ceil(90.0 / step - 1e-9)
@@ -98,11 +95,6 @@ class DirectionBins:
         return self.ring_start[ring] + col
 
 
-@lru_cache(maxsize=8)
-def _bins(step: float) -> DirectionBins:
-    return DirectionBins._make(step)
-
-
 def _frame(w: np.ndarray) -> np.ndarray:
     """Rows ``u, v, w`` of an orthonormal frame with third axis ``w``."""
     w = w / np.linalg.norm(w)
@@ -142,12 +134,9 @@ class RowLayout:
     words: int                                  #: packed words per direction
 
     @staticmethod
+    @lru_cache(maxsize=8)
     def make(n: int) -> "RowLayout":
         """The layout at resolution ``n`` (made once per resolution)."""
-        return _layout(int(n))
-
-    @staticmethod
-    def _make(n: int) -> "RowLayout":
         if not (4 <= n <= 2048):
             raise ValueError(f"voxel resolution must be in [4, 2048], got {n}")
         wpr = (n + 31) // 32
@@ -170,11 +159,6 @@ class RowLayout:
     def fill(self) -> float:
         """Stored words over dense words."""
         return self.words / (self.n * self.n * self.words_per_row)
-
-
-@lru_cache(maxsize=8)
-def _layout(n: int) -> RowLayout:
-    return RowLayout._make(n)
 
 
 def array_bytes(resolution: int, step: float) -> int:

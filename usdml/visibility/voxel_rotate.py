@@ -54,8 +54,19 @@ class RotationTables:
     radius: np.ndarray = field(repr=False)      #: (B, 3) float32 half extent of a grid voxel per rotated axis
 
     @staticmethod
+    @lru_cache(maxsize=4)
     def make(n: int, step: float) -> "RotationTables":
-        return _tables(int(n), float(step))
+        """The tables for ``n``³ grids at ``step`` degrees (made once per resolution and step)."""
+        frames = DirectionBins.make(step).frames.astype(np.float64)
+        rot = frames @ frames[0].T                                  # (B, 3, 3)
+        x = np.arange(n, dtype=np.float64) + 0.5 - 0.5 * n          # voxel centres, cube-centred
+        table = rot.transpose(0, 2, 1)[:, :, None, :] * x[None, None, :, None]     # (B, axis, n, 3)
+        table[:, 0, :, :] += 0.5 * n
+        reach = 0.5 * np.abs(rot).sum(axis=2)
+        radius = 0.5 * np.abs(rot).sum(axis=1)
+        return RotationTables(int(n), float(step), rot, np.round(table * (1 << FIX_BITS)).astype(np.int32),
+                              rot.transpose(0, 2, 1).astype(np.float32), reach.astype(np.float32),
+                              radius.astype(np.float32))
 
     @property
     def nbytes(self) -> int:
@@ -68,18 +79,6 @@ class RotationTables:
         t = self.table[d].astype(np.int64)
         return (t[0, ijl[:, 0]] + t[1, ijl[:, 1]] + t[2, ijl[:, 2]]) / float(1 << FIX_BITS)
 
-
-@lru_cache(maxsize=4)
-def _tables(n: int, step: float) -> RotationTables:
-    frames = DirectionBins.make(step).frames.astype(np.float64)
-    rot = frames @ frames[0].T                                  # (B, 3, 3)
-    x = np.arange(n, dtype=np.float64) + 0.5 - 0.5 * n          # voxel centres, cube-centred
-    table = rot.transpose(0, 2, 1)[:, :, None, :] * x[None, None, :, None]     # (B, axis, n, 3)
-    table[:, 0, :, :] += 0.5 * n
-    reach = 0.5 * np.abs(rot).sum(axis=2)
-    radius = 0.5 * np.abs(rot).sum(axis=1)
-    return RotationTables(n, step, rot, np.round(table * (1 << FIX_BITS)).astype(np.int32), rot.transpose(0, 2, 1).astype(np.float32),
-                          reach.astype(np.float32), radius.astype(np.float32))
 
 
 def reference_voxels(samples: np.ndarray, center: np.ndarray, half: float, n: int, frame: np.ndarray,
