@@ -18,23 +18,41 @@ def direction_count(step_deg: float) -> int:
     return DirectionBins.make(step_deg).count
 
 
-def plan_arrays(snap: Snapshot, settings: UsdmlSettings) -> list[tuple[str, str]]:
-    """The arrays the voxel backend would hold for ``snap``: ``(role, source)`` pairs.
+def array_roles(snap: Snapshot, fully_dynamic: bool) -> list[tuple[str, tuple]]:
+    """The arrays the voxel backend holds for ``snap``: ``(role, members)``, members ``("mesh" |
+    "proto", path)``; role ``static`` (static meshes and instances that never move, baked in world
+    space), ``prototype <path>`` (one per prototype whose instances move, shared by all of them,
+    paper 000 Alg. 4), ``deforming`` (rebuilt per frame, Alg. 5) -- or, ``fully_dynamic``, just
+    ``dynamic`` (every mesh and prototype, rebuilt per frame)."""
+    from usdml.visibility.base import static_members
 
-    One for the static part (static meshes and instances that never move, baked in world space),
-    one per prototype whose instances move (shared by all its instances, paper 000 Alg. 4), and one
-    rebuilt per frame for deforming geometry (Alg. 5) -- or a single per-frame array when the
-    scene is marked fully dynamic.
-    """
-    if settings.fully_dynamic:
-        return [("dynamic", "whole scene, rebuilt per frame")]
-    plan = []
-    if snap.static_meshes or any(not p.animated and not p.deforming for p in snap.prototypes):
-        plan.append(("static", "static meshes and unmoving instances"))
-    plan += [("prototype", p.name) for p in snap.prototypes if p.animated and not p.deforming]
-    if snap.deforming_meshes or any(p.deforming for p in snap.prototypes):
-        plan.append(("deforming", "deforming meshes, rebuilt per frame"))
-    return plan
+    if fully_dynamic:
+        everything = tuple([("mesh", m.path) for m in snap.meshes]
+                           + [("proto", p.path) for p in snap.prototypes if p.triangle_count])
+        return [("dynamic", everything)] if everything else []
+    static = static_members(snap)
+    deforming = tuple([("mesh", m.path) for m in snap.meshes if m.deforming]
+                      + [("proto", p.path) for p in snap.prototypes if p.deforming])
+    out = [("static", static)] if static else []
+    out += [(f"prototype {p.path}", (("proto", p.path),)) for p in snap.prototypes
+            if p.animated and not p.deforming and p.triangle_count]
+    if deforming:
+        out.append(("deforming", deforming))
+    return out
+
+
+_SOURCES = {"static": "static meshes and unmoving instances", "deforming": "deforming meshes, rebuilt per frame",
+            "dynamic": "whole scene, rebuilt per frame"}
+
+
+def plan_arrays(snap: Snapshot, settings: UsdmlSettings) -> list[tuple[str, str]]:
+    """:func:`array_roles` at ``settings``, as ``(role, what it holds)`` pairs for ``usdml info``."""
+    names = {p.path: p.name for p in snap.prototypes}
+    out = []
+    for role, _ in array_roles(snap, settings.fully_dynamic):
+        kind, _, path = role.partition(" ")
+        out.append((kind, names[path] if path else _SOURCES[kind]))
+    return out
 
 
 def human_bytes(n: float) -> str:

@@ -49,7 +49,7 @@ from usdml.cache import Cache, CacheCorrupt, cache_key
 from usdml.errors import UsdmlError
 from usdml.scene import Changes, Lights, Snapshot, content_hash
 from usdml.settings import VOXEL_REBUILDS
-from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed, static_members
+from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, core_bounds, surface_samples
 
 log = logging.getLogger("usdml")
@@ -474,24 +474,10 @@ class VoxelBackend(VisibilityBackend):
         return arr
 
     def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
-        """The arrays ``snapshot`` needs: ``(role, members)``, role ``static``, ``prototype <path>``,
-        ``deforming`` (rebuilt per frame), or with ``fully_dynamic`` just ``dynamic`` (every mesh and
-        prototype, rebuilt per frame)."""
-        if self.fully_dynamic:
-            everything = tuple([("mesh", m.path) for m in snapshot.meshes]
-                               + [("proto", p.path) for p in snapshot.prototypes if p.triangle_count])
-            return [("dynamic", everything)] if everything else []
-        static = static_members(snapshot)
-        deforming = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
-                          + [("proto", p.path) for p in snapshot.prototypes if p.deforming])
-        out = []
-        if static:
-            out.append(("static", static))
-        out += [(f"prototype {p.path}", (("proto", p.path),)) for p in snapshot.prototypes
-                if p.animated and not p.deforming and p.triangle_count]
-        if deforming:
-            out.append(("deforming", deforming))
-        return out
+        """The arrays ``snapshot`` needs (:func:`usdml.voxel_budget.array_roles`)."""
+        from usdml.voxel_budget import array_roles
+
+        return array_roles(snapshot, self.fully_dynamic)
 
     def check_memory(self, count: int, quiet: bool = False) -> int:
         """Say what ``count`` arrays cost and refuse (``UsdmlError``) when they would not fit;
