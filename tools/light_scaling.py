@@ -25,6 +25,8 @@ import time
 
 
 def main(argv: list[str] | None = None) -> int:
+    from usdml.settings import VOXEL_MAPPINGS, VOXEL_REBUILDS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("stage")
     p.add_argument("--lights", default="512,1024,2048,4096,10000", help="comma-separated light counts")
@@ -33,8 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backends", default="voxel,exact")
     p.add_argument("--voxel-resolution", type=int)
     p.add_argument("--direction-step", type=float)
-    p.add_argument("--voxel-mapping", choices=["point", "conservative"])
-    p.add_argument("--voxel-rebuild", choices=["rotate", "geometry"])
+    p.add_argument("--voxel-mapping", choices=VOXEL_MAPPINGS)
+    p.add_argument("--voxel-rebuild", choices=VOXEL_REBUILDS)
     p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")

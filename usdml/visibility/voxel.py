@@ -473,6 +473,11 @@ class VoxelBackend(VisibilityBackend):
             self.stats["build_seconds"] += arr.build_seconds
         return arr
 
+    @property
+    def _frame_source(self) -> str:
+        """What the per-frame array holds, for messages and ``built``."""
+        return "dynamic scene" if self.fully_dynamic else "deforming geometry"
+
     def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
         """The arrays ``snapshot`` needs (:func:`usdml.voxel_budget.array_roles`)."""
         from usdml.voxel_budget import array_roles
@@ -538,7 +543,7 @@ class VoxelBackend(VisibilityBackend):
                 pts, tris = p.merged()
                 self._protos[h] = self._array(pts, tris, f"prototype {p.name}")
         self._protos = {h: a for h, a in self._protos.items() if h in set(proto_hashes.values())}
-        source = "dynamic scene" if self.fully_dynamic else "deforming geometry"
+        source = self._frame_source
         in_place = False
         if per_frame is None:
             self._deforming = None
@@ -563,7 +568,7 @@ class VoxelBackend(VisibilityBackend):
         if self._deforming is None or self._deforming.array is None or "frame_slot" not in self._gpu:
             return {}
         pts, tris = _world_geometry(snapshot, self._deforming.members)
-        source = "dynamic scene" if self.fully_dynamic else "deforming geometry"
+        source = self._frame_source
         seconds = {}
         keep = self.rebuild
         try:
