@@ -2,7 +2,8 @@
 
 Paper 004 §3.2 (gather every grid light whose blending function is non-zero at the pixel) and §3.3 /
 Appendix A (pick k shadow samples while accumulating: light i replaces sample s with probability
-f_i / F_i, F_i the running sum of f). Pure compute: arrays in, arrays out.
+f_i / F_i, F_i the running sum of f). Optionally the input lights themselves are the finest level S0
+(§4.1: the paper starts from S1; S0 is exact in the near field). Pure compute: arrays in, arrays out.
 """
 
 import warp as wp
@@ -30,6 +31,62 @@ def blend(level: int, top: int, d: float, r: float) -> float:
     return w
 
 
+@wp.func
+def light_term(p: wp.vec3, n: wp.vec3, q: wp.vec3, intensity: wp.vec3, level: int, top: int, r: float,
+               inv_m2: float, clamp_d2: float, scale: float) -> wp.vec3:
+    """Irradiance at ``p`` (normal ``n``) from an isotropic light at ``q``: B_level(d) · I · cos / max(d², d_c²)."""
+    w = q - p
+    d2 = wp.dot(w, w)
+    d = wp.sqrt(d2)
+    if d <= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    b = blend(level, top, d, r)
+    cos_s = wp.dot(n, w) / d
+    if b <= 0.0 or cos_s <= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    return intensity * (b * cos_s * inv_m2 / wp.max(d2, clamp_d2) * scale)
+
+
+@wp.func
+def pick(rng: wp.uint32, e: wp.vec3, f: float, total: float, samples: int, tid: int, q: wp.vec3, sd: float,
+         v: int, out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
+         out_sample_light: wp.array2d(dtype=int), out_sample_weight: wp.array2d(dtype=wp.vec3)) -> wp.uint32:
+    """Appendix A: each of the k samples keeps its light or takes light ``v`` with probability p = f / F.
+
+    The k independent coin flips are drawn as geometric gaps between the samples that take the light
+    (the same distribution, one random number per light in the common case instead of k), so many
+    samples per pixel cost little more lighting time than a few. The chosen light's RGB irradiance
+    over its luminance, ``e / f``, is kept with it: F · mean(V · e / f) over the samples estimates
+    the shadowed irradiance per colour channel.
+    """
+    state = rng
+    p = f / total
+    lq = float(0.0)                   # log(1 - p), accurate for tiny p
+    if p < 1.0e-4:
+        lq = -p * (1.0 + 0.5 * p)
+    elif p < 1.0:
+        lq = wp.log(1.0 - p)
+    s = int(-1)
+    while s < samples:
+        if p >= 1.0:
+            s = s + 1
+        else:
+            gap = wp.log(wp.max(wp.randf(state), 1.0e-30)) / lq     # failures before the next success
+            if gap >= float(samples - s - 1):
+                break
+            s = s + 1 + int(gap)
+        if s >= samples:
+            break
+        jitter = wp.vec3(0.0, 0.0, 0.0)
+        if sd > 0.0:
+            jitter = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state)) * sd
+        out_sample_pos[tid, s] = q + jitter
+        out_sample_ok[tid, s] = 1
+        out_sample_light[tid, s] = v
+        out_sample_weight[tid, s] = e / f
+    return state
+
+
 @wp.kernel
 def lgh_gather(
     points: wp.array(dtype=wp.vec3),          # (P,) surface points, scene units
@@ -43,6 +100,12 @@ def lgh_gather(
     light_int: wp.array(dtype=wp.vec3),       # (M,) RGB isotropic intensity (nit·m²)
     light_std: wp.array(dtype=float),         # (M,) per-axis positional std. dev. for jittered samples
     n_levels: int,
+    s0: int,                                  # 1: the input lights are level S0 (below S1), 0: start from S1
+    s0_cells: wp.vec3i,                       # S0 lookup grid: cells per axis (the S1 cells of the first level)
+    s0_start: wp.array(dtype=int),            # (cells + 1,) first entry of each cell in s0_light
+    s0_light: wp.array(dtype=int),            # input light indices sorted by cell
+    s0_pos: wp.array(dtype=wp.vec3),          # (N,) input light positions
+    s0_int: wp.array(dtype=wp.vec3),          # (N,) input light intensities
     alpha: float,
     inv_m2: float,                            # 1 / metersPerUnit²: falloff in metres
     clamp_d2: float,                          # clamped geometry term: d² >= clamp_d2 (scene units²)
@@ -54,7 +117,8 @@ def lgh_gather(
     out_irradiance: wp.array(dtype=wp.vec3),  # (P,) unshadowed irradiance
     out_sample_pos: wp.array2d(dtype=wp.vec3),  # (P, k) chosen shadow-sample positions
     out_sample_ok: wp.array2d(dtype=int),     # (P, k) 1 when a sample was chosen
-    out_sample_light: wp.array2d(dtype=int),  # (P, k) index of the grid light chosen
+    out_sample_light: wp.array2d(dtype=int),  # (P, k) chosen light: grid light index, or M + input light index
+    out_sample_weight: wp.array2d(dtype=wp.vec3),  # (P, k) chosen light's RGB irradiance / its luminance
 ):
     tid = wp.tid()
     p = points[tid]
@@ -62,57 +126,65 @@ def lgh_gather(
     rng = wp.rand_init(seed, first + tid)   # a stream per point, whatever the launch blocking
     acc = wp.vec3(0.0, 0.0, 0.0)
     total = float(0.0)
-    top = n_levels - 1
+    scale = float(tiles)
+    top = n_levels - 1 + s0                 # blending index of the top level; S0, when used, is index 0
+    m = light_pos.shape[0]
+    if s0 == 1:
+        # S0: the input lights within 2 r_0 = alpha h_1 (h_0 = h_1 / 2), found through a grid of S1 cells
+        h1 = level_spacing[0]
+        r0 = alpha * 0.5 * h1
+        rel0 = (p - level_origin[0]) / h1
+        reach = int(wp.ceil(alpha))         # a light within alpha h_1 is at most ceil(alpha) cells away
+        ci = int(wp.floor(rel0[0]))
+        cj = int(wp.floor(rel0[1]))
+        ck = int(wp.floor(rel0[2]))
+        for i in range(wp.max(ci - reach, 0), wp.min(ci + reach, s0_cells[0] - 1) + 1):
+            for j in range(wp.max(cj - reach, 0), wp.min(cj + reach, s0_cells[1] - 1) + 1):
+                for k in range(wp.max(ck - reach, 0), wp.min(ck + reach, s0_cells[2] - 1) + 1):
+                    c = (i * s0_cells[1] + j) * s0_cells[2] + k
+                    for e_i in range(s0_start[c], s0_start[c + 1]):
+                        v = s0_light[e_i]
+                        if tiles > 1 and v % tiles != tile[tid]:
+                            continue
+                        q = s0_pos[v]
+                        e = light_term(p, n, q, s0_int[v], 0, top, r0, inv_m2, clamp_d2, scale)
+                        f = wp.dot(e, LUMA)
+                        if f <= 0.0:
+                            continue
+                        acc = acc + e
+                        total = total + f
+                        rng = pick(rng, e, f, total, samples, tid, q, 0.0, m + v,
+                                   out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight)
     for l in range(n_levels):
         h = level_spacing[l]
         r = alpha * h
         dims = level_dims[l]
         rel = (p - level_origin[l]) / h
-        reach = int(wp.ceil(2.0 * alpha)) + 1
-        i0 = wp.max(int(wp.floor(rel[0])) - reach, 0)
-        j0 = wp.max(int(wp.floor(rel[1])) - reach, 0)
-        k0 = wp.max(int(wp.floor(rel[2])) - reach, 0)
-        i1 = wp.min(int(wp.floor(rel[0])) + reach + 1, dims[0] - 1)
-        j1 = wp.min(int(wp.floor(rel[1])) + reach + 1, dims[1] - 1)
-        k1 = wp.min(int(wp.floor(rel[2])) + reach + 1, dims[2] - 1)
-        if l == top:              # the top level reaches every distance: visit all its vertices
-            i0 = 0
-            j0 = 0
-            k0 = 0
-            i1 = dims[0] - 1
-            j1 = dims[1] - 1
-            k1 = dims[2] - 1
+        # a grid light lies within sqrt(3) cells of its vertex (its centre averages lights from the 8 cells
+        # around it) and counts only within 2 r = 2 alpha h: visit the vertices in that sphere, not a cube
+        span = 2.0 * alpha + 1.7321
+        if l == n_levels - 1:     # the top level reaches every distance: visit all its vertices
+            span = 1.0e9
         base = level_offset[l]
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                for k in range(k0, k1 + 1):
+        for i in range(wp.max(int(wp.ceil(rel[0] - span)), 0), wp.min(int(wp.floor(rel[0] + span)), dims[0] - 1) + 1):
+            dx = float(i) - rel[0]
+            ry = wp.sqrt(wp.max(span * span - dx * dx, 0.0))
+            for j in range(wp.max(int(wp.ceil(rel[1] - ry)), 0), wp.min(int(wp.floor(rel[1] + ry)), dims[1] - 1) + 1):
+                dy = float(j) - rel[1]
+                rz = wp.sqrt(wp.max(span * span - dx * dx - dy * dy, 0.0))
+                for k in range(wp.max(int(wp.ceil(rel[2] - rz)), 0), wp.min(int(wp.floor(rel[2] + rz)), dims[2] - 1) + 1):
                     v = vertex_light[base + (i * dims[1] + j) * dims[2] + k]
                     if v < 0:
                         continue
                     if tiles > 1 and v % tiles != tile[tid]:
                         continue
                     q = light_pos[v]
-                    w = q - p
-                    d2 = wp.dot(w, w)
-                    d = wp.sqrt(d2)
-                    b = blend(l, top, d, r)
-                    if b <= 0.0 or d <= 0.0:
-                        continue
-                    cos_s = wp.dot(n, w) / d
-                    if cos_s <= 0.0:
-                        continue
-                    g = b * cos_s * inv_m2 / wp.max(d2, clamp_d2) * float(tiles)
-                    e = light_int[v] * g
-                    acc = acc + e
+                    e = light_term(p, n, q, light_int[v], l + s0, top, r, inv_m2, clamp_d2, scale)
                     f = wp.dot(e, LUMA)
                     if f <= 0.0:
                         continue
+                    acc = acc + e
                     total = total + f
-                    for s in range(samples):
-                        # Appendix A: keep the current sample or replace it with probability f / F
-                        if wp.randf(rng) * total < f:
-                            sd = light_std[v]
-                            out_sample_pos[tid, s] = q + wp.vec3(wp.randn(rng), wp.randn(rng), wp.randn(rng)) * sd
-                            out_sample_ok[tid, s] = 1
-                            out_sample_light[tid, s] = v
+                    rng = pick(rng, e, f, total, samples, tid, q, light_std[v], v,
+                               out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight)
     out_irradiance[tid] = acc

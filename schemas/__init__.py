@@ -54,7 +54,9 @@ ATTRIBUTES: tuple[Attribute, ...] = (
     Attribute("usdml:lgh:alpha", float, 1.0),                # r_l = alpha h_l, paper 004
     Attribute("usdml:lgh:levels", int, 0),                   # 0 = automatic, paper 004
     Attribute("usdml:lgh:interleave", int, 1),               # paper 004, interleaved sampling
+    Attribute("usdml:lgh:startLevel", int, 1),               # 1 = S1 (paper 004), 0 = S0
     Attribute("usdml:shadow:samples", int, 4),               # paper 004
+    Attribute("usdml:shadow:filterIterations", int, -1),     # à-trous iterations, -1 = by samples
     Attribute("usdml:seed", int, 0),
 )
 

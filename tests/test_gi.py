@@ -34,7 +34,8 @@ def cornell():
     return snap, ex, gb, pts, nrm, alb, vpls
 
 
-def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
+def _unshadowed_error(cornell):
+    """error(alpha, start_level): relative RMSE of unshadowed LGH lighting against every VPL."""
     snap, ex, gb, pts, nrm, alb, vpls = cornell
     lights = vpls.as_lights(isotropic=True)
     lgh = build_lgh(lights.position, lights.intensity)
@@ -42,14 +43,26 @@ def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
     reference = shade_direct(pts, nrm, alb, lights, None, meters_per_unit=snap.meters_per_unit,
                              min_distance=clamp).radiance.astype(np.float64)
 
-    def error(alpha):
+    def error(alpha, start=1):
         got = lgh_indirect(pts, nrm, alb, lgh, None, alpha=alpha, meters_per_unit=snap.meters_per_unit,
-                           clamp_distance=clamp).radiance
+                           clamp_distance=clamp, sources=(lights.position, lights.intensity),
+                           start_level=start).radiance
         return np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
 
+    return error
+
+
+def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
+    error = _unshadowed_error(cornell)
     errors = [error(a) for a in (0.5, 1.0, 2.0, 4.0)]
     assert errors[0] > errors[1] > errors[2] >= errors[3] * 0.9
     assert errors[-1] < 0.2
+
+
+def test_s0_start_brings_lgh_lighting_closer_to_brute_force(cornell):
+    error = _unshadowed_error(cornell)
+    assert error(2.0, 0) < 0.6 * error(2.0, 1)
+    assert error(4.0, 0) < 0.05
 
 
 def test_render_with_gi_writes_indirect_and_color_is_their_sum(tmp_path):
@@ -70,6 +83,30 @@ def test_compare_gi_json(capsys):
     assert {"rel_rmse", "seconds", "speedup", "vpls", "pixels"} <= set(out)
     assert out["vpls"] == 1000 and out["seconds"]["lgh"] > 0 and out["seconds"]["vpl-bruteforce"] > 0
     assert 0 < out["rel_rmse"] < 2
+    assert out["lgh_start_level"] == 1 and out["breakdown"]["lgh"]["filter_iterations"] == 3
+
+
+def test_compare_gi_with_s0_and_more_samples(capsys):
+    assert main(["compare", str(STAGES / "cornell.usda"), "--gi", "lgh", "--vpls", "1000", "--imageWidth", "32",
+                 "--lgh-start-level", "0", "--shadow-samples", "16", "--shadow-filter-iterations", "1",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["lgh_start_level"] == 0 and out["shadow_samples"] == 16
+    assert out["breakdown"]["lgh"]["filter_iterations"] == 1
+    assert 0 < out["rel_rmse"] < 2
+
+
+@pytest.mark.parametrize("flag,value", [("--lgh-start-level", "2"), ("--shadow-filter-iterations", "11")])
+def test_bad_gi_settings_are_one_line_errors(flag, value, capsys):
+    try:
+        code = main(["compare", str(STAGES / "cornell.usda"), "--gi", "lgh", "--vpls", "100", "--imageWidth", "16",
+                     flag, value])
+    except SystemExit as e:          # argparse's own refusal of a value outside the choices
+        code = e.code
+    assert code == 2
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert "error" in last and value in last and "Traceback" not in err
 
 
 def test_json_output_is_not_polluted_by_warp(tmp_path):

@@ -39,15 +39,16 @@ def _one_level(positions, intensities, spacing=100.0):
         variance=np.zeros(m, np.float32), vertex=np.arange(m))])
 
 
-def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution():
+@pytest.mark.parametrize("samples", [2, 16])
+def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samples):
     rng = np.random.default_rng(1)
     lights = np.array([[0, 5, 0], [3, 4, 1], [-2, 6, 2], [1, 2, -3], [4, 9, 0]], np.float32)
     inten = rng.uniform(0.2, 3.0, (5, 3)).astype(np.float32)
-    n = 20000
+    n = 40000 // samples
     points = np.zeros((n, 3), np.float32)
     normals = np.tile(np.float32([0, 1, 0]), (n, 1))
     lgh = _one_level(lights, inten)
-    out = lgh_lighting(points, normals, lgh, alpha=1.0, samples=2, seed=3, clamp_distance=1e-3)
+    out = lgh_lighting(points, normals, lgh, alpha=1.0, samples=samples, seed=3, clamp_distance=1e-3)
     # analytic contributions f_i = lum(I_i) cos / d²
     d2 = (lights ** 2).sum(1)
     f = (inten @ LUMA) * (lights[:, 1] / np.sqrt(d2)) / d2
@@ -61,7 +62,7 @@ def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution():
     chi2 = ((counts - exp) ** 2 / exp).sum()
     assert chi2 < 18.5            # chi-square, 4 degrees of freedom, p = 0.001
     # deterministic for a seed
-    again = lgh_lighting(points[:100], normals[:100], lgh, samples=2, seed=3, clamp_distance=1e-3)
+    again = lgh_lighting(points[:100], normals[:100], lgh, samples=samples, seed=3, clamp_distance=1e-3)
     assert np.array_equal(again.sample_pos, out.sample_pos[:100])
 
 
@@ -84,3 +85,119 @@ def test_interleaved_sampling_is_unbiased_over_a_tile():
     tiled = lgh_lighting(pts, nrm, lgh, samples=0, clamp_distance=1e-3, tile=np.arange(16), tiles=16).irradiance
     np.testing.assert_allclose(tiled.mean(0), full, rtol=1e-5)
     assert not np.allclose(tiled[0], full)
+
+
+def _random_lights(seed: int, lights: int, points: int):
+    """Lights in a 4 x 2 x 4 box over points on a floor facing up, and a 3-level LGH over the lights."""
+    from usdml.lighting.lgh import build_lgh
+
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform([-2, 1, -2], [2, 3, 2], (lights, 3)).astype(np.float32)
+    inten = rng.uniform(0.1, 1.0, (lights, 3)).astype(np.float32)
+    pts = rng.uniform([-2, 0, -2], [2, 0.5, 2], (points, 3)).astype(np.float32)
+    nrm = np.tile(np.float32([0, 1, 0]), (points, 1))
+    return pos, inten, build_lgh(pos, inten, levels=3), pts, nrm
+
+
+def test_s0_start_is_exact_when_every_light_is_in_its_reach():
+    """With S0 the input lights are the finest level: once r_0 = alpha h_1 / 2 covers every light, the
+    blending leaves all the weight on S0 and the LGH sum is the brute-force sum, light by light."""
+    lights, inten, lgh, pts, nrm = _random_lights(7, 300, 64)
+    clamp = 0.05
+    alpha = 2 * 20.0 / lgh.h1               # r_0 = 20: far beyond the 4 x 2 x 4 box
+    w = lights[None].astype(np.float64) - pts[:, None]
+    d2 = (w ** 2).sum(-1)
+    g = np.maximum(w[..., 1], 0) / np.sqrt(d2) / np.maximum(d2, clamp ** 2)
+    exact = (g[..., None] * inten[None]).sum(1)
+    s0 = lgh_lighting(pts, nrm, lgh, alpha=alpha, samples=0, clamp_distance=clamp, s0=(lights, inten)).irradiance
+    np.testing.assert_allclose(s0, exact, rtol=1e-4)
+    s1 = lgh_lighting(pts, nrm, lgh, alpha=1.0, samples=0, clamp_distance=clamp).irradiance
+    assert np.abs(s1 - exact).max() / exact.max() > 1e-2     # S1 alone is an approximation
+
+
+def test_s0_samples_point_at_the_input_lights():
+    """A shadow sample drawn on an S0 light carries index M + i and the light's own position."""
+    from usdml.lighting.lgh_lighting import ClusterSampler
+
+    lights, inten, lgh, pts, nrm = _random_lights(8, 200, 400)
+    out = lgh_lighting(pts, nrm, lgh, alpha=2.0, samples=4, clamp_distance=0.05, s0=(lights, inten))
+    grid = sum(len(lv.position) for lv in lgh.levels)
+    picked = out.sample_light[out.sample_ok]
+    own = picked >= grid
+    assert own.any() and (~own).any()
+    np.testing.assert_allclose(out.sample_pos[out.sample_ok][own], lights[picked[own] - grid])
+    sampler = ClusterSampler(lgh, lights, inten)
+    targets = sampler.targets(picked, out.sample_pos[out.sample_ok], seed=0)
+    np.testing.assert_allclose(targets[own], lights[picked[own] - grid])
+
+
+def test_shadowed_estimate_is_unbiased_per_colour_channel():
+    """A red light that is blocked and a green one that is not: the shadowed estimate F · mean(V e / f)
+    averages to the green light's irradiance alone; a luminance visibility fraction would tint it."""
+    from usdml.lighting.lgh_lighting import shadow_fraction
+
+    lights = np.array([[-1, 4, 0], [1, 4, 0]], np.float32)
+    inten = np.array([[4, 0, 0], [0, 1, 0]], np.float32)
+    n = 20000
+    pts = np.zeros((n, 3), np.float32)
+    nrm = np.tile(np.float32([0, 1, 0]), (n, 1))
+    shading = lgh_lighting(pts, nrm, _one_level(lights, inten), samples=4, seed=5, clamp_distance=1e-3)
+
+    def occluded(origins, targets, normals=None):
+        return np.asarray(targets)[:, 0] < 0          # the red light (x = -1) is behind a wall
+
+    visible, shadowed, rays = shadow_fraction(pts, nrm, shading, occluded)
+    assert rays == 4 * n
+    g = 4 / 17 ** 1.5                                   # cos / d² for both lights
+    np.testing.assert_allclose(shadowed.mean(0), [0, g, 0], atol=0.015 * g)   # ~4 sigma over 80k samples
+    assert shadowed[:, 0].max() == 0
+
+
+def test_filter_iterations_follow_the_samples():
+    from usdml.lighting.lgh_lighting import filter_iterations_for
+
+    assert [filter_iterations_for(k) for k in (1, 4, 8, 16, 32, 64, 1024)] == [4, 3, 3, 2, 2, 1, 1]
+
+
+def _blend_np(level, top, d, r):
+    """NumPy copy of kernels.lgh_lighting.blend."""
+    if level == top and level == 0:
+        return np.ones_like(d)
+    w = np.ones_like(d)
+    if level > 0:
+        x = np.clip((d - 0.5 * r) / (0.5 * r), 0, 1)
+        w = x * x * (3 - 2 * x)
+    if level < top:
+        y = np.clip((d - r) / r, 0, 1)
+        w = w * (1 - y * y * (3 - 2 * y))
+    return w
+
+
+@pytest.mark.parametrize("alpha,start", [(1.0, 1), (2.0, 1), (1.5, 0)])
+def test_gather_visits_every_grid_light_that_counts(alpha, start):
+    """The kernel visits only the vertices near a point; the sum must equal the blended sum over every
+    grid light of every level (and every input light as S0), computed without any window."""
+    from usdml.lighting.lgh import build_lgh
+
+    rng = np.random.default_rng(11)
+    lights = rng.uniform([-3, 0, -3], [3, 2, 3], (2000, 3)).astype(np.float32)
+    inten = rng.uniform(0.1, 1.0, (2000, 3)).astype(np.float32)
+    lgh = build_lgh(lights, inten, levels=4)
+    pts = rng.uniform([-3.5, -0.5, -3.5], [3.5, 2.5, 3.5], (300, 3)).astype(np.float32)
+    nrm = rng.normal(size=(300, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    clamp = 0.05
+    s0 = (lights, inten) if start == 0 else None
+    got = lgh_lighting(pts, nrm, lgh, alpha=alpha, samples=0, clamp_distance=clamp, s0=s0).irradiance
+    layers = ([(lights, inten, 0.5 * lgh.h1)] if start == 0 else []) + \
+        [(lv.position, lv.intensity, lv.spacing) for lv in lgh.levels]
+    top = len(layers) - 1
+    want = np.zeros((300, 3))
+    for index, (pos, inte, h) in enumerate(layers):
+        w = pos[None].astype(np.float64) - pts[:, None]
+        d2 = (w ** 2).sum(-1)
+        d = np.sqrt(d2)
+        cos = np.maximum((w * nrm[:, None]).sum(-1) / d, 0)
+        g = _blend_np(index, top, d, alpha * h) * cos / np.maximum(d2, clamp ** 2)
+        want += (g[..., None] * inte[None]).sum(1)
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-6 * want.max())

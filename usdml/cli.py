@@ -55,6 +55,7 @@ def _settings_overrides(args: argparse.Namespace) -> dict:
               "dome_samples": a("dome_samples"), "gi": a("gi"), "vpl_count": a("vpls"),
               "lgh_alpha": a("lgh_alpha"), "lgh_levels": a("lgh_levels"),
               "shadow_samples": a("shadow_samples"), "interleave": a("interleave"),
+              "lgh_start_level": a("lgh_start_level"), "shadow_filter_iterations": a("shadow_filter_iterations"),
               "voxel_resolution": getattr(args, "voxel_resolution", None),
               "direction_step": getattr(args, "direction_step", None),
               "voxel_rebuild": a("voxel_rebuild"), "voxel_mapping": a("voxel_mapping"),
@@ -72,7 +73,12 @@ def _add_lighting_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vpls", type=int, metavar="N", help="virtual point lights per frame (default 100000)")
     p.add_argument("--lgh-alpha", type=float, help="LGH blending radius factor alpha (default 1)")
     p.add_argument("--lgh-levels", type=int, help="LGH levels (default 0 = the paper's rule)")
+    p.add_argument("--lgh-start-level", type=int, choices=[0, 1],
+                   help="finest LGH level lit from: 1 = S1 as the paper (default), 0 = the VPLs themselves (S0)")
     p.add_argument("--shadow-samples", type=int, help="stochastic shadow samples per pixel (default 4)")
+    p.add_argument("--shadow-filter-iterations", type=int, metavar="N",
+                   help="a-trous iterations over the stochastic shadows (0 = unfiltered; default: 3 at 4 "
+                        "samples per pixel, one fewer per 4x more samples, at least 1)")
     p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
 
 

@@ -22,7 +22,9 @@ SCHEMA_ATTRIBUTES = {
     "usdml:lgh:alpha": "lgh_alpha",
     "usdml:lgh:levels": "lgh_levels",
     "usdml:lgh:interleave": "interleave",
+    "usdml:lgh:startLevel": "lgh_start_level",
     "usdml:shadow:samples": "shadow_samples",
+    "usdml:shadow:filterIterations": "shadow_filter_iterations",
     "usdml:seed": "seed",
 }
 
@@ -45,8 +47,10 @@ class UsdmlSettings:
     vpl_bounces: int = 3            #: diffuse bounces of the VPL light paths (paper 004)
     lgh_alpha: float = 1.0          #: LGH blending radius factor, r_l = alpha h_l (paper 004)
     lgh_levels: int = 0             #: LGH levels; 0 = largest count with |S1| < VPLs / 2 (paper 004)
+    lgh_start_level: int = 1        #: finest LGH level lit from: 1 = S1 (paper 004), 0 = the VPLs themselves (S0)
     interleave: int = 1             #: interleaved sampling tile size (1, 2 or 4; paper 004 §4)
     shadow_samples: int = 4         #: stochastic shadow samples per pixel (paper 004)
+    shadow_filter_iterations: int = -1  #: à-trous iterations over the shadows; 0 = unfiltered, -1 = by samples
     dome_samples: int = 256         #: distant lights a dome light is importance-sampled into, per frame
     seed: int = 0
 
@@ -68,6 +72,11 @@ class UsdmlSettings:
             raise UsdmlError(f"unknown voxel mapping {self.voxel_mapping!r}; use one of {', '.join(VOXEL_MAPPINGS)}")
         if self.gi not in GI_METHODS:
             raise UsdmlError(f"unknown global illumination {self.gi!r}; use one of {', '.join(GI_METHODS)}")
+        if self.lgh_start_level not in (0, 1):
+            raise UsdmlError(f"LGH start level must be 0 (S0, the VPLs) or 1 (S1, the paper's), got {self.lgh_start_level}")
+        if not -1 <= self.shadow_filter_iterations <= 10:
+            raise UsdmlError(f"shadow filter iterations must be in 0..10, or -1 for automatic, "
+                             f"got {self.shadow_filter_iterations}")
         if self.interleave not in (1, 2, 4):
             raise UsdmlError(f"interleave must be 1, 2 or 4, got {self.interleave}")
         if self.vpl_bounces < 1:
