@@ -154,10 +154,32 @@ def s1_grid_lights(
     lights[v] = pack(wp.vec3(a[0], a[1], a[2]), w0, centre, wp.max(a[7] - w0 * wp.dot(mean, mean), 0.0))
 
 
+#: S1 vertices per axis of an occupancy block: gather_level skips blocks without a grid light
+BLOCK = wp.constant(4)
+
+
+@wp.kernel
+def mark_blocks(
+    s1: wp.array(dtype=acc8),            # (V1,) S1 grid lights from s1_grid_lights
+    s1_dims: wp.vec3i,
+    block_dims: wp.vec3i,                # blocks per axis, ceil(s1_dims / BLOCK)
+    occupied: wp.array(dtype=wp.uint8),  # (blocks,) out, zeroed: 1 where a block holds an S1 grid light
+):
+    v = wp.tid()
+    if s1[v][3] > 0.0:
+        i = v / (s1_dims[1] * s1_dims[2])
+        j = (v / s1_dims[2]) % s1_dims[1]
+        k = v % s1_dims[2]
+        # every writer stores the same value: a benign race, no atomic needed
+        occupied[flat_index(i / BLOCK, j / BLOCK, k / BLOCK, block_dims)] = wp.uint8(1)
+
+
 @wp.kernel
 def gather_level(
     s1: wp.array(dtype=acc8),            # (V1,) S1 grid lights from s1_grid_lights
     s1_dims: wp.vec3i,
+    block_dims: wp.vec3i,                # occupancy blocks per axis
+    occupied: wp.array(dtype=wp.uint8),  # (blocks,) from mark_blocks
     stride: int,                         # 2^(l-1): S1 cells per level-l cell
     h: float,                            # level spacing h_l
     dims: wp.vec3i,                      # level-l vertices per axis
@@ -167,7 +189,10 @@ def gather_level(
     """Level l by gather from S1 (paper 004 §3.1): each S1 grid light, a point at its illumination
     centre c_u, is distributed over the level-l grid with level-l trilinear weights; this thread sums
     what its vertex V receives. c_u lies within h_1 of its own vertex (a convex combination of points
-    in the cells around it), so only S1 vertices within ``stride`` S1 cells of V can reach V."""
+    in the cells around it), so only S1 vertices within ``stride`` S1 cells of V can reach V. VPLs lie
+    on surfaces, so most of S1 is empty: the support is walked block by block (BLOCK³ S1 vertices) and
+    empty blocks are skipped, which keeps the coarse levels, whose supports span thousands of S1
+    vertices, cheap."""
     v = wp.tid() + first
     i = v / (dims[1] * dims[2])
     j = (v / dims[2]) % dims[1]
@@ -181,22 +206,33 @@ def gather_level(
     m0 = float(0.0)
     m1 = wp.vec3(0.0, 0.0, 0.0)
     m2 = float(0.0)
-    for a in range(wp.max(ci - stride, 0), wp.min(ci + stride, s1_dims[0] - 1) + 1):
-        for b in range(wp.max(cj - stride, 0), wp.min(cj + stride, s1_dims[1] - 1) + 1):
-            row = flat_index(a, b, 0, s1_dims)
-            for c in range(wp.max(ck - stride, 0), wp.min(ck + stride, s1_dims[2] - 1) + 1):
-                u = s1[row + c]
-                w0 = u[3]
-                if w0 > 0.0:
-                    d = wp.vec3(u[4], u[5], u[6]) - xv
-                    w = hat(d[0] * inv_h) * hat(d[1] * inv_h) * hat(d[2] * inv_h)
-                    if w > 0.0:
-                        ww = w * w0
-                        acc += w * wp.vec3(u[0], u[1], u[2])
-                        m0 += ww
-                        # re-centred from the S1 light's centre to V (parallel-axis theorem)
-                        m1 += ww * d
-                        m2 += w * u[7] + ww * wp.dot(d, d)
+    a0 = wp.max(ci - stride, 0)
+    a1 = wp.min(ci + stride, s1_dims[0] - 1)
+    b0 = wp.max(cj - stride, 0)
+    b1 = wp.min(cj + stride, s1_dims[1] - 1)
+    c0 = wp.max(ck - stride, 0)
+    c1 = wp.min(ck + stride, s1_dims[2] - 1)
+    for ba in range(a0 / BLOCK, a1 / BLOCK + 1):
+        for bb in range(b0 / BLOCK, b1 / BLOCK + 1):
+            for bc in range(c0 / BLOCK, c1 / BLOCK + 1):
+                if occupied[flat_index(ba, bb, bc, block_dims)] == wp.uint8(0):
+                    continue
+                for a in range(wp.max(a0, ba * BLOCK), wp.min(a1, ba * BLOCK + BLOCK - 1) + 1):
+                    for b in range(wp.max(b0, bb * BLOCK), wp.min(b1, bb * BLOCK + BLOCK - 1) + 1):
+                        row = flat_index(a, b, 0, s1_dims)
+                        for c in range(wp.max(c0, bc * BLOCK), wp.min(c1, bc * BLOCK + BLOCK - 1) + 1):
+                            u = s1[row + c]
+                            w0 = u[3]
+                            if w0 > 0.0:
+                                d = wp.vec3(u[4], u[5], u[6]) - xv
+                                w = hat(d[0] * inv_h) * hat(d[1] * inv_h) * hat(d[2] * inv_h)
+                                if w > 0.0:
+                                    ww = w * w0
+                                    acc += w * wp.vec3(u[0], u[1], u[2])
+                                    m0 += ww
+                                    # re-centred from the S1 light's centre to V (parallel-axis theorem)
+                                    m1 += ww * d
+                                    m2 += w * u[7] + ww * wp.dot(d, d)
     out[v] = pack(acc, m0, m1, m2)
 
 

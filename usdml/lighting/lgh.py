@@ -302,6 +302,10 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     t0 = _time.perf_counter()
     s1_lights = wp.empty(v1, dtype=K.acc8, device=device)
     wp.launch(K.s1_grid_lights, dim=v1, device=device, inputs=[s1, float(h1), wdims1], outputs=[s1_lights])
+    blocks = -(-dims1 // int(K.BLOCK))
+    wblocks = wp.vec3i(*map(int, blocks))
+    occupied = wp.zeros(int(blocks.prod()), dtype=wp.uint8, device=device)
+    wp.launch(K.mark_blocks, dim=v1, device=device, inputs=[s1_lights, wdims1, wblocks], outputs=[occupied])
     grid_of = {1: (dims1, s1)}
     tasks = []
     for level in range(2, levels + 1):
@@ -317,7 +321,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     def gather(task):
         level, wdims, acc, a, b = task
         wp.launch(K.gather_level, dim=b - a, device=device,
-                  inputs=[s1_lights, wdims1, 1 << (level - 1), float(h1 * (1 << (level - 1))), wdims, a],
+                  inputs=[s1_lights, wdims1, wblocks, occupied, 1 << (level - 1), float(h1 * (1 << (level - 1))), wdims, a],
                   outputs=[acc])
 
     _run_all(gather, tasks, workers)
