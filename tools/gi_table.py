@@ -4,7 +4,7 @@
 Usage::
 
     python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--alphas 1,2]
-        [--samples 1,4] [--start-levels 1,0] [--frame F] [--json]
+        [--samples 1,4] [--start-levels 1,0] [--filter-iterations -1] [--frame F] [--json]
 
 The G-buffer and the VPLs (same seed) are made once; ``vpl-bruteforce`` (every VPL, exact
 visibility) runs once and every LGH setting is timed against it, so the table costs one brute-force
@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--alphas", default="1,2")
     p.add_argument("--samples", default="1,4")
     p.add_argument("--start-levels", default="1,0")
+    p.add_argument("--filter-iterations", default="-1", help="à-trous iterations to try (-1: by samples)")
     p.add_argument("--frame", type=float)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -74,12 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for alpha in map(float, args.alphas.split(",")):
         for k in _ints(args.samples):
-            for start in _ints(args.start_levels):
-                r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start))
+            for start, iterations in ((s, i) for s in _ints(args.start_levels) for i in _ints(args.filter_iterations)):
+                r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
+                                        shadow_filter_iterations=iterations))
                 rmse = float(np.sqrt(np.mean((r.radiance.astype(np.float64) - b) ** 2)))
                 split = {key: r.stats.get(key, 0.0) for key in
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
                 rows.append({"alpha": alpha, "shadow_samples": k, "start_level": start,
+                             "filter_iterations": r.stats.get("filter_iterations"),
                              "rel_rmse": rmse / mean if mean > 0 else 0.0, "seconds": s,
                              "speedup": ref_s / s if s > 0 else float("inf"), **split,
                              "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays")})
@@ -91,10 +94,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{args.stage} frame {frame:g}, {width}x{height} ({result['pixels']:,} pixels), {result['vpls']:,} VPLs; "
           f"vpl-bruteforce {ref_s:.2f} s")
-    print("| α | k | start | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays | filter |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| α | k | start | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays | filter |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {100 * r['rel_rmse']:.1f} % | "
+        print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {r['filter_iterations']} | "
+              f"{100 * r['rel_rmse']:.1f} % | "
               f"{r['seconds']:.3f} | {r['speedup']:.0f}× | {r['vpl_seconds']:.3f} | {r['lgh_seconds']:.3f} | "
               f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |")
     return 0
