@@ -57,6 +57,7 @@ ATTRIBUTES: tuple[Attribute, ...] = (
     Attribute("usdml:lgh:startLevel", int, 1),               # 1 = S1 (paper 004), 0 = S0
     Attribute("usdml:shadow:samples", int, 4),               # paper 004
     Attribute("usdml:shadow:filterIterations", int, -1),     # à-trous iterations, -1 = by samples
+    Attribute("usdml:shadow:targets", str, "cluster"),       # token: cluster, or jitter (paper 004)
     Attribute("usdml:seed", int, 0),
 )
 
@@ -66,6 +67,7 @@ ALLOWED_TOKENS: dict[str, tuple[str, ...]] = {
     "usdml:gi": ("none", "lgh", "vpl-bruteforce"),
     "usdml:voxel:rebuild": ("rotate", "geometry"),
     "usdml:voxel:mapping": ("point", "conservative"),
+    "usdml:shadow:targets": ("cluster", "jitter"),
 }
 
 _lock = threading.Lock()

@@ -119,3 +119,16 @@ def test_json_output_is_not_polluted_by_warp(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["outputs"] == [str(tmp_path / "c.exr")]
+
+
+def test_jittered_centres_over_occlude_against_cluster_targets(capsys):
+    """Paper 004's shadow targets (grid-light centres jittered by their variance) often sit inside
+    geometry; rays to VPLs of the grid light's cluster see more of the light (cornell: 54 % against
+    23 % relative RMSE at 96 px, 10k VPLs)."""
+    runs = {}
+    for targets in ("jitter", "cluster"):
+        assert main(["compare", str(STAGES / "cornell.usda"), "--gi", "lgh", "--vpls", "2000", "--imageWidth", "32",
+                     "--shadow-targets", targets, "--json"]) == 0
+        runs[targets] = json.loads(capsys.readouterr().out)
+        assert runs[targets]["shadow_targets"] == targets
+    assert runs["cluster"]["rel_rmse"] < runs["jitter"]["rel_rmse"]

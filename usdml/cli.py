@@ -56,6 +56,7 @@ def _settings_overrides(args: argparse.Namespace) -> dict:
               "lgh_alpha": a("lgh_alpha"), "lgh_levels": a("lgh_levels"),
               "shadow_samples": a("shadow_samples"), "interleave": a("interleave"),
               "lgh_start_level": a("lgh_start_level"), "shadow_filter_iterations": a("shadow_filter_iterations"),
+              "shadow_targets": a("shadow_targets"),
               "voxel_resolution": getattr(args, "voxel_resolution", None),
               "direction_step": getattr(args, "direction_step", None),
               "voxel_rebuild": a("voxel_rebuild"), "voxel_mapping": a("voxel_mapping"),
@@ -79,6 +80,9 @@ def _add_lighting_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shadow-filter-iterations", type=int, metavar="N",
                    help="a-trous iterations over the stochastic shadows (0 = unfiltered; default: 3 at 4 "
                         "samples per pixel, one fewer per 4x more samples, at least 1)")
+    p.add_argument("--shadow-targets", choices=["cluster", "jitter"],
+                   help="LGH shadow rays to a VPL of the chosen grid light (cluster, default) or to its centre "
+                        "jittered by its variance (jitter, as paper 004)")
     p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
 
 

@@ -63,7 +63,7 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "gi": gi, "against": against, "vpls": test.stats.get("gi", {}).get("vpls", 0),
         "lgh_alpha": base.lgh_alpha, "shadow_samples": base.shadow_samples, "interleave": base.interleave,
-        "lgh_start_level": base.lgh_start_level,
+        "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets,
         "rel_rmse": rmse / mean if mean > 0 else 0.0, "rmse": rmse, "reference_mean": mean,
         "seconds": {gi: gi_test, against: gi_ref},
         "frame_seconds": {gi: test_s, against: ref_s},

@@ -25,6 +25,7 @@ SCHEMA_ATTRIBUTES = {
     "usdml:lgh:startLevel": "lgh_start_level",
     "usdml:shadow:samples": "shadow_samples",
     "usdml:shadow:filterIterations": "shadow_filter_iterations",
+    "usdml:shadow:targets": "shadow_targets",
     "usdml:seed": "seed",
 }
 
@@ -32,6 +33,7 @@ VISIBILITY_BACKENDS = ("exact", "voxel", "insm", "svo")
 GI_METHODS = ("none", "lgh", "vpl-bruteforce")
 VOXEL_REBUILDS = ("rotate", "geometry")
 VOXEL_MAPPINGS = ("point", "conservative")
+SHADOW_TARGETS = ("cluster", "jitter")
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,7 @@ class UsdmlSettings:
     interleave: int = 1             #: interleaved sampling tile size (1, 2 or 4; paper 004 §4)
     shadow_samples: int = 4         #: stochastic shadow samples per pixel (paper 004)
     shadow_filter_iterations: int = -1  #: à-trous iterations over the shadows; 0 = unfiltered, -1 = by samples
+    shadow_targets: str = "cluster" #: LGH shadow rays to a VPL of the grid light (cluster) or its jittered centre (paper)
     dome_samples: int = 256         #: distant lights a dome light is importance-sampled into, per frame
     seed: int = 0
 
@@ -77,6 +80,8 @@ class UsdmlSettings:
         if not -1 <= self.shadow_filter_iterations <= 10:
             raise UsdmlError(f"shadow filter iterations must be in 0..10, or -1 for automatic, "
                              f"got {self.shadow_filter_iterations}")
+        if self.shadow_targets not in SHADOW_TARGETS:
+            raise UsdmlError(f"unknown shadow targets {self.shadow_targets!r}; use one of {', '.join(SHADOW_TARGETS)}")
         if self.interleave not in (1, 2, 4):
             raise UsdmlError(f"interleave must be 1, 2 or 4, got {self.interleave}")
         if self.vpl_bounces < 1:

@@ -69,7 +69,8 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
                          meters_per_unit=snap.meters_per_unit, clamp_distance=clamp, image=image,
                          interleave=settings.interleave, device=device,
                          sources=(as_lights.position, as_lights.intensity), start_level=settings.lgh_start_level,
-                         filter_iterations=settings.shadow_filter_iterations)
+                         filter_iterations=settings.shadow_filter_iterations,
+                         shadow_targets=settings.shadow_targets)
         stats.update(r.stats)
         return GIResult(r.radiance, stats)
     t2 = _time.perf_counter()

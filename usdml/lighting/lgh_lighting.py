@@ -274,12 +274,13 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  image: tuple[np.ndarray, np.ndarray] | None = None, filter_iterations: int = -1,
                  interleave: int = 1, device: str = "cpu", sources: tuple | None = None,
-                 start_level: int = 1) -> IndirectResult:
+                 start_level: int = 1, shadow_targets: str = "cluster") -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``sources = (positions, intensities)`` are the input lights the LGH was built from: shadow rays go
-    to them (:class:`ClusterSampler`), and with ``start_level`` 0 they are level S0 (the paper starts
-    from S1, ``start_level`` 1).
+    to them (:class:`ClusterSampler`) unless ``shadow_targets`` is "jitter" (the grid light's centre
+    jittered by its variance, as the paper), and with ``start_level`` 0 they are level S0 (the paper
+    starts from S1, ``start_level`` 1).
 
     ``image = (hit (H, W) bool, positions (H, W, 3))`` lays the points out as an image so the
     shadow ratio can be filtered (edge stops on normal, position and value); without it the raw
@@ -301,7 +302,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     if occluded is None:
         return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats)
     t1 = _time.perf_counter()
-    sampler = ClusterSampler(lgh, *sources) if sources is not None else None
+    sampler = ClusterSampler(lgh, *sources) if sources is not None and shadow_targets == "cluster" else None
     visible, shadowed, rays = shadow_fraction(points, normals, shading, occluded, sampler, seed)
     stats["shadow_seconds"] = _time.perf_counter() - t1
     stats["shadow_rays"] = rays
