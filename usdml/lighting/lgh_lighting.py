@@ -2,12 +2,14 @@
 
 For every G-buffer pixel, every grid light of every level whose blending function is non-zero at
 the pixel's distance contributes ``B_l(d) · I · cos / max(d², d_c²)`` (a clamped geometry term,
-Lambertian receiver), starting from S1 as the paper does. While accumulating, k shadow samples are
-picked per pixel by streaming importance sampling (Appendix A: probability ∝ the light's luminance
-contribution f_i), jittered by the grid light's positional variance. Shadow rays then go through
-any visibility backend; the fraction of visible samples estimates shadowed / unshadowed luminance
-(the shadow-ratio estimator of Heitz et al. 2018), which the edge-avoiding à-trous filter smooths
-(filtered shadowed over filtered unshadowed) before it scales the unshadowed lighting.
+Lambertian receiver), starting from S1 as the paper does, or from the input lights themselves (S0)
+as an option. While accumulating, k shadow samples are picked per pixel by streaming importance
+sampling (Appendix A: probability ∝ the light's luminance contribution f_i). Shadow rays go to an
+input light of the chosen grid light's cluster (:class:`ClusterSampler`), or to the grid light's
+centre jittered by its positional variance as the paper does, through any visibility backend.
+F · mean(V · e / f) over the samples estimates the shadowed irradiance per colour channel; the
+edge-avoiding à-trous filter smooths it and the unshadowed irradiance alike, and their ratio (the
+shadow-ratio estimator of Heitz et al. 2018) scales the unshadowed lighting.
 """
 
 from __future__ import annotations
