@@ -42,9 +42,9 @@ class IndirectResult:
     stats: dict = field(default_factory=dict)
 
 
-def _flatten(lgh, start_level: int = 1):
-    """Per-level grid arrays and the vertex -> light index map of levels ``start_level``.. of ``lgh``."""
-    levels = [lv for lv in lgh.levels if lv.level >= start_level]
+def _flatten(lgh):
+    """Per-level grid arrays and the vertex -> light index map of every level of ``lgh`` (S1 first)."""
+    levels = list(lgh.levels)
     origin = np.array([lv.origin for lv in levels], np.float32).reshape(-1, 3)
     spacing = np.array([lv.spacing for lv in levels], np.float32)
     dims = np.array([lv.dims for lv in levels], np.int32).reshape(-1, 3)
