@@ -121,16 +121,6 @@ def mark_s1(
 
 
 @wp.kernel
-def add_accumulators(
-    src: wp.array(dtype=acc8),
-    dst: wp.array(dtype=acc8),           # (V,) in/out: dst += src
-):
-    """Sum a second scatter grid into the first (S1 scattered by independent launches over slices of the lights)."""
-    v = wp.tid()
-    dst[v] = dst[v] + src[v]
-
-
-@wp.kernel
 def s1_grid_lights(
     acc: wp.array(dtype=acc8),           # (V1,) S1 accumulators, moments about each vertex
     h: float,

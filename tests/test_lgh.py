@@ -249,14 +249,20 @@ def test_no_lights(device):
     assert lgh.levels[0].position.shape == (0, 3)
 
 
-def test_split_scatter_matches_one_launch(monkeypatch):
-    # enough lights that the CPU scatter is split over several launches and grids, summed after
+@pytest.mark.parametrize("on_planes", [False, True])
+def test_split_scatter_matches_one_launch(monkeypatch, on_planes):
+    # enough lights that the CPU scatter is split over concurrent x-slabs of one grid, then the lights
+    # near the slab boundaries; lights exactly on grid planes test the float32 / float64 cell margin
     import usdml.lighting.lgh as lgh_module
 
     p, inten = random_lights(150_000, seed=8)
+    if on_planes:
+        lo, hi = p.min(0), p.max(0)
+        h1 = float((hi - lo).max()) / 32               # levels=6: 32 S1 cells along the longest edge
+        p[::2, 0] = lo[0] + np.floor((p[::2, 0] - lo[0]) / h1) * h1
     monkeypatch.setattr(lgh_module, "_workers", lambda device: 3)
     split = build_lgh(p, inten, levels=6)
-    assert split.stats["scatter_launches"] == 2   # 150k lights, >= 65,536 per launch
+    assert split.stats["scatter_launches"] == 3   # 150k lights, >= 65,536 per slab: 2 slabs + boundary lights
     monkeypatch.setattr(lgh_module, "_workers", lambda device: 1)
     single = build_lgh(p, inten, levels=6)
     assert single.stats["scatter_launches"] == 1

@@ -22,9 +22,10 @@ Construction, as the paper splits it:
 5. merge: all levels land in one buffer per attribute (S1 first) and come back to the host once.
 
 Luminance is Rec. 709 (0.2126, 0.7152, 0.0722). On CPU Warp runs a launch on one thread and releases
-the GIL while it runs, so the S1 scatter is split into independent launches over slices of the
-lights, each into its own accumulation grid (summed after), and the gather and compaction of the
-levels run as independent launches, all from a thread pool.
+the GIL while it runs, so the S1 scatter is split into concurrent launches over x-slabs of the
+lights that touch disjoint vertices of the one S1 grid (the lights near the slab boundaries are
+scattered after them), and the gather and compaction of the levels run as independent launches, all
+from a thread pool.
 """
 
 from __future__ import annotations
@@ -41,10 +42,10 @@ from usdml.errors import UsdmlError
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 #: more levels than this is a mistake (S1 would have 2^11 cells along the longest edge)
 MAX_LEVELS = 12
-#: refuse an S1 grid with more vertices than this (~32 bytes per vertex per accumulation grid)
+#: refuse an S1 grid with more vertices than this (32 bytes per vertex for the accumulation grid)
 MAX_S1_VERTICES = 1 << 25
 #: below this many lights (or gather vertices) per launch, splitting a CPU launch across threads costs
-#: more (pool, extra zeroed grid, summing pass) than it saves
+#: more (pool, slab selection and upload of the lights) than it saves
 _SPLIT_MIN = 65536
 #: compaction of fewer grid vertices than this (all levels) runs inline
 _COMPACT_SPLIT_MIN = 1 << 18
@@ -148,6 +149,28 @@ def _slices(work: int, parts: int, n: int | None = None) -> list[tuple[int, int]
     parts = max(1, min(parts, work // _SPLIT_MIN, n))
     step = -(-n // parts)
     return [(a, min(n, a + step)) for a in range(0, n, step)]
+
+
+def _slabs(p: np.ndarray, lo: np.ndarray, h1: float, cells_x: int, parts: int) -> list:
+    """Light rows for concurrent S1 scatters into one grid: ``parts`` x-slabs whose lights touch
+    disjoint vertices, then the lights within 2 cells of a slab boundary (scattered after the slabs).
+
+    A light in S1 cell i writes vertices i and i + 1 along x; the cell is taken here in float64 and
+    in the kernel in float32, which may differ by one at a boundary, so a slab ends at b − 3 below a
+    boundary b and starts at b + 1 above it, and the cells b − 2 .. b go last. ``None`` stands for
+    every light: ``[None, []]`` when one part is asked for or the grid is too thin to split.
+    """
+    if parts <= 1 or cells_x < 8 * parts:
+        return [None, np.zeros(0, np.int64)]
+    cell = np.clip(np.floor((np.asarray(p[:, 0], np.float64) - lo[0]) / h1), 0, cells_x - 1).astype(np.int64)
+    cuts = np.unique(np.quantile(cell, np.linspace(0, 1, parts + 1)[1:-1]).astype(np.int64))
+    cuts = cuts[(cuts >= 3) & (cuts < cells_x)]
+    edges = np.concatenate([[-1], cuts, [cells_x + 2]])
+    out = [np.nonzero((cell > edges[j]) & (cell <= edges[j + 1] - 3))[0] for j in range(len(edges) - 1)]
+    seam = np.zeros(len(cell), bool)
+    for c in cuts:
+        seam |= (cell >= c - 2) & (cell <= c)
+    return out + [np.nonzero(seam)[0]]
 
 
 def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -273,30 +296,25 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     stats["levels"] = levels
     workers = _workers(device)
     stats["workers"] = workers
-    # -- S1 by scatter: independent launches over slices of the lights, one accumulation grid each
+    # -- S1 by scatter into one grid: concurrent launches over x-slabs of the lights (disjoint vertices)
     t0 = _time.perf_counter()
     dims1 = cells1 + 1
     v1 = int(dims1.prod())
     wdims1 = wp.vec3i(*map(int, dims1))
-    spans = _slices(n, workers)
+    s1 = wp.zeros(v1, dtype=K.acc8, device=device)
+    parts = _slabs(p, lo, h1, int(cells1[0]), len(_slices(n, workers)))
 
-    def scatter(span):
-        a, b = span
-        acc = wp.zeros(v1, dtype=K.acc8, device=device)
-        if b > a:
-            wp.launch(K.scatter_s1, dim=b - a, device=device,
-                      inputs=[pos_w[a:b], int_w[a:b], float(h1), wdims1], outputs=[acc])
-        return acc
+    def scatter(rows):
+        if rows is None or len(rows):
+            pw, iw = (pos_w, int_w) if rows is None else _upload(wp, p[rows], inten[rows], lo, device)
+            wp.launch(K.scatter_s1, dim=len(pw), device=device, inputs=[pw, iw, float(h1), wdims1], outputs=[s1])
 
-    parts = _run_all(scatter, spans, workers)
-    s1 = parts[0]
-    for extra in parts[1:]:
-        wp.launch(K.add_accumulators, dim=v1, device=device, inputs=[extra], outputs=[s1])
-    del parts
+    _run_all(scatter, parts[:-1], workers)
+    scatter(parts[-1])            # the lights near the slab boundaries, once the slabs are done
     sync()
     stats["s1"] = _time.perf_counter() - t0
     stats["s1_vertices"] = v1
-    stats["scatter_launches"] = len(spans)
+    stats["scatter_launches"] = sum(1 for rows in parts if rows is None or len(rows))
 
     # -- levels 2..L by gather from S1: every level (and slices of the big ones) is its own launch
     t0 = _time.perf_counter()
