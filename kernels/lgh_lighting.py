@@ -110,6 +110,7 @@ def lgh_gather(
     inv_m2: float,                            # 1 / metersPerUnit²: falloff in metres
     clamp_d2: float,                          # clamped geometry term: d² >= clamp_d2 (scene units²)
     samples: int,
+    jitter: int,                              # 1: sample positions jittered by light_std (paper); 0: the centres
     seed: int,
     first: int,                               # global index of this launch's first point (RNG stream)
     tile: wp.array(dtype=int),                # (P,) interleaved-sampling tile of each point
@@ -166,13 +167,19 @@ def lgh_gather(
         if l == n_levels - 1:     # the top level reaches every distance: visit all its vertices
             span = 1.0e9
         base = level_offset[l]
-        for i in range(wp.max(int(wp.ceil(rel[0] - span)), 0), wp.min(int(wp.floor(rel[0] + span)), dims[0] - 1) + 1):
+        i0 = wp.max(int(wp.ceil(rel[0] - span)), 0)
+        i1 = wp.min(int(wp.floor(rel[0] + span)), dims[0] - 1)
+        for i in range(i0, i1 + 1):
             dx = float(i) - rel[0]
             ry = wp.sqrt(wp.max(span * span - dx * dx, 0.0))
-            for j in range(wp.max(int(wp.ceil(rel[1] - ry)), 0), wp.min(int(wp.floor(rel[1] + ry)), dims[1] - 1) + 1):
+            j0 = wp.max(int(wp.ceil(rel[1] - ry)), 0)
+            j1 = wp.min(int(wp.floor(rel[1] + ry)), dims[1] - 1)
+            for j in range(j0, j1 + 1):
                 dy = float(j) - rel[1]
                 rz = wp.sqrt(wp.max(span * span - dx * dx - dy * dy, 0.0))
-                for k in range(wp.max(int(wp.ceil(rel[2] - rz)), 0), wp.min(int(wp.floor(rel[2] + rz)), dims[2] - 1) + 1):
+                k0 = wp.max(int(wp.ceil(rel[2] - rz)), 0)
+                k1 = wp.min(int(wp.floor(rel[2] + rz)), dims[2] - 1)
+                for k in range(k0, k1 + 1):
                     v = vertex_light[base + (i * dims[1] + j) * dims[2] + k]
                     if v < 0:
                         continue
@@ -185,6 +192,47 @@ def lgh_gather(
                         continue
                     acc = acc + e
                     total = total + f
-                    rng = pick(rng, e, f, total, samples, tid, q, light_std[v], v,
+                    rng = pick(rng, e, f, total, samples, tid, q, light_std[v] * float(jitter), v,
                                out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight)
     out_irradiance[tid] = acc
+
+
+@wp.kernel
+def cluster_targets(
+    lights: wp.array(dtype=int),              # (S,) chosen light: grid light index, or M + input light index
+    fallback: wp.array(dtype=wp.vec3),        # (S,) target when the grid light has no member (jittered centre)
+    start: wp.array(dtype=int),               # (M,) first member row of each grid light
+    stop: wp.array(dtype=int),                # (M,) one past its last member row
+    cum: wp.array(dtype=wp.float64),          # (rows + 1,) running sum of the members' luminance
+    member: wp.array(dtype=int),              # (rows,) input light of each member row
+    positions: wp.array(dtype=wp.vec3),       # (N,) input light positions
+    grid_lights: int,                         # M
+    seed: int,
+    first: int,                               # global index of this launch's first sample (RNG stream)
+    out: wp.array(dtype=wp.vec3),             # (S,) shadow-ray targets
+):
+    """Shadow-ray target of each sample: a member of the chosen grid light, drawn in proportion to
+    its luminance (inverse CDF by binary search), or the input light itself for an S0 pick."""
+    t = wp.tid()
+    v = lights[t]
+    if v >= grid_lights:
+        out[t] = positions[v - grid_lights]
+        return
+    lo = start[v]
+    hi = stop[v]
+    c0 = cum[lo]
+    total = cum[hi] - c0
+    if hi <= lo or total <= wp.float64(0.0):
+        out[t] = fallback[t]
+        return
+    rng = wp.rand_init(seed, first + t)
+    x = c0 + wp.float64(wp.randf(rng)) * total
+    a = lo                                    # the last row whose running sum is <= x
+    b = hi - 1
+    while a < b:
+        m = (a + b + 1) / 2
+        if cum[m] <= x:
+            a = m
+        else:
+            b = m - 1
+    out[t] = positions[member[a]]

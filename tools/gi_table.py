@@ -94,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{args.stage} frame {frame:g}, {width}x{height} ({result['pixels']:,} pixels), {result['vpls']:,} VPLs; "
           f"vpl-bruteforce {ref_s:.2f} s")
-    print("| α | k | start | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays | filter |")
+    print("| α | k | start | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays "
+          "| filter |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {r['filter_iterations']} | "

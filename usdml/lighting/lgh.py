@@ -339,7 +339,8 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     def gather(task):
         level, wdims, acc, a, b = task
         wp.launch(K.gather_level, dim=b - a, device=device,
-                  inputs=[s1_lights, wdims1, wblocks, occupied, 1 << (level - 1), float(h1 * (1 << (level - 1))), wdims, a],
+                  inputs=[s1_lights, wdims1, wblocks, occupied, 1 << (level - 1), float(h1 * (1 << (level - 1))),
+                          wdims, a],
                   outputs=[acc])
 
     _run_all(gather, tasks, workers)
