@@ -43,6 +43,21 @@ def cell_and_fraction(g: float, n: int):
 
 
 @wp.func
+def grid_cell(g: wp.vec3, dims: wp.vec3i):
+    """Lower vertex of the cell holding grid point ``g`` (grid units), and ``g``'s fractions in it."""
+    i, fx = cell_and_fraction(g[0], dims[0])
+    j, fy = cell_and_fraction(g[1], dims[1])
+    k, fz = cell_and_fraction(g[2], dims[2])
+    return wp.vec3i(i, j, k), wp.vec3(fx, fy, fz)
+
+
+@wp.func
+def corner(c: int) -> wp.vec3i:
+    """Offset in {0, 1}³ of cell corner ``c`` in 0..7."""
+    return wp.vec3i(c >> 2, (c >> 1) & 1, c & 1)
+
+
+@wp.func
 def flat_index(i: int, j: int, k: int, dims: wp.vec3i) -> int:
     return (i * dims[1] + j) * dims[2] + k
 
@@ -54,11 +69,11 @@ def hat(t: float) -> float:
 
 
 @wp.func
-def corner_weight(di: int, dj: int, dk: int, fx: float, fy: float, fz: float) -> float:
-    """Trilinear weight of cell corner (di, dj, dk) in {0, 1}³ at fractions (fx, fy, fz)."""
-    wx = wp.where(di == 1, fx, 1.0 - fx)
-    wy = wp.where(dj == 1, fy, 1.0 - fy)
-    wz = wp.where(dk == 1, fz, 1.0 - fz)
+def corner_weight(d: wp.vec3i, f: wp.vec3) -> float:
+    """Trilinear weight of cell corner ``d`` in {0, 1}³ at fractions ``f``."""
+    wx = wp.where(d[0] == 1, f[0], 1.0 - f[0])
+    wy = wp.where(d[1] == 1, f[1], 1.0 - f[1])
+    wz = wp.where(d[2] == 1, f[2], 1.0 - f[2])
     return wx * wy * wz
 
 
@@ -76,23 +91,16 @@ def scatter_s1(
     if lum <= 0.0:
         return
     p = position[t]
-    g = p / h
-    i0, fx = cell_and_fraction(g[0], dims[0])
-    j0, fy = cell_and_fraction(g[1], dims[1])
-    k0, fz = cell_and_fraction(g[2], dims[2])
+    cell, f = grid_cell(p / h, dims)
     for c in range(8):
-        di = c >> 2
-        dj = (c >> 1) & 1
-        dk = c & 1
-        w = corner_weight(di, dj, dk, fx, fy, fz)
+        d = corner(c)
+        w = corner_weight(d, f)
         # a light exactly on a vertex (or face) adds nothing to the other corners: they stay empty
         if w > 0.0:
-            i = i0 + di
-            j = j0 + dj
-            k = k0 + dk
-            e = p - wp.vec3(float(i), float(j), float(k)) * h
+            v = cell + d
+            e = p - wp.vec3(float(v[0]), float(v[1]), float(v[2])) * h
             wl = w * lum
-            wp.atomic_add(acc, flat_index(i, j, k, dims), pack(w * I, wl, wl * e, wl * wp.dot(e, e)))
+            wp.atomic_add(acc, flat_index(v[0], v[1], v[2], dims), pack(w * I, wl, wl * e, wl * wp.dot(e, e)))
 
 
 @wp.kernel
@@ -107,17 +115,13 @@ def mark_s1(
     t = wp.tid()
     if wp.dot(intensity[t], LUMA) <= 0.0:
         return
-    g = position[t] / h
-    i0, fx = cell_and_fraction(g[0], dims[0])
-    j0, fy = cell_and_fraction(g[1], dims[1])
-    k0, fz = cell_and_fraction(g[2], dims[2])
+    cell, f = grid_cell(position[t] / h, dims)
     for c in range(8):
-        di = c >> 2
-        dj = (c >> 1) & 1
-        dk = c & 1
-        if corner_weight(di, dj, dk, fx, fy, fz) > 0.0:
+        d = corner(c)
+        if corner_weight(d, f) > 0.0:
+            v = cell + d
             # every writer stores the same value: a benign race, no atomic needed
-            flags[flat_index(i0 + di, j0 + dj, k0 + dk, dims)] = wp.uint8(1)
+            flags[flat_index(v[0], v[1], v[2], dims)] = wp.uint8(1)
 
 
 @wp.kernel
