@@ -64,6 +64,17 @@ def _flatten(lgh):
             np.concatenate(inten).reshape(-1, 3), np.concatenate(std))
 
 
+def _in_blocks(run: Callable[[int, int], None], n: int, device: str, blocks_per_worker: int = 1,
+               min_block: int = 1) -> None:
+    """``run(lo, hi)`` over blocks of ``[0, n)``: Warp runs a CPU launch on one thread (and releases the
+    GIL), so on ``cpu`` independent launches over blocks from a thread pool use every core."""
+    workers = (os.cpu_count() or 1) if str(device).startswith("cpu") else 1
+    step = max(min_block, -(-n // (workers * blocks_per_worker)), 1)
+    blocks = [(lo, min(n, lo + step)) for lo in range(0, n, step)]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        list(pool.map(lambda b: run(*b), blocks))
+
+
 def s0_cells(lgh, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The input lights bucketed by S1 cell: ``(cells per axis (3,), start (C + 1,), light index sorted by cell)``.
 
@@ -160,12 +171,7 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
         slight[lo:hi] = out_light.numpy()
         sweight[lo:hi] = out_weight.numpy()
 
-    # Warp runs a CPU launch on one thread: independent launches over pixel blocks use every core
-    workers = (os.cpu_count() or 1) if device == "cpu" else 1
-    step = max(1, -(-n // (workers * 4)))
-    blocks = [(lo, min(n, lo + step)) for lo in range(0, n, step)]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(lambda b: run(*b), blocks))
+    _in_blocks(run, n, device, blocks_per_worker=4)
     return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k])
 
 
@@ -239,12 +245,7 @@ class ClusterSampler:
                 outputs=[got])
             out[lo:hi] = got.numpy()
 
-        # Warp runs a CPU launch on one thread: independent launches over sample blocks use every core
-        workers = os.cpu_count() or 1
-        step = max(1 << 14, -(-len(lights) // workers))
-        blocks = [(lo, min(len(lights), lo + step)) for lo in range(0, len(lights), step)]
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(lambda b: run(*b), blocks))
+        _in_blocks(run, len(lights), "cpu", min_block=1 << 14)
         return out
 
 
@@ -261,10 +262,8 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
     jittered centres.
     """
     n, k = shading.sample_ok.shape
-    visible = np.ones(n, np.float32)
-    shadowed = shading.irradiance.astype(np.float32).copy()
     if k == 0 or not shading.sample_ok.any():
-        return visible, shadowed, 0
+        return np.ones(n, np.float32), shading.irradiance.astype(np.float32, copy=True), 0
     ok = shading.sample_ok.ravel()
     rows = None if ok.all() else np.flatnonzero(ok)     # usually every sample was chosen: no gathers
 
