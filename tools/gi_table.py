@@ -42,21 +42,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
+    from gi_frame import open_frame
     from usdml.lighting.gi import indirect_lighting, warm_up
-    from usdml.render.frame import FrameRenderer, conform_camera
+    from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
-    from usdml.scene import diff
-    from usdml.stage import StageDelegate
 
-    delegate = StageDelegate(args.stage)
-    frame = delegate.start_time if args.frame is None else args.frame
-    delegate.check_time(frame)
-    snap = delegate.snapshot(frame)
+    delegate, frame, snap, renderer, lights = open_frame(args.stage, args.frame)
     width, height = snap.camera.resolution(args.imageWidth)
     base = delegate.usdml_settings.updated(vpl_count=args.vpls)
-    renderer = FrameRenderer(delegate, base.updated(gi="vpl-bruteforce"))
-    renderer.exact.update(snap, diff(None, snap))
-    lights = renderer.frame_lights(snap)
     snap = replace(snap, camera=conform_camera(snap.camera, width, height))
     gb = build_gbuffer(snap, renderer.exact, width, height)
     hit = gb.hit.ravel()

@@ -33,20 +33,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
+    from gi_frame import open_frame
     from usdml.lighting.gi import warm_up
     from usdml.lighting.lgh import build_lgh
     from usdml.lighting.vpl import generate_vpls
-    from usdml.render.frame import FrameRenderer
-    from usdml.scene import diff
-    from usdml.stage import StageDelegate
 
-    delegate = StageDelegate(args.stage)
-    frame = delegate.start_time if args.frame is None else args.frame
-    delegate.check_time(frame)
-    snap = delegate.snapshot(frame)
-    renderer = FrameRenderer(delegate, delegate.usdml_settings)
-    renderer.exact.update(snap, diff(None, snap))
-    lights = renderer.frame_lights(snap)
+    _, frame, snap, renderer, lights = open_frame(args.stage, args.frame)
     warm_up(args.device)
     rows = []
     for count in (int(x) for x in args.vpls.split(",") if x):
