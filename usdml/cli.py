@@ -65,6 +65,8 @@ def _settings_overrides(args: argparse.Namespace) -> dict:
 
 
 def _add_lighting_args(p: argparse.ArgumentParser) -> None:
+    from usdml.settings import SHADOW_TARGETS
+
     p.add_argument("--seed", type=int, help="random seed (VPLs, shadow samples, dome light sampling)")
     p.add_argument("--dome-samples", type=int, metavar="K",
                    help="distant lights each DomeLight is importance-sampled into per frame (default 256)")
@@ -80,7 +82,7 @@ def _add_lighting_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shadow-filter-iterations", type=int, metavar="N",
                    help="a-trous iterations over the stochastic shadows (0 = unfiltered; default: 3 at 4 "
                         "samples per pixel, one fewer per 4x more samples, at least 1)")
-    p.add_argument("--shadow-targets", choices=["cluster", "jitter"],
+    p.add_argument("--shadow-targets", choices=SHADOW_TARGETS,
                    help="LGH shadow rays to a VPL of the chosen grid light (cluster, default) or to its centre "
                         "jittered by its variance (jitter, as paper 004)")
     p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
