@@ -28,6 +28,35 @@ DEG = wp.constant(57.29577951308232)
 ALL_BITS = wp.constant(wp.uint32(0xFFFFFFFF))
 
 
+@wp.func
+def core_voxel(p: wp.vec3, m: wp.mat33, center: wp.vec3, half: float, inv_h: float, n: int, lo: float,
+               hi: float) -> wp.vec3i:
+    """The voxel ``(u, v, w)`` of the grid with frame ``m`` (rows ``u, v, w``) over the cube
+    ``center ± half`` that holds point ``p``, when ``p`` lies within the central part ``[lo, hi]``
+    of its row's square; ``u = -1`` otherwise (outside the cube, or off the row's core)."""
+    q = (m * (p - center) + wp.vec3(half, half, half)) * inv_h
+    fu = wp.floor(q[0])
+    fv = wp.floor(q[1])
+    iu = int(fu)
+    iv = int(fv)
+    il = int(wp.floor(q[2]))
+    ru = q[0] - fu
+    rv = q[1] - fv
+    # one return (a branchy early return measured 30 % slower in Alg. 1)
+    inside = iu >= 0 and iu < n and iv >= 0 and iv < n and il >= 0 and il < n
+    core_hit = ru >= lo and ru <= hi and rv >= lo and rv <= hi
+    return wp.vec3i(wp.where(inside and core_hit, iu, -1), iv, il)
+
+
+@wp.func
+def set_bit(out: wp.array(dtype=wp.uint32), w: int, bit: wp.uint32, mode: int):
+    """``out[w] |= bit``: plainly (``mode`` 0, the word's thread owns it) or atomically (1)."""
+    if mode == 0:
+        out[w] = out[w] | bit
+    else:
+        wp.atomic_or(out, w, bit)
+
+
 @wp.kernel
 def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: int, core: float,
              frames: wp.array(dtype=wp.mat33), dir0: int, chunk: int, row_w0: wp.array(dtype=wp.int32),
@@ -52,20 +81,13 @@ def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: 
     s1 = wp.min(s0 + chunk, samples.shape[0])
     base = word0 + d * words_per_dir
     for s in range(s0, s1):
-        q = (m * (samples[s] - center) + wp.vec3(half, half, half)) * inv_h
-        fu = wp.floor(q[0])
-        fv = wp.floor(q[1])
-        iu = int(fu)
-        iv = int(fv)
-        il = int(wp.floor(q[2]))
-        if iu >= 0 and iu < n and iv >= 0 and iv < n and il >= 0 and il < n:
-            ru = q[0] - fu
-            rv = q[1] - fv
-            if ru >= lo and ru <= hi and rv >= lo and rv <= hi:
-                r = iu * n + iv
-                k = (il >> 5) - row_w0[r]
-                if k >= 0 and k < row_nw[r]:
-                    wp.atomic_or(out, base + row_off[r] + k, wp.uint32(1) << wp.uint32(il & 31))
+        vox = core_voxel(samples[s], m, center, half, inv_h, n, lo, hi)
+        if vox[0] >= 0:
+            r = vox[0] * n + vox[1]
+            il = vox[2]
+            k = (il >> 5) - row_w0[r]
+            if k >= 0 and k < row_nw[r]:
+                wp.atomic_or(out, base + row_off[r] + k, wp.uint32(1) << wp.uint32(il & 31))
 
 
 @wp.func

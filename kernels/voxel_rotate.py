@@ -3,8 +3,8 @@ voxelization, with precomputed rotation tables (no trigonometry, no matrix produ
 
 Inputs (built by ``usdml.visibility.voxel_rotate``)
 
-* ``occupied``: the occupied voxels ``(i, j, l)`` of the reference voxelization ``V0`` (direction bin
-  0, voxelized from the geometry).
+* ``row_ij``, ``row_start``, ``depth``: the occupied voxels ``(i, j, l)`` of the reference
+  voxelization ``V0`` (direction bin 0, voxelized from the geometry), grouped by row ``(i, j)``.
 * ``table[d, a, x]``: where step ``x`` along axis ``a`` of ``V0`` lands in direction ``d``'s grid, in
   voxels: ``R_d[:, a] · (x + ½ - n/2)`` (axis 0 also carries the ``+ n/2`` that moves the origin to
   the grid's corner), ``R_d = M_d M_0ᵀ``. A voxel centre's position in direction ``d`` is the sum
@@ -24,6 +24,8 @@ Mappings
 
 import warp as wp
 
+from usdml.kernels.voxel import core_voxel, set_bit
+
 wp.set_module_options({"enable_backward": False, "optimization_level": 3, "fast_math": True})
 
 
@@ -41,37 +43,37 @@ def set_voxel(out: wp.array(dtype=wp.uint32), dir_base: int, n: int, iu: int, iv
         return
     rw = rows[iu * n + iv]
     if il >= rw[1] and il < rw[2]:
-        w = dir_base + rw[0] + (il >> 5)
-        bit = wp.uint32(1) << wp.uint32(il & 31)
-        if mode == 0:
-            out[w] = out[w] | bit
-        else:
-            wp.atomic_or(out, w, bit)
+        set_bit(out, dir_base + rw[0] + (il >> 5), wp.uint32(1) << wp.uint32(il & 31), mode)
 
 
 @wp.func
-def map_voxels(occupied: wp.array(dtype=wp.int32), v0: int, v1: int, table: wp.array(dtype=wp.vec3i),
+def map_voxels(row_ij: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp.int32),
+               depth: wp.array(dtype=wp.int32), r0: int, r1: int, table: wp.array(dtype=wp.vec3i),
                inv_axes: wp.array(dtype=wp.mat33), reach: wp.array(dtype=wp.vec3),
                radius: wp.array(dtype=wp.vec3), n: int, conservative: int, d: int,
                rows: wp.array(dtype=wp.vec3i), dir_base: int, mode: int, out: wp.array(dtype=wp.uint32)):
-    """Map occupied voxels ``v0 … v1`` of ``V0`` into direction ``d`` (module doc), ``mode`` as
-    :func:`set_voxel`."""
+    """Map the occupied voxels of ``V0``'s rows ``r0 … r1`` into direction ``d`` (module doc),
+    ``mode`` as :func:`set_voxel`. A row's two table entries are summed once for all its voxels."""
     t0 = d * 3 * n
     t1 = t0 + n
     t2 = t1 + n
     if conservative == 0:
-        for v in range(v0, v1):
-            o = occupied[v]
-            p = table[t0 + (o >> 20)] + table[t1 + ((o >> 10) & 1023)] + table[t2 + (o & 1023)]
-            set_voxel(out, dir_base, n, p[0] >> FIX, p[1] >> FIX, p[2] >> FIX, rows, mode)
-    else:
-        e = reach[d]
-        rb = radius[d]
-        m = inv_axes[d]
-        for v in range(v0, v1):
-            o = occupied[v]
-            qi = table[t0 + (o >> 20)] + table[t1 + ((o >> 10) & 1023)] + table[t2 + (o & 1023)]
-            q = wp.vec3(float(qi[0]), float(qi[1]), float(qi[2])) * INV_FIX
+        for r in range(r0, r1):
+            ij = row_ij[r]
+            row = table[t0 + (ij >> 10)] + table[t1 + (ij & 1023)]
+            for v in range(row_start[r], row_start[r + 1]):
+                p = row + table[t2 + depth[v]]
+                set_voxel(out, dir_base, n, p[0] >> FIX, p[1] >> FIX, p[2] >> FIX, rows, mode)
+        return
+    e = reach[d]
+    rb = radius[d]
+    m = inv_axes[d]
+    for r in range(r0, r1):
+        ij = row_ij[r]
+        row = table[t0 + (ij >> 10)] + table[t1 + (ij & 1023)]
+        for v in range(row_start[r], row_start[r + 1]):
+            p = row + table[t2 + depth[v]]
+            q = wp.vec3(float(p[0]), float(p[1]), float(p[2])) * INV_FIX
             a0 = int(wp.floor(q[0] - e[0]))
             a1 = int(wp.floor(q[0] + e[0]))
             b0 = int(wp.floor(q[1] - e[1]))
@@ -88,31 +90,70 @@ def map_voxels(occupied: wp.array(dtype=wp.int32), v0: int, v1: int, table: wp.a
 
 
 @wp.kernel
-def rotate_voxels(occupied: wp.array(dtype=wp.int32), table: wp.array(dtype=wp.vec3i),
+def rotate_voxels(row_ij: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp.int32),
+                  depth: wp.array(dtype=wp.int32), table: wp.array(dtype=wp.vec3i),
                   inv_axes: wp.array(dtype=wp.mat33), reach: wp.array(dtype=wp.vec3),
                   radius: wp.array(dtype=wp.vec3), n: int, conservative: int, dir0: int, chunk: int,
-                  rows: wp.array(dtype=wp.vec3i), words_per_dir: int, base: int, clear: int,
+                  rows: wp.array(dtype=wp.vec3i), words_per_dir: int, base: int, mode: int,
                   out: wp.array(dtype=wp.uint32)):
-    """Fill direction ``dir0 + i`` from the occupied voxels ``c * chunk …`` (Alg. 5, line 7).
+    """Fill direction ``dir0 + i`` from ``V0``'s occupied rows ``c * chunk …`` (Alg. 5, line 7); the
+    words must be cleared before.
 
-    ``occupied[v]`` packs ``(i, j, l)`` as ``i << 20 | j << 10 | l`` (resolution <= 1024); ``table[(d * 3 + a) * n + x]``
-    is the fixed-point (16 fraction bits) table entry (module doc). Launched with ``dim =
-    (directions, ceil(voxels / chunk))``. On CPU one chunk holds every voxel: a thread owns its
-    direction, clears it first (``clear``) and sets bits without atomics while the direction stays
-    in cache. On a GPU the words are cleared before the launch and bits are set atomically.
+    ``V0``'s occupied voxels come grouped by row: row ``r`` is ``(i, j) = (row_ij[r] >> 10,
+    row_ij[r] & 1023)`` (resolution <= 1024) and holds the voxels at depths ``depth[row_start[r] …
+    row_start[r + 1] - 1]``; ``table[(d * 3 + a) * n + x]`` is the fixed-point (16 fraction bits)
+    table entry (module doc). Launched with ``dim = (directions, ceil(rows / chunk))``. On CPU one
+    chunk holds every row and a thread owns its direction (``mode`` 0: no atomics); on a GPU bits
+    are set atomically (``mode`` 1).
 
-    (Clearing only the words the previous frame set, by mapping its voxels again, was measured
-    slower: 1.31 s against 0.93 s per creature frame at 128³ / 2°; a scattered write costs about
-    as much as memset-ing a few hundred words.)
+    (Grouping by row and clearing by a memset before the launch instead of a word loop here
+    measured 1.58 -> 1.12 s per creature frame at 128³ / 2° on one core; clearing only the words the previous frame set, by mapping
+    its voxels again, was measured slower: a scattered write costs about as much as memset-ing a
+    few hundred words.)
     """
     i, c = wp.tid()
     d = dir0 + i
-    dir_base = base + d * words_per_dir
-    mode = 1
-    if clear != 0:
-        mode = 0
-        for w in range(words_per_dir):
-            out[dir_base + w] = wp.uint32(0)
-    v0 = c * chunk
-    v1 = wp.min(v0 + chunk, occupied.shape[0])
-    map_voxels(occupied, v0, v1, table, inv_axes, reach, radius, n, conservative, d, rows, dir_base, mode, out)
+    r0 = c * chunk
+    r1 = wp.min(r0 + chunk, row_ij.shape[0])
+    map_voxels(row_ij, row_start, depth, r0, r1, table, inv_axes, reach, radius, n, conservative, d, rows,
+               base + d * words_per_dir, mode, out)
+
+
+@wp.func
+def mark_reference(p: wp.vec3, frame: wp.mat33, center: wp.vec3, half: float, inv_h: float, n: int, lo: float,
+                   hi: float, mode: int, out: wp.array(dtype=wp.uint32), word0: int):
+    """Set the bit of the voxel of ``V0`` holding point ``p`` by ``kernels.voxel.voxelize``'s rule."""
+    vox = core_voxel(p, frame, center, half, inv_h, n, lo, hi)
+    if vox[0] >= 0:
+        v = (vox[0] * n + vox[1]) * n + vox[2]
+        set_bit(out, word0 + (v >> 5), wp.uint32(1) << wp.uint32(v & 31), mode)
+
+
+@wp.kernel
+def reference_bits(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.vec3i), first: int, spacing: float,
+                   frame: wp.mat33, center: wp.vec3, half: float, n: int, core: float, mode: int,
+                   out: wp.array(dtype=wp.uint32), word0: int):
+    """``V0`` (Alg. 5, line 1) straight from the triangles: triangle ``first + tid`` is sampled on the
+    lattice of ``usdml.visibility.voxel_grid.surface_samples`` (``ceil(longest edge / spacing)``
+    steps per edge; one step: its vertices and centroid) and every sample sets its voxel in the
+    dense ``n``³ bit grid from word ``word0`` (voxel ``(i, j, l)`` is bit ``(i n + j) n + l``).
+    Setting a bit twice costs nothing, so unlike Alg. 1's samples these need no deduplication.
+    ``mode``: 0 plain writes (a CPU thread owns its grid), 1 atomic."""
+    t = tris[first + wp.tid()]
+    a = points[t[0]]
+    b = points[t[1]]
+    c = points[t[2]]
+    ab = b - a
+    ac = c - a
+    longest = wp.sqrt(wp.max(wp.max(wp.dot(ab, ab), wp.dot(ac, ac)), wp.length_sq(c - b)))
+    steps = wp.max(1, int(wp.ceil(longest / spacing)))
+    inv_h = float(n) / (2.0 * half)
+    lo = 0.5 - 0.5 * core
+    hi = 0.5 + 0.5 * core
+    inv = 1.0 / float(steps)
+    for i in range(steps + 1):
+        for j in range(steps + 1 - i):
+            p = a + ab * (float(i) * inv) + ac * (float(j) * inv)
+            mark_reference(p, frame, center, half, inv_h, n, lo, hi, mode, out, word0)
+    if steps == 1:
+        mark_reference((a + b + c) * (1.0 / 3.0), frame, center, half, inv_h, n, lo, hi, mode, out, word0)

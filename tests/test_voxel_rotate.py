@@ -14,9 +14,10 @@ import pytest
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel import build_array, prepare_geometry
+from usdml.visibility.voxel import array_cube, build_array, sample_spacing
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
-from usdml.visibility.voxel_rotate import RotationTables, reference_voxels, rotate_array
+from usdml.visibility.voxel_grid import surface_samples
+from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, reference_voxels, rotate_array
 
 from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
 from test_voxel import box, ground_queries
@@ -61,14 +62,34 @@ def test_rotation_tables_match_numpy_rotations():
     assert np.allclose(tables.radius, 0.5 * np.abs(tables.rotations).sum(1), atol=1e-6)
 
 
+@pytest.mark.parametrize("core", [1.0, 0.5])
+def test_reference_voxelization_in_warp_matches_numpy_samples(core):
+    """V0 made in Warp from the triangles holds the voxels of NumPy's surface samples (the same
+    lattice, not deduplicated), float32 against float64 rounding on voxel faces aside."""
+    n = 24
+    pts, tris = rotated_object()
+    frame = DirectionBins.make(15.0).frames[0]
+    pts_c, tris_c, centre, half = array_cube(pts, tris)
+    got, count = reference_occupied(pts_c, tris_c, centre, half, n, frame, core=core, workers=2)
+    h = sample_spacing(half, n, core)
+    samples = surface_samples(pts_c, tris_c, h, snap=1e-4 * h)
+    want = reference_voxels(samples, centre, half, n, frame, core=core)
+    assert len(want) > 100 and count >= len(samples)
+    g, w = set(map(tuple, got.tolist())), set(map(tuple, want.tolist()))
+    assert len(g ^ w) <= 0.01 * len(w)
+    # every core gives the same grid: one worker sets the same voxels
+    one, _ = reference_occupied(pts_c, tris_c, centre, half, n, frame, core=core, workers=1)
+    assert np.array_equal(one, got)
+
+
 def test_point_mapping_kernel_sets_exactly_the_numpy_voxels():
     """Each direction holds exactly the voxels of V0's rotated centres (read from the tables)."""
     n, step = 24, 15.0
     pts, tris = rotated_object()
     bins, layout, tables = DirectionBins.make(step), RowLayout.make(n), RotationTables.make(n, step)
     arr = rotate_array(pts, tris, n, step, mapping="point")
-    centre, half, samples = prepare_geometry(pts, tris, n, core=1.0)
-    occ = reference_voxels(samples, centre, half, n, bins.frames[0], layout)
+    pts_c, tris_c, centre, half = array_cube(pts, tris)
+    occ, _ = reference_occupied(pts_c, tris_c, centre, half, n, bins.frames[0], layout)
     assert arr.occupied == len(occ) > 100
     want = np.zeros_like(arr.words)
     for d in range(bins.count):
@@ -334,12 +355,13 @@ def test_a_deforming_mesh_that_empties_and_comes_back():
 
 
 def test_voxel_packing_round_trips_up_to_the_largest_resolution():
-    from usdml.visibility.voxel_rotate import MAX_RESOLUTION, pack_voxels
+    from usdml.visibility.voxel_rotate import MAX_RESOLUTION, row_groups
 
-    ijl = np.array([[0, 0, 0], [MAX_RESOLUTION - 1] * 3, [5, MAX_RESOLUTION - 1, 7]])
-    packed = pack_voxels(ijl).astype(np.int64)
-    assert (packed >= 0).all()
-    assert np.array_equal(np.stack([packed >> 20, (packed >> 10) & 1023, packed & 1023], 1), ijl)
+    ijl = np.array([[0, 0, 0], [MAX_RESOLUTION - 1] * 3, [5, MAX_RESOLUTION - 1, 7], [5, MAX_RESOLUTION - 1, 2]])
+    row_ij, row_start, depth = (a.astype(np.int64) for a in row_groups(ijl))
+    assert (row_ij >= 0).all() and len(row_ij) == 3 and row_start[-1] == len(ijl)
+    back = [(r >> 10, r & 1023, l) for k, r in enumerate(row_ij) for l in depth[row_start[k]:row_start[k + 1]]]
+    assert sorted(back) == sorted(map(tuple, ijl.tolist()))
     blob = snapshot([soup("/blob", box((0, 0, 0), (1, 1, 1)), deforming=True)])
     with pytest.raises(UsdmlError, match="voxel-rebuild geometry"):
         VoxelBackend(resolution=MAX_RESOLUTION * 2, **QUIET).update(blob)

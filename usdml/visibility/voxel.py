@@ -187,15 +187,13 @@ def bounding_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
     return c, max(r, 1e-6 * max(1.0, float(np.abs(c).max())), 1e-9)
 
 
-def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
-                     bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None
-                     ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Alg. 1's input: the array's cube (centre, half size) and the surface samples that mark voxels.
+def array_cube(points: np.ndarray, triangles: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The geometry an array holds and its cube: ``(points, triangles, centre, half size)``.
 
     ``bounds`` (a box) restricts the array to that box (triangles are clipped to it); default: all
     of the geometry.
     """
-    core = CORE if core is None else float(core)
     points = np.asarray(points, np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
     if bounds is not None:
@@ -204,9 +202,23 @@ def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
         center, radius = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-9)
     else:
         center, radius = bounding_sphere(points[np.unique(triangles)] if len(triangles) else points)
-    half = radius * SPHERE_MARGIN
+    return points, triangles, center, float(radius * SPHERE_MARGIN)
+
+
+def sample_spacing(half: float, resolution: int, core: float) -> float:
+    """Largest distance between surface samples for an array of ``resolution`` over half size ``half``."""
+    return SAMPLE_SPACING * core * 2.0 * half / resolution
+
+
+def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
+                     bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None
+                     ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Alg. 1's input: the array's cube (centre, half size, :func:`array_cube`) and the surface
+    samples that mark voxels."""
+    core = CORE if core is None else float(core)
+    points, triangles, center, half = array_cube(points, triangles, bounds)
     h = 2.0 * half / resolution
-    return center, float(half), surface_samples(points, triangles, SAMPLE_SPACING * core * h, snap=SNAP * core * h)
+    return center, half, surface_samples(points, triangles, sample_spacing(half, resolution, core), snap=SNAP * core * h)
 
 
 def run_direction_chunks(n_dirs: int, per: int, launch: Callable[[int, int], int], device,
@@ -560,28 +572,30 @@ class VoxelBackend(VisibilityBackend):
             self._deforming = _Group(per_frame, arr)
         self._assemble(snapshot, moving, proto_hashes, rebuild_words=(bool(building) and not in_place) or not self._gpu)
 
-    def per_frame_rebuild_seconds(self, snapshot: Snapshot) -> dict:
+    def per_frame_rebuild_seconds(self, snapshot: Snapshot, repeats: int = 3) -> dict:
         """Seconds to rebuild this frame's per-frame array by Alg. 5 (``rebuild_seconds``) and by Alg. 1
-        from the geometry (``full_rebuild_seconds``), each in place as a render does, and their
-        ratio; the array is left as ``self.rebuild`` builds it. Empty when nothing is rebuilt per
-        frame. Call after :meth:`update` for ``snapshot``."""
+        from the geometry (``full_rebuild_seconds``), each in place as a render does (the median of
+        ``repeats`` rebuilds, taken in turn), and their ratio; the array is left as ``self.rebuild``
+        builds it. Empty when nothing is rebuilt per frame. Call after :meth:`update` for ``snapshot``."""
         if self._deforming is None or self._deforming.array is None or "frame_slot" not in self._gpu:
             return {}
         pts, tris = _world_geometry(snapshot, self._deforming.members)
         source = self._frame_source
-        seconds = {}
+        seconds = {m: [] for m in REBUILDS}
         keep = self.rebuild
         try:
-            for method in [m for m in REBUILDS if m != keep] + [keep]:
-                self.rebuild = method
-                arr = self._array(pts, tris, source, cacheable=False, trim=True, per_frame=True,
-                                  out=self._gpu["words"], base=self._gpu["frame_slot"])
-                seconds[method] = self.stats["dynamic_seconds"]
+            for _ in range(max(1, int(repeats))):
+                for method in [m for m in REBUILDS if m != keep] + [keep]:
+                    self.rebuild = method
+                    arr = self._array(pts, tris, source, cacheable=False, trim=True, per_frame=True,
+                                      out=self._gpu["words"], base=self._gpu["frame_slot"])
+                    seconds[method].append(self.stats["dynamic_seconds"])
         finally:
             self.rebuild = keep
         self._deforming = _Group(self._deforming.members, arr)
-        return {"rebuild_seconds": seconds["rotate"], "full_rebuild_seconds": seconds["geometry"],
-                "rebuild_speedup": seconds["geometry"] / max(seconds["rotate"], 1e-12),
+        rotate, geometry = float(np.median(seconds["rotate"])), float(np.median(seconds["geometry"]))
+        return {"rebuild_seconds": rotate, "full_rebuild_seconds": geometry,
+                "rebuild_speedup": geometry / max(rotate, 1e-12), "rebuild_repeats": len(seconds["rotate"]),
                 "mapping": self.mapping, "occupied_voxels": int(arr.occupied) if keep == "rotate" else None}
 
     def _assemble(self, snapshot: Snapshot, moving, proto_hashes, rebuild_words: bool) -> None:

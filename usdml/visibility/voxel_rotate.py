@@ -9,9 +9,12 @@ the sum of three table entries, one per axis, so there is neither trigonometry n
 per voxel. The kernels are in :mod:`usdml.kernels.voxel_rotate`.
 
 Cost and error (measured: README "Deforming and fully dynamic scenes")
-    Alg. 1 voxelizes every surface sample (about 9 per occupied voxel at half-voxel spacing) in every
+    Alg. 1 voxelizes every surface sample (about 10 per occupied voxel at half-voxel spacing) in every
     direction; Alg. 5 voxelizes the samples once and then moves only the occupied voxels, so a
-    rebuild costs about the occupied voxels times the directions.
+    rebuild costs about the occupied voxels times the directions. ``V0`` is made in Warp straight
+    from the triangles (:func:`reference_occupied`: the samples' lattice without a sample list or
+    deduplication, under 10 ms on the creature and the park), and the rotation reads ``V0``'s voxels
+    row by row (a row's two table entries summed once) into directions memset just before.
 
     ``point`` mapping (the paper) sets the voxel holding each rotated voxel centre: the rotated
     lattice leaves holes in surfaces that are tilted in the target grid, so some rays leak through.
@@ -21,24 +24,30 @@ Cost and error (measured: README "Deforming and fully dynamic scenes")
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
+import os
 import time
 from typing import Callable
 
 import numpy as np
 
 from usdml.settings import VOXEL_MAPPINGS
-from usdml.visibility.voxel import (PER_FRAME_CORE, VoxelArray, _host_words, _wp, clear_words, prepare_geometry,
-                                    run_direction_chunks)
+from usdml.visibility.voxel import (PER_FRAME_CORE, VoxelArray, _host_words, _wp, array_cube, clear_words,
+                                    run_direction_chunks, sample_spacing)
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 
-__all__ = ["MAPPINGS", "RotationTables", "reference_voxels", "rotate_array"]
+__all__ = ["MAPPINGS", "RotationTables", "reference_voxels", "reference_occupied", "rotate_array"]
 
 #: fraction bits of the fixed-point tables (kernels.voxel_rotate.FIX)
 FIX_BITS = 16
 #: how a rotated voxel marks the target grid (module doc)
 MAPPINGS = VOXEL_MAPPINGS
+#: directions one CPU launch fills: its words stay in cache from the memset to the last bit set
+#: (measured, rotation of a frame at 128³ / 2° on both cores, 4 / 8 / 16 directions: creature 0.61 /
+#: 0.61 / 0.63 s, park 0.30 / 0.28 / 0.26 s; 128: creature 0.65 s)
+CPU_DIRECTIONS_PER_LAUNCH = 8
 
 
 @dataclass(frozen=True)
@@ -126,9 +135,9 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     layout = RowLayout.make(resolution)
     tables = RotationTables.make(resolution, step)
     core = PER_FRAME_CORE if core is None else float(core)
-    center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
-    occupied = reference_voxels(samples, center, half, resolution, bins.frames[0], layout,
-                                core)
+    points, triangles, center, half = array_cube(points, triangles, bounds)
+    occupied, samples = reference_occupied(points, triangles, center, half, resolution, bins.frames[0], layout,
+                                           core, device=device, workers=workers)
     sample_seconds = time.perf_counter() - t0
     dev = wp.get_device(device)
     n_dirs, wpd = bins.count, layout.words
@@ -138,37 +147,106 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
         out = wp.array(words_np, dtype=wp.uint32, device=dev, copy=not dev.is_cpu)
         base = 0
     elif not dev.is_cpu or len(occupied) == 0:
-        clear_words(out, base, n_dirs * wpd, dev)
+        clear_words(out, base, n_dirs * wpd, dev)     # on CPU the launches clear their own directions
     if len(occupied):
         g = _device_tables(tables, layout, dev)
-        occ = wp.array(pack_voxels(occupied), dtype=wp.int32, device=dev)
-        chunk = len(occupied) if dev.is_cpu else 1024
-        n_chunks = -(-len(occupied) // chunk)
+        row_ij, row_start, depth = (wp.array(a, dtype=wp.int32, device=dev) for a in row_groups(occupied))
+        n_rows = row_ij.shape[0]
+        chunk = n_rows if dev.is_cpu else 64
+        n_chunks = -(-n_rows // chunk)
         conservative = int(mapping == "conservative")
-        clear = int(dev.is_cpu)
+        host = out.numpy() if dev.is_cpu else None
 
         def launch(d0, d1):
+            if host is not None:
+                # memset this thread's directions just before it fills them (they stay in cache);
+                # the bits are then set without atomics (a thread owns its directions)
+                host[base + d0 * wpd:base + d1 * wpd] = 0
             wp.launch(kr.rotate_voxels, dim=(d1 - d0, n_chunks), device=dev,
-                      inputs=[occ, g["table"], g["inv_axes"], g["reach"], g["radius"], resolution, conservative,
-                              d0, chunk, g["rows"], wpd, int(base), clear, out])
+                      inputs=[row_ij, row_start, depth, g["table"], g["inv_axes"], g["reach"], g["radius"],
+                              resolution, conservative, d0, chunk, g["rows"], wpd, int(base),
+                              int(host is None), out])
             return d1 - d0
 
-        per = max(1, min(n_dirs, (1 << 22) // max(len(occupied) * (8 if conservative else 1), 1)))
+        # CPU: a few directions per launch, so a launch's words (8 x 180 KiB at 128³ / 2°) stay in cache
+        per = CPU_DIRECTIONS_PER_LAUNCH if dev.is_cpu else \
+            max(1, min(n_dirs, (1 << 22) // max(len(occupied) * (8 if conservative else 1), 1)))
         run_direction_chunks(n_dirs, per, launch, dev, workers, progress)
     words_np = _host_words(out, words_np, base, n_dirs * wpd, dev)
-    arr = VoxelArray(words_np, center, float(half), resolution, float(step), int(len(samples)),
+    arr = VoxelArray(words_np, center, float(half), resolution, float(step), samples,
                      time.perf_counter() - t0, sample_seconds, source=source, occupied=int(len(occupied)))
     return arr
 
 
-#: largest resolution Alg. 5 packs (10 bits per voxel index, see pack_voxels)
+def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.ndarray, half: float, n: int,
+                       frame: np.ndarray, layout: RowLayout | None = None, core: float = 1.0, *,
+                       device: str = "cpu", workers: int | None = None) -> tuple[np.ndarray, int]:
+    """:func:`reference_voxels` of the surface samples of ``(points, triangles)`` (array space), made
+    in Warp straight from the triangles (``kernels.voxel_rotate.reference_bits``: no sample list,
+    no deduplication); on CPU each core fills its own bit grid over a share of the samples. Returns
+    the occupied voxels and the number of samples."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if len(triangles) == 0:
+        return np.zeros((0, 3), np.int32), 0
+    wp = _wp()
+    kr = _rotate_kernels()
+    dev = wp.get_device(device)
+    spacing = sample_spacing(half, n, core)
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    longest = np.sqrt(np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0))
+    steps = np.maximum(1, np.ceil(longest / spacing)).astype(np.int64)
+    per_triangle = (steps + 1) * (steps + 2) // 2 + (steps == 1)
+    total = int(per_triangle.sum())
+    words = -(-n ** 3 // 32)
+    pts = wp.array(points.astype(np.float32), dtype=wp.vec3, device=dev)
+    tri = wp.array(triangles.astype(np.int32), dtype=wp.vec3i, device=dev)
+    args = [float(spacing), wp.mat33(*np.asarray(frame, np.float32).ravel()),
+            wp.vec3(*np.asarray(center, np.float32)), float(half), int(n), float(core)]
+    if dev.is_cpu:
+        # a share of about equal samples per core, each into its own grid (no atomics), OR-ed here
+        shares = max(1, min(int(workers or os.cpu_count() or 1), len(triangles)))
+        cut = np.searchsorted(np.cumsum(per_triangle), np.linspace(0, total, shares + 1)[1:-1])
+        edges = np.concatenate([[0], cut, [len(triangles)]]).astype(np.int64)
+        grid = wp.zeros(shares * words, dtype=wp.uint32, device=dev)
+
+        def fill(k):
+            if edges[k + 1] > edges[k]:
+                wp.launch(kr.reference_bits, dim=int(edges[k + 1] - edges[k]), device=dev,
+                          inputs=[pts, tri, int(edges[k])] + args + [0, grid, k * words])
+        fill(0)     # compiles / loads the module on this thread
+        if shares > 1:
+            with ThreadPoolExecutor(max_workers=shares - 1) as pool:
+                list(pool.map(fill, range(1, shares)))
+        bits = np.bitwise_or.reduce(grid.numpy().reshape(shares, words), axis=0)
+    else:
+        grid = wp.zeros(words, dtype=wp.uint32, device=dev)
+        wp.launch(kr.reference_bits, dim=len(triangles), device=dev, inputs=[pts, tri, 0] + args + [1, grid, 0])
+        bits = grid.numpy()
+    v = np.nonzero(np.unpackbits(bits.view(np.uint8), bitorder="little"))[0]
+    ijl = np.stack([v // (n * n), (v // n) % n, v % n], axis=1)
+    if layout is not None:
+        r = ijl[:, 0] * n + ijl[:, 1]
+        k = ijl[:, 2] // 32 - layout.w0[r]
+        ijl = ijl[(k >= 0) & (k < layout.nw[r])]
+    return ijl.astype(np.int32), total
+
+
+#: largest resolution Alg. 5 packs (10 bits per voxel index, see row_groups)
 MAX_RESOLUTION = 1024
 
 
-def pack_voxels(ijl: np.ndarray) -> np.ndarray:
-    """``(i, j, l)`` packed as the kernel reads them: ``i << 20 | j << 10 | l`` (indices < 1024)."""
+def row_groups(ijl: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Occupied voxels ``(i, j, l)`` as the kernel reads them, grouped by ``V0``'s rows: ``row_ij``
+    (``i << 10 | j`` per row, indices < 1024), ``row_start`` (rows + 1 offsets into ``depth``) and
+    ``depth`` (``l`` of each voxel), all int32."""
     ijl = np.asarray(ijl, np.int64).reshape(-1, 3)
-    return ((ijl[:, 0] << 20) | (ijl[:, 1] << 10) | ijl[:, 2]).astype(np.int32)
+    key = (ijl[:, 0] << 10) | ijl[:, 1]
+    order = np.lexsort((ijl[:, 2], key))
+    key = key[order]
+    row_ij, start = np.unique(key, return_index=True)
+    return (row_ij.astype(np.int32), np.append(start, len(key)).astype(np.int32),
+            ijl[order, 2].astype(np.int32))
 
 
 _DEVICE_TABLES: dict = {}
