@@ -163,7 +163,8 @@ class RayRule:
     slab: float         # ... or until this many voxels above the tangent plane
     max_skip: float
     end_skip: float     # voxels cut before a point light
-    far: float          # a length that takes a distant ray out of every array
+    far: float          # with the ray's distance from far_center: a length that takes a distant ray out of every array
+    far_center: wp.vec3
     seg: int            # voxels read per row lookup (divides 32)
 
 
@@ -341,7 +342,7 @@ def shadow_ray(vs: VoxelScene, rule: RayRule, p: wp.vec3, target: wp.vec3, norma
     e = target
     s1 = rule.end_skip
     if distant != 0:
-        e = o + wp.normalize(target) * rule.far
+        e = o + wp.normalize(target) * (wp.length(o - rule.far_center) + rule.far)
         s1 = 0.0
     s0 = start_skip(p, target, normal, distant, rule.skip, rule.slab, rule.max_skip)
     return segment_blocked(vs, o, e, s0, s1, rule.seg, want_t)

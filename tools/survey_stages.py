@@ -4,18 +4,21 @@
 Usage::
 
     python tools/survey_stages.py ROOT [ROOT ...] [--width 64] [--timeout 120] [--json out.json]
+                                  [--render-args "--visibility voxel --voxel-resolution 32"]
 
 Every ``.usd/.usda/.usdc/.usdz`` file under the roots is rendered once (start frame, ``--width``
 pixels, into a temporary folder) with the installed ``usdml`` in a subprocess, as a user would run
 it. A stage is *rendered* (exit 0), *refused* (exit 2 with a one-line ``usdml: error:``; the reason
 is reported) or *crashed* (anything else: a traceback is a usdml bug). Prints a Markdown table and
-per-outcome counts; ``--json`` also writes every row.
+per-outcome counts; ``--json`` also writes every row. ``--render-args`` are added to every render
+(e.g. another visibility backend, or ``--gi lgh``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -25,9 +28,9 @@ from pathlib import Path
 EXTENSIONS = {".usd", ".usda", ".usdc", ".usdz"}
 
 
-def survey_one(stage: Path, out_dir: Path, width: int, timeout: float) -> dict:
+def survey_one(stage: Path, out_dir: Path, width: int, timeout: float, extra: list[str] | None = None) -> dict:
     cmd = [sys.executable, "-m", "usdml.cli", "render", str(stage), str(out_dir / f"{stage.stem}.exr"),
-           "--imageWidth", str(width)]
+           "--imageWidth", str(width)] + list(extra or [])
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -52,13 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=64)
     parser.add_argument("--timeout", type=float, default=120)
     parser.add_argument("--json", type=Path, help="write all rows to this JSON file")
+    parser.add_argument("--render-args", default="", help="more arguments for every render, one string")
     args = parser.parse_args(argv)
     stages = sorted(p for root in args.roots for p in ([root] if root.is_file() else root.rglob("*"))
                     if p.suffix in EXTENSIONS and p.is_file())
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for stage in stages:
-            rows.append(survey_one(stage, Path(tmp), args.width, args.timeout))
+            rows.append(survey_one(stage, Path(tmp), args.width, args.timeout, shlex.split(args.render_args)))
             print(f"{rows[-1]['outcome']:>8}  {stage}", file=sys.stderr)
     print("| stage | outcome | reason / first warning |\n|---|---|---|")
     for r in rows:
