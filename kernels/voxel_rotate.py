@@ -107,9 +107,9 @@ def rotate_voxels(row_ij: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp
     are set atomically (``mode`` 1).
 
     (Grouping by row and clearing by a memset before the launch instead of a word loop here
-    measured 1.58 -> 1.12 s per creature frame at 128³ / 2° on one core; clearing only the words the previous frame set, by mapping
-    its voxels again, was measured slower: a scattered write costs about as much as memset-ing a
-    few hundred words.)
+    measured 1.58 -> 1.12 s per creature frame at 128³ / 2° on one core. Clearing only the words
+    the previous frame set, by mapping its voxels again, was measured slower: a scattered write
+    costs about as much as memset-ing a few hundred words.)
     """
     i, c = wp.tid()
     d = dir0 + i

@@ -757,7 +757,7 @@ class VoxelBackend(VisibilityBackend):
         wp = _wp()
         k = _kernels()
         dev = wp.get_device(self.device)
-        # float32 once, and wrapped rather than copied on CPU (7M rays: the copies cost a third of a query)
+        # float32 once, and on CPU wrapped rather than copied again
         origins = np.ascontiguousarray(as_vectors(origins, "origins", dtype=np.float32))
         n = origins.shape[0]
         targets = np.ascontiguousarray(as_vectors(targets, "targets", n, dtype=np.float32))
