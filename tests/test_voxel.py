@@ -315,6 +315,25 @@ def test_cache_round_trip_reuse_and_corruption(tmp_path, small_city, caplog):
     assert cached_array(mesh.points, mesh.triangles, 16, 20.0, cache).cached
 
 
+def test_cache_loads_in_chunks_and_finds_damage_in_any_chunk(tmp_path, monkeypatch):
+    """An entry read (and hashed) in many chunks round-trips exactly, and a flipped byte in a late
+    chunk is still caught."""
+    import usdml.cache as cache_mod
+
+    monkeypatch.setattr(cache_mod, "READ_CHUNK", 4096)
+    cache = Cache(tmp_path)
+    data = np.random.default_rng(3).integers(0, 2 ** 32, size=10_000, dtype=np.uint32)     # ~10 chunks
+    cache.put("voxel", "k" * 40, data, {"what": "test"})
+    got, meta = cache.get("voxel", "k" * 40)
+    assert np.array_equal(got, data) and meta["what"] == "test"
+    path = cache.path("voxel", "k" * 40)
+    raw = bytearray(path.read_bytes())
+    raw[-3 * 4096 + 17] ^= 0x01
+    path.write_bytes(bytes(raw))
+    with pytest.raises(CacheCorrupt, match="checksum"):
+        cache.get("voxel", "k" * 40)
+
+
 # ------------------------------------------------------------------------------------- CLI
 
 @pytest.fixture

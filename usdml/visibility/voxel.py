@@ -449,13 +449,11 @@ class VoxelBackend(VisibilityBackend):
                 self.progress(done, total, source)
         bounds, to_array = None, np.eye(4)
         if trim:
-            lo, hi = core_bounds(points, triangles)
-            tri = np.asarray(points, np.float64)[np.asarray(triangles, np.int64)]
-            outside = int((~np.all((tri.min(1) >= lo) & (tri.max(1) <= hi), axis=1)).sum())
+            lo, hi, outside = core_bounds(points, triangles)
             if outside and source not in self._reported:
                 self._reported.add(source)
                 self.report(f"voxel array of the {source} covers {np.round(lo, 2).tolist()} .. "
-                            f"{np.round(hi, 2).tolist()}; {outside} of {len(tri)} triangles reach outside "
+                            f"{np.round(hi, 2).tolist()}; {outside} of {len(triangles)} triangles reach outside "
                             "it and shadow only within it")
             to_array = normalizing_transform(lo, hi)
             points = np.asarray(points, np.float64) @ to_array[:3, :3].T + to_array[:3, 3]
@@ -617,7 +615,10 @@ class VoxelBackend(VisibilityBackend):
             if total >= 2 ** 31:
                 raise UsdmlError(f"voxel arrays hold {total} words, more than one Warp array can index (2^31); "
                                  "lower --voxel-resolution or raise --direction-step")
-            words = np.concatenate([a.words for a in arrays]) if arrays else np.zeros(1, np.uint32)
+            if len(arrays) == 1 and arrays[0].words.dtype == np.uint32 and arrays[0].words.flags.c_contiguous:
+                words = arrays[0].words     # one array (a static scene alone): used as it is, not copied
+            else:
+                words = np.concatenate([a.words for a in arrays]) if arrays else np.zeros(1, np.uint32)
             bases = np.concatenate([[0], np.cumsum([a.words.size for a in arrays])[:-1]]).astype(np.int64) \
                 if arrays else np.zeros(0, np.int64)
             arr_int = np.zeros((max(1, len(arrays)), 4), np.int32)

@@ -216,10 +216,12 @@ def surface_samples(points: np.ndarray, triangles: np.ndarray, spacing: float, s
     return pts[np.sort(first)].astype(np.float32)
 
 
-def core_bounds(points: np.ndarray, triangles: np.ndarray, trim: float = 0.001) -> tuple[np.ndarray, np.ndarray]:
+def core_bounds(points: np.ndarray, triangles: np.ndarray, trim: float = 0.001
+                ) -> tuple[np.ndarray, np.ndarray, int]:
     """Box holding the scene's detail: the bounds of every triangle except the few that are both
     large (longer than half the diagonal of the box of the ``trim`` … ``1 - trim`` quantiles of the
-    triangle centroids) and reaching outside that quantile box.
+    triangle centroids) and reaching outside that quantile box; and how many triangles reach
+    outside the box.
 
     A terrain or ground slab of a few huge triangles reaching far past the rest of the scene
     (common: a ground to the horizon) then does not stretch the box, so the voxels stay sized to
@@ -228,20 +230,24 @@ def core_bounds(points: np.ndarray, triangles: np.ndarray, trim: float = 0.001) 
     """
     points = np.asarray(points, np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
-    tri = points[triangles]                              # (T, 3, 3)
-    lo_all, hi_all = tri.reshape(-1, 3).min(0), tri.reshape(-1, 3).max(0)
-    if triangles.shape[0] * trim < 1.0:
-        return lo_all, hi_all
-    cen = tri.mean(axis=1)
-    qlo, qhi = np.quantile(cen, trim, axis=0), np.quantile(cen, 1.0 - trim, axis=0)
-    tlo, thi = tri.min(axis=1), tri.max(axis=1)
-    # outliers: triangles reaching outside the quantile box that are large next to it
-    big = np.linalg.norm(thi - tlo, axis=1) > 0.5 * float(np.linalg.norm(qhi - qlo))
-    reach = np.any((tlo < qlo) | (thi > qhi), axis=1)
-    keep = ~(big & reach)
-    if not keep.any():
-        return lo_all, hi_all
-    return tlo[keep].min(0), thi[keep].max(0)
+    if triangles.shape[0] == 0:
+        return points.min(0), points.max(0), 0
+    # per-corner gathers and element-wise min / max: a (T, 3, 3) reduction along its middle axis is
+    # several times slower (1M triangles: 1.1 s -> 0.3 s), the values are the same
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    tlo, thi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+    lo, hi = tlo.min(0), thi.max(0)
+    if triangles.shape[0] * trim >= 1.0:
+        cen = (a + b + c) / 3.0
+        qlo, qhi = np.quantile(cen, trim, axis=0), np.quantile(cen, 1.0 - trim, axis=0)
+        # outliers: triangles reaching outside the quantile box that are large next to it
+        big = np.linalg.norm(thi - tlo, axis=1) > 0.5 * float(np.linalg.norm(qhi - qlo))
+        reach = np.any((tlo < qlo) | (thi > qhi), axis=1)
+        keep = ~(big & reach)
+        if keep.any():
+            lo, hi = tlo[keep].min(0), thi[keep].max(0)
+    outside = int((~np.all((tlo >= lo) & (thi <= hi), axis=1)).sum())
+    return lo, hi, outside
 
 
 def clip_to_box(points: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray
