@@ -36,7 +36,7 @@ import numpy as np
 from usdml.settings import VOXEL_MAPPINGS
 from usdml.visibility.voxel import (PER_FRAME_CORE, VoxelArray, _host_words, _wp, array_cube, clear_words,
                                     run_direction_chunks, sample_spacing)
-from usdml.visibility.voxel_grid import DirectionBins, RowLayout
+from usdml.visibility.voxel_grid import DirectionBins, RowLayout, lattice_steps
 
 __all__ = ["MAPPINGS", "RotationTables", "reference_voxels", "reference_occupied", "rotate_array"]
 
@@ -193,9 +193,7 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
     kr = _rotate_kernels()
     dev = wp.get_device(device)
     spacing = sample_spacing(half, n, core)
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    longest = np.sqrt(np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0))
-    steps = np.maximum(1, np.ceil(longest / spacing)).astype(np.int64)
+    steps = lattice_steps(*(points[triangles[:, k]] for k in range(3)), spacing)
     per_triangle = (steps + 1) * (steps + 2) // 2 + (steps == 1)
     total = int(per_triangle.sum())
     words = -(-n ** 3 // 32)
