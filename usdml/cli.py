@@ -197,11 +197,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from usdml.compare import compare_gi
+    from usdml.compare import compare_gi, format_gi_comparison
     from usdml.errors import UsdmlError
 
     if args.visibility:
-        from usdml.compare import compare_visibility
+        from usdml.compare import compare_visibility, format_visibility_comparison
         from usdml.render.sequence import voxel_messages
 
         if args.gi:
@@ -209,29 +209,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         overrides = {k: v for k, v in _settings_overrides(args).items() if k != "visibility"}
         r = compare_visibility(_delegate(args), args.visibility, args.against or "exact", args.frame,
                                args.imageWidth, args.device, args.heatmap, overrides, voxel_messages())
-        if args.json:
-            print(json.dumps(r, indent=2))
-        else:
-            s = r["seconds"]
-            print(f"{r['visibility']} vs {r['against']} on {r['pixels']:,} pixels x {r['lights']:,} lights "
-                  f"({r['queries']:,} facing pairs): eps_v {100 * r['eps_v']:.2f} %, eps_s {100 * r['eps_s']:.2f} %; "
-                  f"wrongly hidden {100 * r['wrongly_hidden']:.2f} % of pairs ({100 * r['wrongly_hidden_near']:.2f} % "
-                  f"near the start), wrongly visible {100 * r['wrongly_visible']:.2f} %; queries "
-                  f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)"
-                  + (f"; heat map {r['heatmap']}" if r["heatmap"] else ""))
+        print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
         return 0
     if not args.gi:
         raise UsdmlError("give --gi METHOD (and --against METHOD) to compare")
     overrides = {k: v for k, v in _settings_overrides(args).items() if k != "gi"}
     result = compare_gi(_delegate(args), args.gi, args.against or "vpl-bruteforce", args.frame,
                         args.imageWidth, args.device, args.png, overrides)
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        s = result["seconds"]
-        print(f"{result['gi']} vs {result['against']} on {result['pixels']:,} pixels, {result['vpls']:,} VPLs: "
-              f"relative RMSE of indirect {100 * result['rel_rmse']:.2f} %; indirect pass "
-              f"{s[result['gi']]:.2f} s vs {s[result['against']]:.2f} s ({result['speedup']:.1f}x)")
+    print(json.dumps(result, indent=2) if args.json else format_gi_comparison(result))
     return 0
 
 

@@ -189,3 +189,22 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
 
 #: near-field: the first occupied voxel lies within this many voxels of the ray's (skipped) start
 NEAR_VOXELS = 2.0
+
+
+def format_visibility_comparison(r: dict) -> str:
+    """One line of :func:`compare_visibility`'s result for the terminal."""
+    s = r["seconds"]
+    return (f"{r['visibility']} vs {r['against']} on {r['pixels']:,} pixels x {r['lights']:,} lights "
+            f"({r['queries']:,} facing pairs): eps_v {100 * r['eps_v']:.2f} %, eps_s {100 * r['eps_s']:.2f} %; "
+            f"wrongly hidden {100 * r['wrongly_hidden']:.2f} % of pairs ({100 * r['wrongly_hidden_near']:.2f} % "
+            f"near the start), wrongly visible {100 * r['wrongly_visible']:.2f} %; queries "
+            f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)"
+            + (f"; heat map {r['heatmap']}" if r["heatmap"] else ""))
+
+
+def format_gi_comparison(r: dict) -> str:
+    """One line of :func:`compare_gi`'s result for the terminal."""
+    s = r["seconds"]
+    return (f"{r['gi']} vs {r['against']} on {r['pixels']:,} pixels, {r['vpls']:,} VPLs: "
+            f"relative RMSE of indirect {100 * r['rel_rmse']:.2f} %; indirect pass "
+            f"{s[r['gi']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)")
