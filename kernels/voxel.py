@@ -90,6 +90,95 @@ def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: 
                 wp.atomic_or(out, base + row_off[r] + k, wp.uint32(1) << wp.uint32(il & 31))
 
 
+#: slack of the inside test in barycentric units: a line through a shared edge or vertex marks a
+#: voxel for both triangles (setting a bit twice costs nothing) instead of slipping between them
+EDGE_SLACK = wp.constant(1.0e-6)
+
+
+@wp.func
+def centre_line_crossings(qa: wp.vec3, qb: wp.vec3, qc: wp.vec3, k: int, n: int, out: wp.array(dtype=wp.uint32),
+                          base: int, row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
+                          row_off: wp.array(dtype=wp.int32), packed: int, mode: int) -> int:
+    """Set the voxels where the lines parallel to grid axis ``k`` through voxel centres cross
+    triangle ``(qa, qb, qc)`` (grid coordinates in voxels, corner origin; the paper's depth peel
+    along ``k``); returns the crossings. ``packed`` 1: into the packed direction from word ``base``
+    (rows ``row_w0`` / ``row_nw`` / ``row_off``, voxels outside the stored words dropped); 0: into
+    the dense ``n``³ bit grid from word ``base`` (voxel ``(i, j, l)`` is bit ``(i n + j) n + l``).
+    ``mode`` as :func:`set_bit`. A triangle edge-on to the axis crosses no line."""
+    x = (k + 1) % 3
+    y = (k + 2) % 3
+    # the voxel centres i + 1/2 inside the triangle's projected box; most triangles of a detailed
+    # mesh are smaller than a voxel and hold none
+    i0 = wp.max(0, int(wp.ceil(wp.min(wp.min(qa[x], qb[x]), qc[x]) - 0.5)))
+    i1 = wp.min(n - 1, int(wp.floor(wp.max(wp.max(qa[x], qb[x]), qc[x]) - 0.5)))
+    j0 = wp.max(0, int(wp.ceil(wp.min(wp.min(qa[y], qb[y]), qc[y]) - 0.5)))
+    j1 = wp.min(n - 1, int(wp.floor(wp.max(wp.max(qa[y], qb[y]), qc[y]) - 0.5)))
+    count = int(0)
+    if i0 > i1 or j0 > j1:
+        return count
+    ax = qa[x]
+    ay = qa[y]
+    ux = qb[x] - ax
+    uy = qb[y] - ay
+    vx = qc[x] - ax
+    vy = qc[y] - ay
+    area = ux * vy - uy * vx
+    if wp.abs(area) < 1.0e-12:
+        return count
+    inv = 1.0 / area
+    dzb = qb[k] - qa[k]
+    dzc = qc[k] - qa[k]
+    for i in range(i0, i1 + 1):
+        px = float(i) + 0.5 - ax
+        for j in range(j0, j1 + 1):
+            py = float(j) + 0.5 - ay
+            lb = (px * vy - py * vx) * inv
+            lc = (ux * py - uy * px) * inv
+            if lb >= -EDGE_SLACK and lc >= -EDGE_SLACK and lb + lc <= 1.0 + EDGE_SLACK:
+                l = int(wp.floor(qa[k] + lb * dzb + lc * dzc))
+                if l >= 0 and l < n:
+                    v = wp.vec3i(0, 0, 0)
+                    v[k] = l
+                    v[x] = i
+                    v[y] = j
+                    if packed == 1:
+                        r = v[0] * n + v[1]
+                        w = (v[2] >> 5) - row_w0[r]
+                        if w >= 0 and w < row_nw[r]:
+                            set_bit(out, base + row_off[r] + w, wp.uint32(1) << wp.uint32(v[2] & 31), mode)
+                    else:
+                        b = (v[0] * n + v[1]) * n + v[2]
+                        set_bit(out, base + (b >> 5), wp.uint32(1) << wp.uint32(b & 31), mode)
+                    count += 1
+    return count
+
+
+@wp.kernel
+def voxelize_triangles(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.vec3i), center: wp.vec3,
+                       half: float, n: int, frames: wp.array(dtype=wp.mat33), dir0: int, chunk: int,
+                       row_w0: wp.array(dtype=wp.int32), row_nw: wp.array(dtype=wp.int32),
+                       row_off: wp.array(dtype=wp.int32), words_per_dir: int, word0: int, mode: int,
+                       out: wp.array(dtype=wp.uint32)):
+    """Alg. 1 by centre lines: in direction ``dir0 + i`` of the array starting at word ``word0``,
+    triangles ``c * chunk …`` set every voxel where a row's centre line crosses them.
+
+    Launched with ``dim = (directions, ceil(triangles / chunk))``; on CPU one chunk holds every
+    triangle (a thread owns its direction, ``mode`` 0), on a GPU bits are set atomically (1).
+    """
+    i, c = wp.tid()
+    d = dir0 + i
+    inv_h = float(n) / (2.0 * half)
+    m = frames[d] * inv_h
+    off = wp.vec3(half, half, half) * inv_h - m * center
+    t0 = c * chunk
+    t1 = wp.min(t0 + chunk, tris.shape[0])
+    base = word0 + d * words_per_dir
+    for t in range(t0, t1):
+        tri = tris[t]
+        centre_line_crossings(m * points[tri[0]] + off, m * points[tri[1]] + off, m * points[tri[2]] + off, 2, n,
+                              out, base, row_w0, row_nw, row_off, 1, mode)
+
+
 @wp.func
 def fast_atan2(y: float, x: float) -> float:
     """atan2 by a degree-11 minimax polynomial (max error ~1e-5 rad): libm's atan2 and acos were

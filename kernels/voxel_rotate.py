@@ -24,7 +24,7 @@ Mappings
 
 import warp as wp
 
-from usdml.kernels.voxel import core_voxel, set_bit
+from usdml.kernels.voxel import centre_line_crossings, set_bit
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3, "fast_math": True})
 
@@ -119,41 +119,23 @@ def rotate_voxels(row_ij: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp
                base + d * words_per_dir, mode, out)
 
 
-@wp.func
-def mark_reference(p: wp.vec3, frame: wp.mat33, center: wp.vec3, half: float, inv_h: float, n: int, lo: float,
-                   hi: float, mode: int, out: wp.array(dtype=wp.uint32), word0: int):
-    """Set the bit of the voxel of ``V0`` holding point ``p`` by ``kernels.voxel.voxelize``'s rule."""
-    vox = core_voxel(p, frame, center, half, inv_h, n, lo, hi)
-    if vox[0] >= 0:
-        v = (vox[0] * n + vox[1]) * n + vox[2]
-        set_bit(out, word0 + (v >> 5), wp.uint32(1) << wp.uint32(v & 31), mode)
-
-
 @wp.kernel
-def reference_bits(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.vec3i), first: int, spacing: float,
-                   frame: wp.mat33, center: wp.vec3, half: float, n: int, core: float, mode: int,
-                   out: wp.array(dtype=wp.uint32), word0: int):
-    """``V0`` (Alg. 5, line 1) straight from the triangles: triangle ``first + tid`` is sampled on the
-    lattice of ``usdml.visibility.voxel_grid.surface_samples`` (``ceil(longest edge / spacing)``
-    steps per edge; one step: its vertices and centroid) and every sample sets its voxel in the
-    dense ``n``³ bit grid from word ``word0`` (voxel ``(i, j, l)`` is bit ``(i n + j) n + l``).
-    Setting a bit twice costs nothing, so unlike Alg. 1's samples these need no deduplication.
-    ``mode``: 0 plain writes (a CPU thread owns its grid), 1 atomic."""
+def reference_raster(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.vec3i), first: int,
+                     frame: wp.mat33, center: wp.vec3, half: float, n: int, no_rows: wp.array(dtype=wp.int32),
+                     mode: int, out: wp.array(dtype=wp.uint32), word0: int, crossings: wp.array(dtype=wp.int32)):
+    """``V0`` (Alg. 5, line 1) as the paper makes it, by depth peeling along three axes: triangle
+    ``first + tid`` sets every voxel where one of the three axis-parallel lines through the voxel's
+    centre crosses it (``kernels.voxel.centre_line_crossings``) in the dense ``n``³ bit grid from
+    word ``word0``; ``crossings[first + tid]``: how many it set (``no_rows``: an empty array in the
+    place of the packed layout). ``mode``: 0 plain writes (a CPU thread owns its grid), 1 atomic."""
     t = tris[first + wp.tid()]
-    a = points[t[0]]
-    b = points[t[1]]
-    c = points[t[2]]
-    ab = b - a
-    ac = c - a
-    longest = wp.sqrt(wp.max(wp.max(wp.dot(ab, ab), wp.dot(ac, ac)), wp.length_sq(c - b)))
-    steps = wp.max(1, int(wp.ceil(longest / spacing)))
     inv_h = float(n) / (2.0 * half)
-    lo = 0.5 - 0.5 * core
-    hi = 0.5 + 0.5 * core
-    inv = 1.0 / float(steps)
-    for i in range(steps + 1):
-        for j in range(steps + 1 - i):
-            p = a + ab * (float(i) * inv) + ac * (float(j) * inv)
-            mark_reference(p, frame, center, half, inv_h, n, lo, hi, mode, out, word0)
-    if steps == 1:
-        mark_reference((a + b + c) * (1.0 / 3.0), frame, center, half, inv_h, n, lo, hi, mode, out, word0)
+    m = frame * inv_h
+    off = wp.vec3(half, half, half) * inv_h - m * center
+    qa = m * points[t[0]] + off
+    qb = m * points[t[1]] + off
+    qc = m * points[t[2]] + off
+    count = int(0)
+    for k in range(3):
+        count += centre_line_crossings(qa, qb, qc, k, n, out, word0, no_rows, no_rows, no_rows, 0, mode)
+    crossings[first + wp.tid()] = count

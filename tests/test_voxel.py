@@ -7,6 +7,7 @@ Small grids (<= 32³, >= 10°) so the suite stays fast.
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from usdml.visibility import ExactBackend, VoxelBackend
 from usdml.visibility.voxel import CORE, array_cost, build_array, cached_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, surface_samples, worst_case_angle
 
+from conftest import ROOT
 from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
 
 pytest.importorskip("embreex")
@@ -106,18 +108,79 @@ def numpy_voxelize(samples, center, half, n, bins, layout, core=1.0):
 
 
 def test_voxelize_kernel_matches_numpy():
+    """The sampled rule (core 0.5) against NumPy's voxels of the same samples."""
     rng = np.random.default_rng(0)
     tris = city_tris(rng)
     pts, ids = tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3)
-    arr = build_array(pts, ids, 16, 30.0)
+    arr = build_array(pts, ids, 16, 30.0, core=0.5)
     bins, layout = DirectionBins.make(30.0), RowLayout.make(16)
     h = 2 * arr.half / 16
-    samples = surface_samples(pts, ids, 0.5 * CORE * h, snap=0.12 * CORE * h)
-    ref = numpy_voxelize(samples, arr.center, arr.half, 16, bins, layout, core=CORE)
+    samples = surface_samples(pts, ids, 0.5 * 0.5 * h, snap=0.12 * 0.5 * h)
+    ref = numpy_voxelize(samples, arr.center, arr.half, 16, bins, layout, core=0.5)
     # float32 rounding may move a sample lying on a voxel face: allow a handful of bits
     diff = np.unpackbits((ref ^ arr.words).view(np.uint8)).sum()
     total = np.unpackbits(ref.view(np.uint8)).sum()
     assert total > 1000 and diff <= total * 1e-3
+
+
+def centre_line_voxels(points: np.ndarray, triangles: np.ndarray, center: np.ndarray, half: float, n: int,
+                       frame: np.ndarray, axes=(0, 1, 2)) -> tuple[set, int]:
+    """NumPy reference of the centre-line rule (float64): the voxels ``(i, j, l)`` of the grid with
+    frame ``frame`` where a line parallel to one of grid ``axes`` through voxel centres crosses a
+    triangle, and the number of crossings."""
+    q = ((np.asarray(points, np.float64) - center) @ np.asarray(frame, np.float64).T + half) * (n / (2.0 * half))
+    voxels, crossings = set(), 0
+    for t in np.asarray(triangles).reshape(-1, 3):
+        a, b, c = q[t]
+        for k in axes:
+            x, y = (k + 1) % 3, (k + 2) % 3
+            m = np.array([[b[x] - a[x], c[x] - a[x]], [b[y] - a[y], c[y] - a[y]]])
+            if abs(np.linalg.det(m)) < 1e-12:
+                continue
+            tri = np.array([a, b, c])
+            ii = np.arange(max(0, int(np.ceil(tri[:, x].min() - 0.5))), min(n - 1, int(np.floor(tri[:, x].max() - 0.5))) + 1)
+            jj = np.arange(max(0, int(np.ceil(tri[:, y].min() - 0.5))), min(n - 1, int(np.floor(tri[:, y].max() - 0.5))) + 1)
+            gi, gj = (g.ravel() for g in np.meshgrid(ii, jj, indexing="ij"))
+            lb, lc = np.linalg.solve(m, np.stack([gi + 0.5 - a[x], gj + 0.5 - a[y]]))
+            inside = (lb >= -1e-9) & (lc >= -1e-9) & (lb + lc <= 1 + 1e-9)
+            depth = np.floor(a[k] + lb * (b[k] - a[k]) + lc * (c[k] - a[k])).astype(np.int64)
+            keep = inside & (depth >= 0) & (depth < n)
+            crossings += int(keep.sum())
+            for i_, j_, l_ in zip(gi[keep], gj[keep], depth[keep]):
+                v = [0, 0, 0]
+                v[k], v[x], v[y] = l_, i_, j_
+                voxels.add(tuple(int(e) for e in v))
+    return voxels, crossings
+
+
+
+
+def test_centre_line_kernel_matches_numpy():
+    """The default rule (CORE 0): in every direction, the voxels where rows' centre lines cross a
+    triangle, against NumPy's rasterization (float32 rounding of a crossing on a voxel face aside)."""
+    assert CORE == 0.0
+    rng = np.random.default_rng(0)
+    tris = city_tris(rng)
+    pts, ids = tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3)
+    n, step = 16, 30.0
+    arr = build_array(pts, ids, n, step, workers=2)
+    assert arr.samples == len(ids)
+    bins, layout = DirectionBins.make(step), RowLayout.make(n)
+    ref = np.zeros_like(arr.words)
+    for d in range(bins.count):
+        voxels, _ = centre_line_voxels(pts, ids, arr.center, arr.half, n, bins.frames[d], axes=(2,))
+        v = np.array(sorted(voxels), np.int64).reshape(-1, 3)
+        r = v[:, 0] * n + v[:, 1]
+        k = v[:, 2] // 32 - layout.w0[r]
+        ok = (k >= 0) & (k < layout.nw[r])
+        np.bitwise_or.at(ref, d * layout.words + layout.offset[r[ok]] + k[ok],
+                         np.uint32(1) << (v[ok, 2] % 32).astype(np.uint32))
+    diff = np.unpackbits((ref ^ arr.words).view(np.uint8)).sum()
+    total = np.unpackbits(ref.view(np.uint8)).sum()
+    assert total > 1000 and diff <= total * 1e-3
+    # thinner than every voxel the surface touches
+    fat = build_array(pts, ids, n, step, core=1.0)
+    assert total < 0.8 * np.unpackbits(fat.words.view(np.uint8)).sum()
 
 
 def numpy_segment_hit(arr, bins, layout, a, b, skip0=0.0, skip1=0.0, seg=32):
@@ -389,6 +452,24 @@ def test_cli_compare_bake_render_with_voxels(lit_stage, tmp_path, monkeypatch, c
     img, meta = read_exr(str(tmp_path / "v.1.exr"))
     shadow = img["shadow"]
     assert 0 < np.nanmax(shadow) <= 1 and np.isfinite(img["direct"]).all()
+
+
+def test_voxel_table_tool_reports_every_setting(lit_stage, tmp_path):
+    """tools/voxel_table.py: one row per resolution and step, errors and ratios measured."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "USDML_CACHE_DIR": str(tmp_path / "cache")}
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "voxel_table.py"), lit_stage, "--resolutions", "8,16",
+                           "--steps", "30", "--imageWidth", "32", "--frameWidth", "24", "--frameHeight", "16",
+                           "--json"], capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)
+    assert [(r["voxel_resolution"], r["direction_step"]) for r in rows] == [(8, 30.0), (16, 30.0)]
+    for r in rows:
+        assert 0 <= r["eps_s"] <= r["eps_v"] < 0.5 and r["queries"] > 0
+        assert r["bytes"] > 0 and r["build_seconds"] > 0 and r["speedup_vs_exact"] > 0
+        assert r["frame_seconds"] > 0 and r["exact_frame_seconds"] > 0
 
 
 def test_cli_refuses_impossible_voxel_settings(lit_stage, tmp_path, capsys):

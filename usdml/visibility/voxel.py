@@ -17,11 +17,16 @@ Arrays (paper 000 Alg. 4)
     :mod:`usdml.kernels.voxel`.
 
 Building (Alg. 1)
-    The paper depth-peels the rotated scene along three axes. Here every triangle is sampled on a
-    lattice no coarser than half a voxel (deduplicated), and each direction's voxelization sets the
-    bit of the voxel holding each rotated sample: every row whose centre line pierces a surface gets
-    a bit, with the cost set by surface area / h² rather than by triangle count (a 1M-triangle city of
-    sub-voxel triangles costs what its area costs). Directions are split over the CPU cores.
+    The paper depth-peels the rotated scene along three axes. Here each direction's voxelization
+    sets, for every row, the voxels where the row's centre line crosses a triangle: each triangle is
+    rasterized onto the rows whose centres its projection holds (``CORE`` 0,
+    ``kernels.voxel.voxelize_triangles``). The lines of the other two axes (the paper's other two
+    peels) add voxels only where a surface runs along the rows, which rays in that direction barely
+    see: measured on the city at 128³ / 2° they made ε_v / ε_s worse (1.99 / 1.25 % -> 2.38 /
+    1.91 %, more wrongly hidden rays) and the build 2x longer, so they are not peeled. The older rule,
+    ``core`` > 0, samples every triangle on a lattice finer than a voxel and sets the voxel holding
+    each rotated sample that lies in the central ``core`` fraction of its row: a cost set by surface
+    area, and thicker surfaces. Directions are split over the CPU cores.
 
 Leaving the surface (self-occlusion) and its cost
     The voxels around a shading point hold its own surface. A shadow ray therefore starts
@@ -57,7 +62,7 @@ log = logging.getLogger("usdml")
 __all__ = ["VoxelArray", "VoxelBackend", "build_array", "array_cost", "available_memory"]
 
 #: bump when the bits an array holds for the same inputs change
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
 REBUILDS = VOXEL_REBUILDS
 #: sample spacing and dedup grid as fractions of the voxel size times the core fraction: a plane
@@ -65,17 +70,18 @@ REBUILDS = VOXEL_REBUILDS
 #: half width of the crossing, inside the core (no holes along rows; see voxel_grid)
 SAMPLE_SPACING = 0.5
 SNAP = 0.12
-#: central fraction of a row's square a sample must fall in to mark its voxel (kernels.voxel.voxelize)
-#: in the arrays built once and cached (static scene, prototypes). 1 marks every voxel a surface
-#: touches, so occluders grow by up to a voxel and long grazing rays clip them; 0.5 marks a voxel
-#: only where the surface crosses the central half of its row, and costs 4x the samples. Measured
-#: at 128³ / 2° on the city: ε_v / ε_s 2.8 % / 2.4 % -> 2.1 % / 1.6 %, build 59 s -> 155 s (once,
-#: cached); at 64³ / 3° creature 2.8 / 1.6 -> 2.7 / 1.4, park (Alg. 1) 39.3 / 35.6 -> 30.7 / 23.0.
-CORE = 0.5
-#: the same for per-frame arrays: Alg. 5 rotates one voxelization, whose thinning along its own rows
-#: is wrong for every other direction (measured: creature ε_v 1.8 % -> 4.2 %, light leaks), and a
-#: thinner Alg. 1 would cost 4x per frame; both use every voxel the surface touches
-PER_FRAME_CORE = 1.0
+#: the voxelization rule of the arrays built once and cached (static scene, prototypes): 0 marks
+#: the voxels where rows' centre lines cross the surface (rasterized, module doc); a fraction > 0
+#: marks the voxel of every surface sample lying in that central part of its row's square
+#: (kernels.voxel.voxelize: 1 is every voxel a surface touches, occluders a voxel fatter). Measured
+#: at 128³ / 2° on the city (ε_v / ε_s, build): 1: 2.8 / 2.4 %, 59 s; 0.5: 2.13 / 1.63 %, 155 s;
+#: 0: 1.99 / 1.25 %, 58 s.
+CORE = 0.0
+#: the same for per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
+#: (ε_v / ε_s, rebuild): creature 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
+#: 29.0 %, 3.0 s; 0: 19.0 / 9.6 %, 1.6 s. (Alg. 5's reference voxelization has its own rule:
+#: voxel_rotate.)
+PER_FRAME_CORE = 0.0
 #: margin on the bounding sphere so that float rounding never puts a sample outside the cube
 SPHERE_MARGIN = 1.002
 
@@ -89,9 +95,9 @@ class VoxelArray:
     half: float                 #: half size of the cube = sphere radius × margin
     resolution: int
     step: float
-    samples: int = 0            #: surface samples voxelized
+    samples: int = 0            #: items voxelized: surface samples (``core`` > 0) or triangles (0)
     build_seconds: float = 0.0  #: 0 when loaded from the cache
-    sample_seconds: float = 0.0  #: part of build_seconds spent sampling the surfaces
+    sample_seconds: float = 0.0  #: part of build_seconds spent preparing the geometry (sampling)
     occupied: int = 0           #: occupied voxels of the reference voxelization (Alg. 5 rebuilds)
     key: str = ""
     source: str = ""            #: what it holds (for messages)
@@ -213,8 +219,8 @@ def sample_spacing(half: float, resolution: int, core: float) -> float:
 def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
                      bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None
                      ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Alg. 1's input: the array's cube (centre, half size, :func:`array_cube`) and the surface
-    samples that mark voxels."""
+    """Alg. 1's input for the sampled rule (``core`` > 0): the array's cube (centre, half size,
+    :func:`array_cube`) and the surface samples that mark voxels."""
     core = CORE if core is None else float(core)
     points, triangles, center, half = array_cube(points, triangles, bounds)
     h = 2.0 * half / resolution
@@ -251,9 +257,12 @@ def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step
                 out=None, base: int = 0) -> VoxelArray:
     """Alg. 1: voxelize triangles ``(points, triangles)`` (array space) in every direction bin.
 
-    ``bounds``: see :func:`prepare_geometry`. ``progress(done, total)`` is called with directions
-    finished. ``out``: a Warp ``uint32`` array to fill in place from word ``base`` (see
-    :func:`usdml.visibility.voxel_rotate.rotate_array`); default: a new array.
+    ``core``: the rule (module doc), default ``CORE``: 0 rasterizes the rows' centre lines
+    (``kernels.voxel.voxelize_triangles``), > 0 voxelizes surface samples lying in that central
+    fraction of their row (``kernels.voxel.voxelize``). ``bounds``: see :func:`array_cube`.
+    ``progress(done, total)`` is called with directions finished. ``out``: a Warp ``uint32`` array
+    to fill in place from word ``base`` (see :func:`usdml.visibility.voxel_rotate.rotate_array`);
+    default: a new array.
     """
     wp = _wp()
     k = _kernels()
@@ -261,7 +270,12 @@ def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step
     core = CORE if core is None else float(core)
     bins = DirectionBins.make(step)
     layout = RowLayout.make(resolution)
-    center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
+    if core > 0:
+        center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
+        items = len(samples)
+    else:
+        points, triangles, center, half = array_cube(points, triangles, bounds)
+        items = len(triangles)
     sample_seconds = time.perf_counter() - t0
     n_dirs, wpd = bins.count, layout.words
     dev = wp.get_device(device)
@@ -272,29 +286,33 @@ def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step
         base = 0
     else:
         clear_words(out, base, n_dirs * wpd, dev)
-    if len(samples):
-        s_wp = wp.array(samples, dtype=wp.vec3, device=dev)
+    if items:
+        rows = [wp.array(a, dtype=wp.int32, device=dev) for a in (layout.w0, layout.nw, layout.offset)]
         frames = wp.array(bins.frames, dtype=wp.mat33, device=dev)
-        w0 = wp.array(layout.w0, dtype=wp.int32, device=dev)
-        nw = wp.array(layout.nw, dtype=wp.int32, device=dev)
-        off = wp.array(layout.offset, dtype=wp.int32, device=dev)
         c32 = wp.vec3(*center.astype(np.float32))
-        chunk = len(samples) if dev.is_cpu else 4096
-        n_chunks = -(-len(samples) // chunk)
+        chunk = items if dev.is_cpu else 4096
+        n_chunks = -(-items // chunk)
+        if core > 0:
+            kernel, head = k.voxelize, [wp.array(samples, dtype=wp.vec3, device=dev), c32, float(half), resolution, core]
+            tail, per_item = [out], 1
+        else:
+            kernel = k.voxelize_triangles
+            head = [wp.array(points.astype(np.float32), dtype=wp.vec3, device=dev),
+                    wp.array(triangles.astype(np.int32), dtype=wp.vec3i, device=dev), c32, float(half), resolution]
+            tail, per_item = [int(not dev.is_cpu), out], 4
 
         def launch(d0, d1):
-            wp.launch(k.voxelize, dim=(d1 - d0, n_chunks), device=dev,
-                      inputs=[s_wp, c32, float(half), resolution, core, frames, d0, chunk, w0, nw, off, wpd,
-                              int(base), out])
+            wp.launch(kernel, dim=(d1 - d0, n_chunks), device=dev,
+                      inputs=head + [frames, d0, chunk] + rows + [wpd, int(base)] + tail)
             return d1 - d0
 
         # directions per launch: enough work per launch, frequent progress
-        run_direction_chunks(n_dirs, max(1, min(n_dirs, (1 << 24) // max(len(samples), 1))), launch, dev,
+        run_direction_chunks(n_dirs, max(1, min(n_dirs, (1 << 24) // max(items * per_item, 1))), launch, dev,
                              workers, progress)
     arr = VoxelArray(_host_words(out, out_np, base, n_dirs * wpd, dev), center, float(half), resolution,
-                     float(step), int(len(samples)), time.perf_counter() - t0, sample_seconds, source=source)
-    log.debug(f"voxel array {source}: {len(samples)} samples in {sample_seconds:.2f} s, "
-              f"{n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
+                     float(step), int(items), time.perf_counter() - t0, sample_seconds, source=source)
+    log.debug(f"voxel array {source}: {items} {'samples' if core > 0 else 'triangles'} ready in "
+              f"{sample_seconds:.2f} s, {n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
     return arr
 
 
@@ -378,7 +396,7 @@ class VoxelBackend(VisibilityBackend):
     normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
     segment : voxels looked up per row (a divisor of 32): the ray picks its row anew every segment
     core, frame_core : central fraction of a row a surface must cross to mark a voxel, in cached
-        arrays (default ``CORE``) and in per-frame arrays (``PER_FRAME_CORE``)
+        arrays (default ``CORE``) and in per-frame arrays rebuilt by Alg. 1 (``PER_FRAME_CORE``)
     rebuild : how the per-frame array (deforming meshes, or everything when ``fully_dynamic``) is
         rebuilt: ``rotate`` (Alg. 5, :mod:`usdml.visibility.voxel_rotate`) or ``geometry`` (Alg. 1)
     mapping : Alg. 5's ``point`` (the paper) or ``conservative`` mapping of rotated voxels
@@ -418,6 +436,9 @@ class VoxelBackend(VisibilityBackend):
         self.device = device
         self.core = CORE if core is None else float(core)
         self.frame_core = PER_FRAME_CORE if frame_core is None else float(frame_core)
+        for name, value in (("core", self.core), ("frame core", self.frame_core)):
+            if not (0.0 <= value <= 1.0):
+                raise UsdmlError(f"voxel {name} must be in [0, 1] (0: rows' centre lines), got {value:g}")
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
         self.memory_limit = memory_limit
         self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
@@ -463,7 +484,7 @@ class VoxelBackend(VisibilityBackend):
             if self.rebuild == "rotate":
                 from usdml.visibility.voxel_rotate import rotate_array
                 arr = rotate_array(points, triangles, self.resolution, self.step, mapping=self.mapping,
-                                   device=self.device, workers=self.workers, bounds=bounds, core=self.frame_core,
+                                   device=self.device, workers=self.workers, bounds=bounds,
                                    out=out, base=base, progress=prog, source=source)
             else:
                 arr = build_array(points, triangles, self.resolution, self.step, device=self.device,
