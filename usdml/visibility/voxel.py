@@ -75,7 +75,7 @@ SNAP = 0.12
 #: marks the voxel of every surface sample lying in that central part of its row's square
 #: (kernels.voxel.voxelize: 1 is every voxel a surface touches, occluders a voxel fatter). Measured
 #: at 128³ / 2° on the city (ε_v / ε_s, build): 1: 2.8 / 2.4 %, 59 s; 0.5: 2.13 / 1.63 %, 155 s;
-#: 0: 1.99 / 1.25 %, 58 s.
+#: 0: 1.99 / 1.25 %, 50-58 s.
 CORE = 0.0
 #: the same for per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
 #: (ε_v / ε_s, rebuild): creature 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
@@ -395,8 +395,9 @@ class VoxelBackend(VisibilityBackend):
     memory_limit : bytes the arrays may take; default: what the machine has available
     normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
     segment : voxels looked up per row (a divisor of 32): the ray picks its row anew every segment
-    core, frame_core : central fraction of a row a surface must cross to mark a voxel, in cached
-        arrays (default ``CORE``) and in per-frame arrays rebuilt by Alg. 1 (``PER_FRAME_CORE``)
+    core, frame_core : the voxelization rule of cached arrays (default ``CORE``) and of per-frame
+        arrays rebuilt by Alg. 1 (``PER_FRAME_CORE``): 0, the default, rasterizes rows' centre
+        lines; a fraction > 0 is the central part of a row a surface sample must lie in
     rebuild : how the per-frame array (deforming meshes, or everything when ``fully_dynamic``) is
         rebuilt: ``rotate`` (Alg. 5, :mod:`usdml.visibility.voxel_rotate`) or ``geometry`` (Alg. 1)
     mapping : Alg. 5's ``point`` (the paper) or ``conservative`` mapping of rotated voxels
