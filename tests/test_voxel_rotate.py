@@ -275,6 +275,16 @@ def test_unknown_rebuild_or_mapping_is_refused():
         VoxelBackend(core=-1.0, **QUIET)
 
 
+def test_conservative_mapping_keeps_the_longer_skip():
+    """Thin surfaces skip at most MAX_SKIP voxels to leave the surface; the conservative mapping's
+    thicker per-frame surfaces need CONSERVATIVE_MAX_SKIP; a given max_skip wins."""
+    from usdml.visibility.voxel import CONSERVATIVE_MAX_SKIP, MAX_SKIP
+
+    assert VoxelBackend(**QUIET).max_skip == MAX_SKIP < CONSERVATIVE_MAX_SKIP
+    assert VoxelBackend(mapping="conservative", **QUIET).max_skip == CONSERVATIVE_MAX_SKIP
+    assert VoxelBackend(mapping="conservative", max_skip=3.0, **QUIET).max_skip == 3.0
+
+
 # ---------------------------------------------------------------------------------------- CLI
 
 @pytest.fixture
