@@ -153,8 +153,6 @@ def centre_line_voxels(points: np.ndarray, triangles: np.ndarray, center: np.nda
     return voxels, crossings
 
 
-
-
 def test_centre_line_kernel_matches_numpy():
     """The default rule (CORE 0): in every direction, the voxels where rows' centre lines cross a
     triangle, against NumPy's rasterization (float32 rounding of a crossing on a voxel face aside)."""
