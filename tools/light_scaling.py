@@ -21,7 +21,6 @@ import argparse
 from dataclasses import replace
 import json
 import sys
-import time
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,8 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
-    from usdml.bench import resample_lights
-    from usdml.render.frame import FrameRenderer
+    from usdml.bench import next_frame, resample_lights, steady_frame
     from usdml.stage import StageDelegate
 
     delegate = StageDelegate(args.stage)
@@ -51,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         voxel_resolution=args.voxel_resolution, direction_step=args.direction_step,
         voxel_mapping=args.voxel_mapping, voxel_rebuild=args.voxel_rebuild, fully_dynamic=args.fully_dynamic)
     f0 = delegate.start_time if args.frame is None else args.frame
-    f1 = min(f0 + 1, delegate.end_time) if delegate.end_time > f0 else f0
+    f1 = next_frame(delegate, f0)
     rows = []
     for n in [int(x) for x in args.lights.split(",")]:
         original = delegate.snapshot
@@ -64,14 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             row = {"stage": args.stage, "lights": n, "frame": f1}
             for name in args.backends.split(","):
-                r = FrameRenderer(delegate, settings.updated(visibility=name), backend_options={"report": lambda s: None})
-                try:
-                    snap = delegate.snapshot(f0)
-                    w, h = snap.camera.resolution(args.imageWidth)
-                    r.render(f0, w, h, {"color"})
-                    t = time.perf_counter()
-                    res = r.render(f1, w, h, {"color"})
-                    seconds = time.perf_counter() - t
+                w, h = delegate.snapshot(f0).camera.resolution(args.imageWidth)
+                with steady_frame(delegate, settings.updated(visibility=name), f0, w, h) as (res, seconds, r):
                     st = res.stats
                     row[name] = {"seconds": seconds, "update_seconds": st["update_seconds"],
                                  "gbuffer_seconds": st["gbuffer_seconds"], "shading_seconds": st["shading_seconds"],
@@ -81,8 +73,6 @@ def main(argv: list[str] | None = None) -> int:
                         row[name].update(rebuilt=b.built, rebuild_seconds=b.stats["dynamic_seconds"] if b.built else 0.0,
                                          voxel_resolution=b.resolution, direction_step=b.step,
                                          fully_dynamic=b.fully_dynamic, mapping=b.mapping)
-                finally:
-                    r.close()
             if "voxel" in row and "exact" in row:
                 row["voxel_speedup_vs_exact"] = row["exact"]["seconds"] / row["voxel"]["seconds"]
             rows.append(row)

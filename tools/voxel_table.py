@@ -21,23 +21,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
 
 def _frame_seconds(delegate, settings, width: int, height: int) -> float:
-    """Seconds of the second of two consecutive frames rendered with ``settings`` (color only)."""
-    from usdml.render.frame import FrameRenderer
+    """Seconds of the second of two consecutive frames from the stage's start (color only)."""
+    from usdml.bench import steady_frame
 
-    f0 = delegate.start_time
-    f1 = min(f0 + 1, delegate.end_time) if delegate.end_time > f0 else f0
-    r = FrameRenderer(delegate, settings, backend_options={"report": lambda s: None})
-    try:
-        r.render(f0, width, height, {"color"})
-        t = time.perf_counter()
-        r.render(f1, width, height, {"color"})
-        return time.perf_counter() - t
-    finally:
-        r.close()
+    with steady_frame(delegate, settings, delegate.start_time, width, height) as (_, seconds, _r):
+        return seconds
 
 
 def main(argv: list[str] | None = None) -> int:

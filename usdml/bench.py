@@ -7,12 +7,13 @@ The query set is every (pixel, light) pair of one frame where the light faces th
 from __future__ import annotations
 
 import time as _time
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
 
 from usdml.lighting.direct import facing_pairs
-from usdml.render.frame import conform_camera
+from usdml.render.frame import FrameRenderer, conform_camera
 from usdml.render.gbuffer import build_gbuffer
 from usdml.scene import diff
 from usdml.stage import StageDelegate
@@ -131,3 +132,24 @@ def format_bench(results: list[dict]) -> str:
                      + (f"\n          per-frame array: Alg. 5 ({r['mapping']}) {r['rebuild_seconds']:.2f} s, Alg. 1 "
                         f"{r['full_rebuild_seconds']:.2f} s = {r['rebuild_speedup']:.1f}x" if "rebuild_seconds" in r else ""))
     return "\n".join(lines)
+
+
+def next_frame(delegate: StageDelegate, frame: float) -> float:
+    """The timecode after ``frame`` (``frame`` itself at the stage's end)."""
+    return min(frame + 1, delegate.end_time) if delegate.end_time > frame else frame
+
+
+@contextmanager
+def steady_frame(delegate: StageDelegate, settings, frame: float, width: int, height: int,
+                 aovs: frozenset = frozenset({"color"})):
+    """Render ``frame`` and then :func:`next_frame` with one renderer and time the second: the steady
+    state of a sequence (per-frame arrays rebuilt, static ones kept). Yields ``(result, seconds,
+    renderer)``; the renderer is closed on leaving."""
+    r = FrameRenderer(delegate, settings, backend_options={"report": lambda s: None})
+    try:
+        r.render(frame, width, height, set(aovs))
+        t0 = _time.perf_counter()
+        result = r.render(next_frame(delegate, frame), width, height, set(aovs))
+        yield result, _time.perf_counter() - t0, r
+    finally:
+        r.close()
