@@ -229,11 +229,9 @@ def sample_spacing(half: float, resolution: int, core: float) -> float:
 
 
 def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
-                     bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None
-                     ) -> tuple[np.ndarray, float, np.ndarray]:
+                     bounds: tuple[np.ndarray, np.ndarray] | None, core: float) -> tuple[np.ndarray, float, np.ndarray]:
     """Alg. 1's input for the sampled rule (``core`` > 0): the array's cube (centre, half size,
     :func:`array_cube`) and the surface samples that mark voxels."""
-    core = CORE if core is None else float(core)
     points, triangles, center, half = array_cube(points, triangles, bounds)
     h = 2.0 * half / resolution
     return center, half, surface_samples(points, triangles, sample_spacing(half, resolution, core), snap=SNAP * core * h)

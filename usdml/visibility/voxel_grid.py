@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-__all__ = ["DirectionBins", "RowLayout", "array_bytes", "worst_case_angle", "lattice_steps", "surface_samples", "core_bounds",
+__all__ = ["DirectionBins", "RowLayout", "array_bytes", "worst_case_angle", "surface_samples", "core_bounds",
            "clip_to_box"]
 
 
@@ -166,13 +166,6 @@ def array_bytes(resolution: int, step: float) -> int:
     return DirectionBins.make(step).count * RowLayout.make(resolution).words * 4
 
 
-def lattice_steps(a: np.ndarray, b: np.ndarray, c: np.ndarray, spacing: float) -> np.ndarray:
-    """Steps per edge of each triangle ``(a, b, c)``'s sample lattice: ``ceil(longest edge /
-    spacing)``, at least 1 (int64)."""
-    longest = np.sqrt(np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0))
-    return np.maximum(1, np.ceil(longest / spacing)).astype(np.int64)
-
-
 def surface_samples(points: np.ndarray, triangles: np.ndarray, spacing: float, snap: float | None = None) -> np.ndarray:
     """Points on every triangle no farther than ``spacing`` apart (a barycentric lattice with
     ``ceil(longest edge / spacing)`` steps per edge, vertices and edges included), deduplicated by
@@ -188,7 +181,8 @@ def surface_samples(points: np.ndarray, triangles: np.ndarray, spacing: float, s
         return np.zeros((0, 3), np.float32)
     snap = spacing / 8.0 if snap is None else snap
     a, b, c = points[triangles[:, 0]], points[triangles[:, 1]], points[triangles[:, 2]]
-    steps = lattice_steps(a, b, c, spacing)
+    longest = np.sqrt(np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0))
+    steps = np.maximum(1, np.ceil(longest / spacing)).astype(np.int64)
     origin = points[np.unique(triangles)].min(axis=0)
     out, keys = [], []
 

@@ -190,8 +190,8 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
         # voxels), each into its own grid (no atomics), OR-ed here
         shares = max(1, min(int(workers or os.cpu_count() or 1), len(triangles)))
         q = (points - center) @ np.asarray(frame, np.float64).T * (n / (2.0 * half))
-        ext = np.maximum(*(q[triangles[:, k]] for k in (0, 1))) - np.minimum(*(q[triangles[:, k]] for k in (0, 1)))
-        ext = np.maximum(ext, np.abs(q[triangles[:, 2]] - q[triangles[:, 0]]))
+        a, b, c = (q[triangles[:, k]] for k in range(3))
+        ext = np.maximum(np.maximum(a, b), c) - np.minimum(np.minimum(a, b), c)
         cost = np.cumsum(1.0 + ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0])
         cut = np.searchsorted(cost, np.linspace(0, cost[-1], shares + 1)[1:-1])
         edges = np.concatenate([[0], cut, [len(triangles)]]).astype(np.int64)
