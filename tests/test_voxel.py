@@ -493,3 +493,25 @@ def test_thin_voxelization_hides_fewer_lights_wrongly(small_city):
         samples[core] = backend.arrays[0].samples
     assert hidden[0.5] < hidden[1.0], hidden
     assert samples[0.5] > 2 * samples[1.0]
+
+
+def test_bench_orders_queries_as_the_shading_kernel_asks_them():
+    from usdml.bench import shading_order
+    from usdml.visibility.voxel import morton_order
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, (200, 3))
+    pi = np.repeat(np.arange(200), 7)
+    li = np.tile(np.arange(7), 200)
+    keep = rng.random(len(pi)) < 0.6            # only some pairs face each other
+    pi, li = pi[keep], li[keep]
+    order = shading_order(points, pi, li, tile=16)
+    assert np.array_equal(np.sort(order), np.arange(len(pi)))     # a permutation: same queries
+    rank = np.empty(200, np.int64)
+    rank[morton_order(points.astype(np.float32))] = np.arange(200)
+    key = np.stack([rank[pi[order]] // 16, li[order], rank[pi[order]]], axis=1)
+    # tile by tile, within a tile light by light, within a light point by point
+    assert all(tuple(a) < tuple(b) for a, b in zip(key[:-1], key[1:]))
+    # the tile of 16 points along the Z-order curve is spatially tight: its box is far smaller than the scene's
+    tile0 = points[morton_order(points.astype(np.float32))[:16]]
+    assert np.ptp(tile0, axis=0).prod() < 0.25 * np.ptp(points, axis=0).prod()

@@ -1,7 +1,9 @@
 """``usdml bench``: time the visibility queries of one frame, every backend on the same query set.
 
 The query set is every (pixel, light) pair of one frame where the light faces the pixel's surface
-(the pairs direct lighting asks about), from the G-buffer of the exact backend.
+(the pairs direct lighting asks about), from the G-buffer of the exact backend, in the order the
+voxel shading kernel asks them on CPU (:func:`shading_order`: paper 000 Alg. 3 over tiles of
+neighbouring pixels, light by light). Every backend is timed on the same queries in the same order.
 """
 
 from __future__ import annotations
@@ -19,16 +21,37 @@ from usdml.scene import diff
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
 from usdml.visibility import ExactBackend, backend_for
+from usdml.visibility.voxel import SHADE_TILE, morton_order
+
+
+#: queries each backend answers before the timed call
+WARMUP = 1024
 
 
 def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Origins, targets, normals, distant flags and hit-pixel index of every facing (pixel, light)
-    pair: the shadow queries direct lighting asks on the G-buffer ``gb``."""
+    pair: the shadow queries direct lighting asks on the G-buffer ``gb``, in :func:`shading_order`."""
     hit = gb.hit.ravel()
-    blocks = list(facing_pairs(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights))
+    points = gb.position.reshape(-1, 3)[hit]
+    blocks = list(facing_pairs(points, gb.normal.reshape(-1, 3)[hit], snap.lights))
     if not blocks:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, np.int64)
-    return tuple(np.concatenate([b[k] for b in blocks]) for k in range(5))
+    columns = [np.concatenate([b[k] for b in blocks]) for k in range(6)]
+    order = shading_order(points, columns[4], columns[5])
+    return tuple(c[order] for c in columns[:5])
+
+
+def shading_order(points: np.ndarray, point_index: np.ndarray, light_index: np.ndarray,
+                  tile: int = SHADE_TILE) -> np.ndarray:
+    """The permutation putting (point, light) queries in the order ``kernels.voxel.shade_tiles`` asks
+    them on CPU: ``points`` along a Z-order curve in tiles of ``tile``, each tile light by light.
+    (Rays from neighbouring points to one light share direction bins and rows; measured on the city
+    at 160 px, 128³ / 2°: voxel 7.1 M queries/s in pixel-by-pixel order, 12.0 M/s in this one;
+    exact 9.0 and 9.6 M/s.)"""
+    rank = np.empty(len(points), np.int64)
+    rank[morton_order(np.asarray(points, np.float32))] = np.arange(len(points))
+    r = rank[point_index]
+    return np.lexsort((r, light_index, r // max(int(tile), 1)))
 
 
 def resample_lights(lights, n: int, seed: int = 0):
@@ -89,6 +112,8 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             t0 = _time.perf_counter()
             backend.update(snap, diff(None, snap))
             build = _time.perf_counter() - t0
+        # a few queries first: kernel modules load and caches fill outside the timing
+        backend.occluded(origins[:WARMUP], targets[:WARMUP], normals=normals[:WARMUP], distant=distant[:WARMUP])
         t0 = _time.perf_counter()
         blocked = backend.occluded(origins, targets, normals=normals, distant=distant)
         seconds = _time.perf_counter() - t0

@@ -131,7 +131,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         counts = {k: np.zeros(n_px, np.int64) for k in ("facing", "blocked", "hidden", "visible")}
         hidden_near = 0
         ref_s = got_s = 0.0
-        for origin, target, normal, distant, pixel in facing_pairs(
+        for origin, target, normal, distant, pixel, _ in facing_pairs(
                 gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights):
             args = (origin, target)
             kw = dict(normals=normal, distant=distant.astype(bool))

@@ -131,15 +131,15 @@ def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lig
 
 
 def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
-    """Yield ``(origins, targets, normals, distant, point_index)`` of every shadow query of
-    :func:`shade_direct`, by block."""
+    """Yield ``(origins, targets, normals, distant, point_index, light_index)`` of every shadow query
+    of :func:`shade_direct`, by block."""
     table = _LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
     for lo in range(0, len(points), step):
         hi = min(len(points), lo + step)
         g, _, w = _geometry(points[lo:hi], normals[lo:hi], table)
         pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
-        yield points[lo + pi], targets, normals[lo + pi], dist, lo + pi
+        yield points[lo + pi], targets, normals[lo + pi], dist, lo + pi, li
 
 
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,

@@ -159,7 +159,7 @@ def normalizing_transform(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 SHADE_TILE = 64
 
 
-def _morton_order(points: np.ndarray) -> np.ndarray:
+def morton_order(points: np.ndarray) -> np.ndarray:
     """Indices sorting ``points`` along a Z-order curve of a 2^10 grid over their bounds."""
     lo, hi = points.min(axis=0), points.max(axis=0)
     q = ((points - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
@@ -855,7 +855,7 @@ class VoxelBackend(VisibilityBackend):
         # tiles of spatially coherent points (Morton order of their cells): one light's rays from a
         # tile share bins and rows (kernels.voxel.shade_tiles); on a GPU one point per tile
         tile = SHADE_TILE if dev.is_cpu else 1
-        order = _morton_order(pts) if tile > 1 else np.arange(n_p)
+        order = morton_order(pts) if tile > 1 else np.arange(n_p)
         p_wp = wp.array(pts[order], dtype=wp.vec3, device=dev)
         n_wp = wp.array(np.asarray(normals, np.float32)[order], dtype=wp.vec3, device=dev)
         n_tiles = -(-n_p // tile)
