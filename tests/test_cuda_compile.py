@@ -3,7 +3,7 @@
 Warp ships NVRTC, so the kernels' CUDA code (the GPU branches: atomic bit writes, one launch per
 batch) is generated and compiled to PTX here as it would be on a GPU's first launch. This does not
 run it; it catches code that only the CUDA backend rejects. The PTX goes to Warp's kernel cache,
-so only a cold cache pays the compile (about 16 s, most of it ``atrous``).
+so only a cold cache pays the compile (about 5 s).
 """
 
 import importlib
