@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import warp as wp
 
-# forward only: nothing here is differentiated, and the adjoint code was most of the compile (cold
-# cache, this CPU: atrous 7.7 -> 2.6 s for CPU, 24 -> 1.9 s for CUDA; lgh and lgh_lighting 1.2-1.4 -> 0.4-0.5 s)
+# forward only: nothing here is differentiated, and the adjoint code was most of the compile
+# (cold cache, this CPU: 7.7 -> 2.6 s for CPU, 24 -> 1.9 s for CUDA)
 wp.set_module_options({"enable_backward": False})
 
 

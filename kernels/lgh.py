@@ -20,8 +20,8 @@ cancel catastrophically in float32 far from the origin. Pure compute: arrays in,
 
 import warp as wp
 
-# forward only: nothing here is differentiated, and the adjoint code was most of the compile (cold
-# cache, this CPU: atrous 7.7 -> 2.6 s for CPU, 24 -> 1.9 s for CUDA; lgh and lgh_lighting 1.2-1.4 -> 0.4-0.5 s)
+# forward only: nothing here is differentiated, and the adjoint code was most of the compile
+# (cold cache, this CPU: 1.4 -> 0.5 s for CPU, 1.1 -> 0.4 s for CUDA)
 wp.set_module_options({"enable_backward": False})
 
 #: Rec. 709 luminance

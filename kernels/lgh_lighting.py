@@ -8,8 +8,8 @@ f_i / F_i, F_i the running sum of f). Optionally the input lights themselves are
 
 import warp as wp
 
-# forward only: nothing here is differentiated, and the adjoint code was most of the compile (cold
-# cache, this CPU: atrous 7.7 -> 2.6 s for CPU, 24 -> 1.9 s for CUDA; lgh and lgh_lighting 1.2-1.4 -> 0.4-0.5 s)
+# forward only: nothing here is differentiated, and the adjoint code was most of the compile
+# (cold cache, this CPU: 1.2 -> 0.4 s for CPU, 0.9 -> 0.3 s for CUDA)
 wp.set_module_options({"enable_backward": False})
 
 LUMA = wp.constant(wp.vec3(0.2126, 0.7152, 0.0722))
