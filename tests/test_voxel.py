@@ -80,14 +80,22 @@ def test_row_layout_stores_every_voxel_inside_the_sphere():
     idx = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
     centre = -1 + (idx + 0.5) * h
     inside = np.linalg.norm(centre, axis=1) < 1.0
-    r = idx[:, 0] * n + idx[:, 1]
-    k = idx[:, 2] // 32 - layout.w0[r]
-    stored = (k >= 0) & (k < layout.nw[r])
-    assert stored[inside].all()
+    word = layout.word_index(idx)
+    assert (word[inside] >= 0).all()
+    assert word.max() < layout.words
     assert layout.fill < 0.9
 
 
 # ------------------------------------------------------------------------------------- kernels
+
+def set_voxels(words: np.ndarray, d: int, ijl: np.ndarray, layout: RowLayout) -> None:
+    """Set voxels ``(i, j, l)`` (inside the grid) of direction ``d`` in packed ``words``, those their
+    rows do not store dropped: the packing the kernels write."""
+    ijl = np.asarray(ijl, np.int64).reshape(-1, 3)
+    w = layout.word_index(ijl)
+    ok = w >= 0
+    np.bitwise_or.at(words, d * layout.words + w[ok], np.uint32(1) << (ijl[ok, 2] % 32).astype(np.uint32))
+
 
 def numpy_voxelize(samples, center, half, n, bins, layout, core=1.0):
     out = np.zeros(bins.count * layout.words, np.uint32)
@@ -98,12 +106,7 @@ def numpy_voxelize(samples, center, half, n, bins, layout, core=1.0):
         ok = np.all((i >= 0) & (i < n), axis=1)
         frac = q - f
         ok &= np.all((frac[:, :2] >= 0.5 - core / 2) & (frac[:, :2] <= 0.5 + core / 2), axis=1)
-        i = i[ok]
-        r = i[:, 0] * n + i[:, 1]
-        k = i[:, 2] // 32 - layout.w0[r]
-        good = (k >= 0) & (k < layout.nw[r])
-        word = d * layout.words + layout.offset[r[good]] + k[good]
-        np.bitwise_or.at(out, word, (np.uint32(1) << (i[good, 2] % 32).astype(np.uint32)))
+        set_voxels(out, d, i[ok], layout)
     return out
 
 
@@ -167,12 +170,7 @@ def test_centre_line_kernel_matches_numpy():
     ref = np.zeros_like(arr.words)
     for d in range(bins.count):
         voxels, _ = centre_line_voxels(pts, ids, arr.center, arr.half, n, bins.frames[d], axes=(2,))
-        v = np.array(sorted(voxels), np.int64).reshape(-1, 3)
-        r = v[:, 0] * n + v[:, 1]
-        k = v[:, 2] // 32 - layout.w0[r]
-        ok = (k >= 0) & (k < layout.nw[r])
-        np.bitwise_or.at(ref, d * layout.words + layout.offset[r[ok]] + k[ok],
-                         np.uint32(1) << (v[ok, 2] % 32).astype(np.uint32))
+        set_voxels(ref, d, np.array(sorted(voxels), np.int64).reshape(-1, 3), layout)
     diff = np.unpackbits((ref ^ arr.words).view(np.uint8)).sum()
     total = np.unpackbits(ref.view(np.uint8)).sum()
     assert total > 1000 and diff <= total * 1e-3

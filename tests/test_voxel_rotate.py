@@ -19,7 +19,7 @@ from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, rotate_array
 
 from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
-from test_voxel import box, centre_line_voxels, ground_queries
+from test_voxel import box, centre_line_voxels, ground_queries, set_voxels
 
 pytest.importorskip("embreex")
 
@@ -92,12 +92,7 @@ def test_point_mapping_kernel_sets_exactly_the_numpy_voxels():
     want = np.zeros_like(arr.words)
     for d in range(bins.count):
         q = np.floor(tables.position(d, occ)).astype(np.int64)
-        q = q[np.all((q >= 0) & (q < n), axis=1)]
-        r = q[:, 0] * n + q[:, 1]
-        k = q[:, 2] // 32 - layout.w0[r]
-        ok = (k >= 0) & (k < layout.nw[r])
-        np.bitwise_or.at(want, d * layout.words + layout.offset[r[ok]] + k[ok],
-                         np.uint32(1) << (q[ok, 2] % 32).astype(np.uint32))
+        set_voxels(want, d, q[np.all((q >= 0) & (q < n), axis=1)], layout)
     assert np.array_equal(arr.words, want)
 
 

@@ -155,6 +155,14 @@ class RowLayout:
         offset = np.concatenate([[0], np.cumsum(nw.ravel())[:-1]]).astype(np.int32)
         return RowLayout(n, wpr, np.where(inside, w0, 0).ravel(), nw.ravel(), offset, int(nw.sum()))
 
+    def word_index(self, ijl: np.ndarray) -> np.ndarray:
+        """Word within a direction holding each voxel ``(i, j, l)`` (``(K, 3)``, inside the grid), -1
+        where its row does not store that voxel (outside the sphere)."""
+        ijl = np.asarray(ijl, np.int64).reshape(-1, 3)
+        r = ijl[:, 0] * self.n + ijl[:, 1]
+        k = ijl[:, 2] // 32 - self.w0[r]
+        return np.where((k >= 0) & (k < self.nw[r]), self.offset[r] + k, -1)
+
     @property
     def fill(self) -> float:
         """Stored words over dense words."""

@@ -214,9 +214,7 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
     v = np.nonzero(np.unpackbits(bits.view(np.uint8), bitorder="little"))[0]
     ijl = np.stack([v // (n * n), (v // n) % n, v % n], axis=1)
     if layout is not None:
-        r = ijl[:, 0] * n + ijl[:, 1]
-        k = ijl[:, 2] // 32 - layout.w0[r]
-        ijl = ijl[(k >= 0) & (k < layout.nw[r])]
+        ijl = ijl[layout.word_index(ijl) >= 0]
     return ijl.astype(np.int32), int(crossings.numpy().sum(dtype=np.int64))
 
 
