@@ -90,6 +90,15 @@ def voxelize(samples: wp.array(dtype=wp.vec3), center: wp.vec3, half: float, n: 
                 wp.atomic_or(out, base + row_off[r] + k, wp.uint32(1) << wp.uint32(il & 31))
 
 
+@wp.func
+def grid_map(frame: wp.mat33, center: wp.vec3, half: float, n: int):
+    """``(m, off)``: ``m p + off`` is point ``p`` in the ``n``³ grid with rows ``frame`` over the cube
+    ``center ± half``, in voxels from the grid's corner."""
+    inv_h = float(n) / (2.0 * half)
+    m = frame * inv_h
+    return m, wp.vec3(half, half, half) * inv_h - m * center
+
+
 #: slack of the inside test in barycentric units: a line through a shared edge or vertex marks a
 #: voxel for both triangles (setting a bit twice costs nothing) instead of slipping between them
 EDGE_SLACK = wp.constant(1.0e-6)
@@ -167,9 +176,7 @@ def voxelize_triangles(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.
     """
     i, c = wp.tid()
     d = dir0 + i
-    inv_h = float(n) / (2.0 * half)
-    m = frames[d] * inv_h
-    off = wp.vec3(half, half, half) * inv_h - m * center
+    m, off = grid_map(frames[d], center, half, n)
     t0 = c * chunk
     t1 = wp.min(t0 + chunk, tris.shape[0])
     base = word0 + d * words_per_dir

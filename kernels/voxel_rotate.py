@@ -24,7 +24,7 @@ Mappings
 
 import warp as wp
 
-from usdml.kernels.voxel import centre_line_crossings, set_bit
+from usdml.kernels.voxel import centre_line_crossings, grid_map, set_bit
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3, "fast_math": True})
 
@@ -129,9 +129,7 @@ def reference_raster(points: wp.array(dtype=wp.vec3), tris: wp.array(dtype=wp.ve
     word ``word0``; ``crossings[first + tid]``: how many it set (``no_rows``: an empty array in the
     place of the packed layout). ``mode``: 0 plain writes (a CPU thread owns its grid), 1 atomic."""
     t = tris[first + wp.tid()]
-    inv_h = float(n) / (2.0 * half)
-    m = frame * inv_h
-    off = wp.vec3(half, half, half) * inv_h - m * center
+    m, off = grid_map(frame, center, half, n)
     qa = m * points[t[0]] + off
     qb = m * points[t[1]] + off
     qc = m * points[t[2]] + off
