@@ -450,6 +450,19 @@ def test_cli_compare_bake_render_with_voxels(lit_stage, tmp_path, monkeypatch, c
     assert 0 < np.nanmax(shadow) <= 1 and np.isfinite(img["direct"]).all()
 
 
+def test_build_progress_in_a_log_is_whole_lines(lit_stage, tmp_path, monkeypatch, capsys):
+    """stderr that is not a terminal (capsys, a CI log) gets newline-ended progress lines, no ``\\r``."""
+    from usdml.cli import main
+
+    monkeypatch.setenv("USDML_CACHE_DIR", str(tmp_path / "cache"))
+    assert main(["render", lit_stage, str(tmp_path / "p.exr"), "--visibility", "voxel", "--voxel-resolution", "16",
+                 "--direction-step", "20", "--imageWidth", "24"]) == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    built = [line for line in err.splitlines() if "building voxel array" in line]
+    assert built and built[-1].endswith(" 100 %")
+
+
 def test_voxel_table_tool_reports_every_setting(lit_stage, tmp_path):
     """tools/voxel_table.py: one row per resolution and step, errors and ratios measured."""
     import subprocess

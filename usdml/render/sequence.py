@@ -148,15 +148,21 @@ def voxel_messages() -> dict:
         print(f"usdml: {line}", file=sys.stderr, flush=True)
 
     last = {"t": 0.0}
+    # a terminal gets one line redrawn twice a second; a log file (CI, a render farm) a full line
+    # every 10 s and at the end, not a run of carriage returns
+    tty = sys.stderr.isatty()
+    every = 0.5 if tty else 10.0
 
     def progress(done: int, total: int, label: str) -> None:
         now = _time.perf_counter()
-        if done < total and now - last["t"] < 0.5:
+        if done < total and now - last["t"] < every:
             return
         last["t"] = now
-        end = "\n" if done >= total else ""
-        print(f"\rusdml: building voxel array ({label}): {done}/{total} directions {100 * done // max(total, 1)} %",
-              end=end, file=sys.stderr, flush=True)
+        line = f"usdml: building voxel array ({label}): {done}/{total} directions {100 * done // max(total, 1)} %"
+        if tty:
+            print("\r" + line, end="\n" if done >= total else "", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr, flush=True)
     return {"report": report, "progress": progress}
 
 
