@@ -314,6 +314,11 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     assert "camera light" not in capsys.readouterr().err
     assert main(["render", dark, str(tmp_path / "b.exr"), "--imageWidth", "8"]) == 0
     assert "no lights at time 1; lit by a camera light" in capsys.readouterr().err
+    # GI asked for with nothing to emit VPLs: said once, not a silent black indirect
+    assert main(["render", dark, str(tmp_path / "c.exr"), "--imageWidth", "8", "--gi", "lgh", "--vpls", "100"]) == 0
+    err = capsys.readouterr().err
+    assert "--gi lgh: no VPLs at time 1: the stage has no lights" in err and err.count("no VPLs") == 1
+    assert read_exr(tmp_path / "c.exr")[0]["indirect"].max() == 0
     lit = _ground_stage(new_stage, lambda s: UsdLux.DistantLight.Define(s, "/World/sun"))
     d = StageDelegate(lit)
     r = FrameRenderer(d, UsdmlSettings())

@@ -251,3 +251,19 @@ def test_count_mode_keeps_energy_when_paths_escape():
     assert len(v) == 40_000 and (v.bounce == 1).all()
     assert v.paths > 40_000
     np.testing.assert_allclose(v.total_flux(), rho * rect_solid_angle(size / 2, size / 2, h), rtol=0.02)
+
+
+def test_count_mode_keeps_tracing_when_the_first_round_hits_nothing():
+    """A small object far from its light: the first round's paths all miss; later rounds trace
+    MAX_PATH_FACTOR times more instead of giving up (it used to return no VPLs at all)."""
+    rho, size, h = 0.6, 2.0, 20.0       # the quad subtends 1/1,250 of the light's sphere
+    snap = snapshot([quad(size, 0.0, (rho, rho, rho))])
+    b = backend_for(snap)
+    lit = light(position=(0.0, h, 0.0))
+    assert len(generate_vpls(snap, b, lit, bounces=1, paths=1000, seed=1)) == 0   # what round 1 traces
+    v = generate_vpls(snap, b, lit, count=1000, bounces=1, seed=1)
+    assert len(v) > 30 and v.paths > 1000
+    np.testing.assert_allclose(v.total_flux(), rho * rect_solid_angle(size / 2, size / 2, h), rtol=0.3)
+    # lights that reach nothing still end with none, after the rounds run out
+    away = light(position=(0.0, h, 0.0), axis=(0.0, 1.0, 0.0), cone=10.0)
+    assert len(generate_vpls(snap, b, away, count=100, bounces=1, seed=1)) == 0

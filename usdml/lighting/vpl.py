@@ -55,8 +55,10 @@ Light paths
 A path yields at most ``bounces`` VPLs, fewer when it escapes. ``generate_vpls(count=N)`` traces
 ``ceil(N / bounces)`` paths; while fewer than N VPLs came back it traces further rounds of paths
 (sized from the measured VPLs per path, +5 %, at most ``MAX_ROUNDS`` rounds and ``MAX_PATH_FACTOR``·N
-paths per round); the last round keeps the *prefix* of its (shuffled) paths whose VPLs fit, plus the
-first VPLs of the path that straddles N. So a scene that catches light returns exactly N VPLs, and an
+paths per round; after a round in which no path has hit anything yet, the next traces
+``MAX_PATH_FACTOR`` times as many, so a small object far from its only light still gets VPLs and only
+a scene whose lights reach nothing ends with none); the last round keeps the *prefix* of its
+(shuffled) paths whose VPLs fit, plus the first VPLs of the path that straddles N. So a scene that catches light returns exactly N VPLs, and an
 open scene (a city under a sun whose paths escape after one bounce) still gets N by tracing more
 paths. Flux is normalised by the paths kept (those of every round, plus the straddling one); paths
 traced and dropped from the last round are not counted. The only bias is the straddling path's
@@ -441,10 +443,14 @@ def generate_vpls(snapshot: Snapshot, backend, lights: Lights, count: int = 100_
             rounds.append(r)
             total_paths += n
             have += len(r.path)
-            if have == 0:           # nothing lit at all: more paths will not help
-                break
+            cap = MAX_PATH_FACTOR * max(count, 1)
+            if have == 0:
+                # no path has hit anything yet (a small object far from its light): the next round
+                # traces MAX_PATH_FACTOR times as many; rounds only run out when nothing is lit at all
+                n = min(n * MAX_PATH_FACTOR, cap)
+                continue
             per_path = have / total_paths
-            n = int(min(np.ceil((count - have) / per_path * 1.05) + 1, MAX_PATH_FACTOR * max(count, 1)))
+            n = int(min(np.ceil((count - have) / per_path * 1.05) + 1, cap))
     if total_paths == 0 or not sum(len(r.path) for r in rounds):
         return VPLs.empty()
     flux = np.concatenate([r.flux for r in rounds]) / total_paths

@@ -74,6 +74,7 @@ class FrameRenderer:
         self.backend = self.exact if settings.visibility == "exact" else backend_for(settings, device, **(backend_options or {}))
         self._previous: Snapshot | None = None
         self._told_camera_light = False
+        self._told_no_vpls = False
 
     def frame_lights(self, snap: Snapshot) -> Lights:
         """The snapshot's lights plus each dome light importance-sampled into distant lights.
@@ -144,6 +145,12 @@ class FrameRenderer:
                 image=(gb.hit, gb.position), device=self.device)
             indirect = gi.radiance
             stats["gi"] = gi.stats
+            if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
+                why = ("the stage has no lights (a camera light adds no indirect light)" if len(lights) == 0
+                       else f"no light path from its {len(lights)} light(s) reached the geometry")
+                log.warning(f"{self.delegate.path}: --gi {self.settings.gi}: no VPLs at time {time:g}: {why}; "
+                            "indirect is 0")
+                self._told_no_vpls = True
             stats["gi_seconds"] = _time.perf_counter() - t4
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade
