@@ -104,6 +104,25 @@ def test_nan_point_instancer_positions(capsys, new_stage):
     _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"/pi: non-finite")
 
 
+def test_zero_scale_camera_names_the_camera(capsys, new_stage):
+    stage = new_stage()
+    add_cube_mesh(stage, "/box")
+    cam = UsdGeom.Camera.Define(stage, "/cam")
+    cam.AddTranslateOp().Set((0, 0, 10))
+    cam.AddScaleOp().Set((0, 0, 0))
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"/cam: camera transform is singular at time")
+
+
+@pytest.mark.parametrize("mpu", [0.0, -1.0])
+def test_meters_per_unit_must_be_positive(capsys, new_stage, mpu):
+    stage = new_stage()
+    add_cube_mesh(stage, "/box")
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    stage.Save()
+    _assert_one_error(capsys, [stage.GetRootLayer().realPath], rf"metersPerUnit {mpu:g} must be positive")
+
+
 def test_missing_camera(capsys, new_stage):
     stage = new_stage()
     add_cube_mesh(stage, "/box")

@@ -147,10 +147,15 @@ def test_animated_light(new_stage):
     ("inputs:intensity", float("nan"), "not finite"),
     ("inputs:intensity", -1.0, "negative intensity"),
     ("inputs:exposure", float("inf"), "not finite"),
+    ("inputs:shaping:cone:angle", -30.0, "negative value -30; use 0 to 180 degrees"),
+    ("inputs:shaping:cone:softness", -0.5, "negative value"),
+    ("inputs:shaping:focus", -2.0, "negative value"),
 ])
 def test_bad_light_values_are_errors_naming_the_attribute(new_stage, attr, value, message):
     stage = new_stage()
     light = UsdLux.SphereLight.Define(stage, "/World/bad")
+    if "shaping" in attr:
+        UsdLux.ShapingAPI.Apply(light.GetPrim())
     light.GetPrim().CreateAttribute(attr, Sdf.ValueTypeNames.Float).Set(value)
     with pytest.raises(UsdmlError, match=f"/World/bad.{attr}.*{message}"):
         _lights(stage)

@@ -50,6 +50,11 @@ def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
     xform = np.array(cam.transform, np.float64).T
     if not np.isfinite(xform).all():
         raise UsdmlError(f"{path}: non-finite (NaN/inf) camera transform; fix its xformOps")
+    # a zero scale on the camera (or an ancestor) leaves no view to invert
+    linear = xform[:3, :3]
+    if abs(np.linalg.det(linear)) <= 1e-9 * max(np.abs(linear).max(), 1e-300) ** 3:
+        raise UsdmlError(f"{path}: camera transform is singular at time {time.GetValue():g} (a zero scale?); "
+                         "fix its xformOps or those of its ancestors")
     values = [cam.focalLength, cam.horizontalAperture, cam.verticalAperture]
     if not np.isfinite(values).all() or min(values) <= 0:
         raise UsdmlError(f"{path}: focalLength/horizontalAperture/verticalAperture must be positive "

@@ -136,6 +136,9 @@ class StageDelegate:
             self.start_time = self.end_time = self.start_time if self.stage.HasAuthoredMetadata("startTimeCode") else 0.0
         self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
         self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
+        if not (np.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
+            raise UsdmlError(f"{self.path}: metersPerUnit {self.meters_per_unit:g} must be positive; fix the root "
+                             "layer's metersPerUnit metadata (0.01 for centimetres, 1 for metres)")
         self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
         self.cameras = find_cameras(self.stage)
         self._camera_request = camera

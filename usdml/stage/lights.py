@@ -129,6 +129,10 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
         softness = float(value("inputs:shaping:cone:softness", 0.0))
         focus = float(value("inputs:shaping:focus", 0.0))
         tint = value("inputs:shaping:focusTint", (0.0, 0.0, 0.0))
+        for name, v, rule in (("cone:angle", cone_angle, "use 0 to 180 degrees"),
+                              ("cone:softness", softness, "use 0 to 1"), ("focus", focus, "use a focus >= 0")):
+            if v < 0:
+                raise UsdmlError(f"{path}.inputs:shaping:{name}: negative value {v:g}; {rule}")
         if attribute_value(prim, "inputs:shaping:ies:file", time, None):
             warn(f"{path}: IES profiles are not supported; using the cone only")
     shadow = bool(attribute_value(prim, "inputs:shadow:enable", time, True))
