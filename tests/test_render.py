@@ -247,6 +247,10 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
     (["--imageWidth", "0"], "--imageWidth 0"),
     (["--visibility", "svo"], "not available yet"),
     (["--aovs", "beauty"], "beauty"),
+    (["--gi", "lgh", "--lgh-alpha", "nan"], "LGH alpha must be finite"),
+    (["--seed", "-1"], "seed must be >= 0"),
+    (["--purposes", "render,bogus"], "--purposes: unknown purpose(s) bogus"),
+    (["--implicit-detail", "5000"], "use 3 to 1024 segments"),
 ])
 def test_render_errors(new_stage, tmp_path, capsys, argv, message):
     path = _sequence_stage(new_stage)
@@ -254,6 +258,34 @@ def test_render_errors(new_stage, tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert code == 2 and message in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_output_must_be_exr_and_a_product_name_becomes_one(new_stage, tmp_path, capsys, monkeypatch):
+    from pxr import Usd, UsdRender
+    path = _sequence_stage(new_stage)
+    assert main(["render", path, str(tmp_path / "x.png"), "--imageWidth", "8"]) == 2
+    assert "usdml writes multi-channel OpenEXR; give a .exr path" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+    stage = Usd.Stage.Open(path)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    product = UsdRender.Product.Define(stage, "/Render/Product")
+    product.CreateProductNameAttr().Set("still.png")
+    settings.CreateProductsRel().SetTargets([product.GetPath()])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.Save()
+    monkeypatch.chdir(tmp_path)
+    assert main(["render", path, "--imageWidth", "8"]) == 0
+    assert "/Render/Product.productName: 'still.png' is not OpenEXR" in capsys.readouterr().err
+    assert is_complete_exr(tmp_path / "still.exr") and not (tmp_path / "still.png").exists()
+
+
+@pytest.mark.parametrize("command", ["bench", "compare"])
+def test_bench_and_compare_check_the_width(new_stage, capsys, command):
+    path = _sequence_stage(new_stage)
+    extra = ["--visibility", "voxel"] if command == "compare" else []
+    assert main([command, path, "--imageWidth", "0", *extra]) == 2
+    err = capsys.readouterr().err
+    assert "--imageWidth 0: use 1 to 16384 pixels" in err and "Traceback" not in err
 
 
 def test_render_of_a_stage_without_geometry(new_stage, tmp_path, capsys):

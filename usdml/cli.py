@@ -28,12 +28,35 @@ def _add_stage_args(p: argparse.ArgumentParser) -> None:
                    help="segments around implicit prims (Sphere, Cylinder ...), default 10 as usdImaging")
 
 
+#: imageable purposes besides 'default' (always drawn) that --purposes may name
+PURPOSES = ("render", "proxy", "guide", "default")
+
+
+def _purposes(args: argparse.Namespace) -> list[str] | None:
+    """``--purposes`` as a list (comma or space separated), every name a UsdGeom purpose."""
+    if args.purposes is None:
+        return None
+    from usdml.errors import UsdmlError
+
+    names = args.purposes.replace(",", " ").split()
+    unknown = [n for n in names if n not in PURPOSES]
+    if unknown:
+        raise UsdmlError(f"--purposes: unknown purpose(s) {', '.join(unknown)}; use render, proxy or guide "
+                         "('default' is always drawn)")
+    return names
+
+
+def _check_width(width: int | None) -> None:
+    if width is not None and not 1 <= width <= 16384:
+        from usdml.errors import UsdmlError
+        raise UsdmlError(f"--imageWidth {width}: use 1 to 16384 pixels")
+
+
 def _delegate(args: argparse.Namespace):
     from usdml.stage import StageDelegate
 
-    purposes = None if args.purposes is None else args.purposes.replace(",", " ").split()
     return StageDelegate(args.stage, camera=args.camera, render_settings_path=args.render_settings,
-                         purposes=purposes, implicit_detail=args.implicit_detail)
+                         purposes=_purposes(args), implicit_detail=args.implicit_detail)
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -159,14 +182,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     job = RenderJob(stage=args.stage, output=args.output, frames=args.frames, camera=args.camera,
                     image_width=args.imageWidth, render_settings=args.render_settings,
-                    purposes=None if args.purposes is None else args.purposes.replace(",", " ").split(),
+                    purposes=_purposes(args),
                     implicit_detail=args.implicit_detail, camera_light=args.cameraLightEnabled,
                     aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
                     device=args.device, resume=args.resume, preview=args.preview,
                     overrides=_settings_overrides(args))
-    if job.image_width is not None and not 1 <= job.image_width <= 16384:
-        from usdml.errors import UsdmlError
-        raise UsdmlError(f"--imageWidth {job.image_width}: use 1 to 16384 pixels")
+    _check_width(job.image_width)
     summary = render_sequence(job)
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -186,6 +207,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     from usdml.render.sequence import voxel_messages
 
+    _check_width(args.imageWidth)
     delegate = _delegate(args)
     voxel_keys = ("voxel_resolution", "direction_step", "voxel_rebuild", "voxel_mapping", "fully_dynamic")
     settings = delegate.usdml_settings.updated(**{k: v for k, v in _settings_overrides(args).items() if k in voxel_keys})
@@ -200,6 +222,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from usdml.compare import compare_gi, format_gi_comparison
     from usdml.errors import UsdmlError
 
+    _check_width(args.imageWidth)
     if args.visibility:
         from usdml.compare import compare_visibility, format_visibility_comparison
         from usdml.render.sequence import voxel_messages

@@ -67,8 +67,11 @@ class UsdmlSettings:
                 raise UsdmlError(f"setting {name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.direction_step <= 90:
             raise UsdmlError(f"direction step must be in (0, 90] degrees, got {self.direction_step}")
-        if self.lgh_alpha <= 0 or self.lgh_levels < 0:
-            raise UsdmlError("LGH alpha must be > 0 and levels >= 0")
+        if not (0 < self.lgh_alpha < float("inf")) or self.lgh_levels < 0:
+            raise UsdmlError(f"LGH alpha must be finite and > 0 and levels >= 0, got alpha {self.lgh_alpha} and "
+                             f"{self.lgh_levels} levels")
+        if self.seed < 0:
+            raise UsdmlError(f"seed must be >= 0, got {self.seed}")
         if self.voxel_rebuild not in VOXEL_REBUILDS:
             raise UsdmlError(f"unknown voxel rebuild {self.voxel_rebuild!r}; use one of {', '.join(VOXEL_REBUILDS)}")
         if self.voxel_mapping not in VOXEL_MAPPINGS:

@@ -74,6 +74,9 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
         unknown = [n for n in names if find_aov(n) is None]
         if unknown:
             raise UsdmlError(f"--aovs: unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(AOVS)}")
+        if not job.output.lower().endswith(".exr"):
+            raise UsdmlError(f"output {job.output!r}: usdml writes multi-channel OpenEXR; give a .exr path "
+                             "(--preview adds a PNG of color beside it)")
         paths = output_paths(job.output, frames, frames_given=frames_given, min_precision=precision)
         return [Product(dict(zip(frames, paths)), {find_aov(n).name: find_aov(n).name for n in names})]
     if delegate.settings_prim is None:
@@ -120,6 +123,11 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
                 paths = {frames[0]: name}
             else:
                 paths = dict(zip(frames, output_paths(name, frames, frames_given=True, min_precision=precision)))
+        if any(not p.lower().endswith(".exr") for p in paths.values()):
+            shown = next(iter(paths.values()))
+            log.warning(f"{rp.path}.productName: {shown!r} is not OpenEXR, the only format usdml writes; "
+                        f"writing {os.path.splitext(shown)[0] + '.exr'!r}")
+            paths = {f: os.path.splitext(p)[0] + ".exr" for f, p in paths.items()}
         products.append(Product(paths, layers, rp.path))
     return products
 

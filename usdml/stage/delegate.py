@@ -22,7 +22,7 @@ from usdml.stage.camera import find_cameras, framing_camera, read_camera, select
 from usdml.stage.dome import Dome, is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
-from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
+from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, MAX_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 
@@ -115,8 +115,8 @@ class StageDelegate:
                  render_settings_path: str | None = None, warn: Warnings | None = None,
                  purposes: list[str] | None = None, implicit_detail: int = DEFAULT_IMPLICIT_DETAIL):
         self.path = str(path)
-        if implicit_detail < 3:
-            raise UsdmlError(f"implicit detail {implicit_detail}: use at least 3 segments")
+        if not 3 <= implicit_detail <= MAX_IMPLICIT_DETAIL:
+            raise UsdmlError(f"implicit detail {implicit_detail}: use 3 to {MAX_IMPLICIT_DETAIL} segments")
         self.warn = warn or Warnings()
         self._gprim = {"detail": int(implicit_detail), "materials": MaterialResolver(self.warn)}
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
