@@ -260,10 +260,10 @@ def test_split_scatter_matches_one_launch(monkeypatch, on_planes):
         lo, hi = p.min(0), p.max(0)
         h1 = float((hi - lo).max()) / 32               # levels=6: 32 S1 cells along the longest edge
         p[::2, 0] = lo[0] + np.floor((p[::2, 0] - lo[0]) / h1) * h1
-    monkeypatch.setattr(lgh_module, "_workers", lambda device: 3)
+    monkeypatch.setattr(lgh_module, "cpu_workers", lambda device: 3)
     split = build_lgh(p, inten, levels=6)
     assert split.stats["scatter_launches"] == 3   # 150k lights, >= 65,536 per slab: 2 slabs + boundary lights
-    monkeypatch.setattr(lgh_module, "_workers", lambda device: 1)
+    monkeypatch.setattr(lgh_module, "cpu_workers", lambda device: 1)
     single = build_lgh(p, inten, levels=6)
     assert single.stats["scatter_launches"] == 1
     for a, b in zip(split.levels, single.levels):

@@ -63,10 +63,10 @@ before filtering.
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from usdml.parallel import cpu_workers, run_parallel
 
 SIGMA_NORMAL = 128.0    # Schied et al. 2017
 SIGMA_POSITION = 2.0    # × median pixel footprint × 2^i
@@ -181,7 +181,7 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     footprint : float, optional
         World units per pixel; default :func:`pixel_footprint` of ``position``.
     bands : int, optional
-        CPU only: row bands launched concurrently (default ``os.cpu_count()``).
+        CPU only: row bands launched concurrently (default: one per core, ``usdml.parallel.cpu_workers``).
 
     Returns
     -------
@@ -205,11 +205,9 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     valid_wp = wp.array(valid.astype(np.uint8), dtype=wp.uint8, device=dev)
     inv_scale = wp.array(_channel_inv_scale(v, valid).astype(np.float32), dtype=float, device=dev)
 
-    if dev.is_cpu:
-        bands = max(1, min(bands or os.cpu_count() or 1, h))
-    else:
-        bands = 1
+    bands = max(1, min(cpu_workers(dev, bands), h))
     edges = np.linspace(0, h, bands + 1).round().astype(int)
+    rows = [(int(r0), int(r1)) for r0, r1 in zip(edges[:-1], edges[1:]) if r1 > r0]
     # compile (or load from the kernel cache) once, before any thread launches
     wp.load_module(kernels, device=dev)
 
@@ -219,18 +217,10 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
                   inputs=[a, n_wp, x_wp, valid_wp, inv_scale, 2 ** i, float(sigma_normal), inv_sx2, inv_sv2, r0],
                   outputs=[b])
 
-    if bands == 1:
-        for i in range(iterations):
-            launch(i, src, dst, 0, h)
-            src, dst = dst, src
-    else:
-        with ThreadPoolExecutor(max_workers=bands) as pool:
-            for i in range(iterations):
-                jobs = [pool.submit(launch, i, src, dst, int(r0), int(r1))
-                        for r0, r1 in zip(edges[:-1], edges[1:]) if r1 > r0]
-                for job in jobs:
-                    job.result()   # all bands of level i before level i+1 reads them
-                src, dst = dst, src
+    for i in range(iterations):
+        # every band of level i is written before level i + 1 reads it
+        run_parallel(lambda band, i=i, a=src, b=dst: launch(i, a, b, *band), rows, bands)
+        src, dst = dst, src
     return src.numpy().reshape(out_shape)
 
 

@@ -19,19 +19,16 @@ fraction of facing lights that are blocked (paper 000's hiddenLightsN / n).
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-import os
 from typing import Callable
 
 import numpy as np
 
+from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights, LightType
 
 #: (pixel, light) pairs evaluated per block: ~15 float32 arrays of this size are alive at once
 PAIRS_PER_CHUNK = 1 << 20
-#: blocks in flight at once
-BLOCK_WORKERS = os.cpu_count() or 1
 
 
 @dataclass
@@ -192,11 +189,11 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
 
     # Blocks write disjoint rows, so they can overlap: NumPy's element-wise work on one block runs
     # while Embree traces another (both release the GIL).
-    with ThreadPoolExecutor(max_workers=min(BLOCK_WORKERS, max(1, -(-n_p // step)))) as pool:
-        for lo, asked in zip(range(0, n_p, step), pool.map(block, range(0, n_p, step))):
-            queries += asked
-            if progress is not None:
-                progress(min(n_p, lo + step) - lo)
+    starts = range(0, n_p, step)
+    for lo, asked in zip(starts, iter_parallel(block, starts, cpu_workers())):
+        queries += asked
+        if progress is not None:
+            progress(min(n_p, lo + step) - lo)
     radiance *= albedo.astype(np.float32) / np.float32(np.pi)
     shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0)
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries)

@@ -30,14 +30,13 @@ from a thread pool.
 
 from __future__ import annotations
 
-import os
 import time as _time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from usdml.errors import UsdmlError
+from usdml.parallel import cpu_workers, run_parallel
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 #: more levels than this is a mistake (S1 would have 2^11 cells along the longest edge)
@@ -126,20 +125,6 @@ def _check_levels(levels: int, cells1: np.ndarray) -> None:
                          f"vertices (limit {MAX_S1_VERTICES:,}); use fewer levels, or 0 for automatic")
 
 
-def _workers(device: str) -> int:
-    return (os.cpu_count() or 1) if str(device).startswith("cpu") else 1
-
-
-def _run_all(fn, items, workers: int) -> list:
-    """``[fn(x) for x in items]``, on a thread pool when there is more than one worker (CPU launches
-    release the GIL, so they run in parallel); inline otherwise (GPU launches are asynchronous anyway)."""
-    items = list(items)
-    if workers <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
-    with ThreadPoolExecutor(min(workers, len(items))) as pool:
-        return list(pool.map(fn, items))
-
-
 def _slices(work: int, parts: int, n: int | None = None) -> list[tuple[int, int]]:
     """``[lo, hi)`` ranges splitting ``n`` items (default ``work``) over at most ``parts`` launches of at
     least _SPLIT_MIN units of ``work`` each."""
@@ -197,7 +182,7 @@ def _count_s1(wp, pos_w, int_w, lo, hi, levels: int, device: str) -> int:
     dims = cells + 1
     flags = wp.zeros(int(dims.prod()), dtype=wp.uint8, device=device)
     wdims = wp.vec3i(*map(int, dims))
-    spans = _slices(len(pos_w), _workers(device))
+    spans = _slices(len(pos_w), cpu_workers(device))
 
     def mark(span):
         a, b = span
@@ -205,7 +190,7 @@ def _count_s1(wp, pos_w, int_w, lo, hi, levels: int, device: str) -> int:
             wp.launch(mark_s1, dim=b - a, device=device, inputs=[pos_w[a:b], int_w[a:b], float(h1), wdims, flags])
 
     # every writer stores 1: concurrent launches into one flag grid are harmless
-    _run_all(mark, spans, len(spans))
+    run_parallel(mark, spans, len(spans))
     return int(np.count_nonzero(flags.numpy()))
 
 
@@ -294,7 +279,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     h1, cells1 = _grid(lo, hi, levels)
     _check_levels(levels, cells1)
     stats["levels"] = levels
-    workers = _workers(device)
+    workers = cpu_workers(device)
     stats["workers"] = workers
     # -- S1 by scatter into one grid: concurrent launches over x-slabs of the lights (disjoint vertices)
     t0 = _time.perf_counter()
@@ -309,7 +294,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
             pw, iw = (pos_w, int_w) if rows is None else _upload(wp, p[rows], inten[rows], lo, device)
             wp.launch(K.scatter_s1, dim=len(pw), device=device, inputs=[pw, iw, float(h1), wdims1], outputs=[s1])
 
-    _run_all(scatter, parts[:-1], workers)
+    run_parallel(scatter, parts[:-1], workers)
     scatter(parts[-1])            # the lights near the slab boundaries, once the slabs are done
     sync()
     stats["s1"] = _time.perf_counter() - t0
@@ -343,7 +328,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
                           wdims, a],
                   outputs=[acc])
 
-    _run_all(gather, tasks, workers)
+    run_parallel(gather, tasks, workers)
     sync()
     stats["gather"] = _time.perf_counter() - t0
 
@@ -361,7 +346,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
 
     all_vertices = sum(int(dims.prod()) for dims, _ in grid_of.values())
     compact_workers = workers if all_vertices >= _COMPACT_SPLIT_MIN else 1
-    scans = _run_all(scan, range(1, levels + 1), compact_workers)
+    scans = run_parallel(scan, range(1, levels + 1), compact_workers)
     # the last slot plus the last flag is the level's light count (one small read per level)
     counts = [int(slot[len(slot) - 1:].numpy()[0] + flags[len(flags) - 1:].numpy()[0]) for slot, flags in scans]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
@@ -380,7 +365,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
                           wp.vec3i(*map(int, dims))],
                   outputs=[out_pos, out_int, out_var, out_vtx])
 
-    _run_all(compact, range(1, levels + 1), compact_workers)
+    run_parallel(compact, range(1, levels + 1), compact_workers)
     sync()
     stats["compaction"] = _time.perf_counter() - t0
 

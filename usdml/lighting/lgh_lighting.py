@@ -14,13 +14,13 @@ shadow-ratio estimator of Heitz et al. 2018) scales the unshadowed lighting.
 
 from __future__ import annotations
 
-import os
 import time as _time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+
+from usdml.parallel import cpu_workers, run_parallel, spans
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -66,13 +66,9 @@ def _flatten(lgh):
 
 def _in_blocks(run: Callable[[int, int], None], n: int, device: str, blocks_per_worker: int = 1,
                min_block: int = 1) -> None:
-    """``run(lo, hi)`` over blocks of ``[0, n)``: Warp runs a CPU launch on one thread (and releases the
-    GIL), so on ``cpu`` independent launches over blocks from a thread pool use every core."""
-    workers = (os.cpu_count() or 1) if str(device).startswith("cpu") else 1
-    step = max(min_block, -(-n // (workers * blocks_per_worker)), 1)
-    blocks = [(lo, min(n, lo + step)) for lo in range(0, n, step)]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(lambda b: run(*b), blocks))
+    """``run(lo, hi)`` over blocks of ``[0, n)``, the blocks over every core on ``cpu``."""
+    workers = cpu_workers(device)
+    run_parallel(lambda b: run(*b), spans(n, workers * blocks_per_worker, min_block), workers)
 
 
 def s0_cells(lgh, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

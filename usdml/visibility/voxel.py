@@ -49,7 +49,6 @@ Leaving the surface (self-occlusion) and its cost
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 import logging
 import os
@@ -60,6 +59,7 @@ import numpy as np
 
 from usdml.cache import Cache, CacheCorrupt, cache_key
 from usdml.errors import UsdmlError
+from usdml.parallel import cpu_workers, iter_parallel, run_parallel
 from usdml.scene import Changes, Lights, Snapshot, content_hash
 from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed
@@ -244,18 +244,8 @@ def run_direction_chunks(n_dirs: int, per: int, launch: Callable[[int, int], int
     after another on a GPU; ``progress(done, n_dirs)`` after each chunk."""
     chunks = [(d0, min(n_dirs, d0 + per)) for d0 in range(0, n_dirs, max(1, per))]
     done = 0
-    if device.is_cpu and len(chunks) > 1:
-        done += launch(*chunks[0])
-        if progress:
-            progress(done, n_dirs)
-        with ThreadPoolExecutor(max_workers=max(1, int(workers or os.cpu_count() or 1))) as pool:
-            for k in pool.map(lambda c: launch(*c), chunks[1:]):
-                done += k
-                if progress:
-                    progress(done, n_dirs)
-        return
-    for c in chunks:
-        done += launch(*c)
+    for k in iter_parallel(lambda c: launch(*c), chunks, cpu_workers(device, workers), first_on_caller=True):
+        done += k
         if progress:
             progress(done, n_dirs)
 
@@ -457,7 +447,7 @@ class VoxelBackend(VisibilityBackend):
         if max_skip is None:
             max_skip = MAX_SKIP if self.mapping == "point" else CONSERVATIVE_MAX_SKIP
         self.max_skip, self.end_skip, self.segment = float(max_skip), float(end_skip), int(segment)
-        self.workers = max(1, int(workers or os.cpu_count() or 1))
+        self.workers = cpu_workers("cpu", workers)
         self.report = report or (lambda line: log.info(line))
         self.progress = progress
         self.bins = DirectionBins.make(self.step)
@@ -781,10 +771,7 @@ class VoxelBackend(VisibilityBackend):
         bands = min(n, self.workers * 8)
         edges = np.linspace(0, n, bands + 1).astype(np.int64)
         jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-        launch(*jobs[0])      # first launch compiles / loads the module on this thread
-        if len(jobs) > 1:
-            with ThreadPoolExecutor(max_workers=self.workers) as pool:
-                list(pool.map(lambda j: launch(*j), jobs[1:]))
+        run_parallel(lambda j: launch(*j), jobs, self.workers, first_on_caller=True)
 
     def hit_distances(self, origins, targets, *, normals=None, distant=None, want_distance: bool = True) -> np.ndarray:
         """Distance in voxels from each ray's (offset, skipped) start to the first occupied voxel; -1: free."""

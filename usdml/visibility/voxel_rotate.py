@@ -33,15 +33,14 @@ Cost and error (measured: README "Deforming and fully dynamic scenes")
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
-import os
 import time
 from typing import Callable
 
 import numpy as np
 
+from usdml.parallel import cpu_workers, run_parallel
 from usdml.settings import VOXEL_MAPPINGS
 from usdml.visibility.voxel import VoxelArray, _host_words, _wp, array_cube, clear_words, run_direction_chunks
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
@@ -188,7 +187,7 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
     if dev.is_cpu:
         # shares of about equal work per core (a triangle costs about its projected boxes, in
         # voxels), each into its own grid (no atomics), OR-ed here
-        shares = max(1, min(int(workers or os.cpu_count() or 1), len(triangles)))
+        shares = max(1, min(cpu_workers(dev, workers), len(triangles)))
         q = (points - center) @ np.asarray(frame, np.float64).T * (n / (2.0 * half))
         a, b, c = (q[triangles[:, k]] for k in range(3))
         ext = np.maximum(np.maximum(a, b), c) - np.minimum(np.minimum(a, b), c)
@@ -201,10 +200,7 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
             if edges[k + 1] > edges[k]:
                 wp.launch(kr.reference_raster, dim=int(edges[k + 1] - edges[k]), device=dev,
                           inputs=[pts, tri, int(edges[k])] + args + [0, grid, k * words, crossings])
-        fill(0)     # compiles / loads the module on this thread
-        if shares > 1:
-            with ThreadPoolExecutor(max_workers=shares - 1) as pool:
-                list(pool.map(fill, range(1, shares)))
+        run_parallel(fill, range(shares), shares, first_on_caller=True)
         bits = np.bitwise_or.reduce(grid.numpy().reshape(shares, words), axis=0)
     else:
         grid = wp.zeros(words, dtype=wp.uint32, device=dev)

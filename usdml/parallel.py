@@ -1,0 +1,69 @@
+"""Work over every CPU core: Warp runs a CPU launch on one thread, and Embree and NumPy release the GIL
+while they work, so independent launches or calls from a thread pool run on all cores (DESIGN.md).
+
+Every module that splits work goes through these two functions, so the thread count has one home:
+
+* :func:`cpu_workers` — how many threads: the cores this *process* may use (its CPU affinity, which a
+  container or ``taskset`` narrows; ``os.cpu_count()`` would count the whole machine), 1 for a GPU
+  device (its launches are asynchronous and go one after another);
+* :func:`run_parallel` — ``fn`` over items on that many threads, results in order, a worker's
+  exception raised in the caller.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterable, Iterator, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def cpu_workers(device: object = "cpu", requested: int | None = None) -> int:
+    """Threads to run ``device``'s work on: ``requested`` if given (at least 1), else the cores this
+    process may run on; 1 for a device that is not a CPU (``"cuda"``, ``"cuda:0"``, a Warp device)."""
+    if not str(device).startswith("cpu"):
+        return 1
+    if requested:
+        return max(1, int(requested))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):      # no affinity on macOS / Windows
+        return os.cpu_count() or 1
+
+
+def iter_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int, *,
+                  first_on_caller: bool = False) -> Iterator[R]:
+    """``fn(x)`` for ``x`` in ``items``, yielded in order as they finish, on up to ``workers`` threads.
+
+    ``first_on_caller``: the first item runs alone on the calling thread before the others start
+    (its Warp launch compiles or loads the module there, before threads race for it). One worker or
+    one item: everything runs inline. A worker's exception is raised here, at its item.
+    """
+    items = list(items)
+    if first_on_caller and items:
+        yield fn(items[0])
+        items = items[1:]
+    if workers <= 1 or len(items) <= 1:
+        for x in items:
+            yield fn(x)
+        return
+    with ThreadPoolExecutor(max_workers=min(workers, len(items))) as pool:
+        yield from pool.map(fn, items)
+
+
+def run_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int, *,
+                 first_on_caller: bool = False) -> list[R]:
+    """``[fn(x) for x in items]`` over up to ``workers`` threads (:func:`iter_parallel`)."""
+    return list(iter_parallel(fn, items, workers, first_on_caller=first_on_caller))
+
+
+def spans(n: int, parts: int, min_size: int = 1) -> list[tuple[int, int]]:
+    """``[lo, hi)`` ranges covering ``[0, n)`` in at most ``parts`` pieces of at least ``min_size``
+    (the last may be shorter), in order."""
+    step = max(int(min_size), -(-int(n) // max(int(parts), 1)), 1)
+    return [(lo, min(n, lo + step)) for lo in range(0, int(n), step)]
+
+
+__all__ = ["cpu_workers", "iter_parallel", "run_parallel", "spans"]
