@@ -280,12 +280,15 @@ def test_output_must_be_exr_and_a_product_name_becomes_one(new_stage, tmp_path, 
 
 
 @pytest.mark.parametrize("command", ["bench", "compare"])
-def test_bench_and_compare_check_the_width(new_stage, capsys, command):
+def test_bench_and_compare_check_the_width_and_need_lights(new_stage, capsys, command):
     path = _sequence_stage(new_stage)
     extra = ["--visibility", "voxel"] if command == "compare" else []
     assert main([command, path, "--imageWidth", "0", *extra]) == 2
     err = capsys.readouterr().err
     assert "--imageWidth 0: use 1 to 16384 pixels" in err and "Traceback" not in err
+    dark = _ground_stage(new_stage, lambda stage: None)
+    assert main([command, dark, "--imageWidth", "8", *extra]) == 2
+    assert f"no lights at time 1, so no shadow rays to {command}" in capsys.readouterr().err
 
 
 def test_render_of_a_stage_without_geometry(new_stage, tmp_path, capsys):

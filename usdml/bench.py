@@ -19,7 +19,7 @@ from usdml.render.frame import FrameRenderer, conform_camera
 from usdml.render.gbuffer import build_gbuffer
 from usdml.scene import diff
 from usdml.stage import StageDelegate
-from usdml.stage.delegate import require_geometry
+from usdml.stage.delegate import require_geometry, require_lights
 from usdml.visibility import ExactBackend, backend_for
 from usdml.visibility.voxel import SHADE_TILE, morton_order
 
@@ -94,6 +94,7 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     frame = delegate.start_time if frame is None else frame
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)
+    require_lights(delegate, snap, "bench")
     width, height = snap.camera.resolution(image_width)
     exact = ExactBackend()
     t0 = _time.perf_counter()

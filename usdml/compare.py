@@ -103,7 +103,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
-    from usdml.stage.delegate import require_geometry
+    from usdml.stage.delegate import require_geometry, require_lights
     from usdml.visibility import ExactBackend, backend_for
 
     if against != "exact":
@@ -115,6 +115,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     settings = delegate.usdml_settings.updated(**(overrides or {})).updated(visibility=backend)
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)
+    require_lights(delegate, snap, "compare")
     width, height = snap.camera.resolution(image_width)
     exact = ExactBackend()
     approx = backend_for(settings, device, **(backend_options or {}))

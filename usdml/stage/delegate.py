@@ -66,6 +66,14 @@ def require_geometry(delegate: "StageDelegate", snap: Snapshot) -> None:
                          "activation, or open the layer that holds the geometry")
 
 
+def require_lights(delegate: "StageDelegate", snap: Snapshot, command: str) -> None:
+    """Raise the one-line error for measuring shadow rays (``usdml bench`` / ``compare``) without lights."""
+    if len(snap.lights) == 0:
+        domes = " (dome lights are not measured)" if snap.domes else ""
+        raise UsdmlError(f"{delegate.path}: no lights at time {snap.time:g}{domes}, so no shadow rays to "
+                         f"{command}; give a --frame or a stage with UsdLux lights")
+
+
 def _matrix(m) -> np.ndarray:
     """Gf.Matrix4d (row-vector convention) -> (4, 4) float64 column-convention array."""
     return np.array(m, np.float64).T
