@@ -61,6 +61,36 @@ def test_inconsistent_topology_skips_the_mesh(new_stage, warnings_log):
     assert "/broken" in warnings_log.text
 
 
+def test_attributes_authored_with_the_wrong_type_are_ignored_with_a_warning(tmp_path, warnings_log):
+    """As usd-wg's schemaTests (pointsTypes.usda, normalsTypes.usda) author them: ``int normals = 7``,
+    ``float3 points = (0, 0, 1)``. They used to end the render with a traceback."""
+    cube = ("point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]\n"
+            "        int[] faceVertexIndices = [0, 1, 2, 3]\n")
+    path = tmp_path / "types.usda"
+    path.write_text(f"""#usda 1.0
+def Mesh "normals_int" {{
+        {cube}        int[] faceVertexCounts = [4]
+        int normals = 7
+}}
+def Mesh "points_float3" {{
+        float3 points = (0, 0, 1)
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 0, 0]
+}}
+def Mesh "counts_float" {{
+        {cube}        float faceVertexCounts = 4
+}}
+""")
+    snap = StageDelegate(str(path)).snapshot(0)
+    (m,) = snap.meshes
+    assert m.path == "/normals_int" and m.triangle_count == 2     # smooth normals computed instead
+    assert np.isfinite(m.normals).all()
+    text = warnings_log.text
+    assert "/normals_int.normals: authored as int, not an array of 3-vectors; ignored" in text
+    assert "/points_float3.points: authored as Vec3f" in text and "/points_float3: mesh has no points" in text
+    assert "/counts_float.faceVertexCounts: authored as float, not an array of numbers" in text
+
+
 def test_left_handed_meshes_are_rewound_and_mirrors_keep_outward_normals(new_stage):
     stage = new_stage()
     a = add_quad(stage, "/right")

@@ -86,11 +86,24 @@ class Topology:
         return None
 
 
-def _array(value, dtype, width=None) -> np.ndarray:
+def _array(value, dtype, width=None, where: str = "", warn: Callable[[str], None] | None = None) -> np.ndarray:
+    """An authored array attribute as ``(N,)`` or ``(N, width)`` ``dtype``; empty when unauthored.
+
+    A value of the wrong shape (``int normals = 7``, a single ``float3``, an ``int[]`` where 3-vectors
+    belong: attributes authored with another type than the schema's, as USD test stages do) is
+    treated as unauthored, with a warning naming ``where`` (``/prim.attribute``)."""
+    empty = np.zeros((0,) if width is None else (0, width), dtype)
     if value is None:
-        return np.zeros((0,) if width is None else (0, width), dtype)
-    a = np.asarray(value, dtype=dtype)
-    return a.reshape(-1, width) if width else a.reshape(-1)
+        return empty
+    a = np.asarray(value)
+    if a.size == 0:
+        return empty
+    if a.dtype.kind not in "biuf" or a.ndim != (1 if width is None else 2) or (width and a.shape[1] != width):
+        if warn is not None:
+            want = "numbers" if width is None else f"{width}-vectors"
+            warn(f"{where}: authored as {type(value).__name__}, not an array of {want}; ignored")
+        return empty
+    return a.astype(dtype, copy=False)
 
 
 def transform_points(m: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -150,7 +163,7 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
     """
     mesh = UsdGeom.Mesh(prim)
     if points is None:
-        points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3)
+        points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3, f"{prim.GetPath()}.points", warn)
     normals = None
     if authored_normals:
         pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
@@ -159,9 +172,9 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
         else:
             normals = (mesh.GetNormalsAttr().Get(time), mesh.GetNormalsInterpolation())
     return build_mesh(
-        prim, time, mesh_id, points, _array(mesh.GetFaceVertexCountsAttr().Get(time), np.int64),
-        _array(mesh.GetFaceVertexIndicesAttr().Get(time), np.int64),
-        _array(mesh.GetHoleIndicesAttr().Get(time), np.int64),
+        prim, time, mesh_id, points,
+        *(_array(a.Get(time), np.int64, None, f"{prim.GetPath()}.{a.GetName()}", warn)
+          for a in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr(), mesh.GetHoleIndicesAttr())),
         mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
         bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials)
 
@@ -199,8 +212,9 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
 
     corner_normals = None
     raw, interp = normals if normals is not None else (None, "vertex")
-    if raw is not None and len(raw):
-        n = topo.expand(_array(raw, np.float64, 3), interp, len(points))
+    raw = _array(raw, np.float64, 3, f"{path}.normals", warn)
+    if len(raw):
+        n = topo.expand(raw, interp, len(points))
         if n is None:
             warn(f"{path}: {len(raw)} normals do not match interpolation {interp!r}; computing normals")
         else:
@@ -214,9 +228,9 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
         if materials is not None else (None, None)
     dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor") if albedo is None else None
     if dc and dc.HasValue():
-        raw = dc.ComputeFlattened(time)
-        if raw is not None and len(raw):
-            albedo = topo.expand(_array(raw, np.float32, 3), dc.GetInterpolation(), len(points))
+        raw = _array(dc.ComputeFlattened(time), np.float32, 3, f"{path}.primvars:displayColor", warn)
+        if len(raw):
+            albedo = topo.expand(raw, dc.GetInterpolation(), len(points))
             if albedo is None:
                 warn(f"{path}: {len(raw)} displayColor values do not match interpolation "
                      f"{dc.GetInterpolation()!r}; using the default albedo")
