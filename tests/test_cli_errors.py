@@ -77,6 +77,18 @@ def test_time_outside_the_stage(capsys, new_stage):
                       r"time 30 is outside the stage's range \[1, 24\]")
 
 
+def test_swapped_time_range_is_used_the_right_way_round(capsys, new_stage):
+    import json
+    stage = new_stage(start=100, end=0)      # as usd-wg's start_end_timeCodes_swapped.usda
+    add_cube_mesh(stage, "/box")
+    stage.Save()
+    assert main(["info", stage.GetRootLayer().realPath, "--time", "50", "--json"]) == 0
+    out, err = capsys.readouterr()
+    info = json.loads(out)
+    assert (info["startTimeCode"], info["endTimeCode"]) == (0, 100)
+    assert "startTimeCode 100 is after endTimeCode 0; using the range [0, 100]" in err
+
+
 def test_nan_transform_names_the_prim(capsys, new_stage):
     stage = new_stage()
     box = add_cube_mesh(stage, "/World/box")

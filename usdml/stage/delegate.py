@@ -142,6 +142,11 @@ class StageDelegate:
             # a stage without startTimeCode/endTimeCode is a single frame: USD reports 0 for both,
             # and any --time is accepted (USD evaluates time samples at it as usual)
             self.start_time = self.end_time = self.start_time if self.stage.HasAuthoredMetadata("startTimeCode") else 0.0
+        if self.end_time < self.start_time:
+            # authored the wrong way round (usd-wg's start_end_timeCodes_swapped.usda): the frames between them
+            self.warn(f"{self.path}: startTimeCode {self.start_time:g} is after endTimeCode {self.end_time:g}; "
+                      f"using the range [{self.end_time:g}, {self.start_time:g}]")
+            self.start_time, self.end_time = self.end_time, self.start_time
         self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
         self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
         if not (np.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
