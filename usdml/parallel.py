@@ -1,13 +1,14 @@
 """Work over every CPU core: Warp runs a CPU launch on one thread, and Embree and NumPy release the GIL
 while they work, so independent launches or calls from a thread pool run on all cores (DESIGN.md).
 
-Every module that splits work goes through these two functions, so the thread count has one home:
+Every module that splits work goes through here, so the thread count has one home:
 
 * :func:`cpu_workers` — how many threads: the cores this *process* may use (its CPU affinity, which a
   container or ``taskset`` narrows; ``os.cpu_count()`` would count the whole machine), 1 for a GPU
   device (its launches are asynchronous and go one after another);
-* :func:`run_parallel` — ``fn`` over items on that many threads, results in order, a worker's
-  exception raised in the caller.
+* :func:`run_parallel` (a list) and :func:`iter_parallel` (results as they come, for progress) —
+  ``fn`` over items on that many threads, results in order, a worker's exception raised in the caller;
+* :func:`spans` — ``[lo, hi)`` blocks of a range to hand out.
 """
 
 from __future__ import annotations

@@ -58,9 +58,9 @@ A path yields at most ``bounces`` VPLs, fewer when it escapes. ``generate_vpls(c
 paths per round; after a round in which no path has hit anything yet, the next traces
 ``MAX_PATH_FACTOR`` times as many, so a small object far from its only light still gets VPLs and only
 a scene whose lights reach nothing ends with none); the last round keeps the *prefix* of its
-(shuffled) paths whose VPLs fit, plus the first VPLs of the path that straddles N. So a scene that catches light returns exactly N VPLs, and an
-open scene (a city under a sun whose paths escape after one bounce) still gets N by tracing more
-paths. Flux is normalised by the paths kept (those of every round, plus the straddling one); paths
+(shuffled) paths whose VPLs fit, plus the first VPLs of the path that straddles N. So a scene that
+catches light returns exactly N VPLs, and an open scene (a city under a sun whose paths escape
+after one bounce) still gets N by tracing more paths. Flux is normalised by the paths kept (those of every round, plus the straddling one); paths
 traced and dropped from the last round are not counted. The only bias is the straddling path's
 missing deeper bounces (one path out of ~N/bounces). ``paths=`` fixes the number of light paths
 instead (no rounds, no trimming: the energy tests use it). Deterministic for a seed: every random
