@@ -223,18 +223,22 @@ def test_render_settings_drive_products_on_openusd_stages(assets, tmp_path, monk
     assert "/Render/Vars/a: sourceName 'a'" in capsys.readouterr().err
 
 
-def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
-    from pxr import UsdRender
-    path = _sequence_stage(new_stage)
-    from pxr import Usd
+def _with_product(path: str, set_name) -> None:
+    """Give the stage at ``path`` RenderSettings (its renderSettingsPrimPath) with one RenderProduct,
+    whose productName ``set_name(attribute)`` authors."""
+    from pxr import Usd, UsdRender
     stage = Usd.Stage.Open(path)
     settings = UsdRender.Settings.Define(stage, "/Render/Settings")
     product = UsdRender.Product.Define(stage, "/Render/Product")
-    for t in range(1, 5):
-        product.CreateProductNameAttr().Set(f"shot_{t * 10}.exr", t)
+    set_name(product.CreateProductNameAttr())
     settings.CreateProductsRel().SetTargets([product.GetPath()])
     stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
     stage.Save()
+
+
+def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
+    path = _sequence_stage(new_stage)
+    _with_product(path, lambda name: [name.Set(f"shot_{t * 10}.exr", t) for t in range(1, 5)])
     (tmp_path / "out").mkdir()
     monkeypatch.chdir(tmp_path / "out")
     assert main(["render", path, "--frames", "2:3", "--imageWidth", "16"]) == 0
@@ -261,18 +265,11 @@ def test_render_errors(new_stage, tmp_path, capsys, argv, message):
 
 
 def test_output_must_be_exr_and_a_product_name_becomes_one(new_stage, tmp_path, capsys, monkeypatch):
-    from pxr import Usd, UsdRender
     path = _sequence_stage(new_stage)
     assert main(["render", path, str(tmp_path / "x.png"), "--imageWidth", "8"]) == 2
     assert "usdml writes multi-channel OpenEXR; give a .exr path" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
-    stage = Usd.Stage.Open(path)
-    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
-    product = UsdRender.Product.Define(stage, "/Render/Product")
-    product.CreateProductNameAttr().Set("still.png")
-    settings.CreateProductsRel().SetTargets([product.GetPath()])
-    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
-    stage.Save()
+    _with_product(path, lambda name: name.Set("still.png"))
     monkeypatch.chdir(tmp_path)
     assert main(["render", path, "--imageWidth", "8"]) == 0
     assert "/Render/Product.productName: 'still.png' is not OpenEXR" in capsys.readouterr().err

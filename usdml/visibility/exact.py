@@ -58,8 +58,9 @@ Robust segment ends (no shadow acne, no light leaking through the far end)
 Parallelism
     embreex releases the GIL inside ``run``, so batches are cut into ``chunk_rays`` rays and run on a
     persistent ``ThreadPoolExecutor`` with one worker per core (``usdml.parallel.cpu_workers``; kept
-    across calls, as a frame makes many); the epsilon arithmetic of a chunk runs in its worker too, column-wise in float32 so that NumPy releases the GIL for it as well (row
-    reductions such as ``einsum`` hold it: with them, two workers ran no faster than one). Chunks
+    across calls, as a frame makes many); the epsilon arithmetic of a chunk runs in its worker too,
+    column-wise in float32 so that NumPy releases the GIL for it as well (row reductions such as
+    ``einsum`` hold it: with them, two workers ran no faster than one). Chunks
     write to fixed slices of the output, so results do not depend on thread timing.
     Measured: 277k-triangle city (14 × 14 boxy buildings, facades split 9 × 9, 20 thin fins and
     balconies each, on a ground slab), 1M shadow rays from random surface points (with normals) to

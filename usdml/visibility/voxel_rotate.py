@@ -22,8 +22,8 @@ Cost and error (measured: README "Deforming and fully dynamic scenes")
     directions; Alg. 5 voxelizes once and then moves only the occupied voxels, a cost of about the
     occupied voxels times the directions, whatever the triangle count. On a low-poly mesh Alg. 1
     is therefore only a few times slower (creature, 3,968 triangles: 2.3×), on a detailed one far
-    slower (the same creature subdivided to 254 k triangles: 22×). The rotation reads ``V0``'s voxels row by row
-    (a row's two table entries summed once) into directions memset just before.
+    slower (the same creature subdivided to 254 k triangles: 22×). The rotation reads ``V0``'s
+    voxels row by row (a row's two table entries summed once) into directions memset just before.
 
     ``point`` mapping (the paper) sets the voxel holding each rotated voxel centre: the rotated
     lattice leaves holes in surfaces that are tilted in the target grid, so some rays leak through.
