@@ -455,10 +455,12 @@ def query_segments(origins: wp.array(dtype=wp.vec3), targets: wp.array(dtype=wp.
 
 
 @wp.func
-def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs: VoxelScene) -> wp.vec4:
-    """Light ``l`` at surface point ``p`` with normal ``n`` (Alg. 3, lines 6-8, with shading): the
-    unshadowed irradiance as ``usdml.lighting.direct`` computes it (inverse square in metres, cosine,
-    one-sided disk/rect, cone with smoothstep softness, focus), and a voxel shadow ray when the light
+def light_term(p: wp.vec3, n: wp.vec3, ng: wp.vec3, l: int, lt: LightTable, rule: RayRule,
+               vs: VoxelScene) -> wp.vec4:
+    """Light ``l`` at surface point ``p`` with shading normal ``n`` and geometric normal ``ng``
+    (Alg. 3, lines 6-8, with shading): the unshadowed irradiance as ``usdml.lighting.direct`` computes
+    it (inverse square in metres, cosine of ``n``, one-sided disk/rect, cone with smoothstep softness,
+    focus; nothing from behind ``ng``), and a voxel shadow ray leaving along ``ng`` when the light
     faces ``p`` and casts shadows. Returns (RGB contribution, code): code 0 not facing, 1 facing and
     visible, 2 facing and blocked (RGB 0)."""
     flags = lt.flags[l]
@@ -469,6 +471,8 @@ def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs
         dvec = -lt.axis[l]
         d2 = 1.0
     if d2 <= 0.0:
+        return wp.vec4(0.0)
+    if wp.dot(ng, dvec) <= 0.0:
         return wp.vec4(0.0)
     inv_d = 1.0 / wp.sqrt(wp.max(d2, 1.0e-30))
     cos_s = wp.dot(n, dvec) * inv_d
@@ -498,15 +502,15 @@ def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs
         tgt = lt.pos[l]
         if dist != 0:
             tgt = dvec
-        if shadow_ray(vs, rule, p, tgt, n, dist, 0) >= 0.0:
+        if shadow_ray(vs, rule, p, tgt, ng, dist, 0) >= 0.0:
             return wp.vec4(0.0, 0.0, 0.0, 2.0)
     c = lt.base[l] * g + lt.focus_rgb[l] * (g * f)
     return wp.vec4(c[0], c[1], c[2], 1.0)
 
 
 @wp.kernel
-def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), first: int, tile: int,
-                lt: LightTable, rule: RayRule, vs: VoxelScene,
+def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+                geometric: wp.array(dtype=wp.vec3), first: int, tile: int, lt: LightTable, rule: RayRule, vs: VoxelScene,
                 radiance: wp.array(dtype=wp.vec3), blocked: wp.array(dtype=wp.int32),
                 facing: wp.array(dtype=wp.int32)):
     """Alg. 3 over a tile of ``tile`` spatially coherent points (``first + tid * tile …``), lights in
@@ -521,7 +525,7 @@ def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3
         facing[i] = 0
     for l in range(lt.pos.shape[0]):
         for i in range(i0, i1):
-            r = light_term(points[i], normals[i], l, lt, rule, vs)
+            r = light_term(points[i], normals[i], geometric[i], l, lt, rule, vs)
             if r[3] > 0.0:
                 facing[i] = facing[i] + 1
                 if r[3] > 1.5:

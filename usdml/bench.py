@@ -33,7 +33,7 @@ def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
     pair: the shadow queries direct lighting asks on the G-buffer ``gb``, in :func:`shading_order`."""
     hit = gb.hit.ravel()
     points = gb.position.reshape(-1, 3)[hit]
-    blocks = list(facing_pairs(points, gb.normal.reshape(-1, 3)[hit], snap.lights))
+    blocks = list(facing_pairs(points, gb.normal.reshape(-1, 3)[hit], snap.lights, gb.geometric.reshape(-1, 3)[hit]))
     if not blocks:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, np.int64)
     columns = [np.concatenate([b[k] for b in blocks]) for k in range(6)]

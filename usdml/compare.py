@@ -133,7 +133,8 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         hidden_near = 0
         ref_s = got_s = 0.0
         for origin, target, normal, distant, pixel, _ in facing_pairs(
-                gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights):
+                gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights,
+                gb.geometric.reshape(-1, 3)[hit]):
             args = (origin, target)
             kw = dict(normals=normal, distant=distant.astype(bool))
             t0 = _time.perf_counter()

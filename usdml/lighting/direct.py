@@ -14,7 +14,10 @@ outgoing radiance ``ρ/π · E``, with irradiance
 ``cos(angle·(1−softness))`` across the cone edge, and focus as ``focusTint + (1 − focusTint)·cos^focus θ_l``.
 
 A light *faces* a point when its unshadowed contribution is non-zero; the ``shadow`` AOV is the
-fraction of facing lights that are blocked (paper 000's hiddenLightsN / n).
+fraction of facing lights that are blocked (paper 000's hiddenLightsN / n). With a geometric normal
+``n_g`` beside the shading normal ``n``, a light also has to be in front of the surface
+(``n_g·ω > 0``) to face it, and shadow rays leave along ``n_g``: a shading normal tilted toward a
+light behind the surface must not light the point (the surface itself is in the way).
 """
 
 from __future__ import annotations
@@ -83,8 +86,9 @@ class _LightTable:
         self.casts = lights.shadow.copy()
 
 
-def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable):
-    """Scalar irradiance factor ``g`` and focus factor ``f`` ``(Pc, L)``, plus direction components."""
+def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable, geometric: np.ndarray | None = None):
+    """Scalar irradiance factor ``g`` and focus factor ``f`` ``(Pc, L)``, plus direction components;
+    ``g`` is 0 where the light is behind ``geometric`` (the surface's own normal, when given)."""
     p = points.astype(np.float32)
     n = normals.astype(np.float32)
     dx = t.position[0][None, :] - p[:, 0:1]
@@ -99,6 +103,9 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable):
     inv_d = 1.0 / np.sqrt(np.maximum(d2, 1e-30))
     cos_s = (n[:, 0:1] * dx + n[:, 1:2] * dy + n[:, 2:3] * dz) * inv_d
     g = np.maximum(cos_s, 0.0)
+    if geometric is not None:
+        ng = geometric.astype(np.float32)
+        g[ng[:, 0:1] * dx + ng[:, 1:2] * dy + ng[:, 2:3] * dz <= 0.0] = 0.0
     g *= np.where(t.distant[None, :], 1.0, t.inv_m2 / np.maximum(d2, t.min_d2)).astype(np.float32)
     f = None
     if t.one_sided.any() or t.shaped.any() or t.focused.any():
@@ -127,22 +134,23 @@ def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lig
     return pi, li, targets, dist
 
 
-def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights):
+def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights, geometric: np.ndarray | None = None):
     """Yield ``(origins, targets, normals, distant, point_index, light_index)`` of every shadow query
-    of :func:`shade_direct`, by block."""
+    of :func:`shade_direct`, by block (``normals`` of the queries: the geometric ones when given)."""
     table = _LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
+    offset = normals if geometric is None else geometric
     for lo in range(0, len(points), step):
         hi = min(len(points), lo + step)
-        g, _, w = _geometry(points[lo:hi], normals[lo:hi], table)
+        g, _, w = _geometry(points[lo:hi], normals[lo:hi], table, None if geometric is None else geometric[lo:hi])
         pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
-        yield points[lo + pi], targets, normals[lo + pi], dist, lo + pi, li
+        yield points[lo + pi], targets, offset[lo + pi], dist, lo + pi, li
 
 
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                  occluded: Callable[..., np.ndarray] | None,
                  progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                 min_distance: float = 0.0) -> DirectResult:
+                 min_distance: float = 0.0, geometric: np.ndarray | None = None) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -155,6 +163,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     meters_per_unit : the stage's; light falloff uses distances in metres.
     min_distance : clamp of the geometry term, ``d² >= min_distance²`` (scene units): VPL gathering
         uses it against the singularity of point lights on nearby surfaces (paper 004 §2).
+    geometric : (P, 3) unit geometric normals on the shading normals' side, or None (the shading
+        normals serve): which lights face a point, and the shadow rays' offset.
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
@@ -168,17 +178,18 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0)
     table = _LightTable(lights, meters_per_unit, min_distance)
     step = max(1, PAIRS_PER_CHUNK // n_l)
+    offset = normals if geometric is None else geometric
 
     def block(lo: int) -> int:
         hi = min(n_p, lo + step)
-        g, f, w = _geometry(points[lo:hi], normals[lo:hi], table)
+        g, f, w = _geometry(points[lo:hi], normals[lo:hi], table, None if geometric is None else geometric[lo:hi])
         live = g > 0
         facing[lo:hi] = live.sum(axis=1)
         asked = 0
         if occluded is not None:
             pi, li, targets, dist = shadow_queries(live, w, table, lights)
             if len(pi):
-                hit = occluded(points[lo + pi], targets, normals=normals[lo + pi], distant=dist)
+                hit = occluded(points[lo + pi], targets, normals=offset[lo + pi], distant=dist)
                 asked = len(pi)
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)

@@ -118,13 +118,15 @@ class FrameRenderer:
         hit = gb.hit.ravel()
         # a backend with its own Alg. 3 kernel (voxel) shades in one pass; others answer shadow rays
         shade = getattr(self.backend, "shade_direct", None)
+        geometric = gb.geometric.reshape(-1, 3)[hit]
         if shade is not None:
             direct = shade(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                           gb.albedo.reshape(-1, 3)[hit], lights, progress, meters_per_unit=snap.meters_per_unit)
+                           gb.albedo.reshape(-1, 3)[hit], lights, progress, meters_per_unit=snap.meters_per_unit,
+                           geometric=geometric)
         else:
             direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                   gb.albedo.reshape(-1, 3)[hit], lights, self.backend.occluded, progress,
-                                  meters_per_unit=snap.meters_per_unit)
+                                  meters_per_unit=snap.meters_per_unit, geometric=geometric)
         if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)

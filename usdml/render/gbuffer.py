@@ -1,10 +1,13 @@
 """The G-buffer: what each pixel's camera ray hits first (paper 000, Alg. 3 input).
 
 Pixel (x, y) has its centre at ``((x + ½) / W, (y + ½) / H)`` of the film, row 0 at the top. Rays
-start on the near clipping plane and end on the far one, so clipping is honoured. Shading normals
-are interpolated from the mesh's per-corner normals and turned to face the camera (usdml shades
-both sides of every surface); instanced normals go through the inverse transpose of their
-instance transform.
+start on the near clipping plane and end on the far one, so clipping is honoured. Each hit has two
+normals: the geometric normal of the triangle hit (Embree's), turned to face the camera (usdml
+shades both sides of every surface), and the shading normal interpolated from the mesh's per-corner
+normals (instanced ones through the inverse transpose of their instance transform), turned to the
+geometric normal's side. Which lights face a point, and where its shadow rays start, follow the
+geometric normal; only the cosine of shading follows the shading normal, so tilted authored normals
+never let a light behind the surface light it.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ class GBuffer:
     height: int
     hit: np.ndarray         #: (H, W) bool, a surface was hit
     position: np.ndarray    #: (H, W, 3) float64 world position (0 on a miss)
-    normal: np.ndarray      #: (H, W, 3) float32 unit world shading normal, facing the camera
+    normal: np.ndarray      #: (H, W, 3) float32 unit world shading normal, on the geometric normal's side
+    geometric: np.ndarray   #: (H, W, 3) float32 unit world geometric normal, facing the camera
     albedo: np.ndarray      #: (H, W, 3) float32 linear RGB
     depth: np.ndarray       #: (H, W) float32 camera-space depth (distance along the view axis), inf on a miss
     prim_id: np.ndarray     #: (H, W) int32 ``Mesh.id``, -1 on a miss
@@ -67,6 +71,7 @@ class Hits:
     hit: np.ndarray         #: (N,) bool
     position: np.ndarray    #: (N, 3) float64 world position
     normal: np.ndarray      #: (N, 3) float64 unit world shading normal (as authored, not flipped)
+    geometric: np.ndarray   #: (N, 3) float64 unit world geometric normal (of the triangle's winding)
     albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
     geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
     t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
@@ -105,9 +110,19 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
             albedo[px] = mesh.texture.sample((mesh.uv[tri] * w).sum(1))
         else:
             albedo[px] = (mesh.albedo[tri] * w).sum(1)
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
-    normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
-    return Hits(hit=hit, position=position, normal=normal, albedo=albedo, geom=r["geom"], t=r["t"])
+    return Hits(hit=hit, position=position, normal=_unit(normal), geometric=_unit(r["ng"].astype(np.float64)),
+                albedo=albedo, geom=r["geom"], t=r["t"])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` scaled to unit length; zero rows stay zero."""
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.where(length > 0, v / np.where(length > 0, length, 1.0), 0.0)
+
+
+def face_forward(v: np.ndarray, toward: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` negated where they point away from the matching rows of ``toward``."""
+    return np.where((np.einsum("ij,ij->i", v, toward) < 0)[:, None], -v, v)
 
 
 def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuffer:
@@ -116,9 +131,8 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuff
     origins, dirs, tmax = camera_rays(camera, width, height)
     h = surface_at_hits(snapshot, backend, origins, dirs, tmax)
     n = width * height
-    normal = h.normal
-    facing_away = np.einsum("ij,ij->i", normal, dirs) > 0
-    normal[facing_away] *= -1.0
+    geometric = face_forward(h.geometric, -dirs)
+    normal = face_forward(h.normal, geometric)
     world_to_cam = np.linalg.inv(camera.xform)
     depth = np.full(n, np.inf, np.float32)
     depth[h.hit] = -(h.position[h.hit] @ world_to_cam[2, :3] + world_to_cam[2, 3])
@@ -126,5 +140,6 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuff
     shape = (height, width)
     return GBuffer(
         width=width, height=height, hit=h.hit.reshape(shape), position=h.position.reshape(shape + (3,)),
-        normal=normal.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
+        normal=normal.astype(np.float32).reshape(shape + (3,)),
+        geometric=geometric.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
         depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape))

@@ -3,6 +3,11 @@
 Polygons are fan-triangulated (as Hydra's mesh util does); faces that are hole faces, have fewer than
 three vertices or index outside ``points`` are dropped with a warning naming the prim. Subdivision
 meshes render as their control cage.
+
+Normals without authored ones follow the final-frame renderers (RenderMan, Arnold, Omniverse RTX): a
+polygonal mesh (``subdivisionScheme = "none"``) is faceted, each triangle shaded with its own
+geometric normal; a subdivision mesh, drawn as its cage, gets area-weighted smooth normals, closer to
+its limit surface.
 """
 
 from __future__ import annotations
@@ -111,10 +116,15 @@ def transform_points(m: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ m[:3, :3].T + m[:3, 3]
 
 
+def _face_cross(points: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points as float64 and each triangle's ``(v1 - v0) × (v2 - v0)`` (twice its area, unnormalised)."""
+    p = points.astype(np.float64)
+    return p, np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+
+
 def smooth_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals, per corner ``(T, 3, 3)`` float32."""
-    p = points.astype(np.float64)
-    fn = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+    p, fn = _face_cross(points, tris)
     vn = np.zeros_like(p)
     for c in range(3):
         np.add.at(vn, tris[:, c], fn)
@@ -122,6 +132,15 @@ def smooth_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     length = np.linalg.norm(vn, axis=1, keepdims=True)
     vn = np.where(length > 0, vn / np.where(length > 0, length, 1), [0.0, 1.0, 0.0])
     return vn[tris].astype(np.float32)
+
+
+def faceted_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Each triangle's own unit geometric normal at its three corners, ``(T, 3, 3)`` float32
+    (zero-area triangles get +Y, as :func:`smooth_normals` gives their unused vertices)."""
+    _, fn = _face_cross(points, tris)
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    fn = np.where(length > 0, fn / np.where(length > 0, length, 1), [0.0, 1.0, 0.0])
+    return np.repeat(fn[:, None, :], 3, axis=1).astype(np.float32)
 
 
 def is_gprim(prim: Usd.Prim) -> bool:
@@ -159,6 +178,7 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
 
     ``points`` overrides the authored points (posed UsdSkel points, already in the target space when
     ``to_space`` is None); ``authored_normals=False`` ignores authored normals (they do not follow a pose).
+    Without normals, ``subdivisionScheme = "none"`` shades faceted, any other scheme smooth.
     Returns None (after a warning) for a mesh with nothing renderable.
     """
     mesh = UsdGeom.Mesh(prim)
@@ -176,16 +196,18 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
         *(_array(a.Get(time), np.int64, None, f"{prim.GetPath()}.{a.GetName()}", warn)
           for a in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr(), mesh.GetHoleIndicesAttr())),
         mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
-        bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials)
+        bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials,
+        faceted=mesh.GetSubdivisionSchemeAttr().Get(time) == UsdGeom.Tokens.none)
 
 
 def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndarray, counts: np.ndarray,
                indices: np.ndarray, holes: np.ndarray, left: bool, to_space: np.ndarray | None,
                normals: tuple | None, double_sided: bool, deforming: bool,
-               warn: Callable[[str], None], materials=None) -> Mesh | None:
+               warn: Callable[[str], None], materials=None, faceted: bool = False) -> Mesh | None:
     """Triangulate polygon arrays of ``prim`` (a Mesh or a tessellated implicit gprim).
 
-    ``normals`` is ``(values, interpolation)`` or None to compute smooth normals. The albedo is the
+    ``normals`` is ``(values, interpolation)`` or None to compute them: per-triangle geometric
+    normals when ``faceted``, else area-weighted smooth ones. The albedo is the
     bound UsdPreviewSurface's ``diffuseColor`` when ``materials`` (a
     :class:`usdml.stage.materials.MaterialResolver`) finds one, else ``primvars:displayColor``.
     """
@@ -222,7 +244,7 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
             length = np.linalg.norm(n, axis=-1, keepdims=True)
             corner_normals = np.where(length > 0, n / np.where(length > 0, length, 1), 0).astype(np.float32)
     if corner_normals is None:
-        corner_normals = smooth_normals(world, tris)
+        corner_normals = (faceted_normals if faceted else smooth_normals)(world, tris)
 
     albedo, texture = materials.albedo_and_texture(prim, time, topo, len(points)) \
         if materials is not None else (None, None)

@@ -808,7 +808,7 @@ class VoxelBackend(VisibilityBackend):
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0):
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None):
         """Alg. 3 in one kernel: every pixel against every light with voxel shadow rays; the same
         shading as :func:`usdml.lighting.direct.shade_direct` (returns its ``DirectResult``)."""
         from usdml.lighting.direct import DirectResult, _LightTable, cone_edges
@@ -820,7 +820,8 @@ class VoxelBackend(VisibilityBackend):
         if n_p == 0 or n_l == 0 or not self._gpu:
             from usdml.lighting.direct import shade_direct
             return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
-                                progress, meters_per_unit=meters_per_unit, min_distance=min_distance)
+                                progress, meters_per_unit=meters_per_unit, min_distance=min_distance,
+                                geometric=geometric)
         t = _LightTable(lights, meters_per_unit, min_distance)
         flags = (t.distant.astype(np.int32) | (t.one_sided.astype(np.int32) << 1) | (t.shaped.astype(np.int32) << 2)
                  | (t.focused.astype(np.int32) << 3) | (t.casts.astype(np.int32) << 4))
@@ -845,11 +846,13 @@ class VoxelBackend(VisibilityBackend):
         order = morton_order(pts) if tile > 1 else np.arange(n_p)
         p_wp = wp.array(pts[order], dtype=wp.vec3, device=dev)
         n_wp = wp.array(np.asarray(normals, np.float32)[order], dtype=wp.vec3, device=dev)
+        g_wp = n_wp if geometric is None else wp.array(np.asarray(geometric, np.float32)[order], dtype=wp.vec3,
+                                                       device=dev)
         n_tiles = -(-n_p // tile)
 
         def launch(first_tile, count):
             wp.launch(k.shade_tiles, dim=count, device=dev,
-                      inputs=[p_wp, n_wp, first_tile * tile, tile, lt, rule, vs, rad, blocked, facing])
+                      inputs=[p_wp, n_wp, g_wp, first_tile * tile, tile, lt, rule, vs, rad, blocked, facing])
             if progress is not None:
                 progress(min(n_p, (first_tile + count) * tile) - first_tile * tile)
         self._split(n_tiles, launch)
