@@ -29,8 +29,10 @@ I = L * pi * r^2.  Intensities are calibrated (``calibrate_intensity``) so the
 representative sample points averages a target (~0.3), rounded to 2
 significant digits.
 
-Everything is seeded; no timestamps are written, so re-running produces
-byte-identical files.
+Everything is seeded; no timestamps are written, and every computed value is
+rounded before it is written (``settled``: matrices to 1e-9, positions to 1e-5
+scene units), so re-running produces byte-identical files with any numpy, on
+any machine: last-ulp differences of its arithmetic never reach the file.
 """
 import argparse
 import math
@@ -120,7 +122,13 @@ def look_at(eye, target, up=UP):
     right = unit(np.cross(fwd, up))
     cam_up = np.cross(right, fwd)
     rows = [(*right, 0.0), (*cam_up, 0.0), (*(-fwd), 0.0), (*eye, 1.0)]
-    return Gf.Matrix4d(*[float(c) for row in rows for c in row])
+    return Gf.Matrix4d(*[float(c) for c in settled(rows, 9).ravel()])
+
+
+def settled(values, decimals):
+    """``values`` rounded to ``decimals`` (float64 array), with -0.0 written as 0.0: what the
+    stages store, so an ulp of difference in how numpy computed them never changes a byte."""
+    return np.round(np.asarray(values, dtype=np.float64), decimals) + 0.0
 
 
 def round_sig(x, digits=2):
@@ -253,7 +261,7 @@ def regular_polygon(sides, radius, phase=0.0):
 def define_mesh(stage, path, mb):
     """Author a UsdGeom.Mesh from a MeshBuilder (flat, no subdivision)."""
     mesh = UsdGeom.Mesh.Define(stage, path)
-    points = Vt.Vec3fArray.FromNumpy(np.array(mb.points, dtype=np.float32))
+    points = Vt.Vec3fArray.FromNumpy(np.array(settled(mb.points, 5), dtype=np.float32))
     mesh.CreatePointsAttr(points)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray(mb.counts))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(mb.indices))
@@ -401,7 +409,7 @@ def define_light_instancer(stage, anim_layer, path, protos, radius, intensity,
     with Usd.EditContext(stage, anim_layer):
         attr = pi.CreatePositionsAttr()
         for f, pos in zip(frames, positions):
-            attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos, dtype=np.float32)),
+            attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(settled(pos, 5), dtype=np.float32)),
                      Usd.TimeCode(float(f)))
     return pi
 
@@ -413,7 +421,7 @@ def set_instancer_xforms(stage, anim_layer, pi, frames, positions, orientations)
         ori_attr = pi.CreateOrientationsAttr()
         for f, pos, ori in zip(frames, positions, orientations):
             t = Usd.TimeCode(float(f))
-            pos_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos, dtype=np.float32)), t)
+            pos_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(settled(pos, 5), dtype=np.float32)), t)
             ori_attr.Set(Vt.QuathArray.FromNumpy(np.ascontiguousarray(ori, dtype=np.float16)), t)
 
 
@@ -1002,7 +1010,7 @@ def skin_weights(pts, starts, ends, influences=4, falloff=0.03):
 
 
 def translation_matrix(t):
-    return Gf.Matrix4d().SetTranslate(Gf.Vec3d(*[float(c) for c in t]))
+    return Gf.Matrix4d().SetTranslate(Gf.Vec3d(*[float(c) for c in settled(t, 9)]))
 
 
 def write_bear_asset(out_dir):
@@ -1030,7 +1038,7 @@ def write_bear_asset(out_dir):
         translation_matrix(joints[j] - (joints[p] if p >= 0 else 0.0)) for j, p in enumerate(parents)]))
 
     mesh = UsdGeom.Mesh.Define(stage, "/bear/Body")
-    points = Vt.Vec3fArray.FromNumpy(pts.astype(np.float32))
+    points = Vt.Vec3fArray.FromNumpy(settled(pts, 5).astype(np.float32))
     mesh.CreatePointsAttr(points)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray(counts.tolist()))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(indices.tolist()))
@@ -1040,7 +1048,7 @@ def write_bear_asset(out_dir):
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
     binding.CreateJointIndicesPrimvar(False, 4).Set(Vt.IntArray(jidx.ravel().tolist()))
-    binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray(jw.ravel().tolist()))
+    binding.CreateJointWeightsPrimvar(False, 4).Set(Vt.FloatArray(settled(jw, 7).ravel().tolist()))
     binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
     stage.Save()
     return joints, parents, len(counts)
@@ -1125,7 +1133,7 @@ def make_creature(out_dir):
     t_attr, r_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr()
     for f, tr, rot in zip(frames, trans, rots):
         tc = Usd.TimeCode(float(f))
-        t_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, v)) for v in tr]), tc)
+        t_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, v)) for v in settled(tr, 5)]), tc)
         # Rounding drops float noise (-0, 1e-17) from the authored text.
         r_attr.Set(Vt.QuatfArray([Gf.Quatf(*[round(float(c), 7) + 0.0 for c in q]) for q in rot]), tc)
     skel_prim = stage.OverridePrim("/World/Bear/Skel")
@@ -1595,6 +1603,55 @@ def make_park(out_dir):
 
 # --------------------------------------------------------------------------
 
+def make_boxes(out_dir):
+    """A block of plain boxes for checks against independent renderers: each box 8 shared corner
+    points and 6 quads, ``subdivisionScheme = "none"``, no normals (as box-modelled city blocks are
+    authored), on a ground slab, lit by 16 point lights between and above them."""
+    path = os.path.join(out_dir, "boxes.usda")
+    stage = new_stage(path, 1, 1)
+    rng = np.random.default_rng(18)
+    UsdGeom.Xform.Define(stage, "/World/Boxes")
+    boxes = []      # (lo, hi) of every box, to keep the lights clear of them
+    corners = [(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)]
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    for i in range(5):
+        for j in range(5):
+            w, d, h = rng.uniform(1.2, 2.2), rng.uniform(1.2, 2.2), rng.uniform(0.8, 4.0)
+            x0, z0 = -8.0 + 3.4 * i + rng.uniform(0, 0.6), -8.0 + 3.4 * j + rng.uniform(0, 0.6)
+            pts = settled([(x0 + cx * w, cy * h, z0 + cz * d) for cx, cy, cz in corners], 5)
+            boxes.append((pts.min(0), pts.max(0)))
+            mesh = UsdGeom.Mesh.Define(stage, f"/World/Boxes/box_{i}{j}")
+            mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * 6))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([k for q in quads for k in q]))
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            grey = round_sig(rng.uniform(0.35, 0.8))
+            set_display_color(mesh, [(grey, grey, round_sig(grey * 0.9))])
+    ground = MeshBuilder()
+    ground.add_poly([(-12.0, 0.0, -12.0), (-12.0, 0.0, 12.0), (12.0, 0.0, 12.0), (12.0, 0.0, -12.0)],
+                    (0.5, 0.5, 0.5), UP)
+    define_mesh(stage, "/World/Ground", ground)
+    UsdGeom.Xform.Define(stage, "/World/Lights")
+    # at least 0.6 from every surface: a bulb grazing a wall makes a hot spot whose pixel integral a
+    # reference renderer takes thousands of samples to settle
+    positions = []
+    while len(positions) < 16:
+        pos = settled((rng.uniform(-9, 9), rng.uniform(0.6, 6.0), rng.uniform(-9, 9)), 3)
+        if all(np.linalg.norm(pos - np.clip(pos, lo, hi)) >= 0.6 for lo, hi in boxes):
+            positions.append(pos)
+    for k, pos in enumerate(positions):
+        light = UsdLux.SphereLight.Define(stage, f"/World/Lights/bulb_{k:02d}")
+        light.CreateTreatAsPointAttr(True)
+        light.CreateRadiusAttr(0.1)
+        light.CreateIntensityAttr(2000.0)
+        light.CreateColorAttr(Gf.Vec3f(*BULBS[("warm", "cool", "white", "pink")[k % 4]]))
+        light.AddTranslateOp().Set(Gf.Vec3d(*map(float, pos)))
+    define_camera(stage, (15.0, 16.0, 22.0), (0.0, 0.5, 0.0), (0.5, 200.0))
+    define_render_settings(stage, "out/boxes.####.exr")
+    stage.Save()
+    return {"boxes": 25, "lights": 16}
+
+
 def main(argv=None):
     default_out = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "stages")
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -1608,6 +1665,7 @@ def main(argv=None):
     report["creature"].update(check_skinning(os.path.join(out, "creature.usda")))
     report["cornell"] = make_cornell(out)
     report["park"] = make_park(out)
+    report["boxes"] = make_boxes(out)
     for name, info in report.items():
         print(f"{name:9s}", ", ".join(f"{k}={v}" for k, v in info.items()))
 
