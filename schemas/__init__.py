@@ -58,6 +58,7 @@ ATTRIBUTES: tuple[Attribute, ...] = (
     Attribute("usdml:shadow:samples", int, 4),               # paper 004
     Attribute("usdml:shadow:filterIterations", int, -1),     # à-trous iterations, -1 = by samples
     Attribute("usdml:shadow:targets", str, "cluster"),       # token: cluster, or jitter (paper 004)
+    Attribute("usdml:pixelSamples", int, 4),                 # s x s stratified primary rays, box filter
     Attribute("usdml:seed", int, 0),
 )
 

@@ -532,7 +532,7 @@ def test_textures_are_sampled_per_pixel(tmp_path):
     cam.CreateVerticalApertureAttr(20)
     cam.AddTranslateOp().Set((0, 0, 5))
     stage.Save()
-    r = FrameRenderer(StageDelegate(str(tmp_path / "q.usda")), UsdmlSettings())
+    r = FrameRenderer(StageDelegate(str(tmp_path / "q.usda")), UsdmlSettings(pixel_samples=1))   # texel centres: no blend across texels
     albedo = r.render(0, 8, 8, {"albedo"}).buffers["albedo"]
     # independent bilinear lookup with repeat wrap: texel centres at (i + 0.5) / 4, t = 0 at the image bottom
     s = (np.arange(8) + 0.5) / 8

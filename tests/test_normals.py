@@ -70,7 +70,7 @@ def _tilted_ground(new_stage, lights):
 
 def _render(path, visibility):
     d = StageDelegate(path)
-    settings = UsdmlSettings(visibility=visibility, voxel_resolution=32, direction_step=6.0)
+    settings = UsdmlSettings(visibility=visibility, voxel_resolution=32, direction_step=6.0, pixel_samples=1)
     r = FrameRenderer(d, settings)
     try:
         return r.render(d.start_time, 48, 48, {"direct", "P", "shadow", "lightCount", "normal"}).buffers

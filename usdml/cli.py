@@ -83,7 +83,7 @@ def _settings_overrides(args: argparse.Namespace) -> dict:
               "voxel_resolution": getattr(args, "voxel_resolution", None),
               "direction_step": getattr(args, "direction_step", None),
               "voxel_rebuild": a("voxel_rebuild"), "voxel_mapping": a("voxel_mapping"),
-              "fully_dynamic": a("fully_dynamic")}
+              "fully_dynamic": a("fully_dynamic"), "pixel_samples": a("pixel_samples")}
     return {k: v for k, v in values.items() if v is not None}
 
 
@@ -264,6 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
+    render.add_argument("--pixel-samples", type=int, metavar="N",
+                        help="primary rays per pixel, a square number (an s x s stratified grid, box filter); "
+                             "default: the stage's usdml:pixelSamples, else 4; 1 = the pixel centre only")
     _add_voxel_args(render)
     _add_lighting_args(render)
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")

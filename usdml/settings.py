@@ -26,8 +26,12 @@ SCHEMA_ATTRIBUTES = {
     "usdml:shadow:samples": "shadow_samples",
     "usdml:shadow:filterIterations": "shadow_filter_iterations",
     "usdml:shadow:targets": "shadow_targets",
+    "usdml:pixelSamples": "pixel_samples",
     "usdml:seed": "seed",
 }
+
+#: most primary rays per pixel (a 32 x 32 grid)
+MAX_PIXEL_SAMPLES = 1024
 
 VISIBILITY_BACKENDS = ("exact", "voxel", "insm", "svo")
 GI_METHODS = ("none", "lgh", "vpl-bruteforce")
@@ -55,6 +59,7 @@ class UsdmlSettings:
     shadow_filter_iterations: int = -1  #: à-trous iterations over the shadows; 0 = unfiltered, -1 = by samples
     shadow_targets: str = "cluster" #: LGH shadow rays to a VPL of the grid light (cluster) or its jittered centre (paper)
     dome_samples: int = 256         #: distant lights a dome light is importance-sampled into, per frame
+    pixel_samples: int = 4          #: stratified primary rays per pixel (s x s), box filter; 1 = the pixel centre
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -87,6 +92,10 @@ class UsdmlSettings:
             raise UsdmlError(f"unknown shadow targets {self.shadow_targets!r}; use one of {', '.join(SHADOW_TARGETS)}")
         if self.interleave not in (1, 2, 4):
             raise UsdmlError(f"interleave must be 1, 2 or 4, got {self.interleave}")
+        s = round(self.pixel_samples ** 0.5)
+        if s * s != self.pixel_samples or not 1 <= self.pixel_samples <= MAX_PIXEL_SAMPLES:
+            raise UsdmlError(f"pixel samples must be a square number from 1 to {MAX_PIXEL_SAMPLES} (1, 4, 9, 16, ...: "
+                             f"an s x s stratified grid), got {self.pixel_samples}")
         if self.vpl_bounces < 1:
             raise UsdmlError(f"VPL bounces must be >= 1, got {self.vpl_bounces}")
 

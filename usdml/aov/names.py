@@ -62,6 +62,9 @@ class AovSpec:
     description: str
     prefixed: bool = True       #: False for ``color`` (``R,G,B,A``) and ``depth`` (``Z``)
     hydra: bool = False         #: the name is one of Hydra's AOV tokens
+    #: averaged over a pixel's primary rays (box filter); otherwise the value of the ray nearest the
+    #: pixel centre (depth, positions and normals are not meaningful averaged, ids not at all, as in Hydra)
+    filtered: bool = False
 
     @property
     def components(self) -> int:
@@ -99,13 +102,13 @@ _XYZ = ("X", "Y", "Z")
 
 AOVS: dict[str, AovSpec] = {a.name: a for a in (
     AovSpec("color", ("R", "G", "B", "A"), "half", 0.0,
-            "linear RGBA radiance, premultiplied by alpha", prefixed=False, hydra=True),
-    AovSpec("direct", _RGB, "half", 0.0, "direct radiance from the scene's lights"),
-    AovSpec("indirect", _RGB, "half", 0.0, "indirect radiance (virtual point lights / LGH)"),
-    AovSpec("albedo", _RGB, "half", 0.0, "diffuse reflectance at the first hit"),
+            "linear RGBA radiance, premultiplied by alpha", prefixed=False, hydra=True, filtered=True),
+    AovSpec("direct", _RGB, "half", 0.0, "direct radiance from the scene's lights", filtered=True),
+    AovSpec("indirect", _RGB, "half", 0.0, "indirect radiance (virtual point lights / LGH)", filtered=True),
+    AovSpec("albedo", _RGB, "half", 0.0, "diffuse reflectance at the first hit", filtered=True),
     AovSpec("shadow", ("Y",), "float", 0.0,
-            "fraction of the lights facing the point that are blocked (hiddenLightsN / n)"),
-    AovSpec("lightCount", ("Y",), "float", 0.0, "number of lights facing the point (n)"),
+            "fraction of the lights facing the point that are blocked (hiddenLightsN / n)", filtered=True),
+    AovSpec("lightCount", ("Y",), "float", 0.0, "number of lights facing the point (n)", filtered=True),
     AovSpec("depth", ("Z",), "float", float("inf"),
             "camera-space depth along the viewing axis, positive in front (EXR camera z)",
             prefixed=False, hydra=True),

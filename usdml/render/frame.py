@@ -15,7 +15,8 @@ import numpy as np
 
 from usdml.errors import UsdmlError, log
 from usdml.lighting.direct import shade_direct
-from usdml.render.gbuffer import GBuffer, build_gbuffer
+from usdml.aov.names import find_aov
+from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
@@ -111,9 +112,25 @@ class FrameRenderer:
         lights = self.frame_lights(snap)
         snap = replace(snap, camera=camera)
 
+        stats.update(gbuffer_seconds=0.0, shading_seconds=0.0, shadow_queries=0)
+        samples = self.settings.pixel_samples
+        pixel_progress = None if progress is None else (lambda n: progress(n / samples))
+        image = _PixelFilter(width, height)
+        for offsets in pixel_offsets(width, height, samples, self.settings.seed):
+            gb, direct, indirect = self._trace(snap, lights, camera, width, height, offsets, stats, pixel_progress)
+            image.add(self._buffers(gb, gb.hit.ravel(), direct, indirect, camera, aovs), offsets)
+        stats["lights"] = len(lights)
+        stats["pixels"] = width * height
+        stats["pixel_samples"] = samples
+        stats["seconds"] = _time.perf_counter() - t0
+        return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
+
+    def _trace(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
+               offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None):
+        """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light."""
         t2 = _time.perf_counter()
-        gb = build_gbuffer(snap, self.exact, width, height)
-        stats["gbuffer_seconds"] = _time.perf_counter() - t2
+        gb = build_gbuffer(snap, self.exact, width, height, offsets)
+        stats["gbuffer_seconds"] += _time.perf_counter() - t2
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
         # a backend with its own Alg. 3 kernel (voxel) shades in one pass; others answer shadow rays
@@ -132,10 +149,10 @@ class FrameRenderer:
                                               gb.albedo.reshape(-1, 3)[hit], camera)
             stats["camera_light"] = True
             if not self._told_camera_light:
-                log.warning(f"{self.delegate.path}: no lights at time {time:g}; lit by a camera light as "
+                log.warning(f"{self.delegate.path}: no lights at time {snap.time:g}; lit by a camera light as "
                             "usdrecord does (--disableCameraLight to turn it off)")
                 self._told_camera_light = True
-        stats["shading_seconds"] = _time.perf_counter() - t3
+        stats["shading_seconds"] += _time.perf_counter() - t3
         indirect = np.zeros_like(direct.radiance)
         if self.settings.gi != "none":
             from usdml.lighting.gi import indirect_lighting
@@ -146,22 +163,18 @@ class FrameRenderer:
                 gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
                 image=(gb.hit, gb.position), device=self.device)
             indirect = gi.radiance
-            stats["gi"] = gi.stats
+            stats["gi"] = gi.stats                  # the last pass's
             if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
                 why = ("the stage has no lights (a camera light adds no indirect light)" if len(lights) == 0
                        else f"no light path from its {len(lights)} light(s) reached the geometry")
-                log.warning(f"{self.delegate.path}: --gi {self.settings.gi}: no VPLs at time {time:g}: {why}; "
+                log.warning(f"{self.delegate.path}: --gi {self.settings.gi}: no VPLs at time {snap.time:g}: {why}; "
                             "indirect is 0")
                 self._told_no_vpls = True
-            stats["gi_seconds"] = _time.perf_counter() - t4
+            stats["gi_seconds"] = stats.get("gi_seconds", 0.0) + _time.perf_counter() - t4
         if progress is not None:
             progress(int((~hit).sum()))          # background pixels: nothing to shade
-        stats["shadow_queries"] = direct.queries
-        stats["lights"] = len(lights)
-        stats["pixels"] = width * height
-        stats["seconds"] = _time.perf_counter() - t0
-        buffers = self._buffers(gb, hit, direct, indirect, camera, aovs)
-        return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats)
+        stats["shadow_queries"] += direct.queries
+        return gb, direct, indirect
 
     @staticmethod
     def _buffers(gb: GBuffer, hit: np.ndarray, direct, indirect: np.ndarray, camera: Camera,
@@ -198,3 +211,35 @@ class FrameRenderer:
         if unknown:
             raise UsdmlError(f"unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(table)}")
         return {name: table[name]() for name in aovs}
+
+
+class _PixelFilter:
+    """Combines the AOV buffers of a pixel's primary rays (one pass per sub-pixel position): the
+    :attr:`~usdml.aov.names.AovSpec.filtered` AOVs averaged (a box filter), the others taken from the
+    ray nearest the pixel centre."""
+
+    def __init__(self, width: int, height: int):
+        self.shape = (height, width)
+        self.passes = 0
+        self.sums: dict[str, np.ndarray] = {}
+        self.nearest: dict[str, np.ndarray] = {}
+        self.best = np.full(self.shape, np.inf)
+
+    def add(self, buffers: dict[str, np.ndarray], offsets: np.ndarray) -> None:
+        d2 = ((offsets - 0.5) ** 2).sum(1).reshape(self.shape)
+        closer = d2 < self.best
+        self.best = np.minimum(self.best, d2)
+        for name, b in buffers.items():
+            if find_aov(name).filtered:
+                self.sums[name] = self.sums[name] + b.astype(np.float64) if name in self.sums else b.astype(np.float64)
+            elif name not in self.nearest:
+                self.nearest[name] = b
+            else:
+                pick = closer if b.ndim == 2 else closer[..., None]
+                self.nearest[name] = np.where(pick, b, self.nearest[name])
+        self.passes += 1
+
+    def result(self) -> dict[str, np.ndarray]:
+        out = {name: (s / self.passes).astype(np.float32) for name, s in self.sums.items()}
+        out.update(self.nearest)
+        return out

@@ -1,6 +1,8 @@
 """The G-buffer: what each pixel's camera ray hits first (paper 000, Alg. 3 input).
 
-Pixel (x, y) has its centre at ``((x + ½) / W, (y + ½) / H)`` of the film, row 0 at the top. Rays
+Pixel (x, y) spans ``[x, x + 1) / W × [y, y + 1) / H`` of the film, row 0 at the top; a ray goes
+through the point ``offsets`` places in it (the centre, ``(½, ½)``, unless :func:`pixel_offsets`
+asks for stratified sub-pixel positions). Rays
 start on the near clipping plane and end on the far one, so clipping is honoured. Each hit has two
 normals: the geometric normal of the triangle hit (Embree's), turned to face the camera (usdml
 shades both sides of every surface), and the shading normal interpolated from the mesh's per-corner
@@ -37,15 +39,45 @@ class GBuffer:
         return self.width * self.height
 
 
-def camera_rays(camera: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World-space rays through every pixel centre.
+def pixel_offsets(width: int, height: int, samples: int, seed: int):
+    """Yield ``samples`` (an s × s square) arrays ``(H·W, 2)`` float64 of where in each pixel a
+    primary ray goes, ``(x right, y down)`` in [0, 1), one array per pass.
+
+    Correlated multi-jittered sampling (Kensler 2013, after Chiu, Shirley and Wang 1994): pass
+    ``k = (i, j)`` puts one ray in cell (i, j) of an s × s grid over the pixel, and the rays' x (and
+    y) also fall one in each of the s² thin columns (rows), so a vertical or horizontal edge is
+    resolved in s² steps, not s; per pixel a random permutation of the sub-columns (sub-rows) and a
+    jitter inside them, drawn from ``seed`` (and the pass for the jitter). A single sample is the
+    pixel centre, unjittered.
+    """
+    s = round(samples ** 0.5)
+    n = width * height
+    if s == 1:
+        yield np.full((n, 2), 0.5)
+        return
+    rng = np.random.default_rng([seed, 0x5A4D])
+    perm_x = np.argsort(rng.random((n, s)), axis=1)     # sub-column of the ray in grid row j
+    perm_y = np.argsort(rng.random((n, s)), axis=1)     # sub-row of the ray in grid column i
+    for k in range(samples):
+        i, j = k % s, k // s
+        jitter = np.random.default_rng([seed, 0x5A4D, k]).random((n, 2))
+        x = (i + (perm_x[:, j] + jitter[:, 0]) / s) / s
+        y = (j + (perm_y[:, i] + jitter[:, 1]) / s) / s
+        yield np.stack([x, y], axis=1)
+
+
+def camera_rays(camera: Camera, width: int, height: int,
+                offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World-space rays through every pixel, at its centre or at ``offsets`` (:func:`pixel_offsets`).
 
     Returns ``(origins (H·W, 3), unit directions (H·W, 3), tmax (H·W,))`` as float64, row-major from
     the top-left pixel; ``origins`` lie on the near plane, ``tmax`` reaches the far plane.
     """
-    xs = (np.arange(width) + 0.5) / width * 2.0 - 1.0
-    ys = 1.0 - (np.arange(height) + 0.5) / height * 2.0
-    nx, ny = np.meshgrid(xs, ys)
+    if offsets is None:
+        offsets = np.full((width * height, 2), 0.5)
+    col, row = np.meshgrid(np.arange(width), np.arange(height))
+    nx = (col.ravel() + offsets[:, 0]) / width * 2.0 - 1.0
+    ny = 1.0 - (row.ravel() + offsets[:, 1]) / height * 2.0
     inv = np.linalg.inv(camera.projection_matrix())
 
     def unproject(z: float) -> np.ndarray:
@@ -125,10 +157,12 @@ def face_forward(v: np.ndarray, toward: np.ndarray) -> np.ndarray:
     return np.where((np.einsum("ij,ij->i", v, toward) < 0)[:, None], -v, v)
 
 
-def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int) -> GBuffer:
-    """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer."""
+def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int,
+                  offsets: np.ndarray | None = None) -> GBuffer:
+    """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer; rays
+    through pixel centres, or through ``offsets`` (:func:`camera_rays`)."""
     camera = snapshot.camera
-    origins, dirs, tmax = camera_rays(camera, width, height)
+    origins, dirs, tmax = camera_rays(camera, width, height, offsets)
     h = surface_at_hits(snapshot, backend, origins, dirs, tmax)
     n = width * height
     geometric = face_forward(h.geometric, -dirs)
