@@ -2,7 +2,7 @@
 
 Polygons are fan-triangulated (as Hydra's mesh util does); faces that are hole faces, have fewer than
 three vertices or index outside ``points`` are dropped with a warning naming the prim. Subdivision
-meshes render as their control cage.
+meshes render as their control cage with smooth normals computed from its points.
 """
 
 from __future__ import annotations
@@ -159,13 +159,16 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
 
     ``points`` overrides the authored points (posed UsdSkel points, already in the target space when
     ``to_space`` is None); ``authored_normals=False`` ignores authored normals (they do not follow a pose).
+    Authored normals are read only for polygonal meshes (``subdivisionScheme = "none"``): usdImaging's
+    mesh adapter drops them on subdivision surfaces (catmullClark, the schema default, loop, bilinear),
+    whose normals come from the surface, so usdml computes smooth ones from the points there.
     Returns None (after a warning) for a mesh with nothing renderable.
     """
     mesh = UsdGeom.Mesh(prim)
     if points is None:
         points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3, f"{prim.GetPath()}.points", warn)
     normals = None
-    if authored_normals:
+    if authored_normals and mesh.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none:
         pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
         if pv and pv.HasAuthoredValue():
             normals = (pv.ComputeFlattened(time), pv.GetInterpolation())
