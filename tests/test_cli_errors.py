@@ -1,5 +1,6 @@
 """Bad input: one clear line naming the file / prim / attribute, exit status 2, no traceback."""
 
+import os
 import subprocess
 import sys
 
@@ -148,3 +149,31 @@ def test_console_script_exit_status_and_single_line(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [f"usdml: error: {tmp_path / 'x.usda'}: no such file; check the stage path"]
+
+
+def _lit_box(new_stage) -> str:
+    stage = new_stage(start=1, end=2)
+    add_cube_mesh(stage, "/box")
+    UsdLux.DistantLight.Define(stage, "/sun")
+    stage.Save()
+    return stage.GetRootLayer().realPath
+
+
+@pytest.mark.parametrize("below", ["x.#.exr", "sub/x.#.exr"])
+def test_output_folder_under_a_file(new_stage, tmp_path, below):
+    """``usdml render good.usda good.usda/x.#.exr``: the output folder's parent is a file. It ended in a
+    FileExistsError (NotADirectoryError one level deeper) traceback."""
+    stage = _lit_box(new_stage)
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", stage, f"{stage}/{below}", "--frames", "1:2",
+                        "--imageWidth", "8"], capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("usdml: error: ") and f"({stage} is a file, not a folder); choose another" in line
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc (a folder no one can create files in)")
+def test_output_folder_that_takes_no_file(new_stage, capsys):
+    """Root may write anywhere else: /proc refuses new files to everyone. OpenEXR's RuntimeError was a traceback."""
+    assert main(["render", _lit_box(new_stage), "/proc/x.#.exr", "--frames", "1", "--imageWidth", "8"]) == 2
+    (line,) = _errors(capsys.readouterr().err)
+    assert line.startswith("usdml: error: /proc/x.1.exr: cannot write the file (") and "writable output folder" in line

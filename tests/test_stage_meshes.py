@@ -71,6 +71,7 @@ def test_attributes_authored_with_the_wrong_type_are_ignored_with_a_warning(tmp_
 def Mesh "normals_int" {{
         {cube}        int[] faceVertexCounts = [4]
         int normals = 7
+        uniform token subdivisionScheme = "none"
 }}
 def Mesh "points_float3" {{
         float3 points = (0, 0, 1)
@@ -158,11 +159,27 @@ def test_authored_normals_vertex_and_face_varying_follow_the_transform(new_stage
     UsdGeom.PrimvarsAPI(b).CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray,
                                          UsdGeom.Tokens.faceVarying).Set([(0, 1, 0), (1, 0, 0), (0, 0, 1), (0, 1, 0)])
     UsdGeom.Xformable(b).AddScaleOp().Set((1, 2, 1))
+    for m in (a, b):
+        m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     stage.Save()
     by = {m.path: m for m in StageDelegate(stage.GetRootLayer().realPath).snapshot(0).meshes}
     assert np.allclose(by["/vertex"].normals, [-1, 0, 0], atol=1e-6)
     assert np.allclose(by["/fv"].normals[0], [(0, 1, 0), (1, 0, 0), (0, 0, 1)], atol=1e-6)
     assert np.allclose(np.linalg.norm(by["/fv"].normals, axis=-1), 1)
+
+
+@pytest.mark.parametrize("scheme", [None, "catmullClark", "loop", "bilinear"])
+def test_subdivision_meshes_ignore_authored_normals_as_usdimaging(new_stage, scheme):
+    """usdImaging's mesh adapter reads normals only when subdivisionScheme is "none" (the schema default
+    is catmullClark): a subdivision quad with bogus authored normals shades with its geometric normal."""
+    stage = new_stage()
+    m = add_quad(stage, "/quad")
+    m.CreateNormalsAttr([(1, 0, 0)] * 4)
+    if scheme is not None:
+        m.CreateSubdivisionSchemeAttr(scheme)
+    stage.Save()
+    (mesh,) = StageDelegate(stage.GetRootLayer().realPath).snapshot(0).meshes
+    np.testing.assert_allclose(mesh.normals.reshape(-1, 3), [[0, 1, 0]] * 6, atol=1e-6)
 
 
 def test_visibility_activation_and_purpose(new_stage):

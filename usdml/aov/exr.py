@@ -130,10 +130,38 @@ def _temp_name(path: Path, suffix: str) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{suffix}")
 
 
+def make_output_folder(folder: str | os.PathLike) -> Path:
+    """Create ``folder`` and its parents for output files, or raise a one-line :class:`UsdmlError`
+    naming what is in the way (a file where a folder must go, a read-only file system ...)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+        why = f"{blocker} is a file, not a folder" if blocker is not None else (e.strerror or str(e))
+        raise UsdmlError(f"{folder}: cannot create the output folder ({why}); choose another output path") from None
+    return folder
+
+
+def _cannot_create_in(folder: Path) -> str | None:
+    """Why no file can be created in ``folder`` (a probe: permissions, read-only or full file system), else None."""
+    probe = _temp_name(folder / "probe", "")
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL))
+    except OSError as e:
+        return e.strerror or str(e)
+    with contextlib.suppress(OSError):
+        probe.unlink()
+    return None
+
+
 def _atomic_write(path: str | os.PathLike, suffix: str, write: Callable[[Path], None]) -> Path:
-    """``write(tmp)``, fsync, ``os.replace(tmp, path)``; the temp file never outlives a failure."""
+    """``write(tmp)``, fsync, ``os.replace(tmp, path)``; the temp file never outlives a failure.
+
+    A failure the disk explains (the folder takes no new file, or the OS refused a write) is a
+    one-line :class:`UsdmlError` naming ``path``; any other failure of ``write`` propagates."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_output_folder(path.parent)
     tmp = _temp_name(path, suffix)
     try:
         write(tmp)
@@ -145,9 +173,14 @@ def _atomic_write(path: str | os.PathLike, suffix: str, write: Callable[[Path], 
         finally:
             os.close(fd)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(e, (OSError, RuntimeError)):      # OpenEXR reports I/O failures as RuntimeError
+            why = _cannot_create_in(path.parent) or (e.strerror if isinstance(e, OSError) else None)
+            if why:
+                raise UsdmlError(f"{path}: cannot write the file ({why}); choose a writable output folder "
+                                 "with free space") from None
         raise
     return path
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
-from usdml.aov.exr import camera_matrices, is_complete_exr, write_exr, write_png_preview
+from usdml.aov.exr import camera_matrices, is_complete_exr, make_output_folder, write_exr, write_png_preview
 from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, log
@@ -191,6 +191,8 @@ def render_sequence(job: RenderJob) -> dict:
     require_geometry(delegate, first)
     width, height = _resolution(first, job)
     wanted = {aov for p in products for aov in p.layers.values()}
+    for folder in sorted({os.path.dirname(path) or "." for p in products for path in p.paths.values()}):
+        make_output_folder(folder)       # before the first frame renders, not after it
     renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light,
                              backend_options=voxel_messages())
     written, skipped, seconds = [], [], []

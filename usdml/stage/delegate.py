@@ -19,6 +19,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.scene import Lights, Mesh, Prototype, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
+from usdml.stage.diagnostics import usd_diagnostics
 from usdml.stage.dome import Dome, is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
@@ -130,35 +131,37 @@ class StageDelegate:
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
         self._unsupported_seen: set[str] = set()
         self.unsupported: dict[str, int] = {}
-        self.stage = open_stage(path)
-        for err in self.stage.GetCompositionErrors():
-            self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
-        self.settings_prim = settings_prim(self.stage, render_settings_path)
-        self.usdml_settings = read_usdml_settings(self.settings_prim)
-        self.has_time_range = self.stage.HasAuthoredTimeCodeRange()
-        self.start_time = self.stage.GetStartTimeCode()
-        self.end_time = self.stage.GetEndTimeCode()
-        if not self.has_time_range:
-            # a stage without startTimeCode/endTimeCode is a single frame: USD reports 0 for both,
-            # and any --time is accepted (USD evaluates time samples at it as usual)
-            self.start_time = self.end_time = self.start_time if self.stage.HasAuthoredMetadata("startTimeCode") else 0.0
-        if self.end_time < self.start_time:
-            # authored the wrong way round (usd-wg's start_end_timeCodes_swapped.usda): the frames between them
-            self.warn(f"{self.path}: startTimeCode {self.start_time:g} is after endTimeCode {self.end_time:g}; "
-                      f"using the range [{self.end_time:g}, {self.start_time:g}]")
-            self.start_time, self.end_time = self.end_time, self.start_time
-        self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
-        self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
-        if not (np.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
-            raise UsdmlError(f"{self.path}: metersPerUnit {self.meters_per_unit:g} must be positive; fix the root "
-                             "layer's metersPerUnit metadata (0.01 for centimetres, 1 for metres)")
-        self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
-        self.cameras = find_cameras(self.stage)
-        self._camera_request = camera
-        self.skel = SkelResolver(self.warn)
-        self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
-        self._mesh_ids: dict[str, int] = {}
-        self._assign_mesh_ids()
+        with usd_diagnostics(self.warn, self.path):     # USD's warnings while opening and composing
+            self.stage = open_stage(path)
+            for err in self.stage.GetCompositionErrors():
+                self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
+            self.settings_prim = settings_prim(self.stage, render_settings_path)
+            self.usdml_settings = read_usdml_settings(self.settings_prim)
+            self.has_time_range = self.stage.HasAuthoredTimeCodeRange()
+            self.start_time = self.stage.GetStartTimeCode()
+            self.end_time = self.stage.GetEndTimeCode()
+            if not self.has_time_range:
+                # a stage without startTimeCode/endTimeCode is a single frame: USD reports 0 for both,
+                # and any --time is accepted (USD evaluates time samples at it as usual)
+                authored = self.stage.HasAuthoredMetadata("startTimeCode")
+                self.start_time = self.end_time = self.start_time if authored else 0.0
+            if self.end_time < self.start_time:
+                # authored the wrong way round (usd-wg's start_end_timeCodes_swapped.usda): the frames between them
+                self.warn(f"{self.path}: startTimeCode {self.start_time:g} is after endTimeCode {self.end_time:g}; "
+                          f"using the range [{self.end_time:g}, {self.start_time:g}]")
+                self.start_time, self.end_time = self.end_time, self.start_time
+            self.time_codes_per_second = self.stage.GetTimeCodesPerSecond()
+            self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(self.stage)
+            if not (np.isfinite(self.meters_per_unit) and self.meters_per_unit > 0):
+                raise UsdmlError(f"{self.path}: metersPerUnit {self.meters_per_unit:g} must be positive; fix the root "
+                                 "layer's metersPerUnit metadata (0.01 for centimetres, 1 for metres)")
+            self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
+            self.cameras = find_cameras(self.stage)
+            self._camera_request = camera
+            self.skel = SkelResolver(self.warn)
+            self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
+            self._mesh_ids: dict[str, int] = {}
+            self._assign_mesh_ids()
 
     # ----------------------------------------------------------------------------------------------
     def _assign_mesh_ids(self) -> None:
@@ -196,6 +199,10 @@ class StageDelegate:
     # ----------------------------------------------------------------------------------------------
     def snapshot(self, time: float) -> Snapshot:
         """The render index at ``time`` (a timecode of the stage)."""
+        with usd_diagnostics(self.warn, self.path):
+            return self._snapshot(time)
+
+    def _snapshot(self, time: float) -> Snapshot:
         self.check_time(time)
         t = Usd.TimeCode(time)
         xf = UsdGeom.XformCache(t)

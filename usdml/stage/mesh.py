@@ -4,10 +4,11 @@ Polygons are fan-triangulated (as Hydra's mesh util does); faces that are hole f
 three vertices or index outside ``points`` are dropped with a warning naming the prim. Subdivision
 meshes render as their control cage.
 
-Normals without authored ones follow the final-frame renderers (RenderMan, Arnold, Omniverse RTX): a
-polygonal mesh (``subdivisionScheme = "none"``) is faceted, each triangle shaded with its own
-geometric normal; a subdivision mesh, drawn as its cage, gets area-weighted smooth normals, closer to
-its limit surface.
+Normals: authored ones are read on polygonal meshes (``subdivisionScheme = "none"``) only, as
+usdImaging's mesh adapter. Without them, usdml follows the final-frame renderers (RenderMan, Arnold,
+Omniverse RTX): a polygonal mesh is faceted, each triangle shaded with its own geometric normal; a
+subdivision mesh, drawn as its cage, gets area-weighted smooth normals of its points, closer to its
+limit surface.
 """
 
 from __future__ import annotations
@@ -178,14 +179,18 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
 
     ``points`` overrides the authored points (posed UsdSkel points, already in the target space when
     ``to_space`` is None); ``authored_normals=False`` ignores authored normals (they do not follow a pose).
-    Without normals, ``subdivisionScheme = "none"`` shades faceted, any other scheme smooth.
+    Authored normals are read only for polygonal meshes (``subdivisionScheme = "none"``): usdImaging's
+    mesh adapter drops them on subdivision surfaces (catmullClark, the schema default, loop, bilinear),
+    whose normals come from the surface. Without normals, polygonal meshes shade faceted, subdivision
+    meshes smooth.
     Returns None (after a warning) for a mesh with nothing renderable.
     """
     mesh = UsdGeom.Mesh(prim)
     if points is None:
         points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3, f"{prim.GetPath()}.points", warn)
     normals = None
-    if authored_normals:
+    polygonal = mesh.GetSubdivisionSchemeAttr().Get(time) == UsdGeom.Tokens.none
+    if authored_normals and polygonal:
         pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
         if pv and pv.HasAuthoredValue():
             normals = (pv.ComputeFlattened(time), pv.GetInterpolation())
@@ -197,7 +202,7 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
           for a in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr(), mesh.GetHoleIndicesAttr())),
         mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
         bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials,
-        faceted=mesh.GetSubdivisionSchemeAttr().Get(time) == UsdGeom.Tokens.none)
+        faceted=polygonal)
 
 
 def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndarray, counts: np.ndarray,
