@@ -270,7 +270,8 @@ class LightTable:
 
     pos: wp.array(dtype=wp.vec3)
     axis: wp.array(dtype=wp.vec3)
-    flags: wp.array(dtype=wp.int32)     # 1 distant, 2 one-sided, 4 shaped, 8 focused, 16 casts shadows
+    flags: wp.array(dtype=wp.int32)     # 1 distant, 2 one-sided, 4 shaped, 8 focused, 16 casts shadows, 32 cylinder
+    cylinder_axis: wp.array(dtype=wp.vec3)  # unit local X of the light (the axis of a cylinder light)
     cone: wp.array(dtype=wp.vec3)       # cos outer, smoothstep width (<= 0: hard), focus exponent
     base: wp.array(dtype=wp.vec3)
     focus_rgb: wp.array(dtype=wp.vec3)
@@ -458,8 +459,8 @@ def query_segments(origins: wp.array(dtype=wp.vec3), targets: wp.array(dtype=wp.
 def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs: VoxelScene) -> wp.vec4:
     """Light ``l`` at surface point ``p`` with normal ``n`` (Alg. 3, lines 6-8, with shading): the
     unshadowed irradiance as ``usdml.lighting.direct`` computes it (inverse square in metres, cosine,
-    one-sided disk/rect, cone with smoothstep softness, focus), and a voxel shadow ray when the light
-    faces ``p`` and casts shadows. Returns (RGB contribution, code): code 0 not facing, 1 facing and
+    one-sided disk/rect, a cylinder's side seen at sin θ, cone with smoothstep softness, focus), and a
+    voxel shadow ray when the light faces ``p`` and casts shadows. Returns (RGB contribution, code): code 0 not facing, 1 facing and
     visible, 2 facing and blocked (RGB 0)."""
     flags = lt.flags[l]
     dist = flags & 1
@@ -477,6 +478,9 @@ def light_term(p: wp.vec3, n: wp.vec3, l: int, lt: LightTable, rule: RayRule, vs
     g = cos_s
     if dist == 0:
         g = g * lt.inv_m2 / wp.max(d2, lt.min_d2)
+    if (flags & 32) != 0:
+        cos_c = wp.dot(lt.cylinder_axis[l], dvec) * inv_d
+        g = g * wp.sqrt(wp.max(1.0 - cos_c * cos_c, 0.0))
     f = float(0.0)
     if (flags & 14) != 0:
         cos_l = -wp.dot(lt.axis[l], dvec) * inv_d
