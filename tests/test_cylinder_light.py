@@ -258,3 +258,88 @@ def test_voxel_render_of_a_cylinder_light_against_exact(new_stage):
     err = np.abs(v - e).sum() / e.sum()
     assert err < 0.03, err                          # measured 0.016 (and 0.016 of the pixels' shadow)
     assert (voxel["shadow"] != exact["shadow"]).mean() < 0.03
+
+
+# ---------------------------------------------------------------------------------------------- VPLs
+
+def _cylinder_light(**kw) -> Lights:
+    from test_vpl import light
+    return light(LightType.CYLINDER, **kw)     # identity frame: the tube along +X
+
+
+def _face_fraction(half: float, n: int = 400) -> float:
+    """Fraction of a sin θ_x emitter's power at the centre of a cube (half-size ``half``) that lands on
+    its two ±X faces: midpoint rule over a face, ∫ sin θ · cos / d² dA over Φ/I = π²."""
+    g = ((np.arange(n) + 0.5) / n * 2 - 1) * half
+    y, z = np.meshgrid(g, g)
+    d2 = half * half + y * y + z * z
+    per_face = (np.sqrt(y * y + z * z) / np.sqrt(d2) * half / np.sqrt(d2) / d2).sum() * (2 * half / n) ** 2
+    return 2 * per_face / math.pi ** 2
+
+
+def test_cylinder_light_power_is_pi_L_area(new_stage):
+    from usdml.lighting.vpl import light_power
+
+    stage = new_stage()
+    c = _cylinder(stage, radius=0.25, length=2.0, intensity=3.0)
+    c.AddScaleOp().Set((1.5, 2, 2))               # world radius 0.5, length 3
+    add_cube_mesh(stage, "/ground")
+    stage.Save()
+    snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
+    phi = light_power(snap, snap.lights)[0]
+    np.testing.assert_allclose(phi, math.pi * 3.0 * (2 * math.pi * 0.5 * 3.0), rtol=1e-6)
+
+
+def test_cylinder_vpls_follow_the_side_profile_in_a_closed_box():
+    """Closed cube around the tube: every bounce carries ρ^b·Φ, and the first bounce's share on the
+    faces the tube points at is the profile's (0.220), not an isotropic light's (1/3)."""
+    from test_vpl import backend_for, box, snapshot
+    from usdml.lighting.vpl import generate_vpls, light_power
+
+    rho = np.array([0.9, 0.6, 0.3])
+    snap = snapshot([box((-1, -1, -1), (1, 1, 1), rho)])
+    intensity = np.array([1.0, 2.0, 4.0])
+    lights = _cylinder_light(intensity=intensity)
+    phi = math.pi ** 2 * intensity
+    np.testing.assert_allclose(light_power(snap, lights)[0], phi, rtol=1e-6)
+    v = generate_vpls(snap, backend_for(snap), lights, bounces=2, paths=40_000, seed=4)
+    assert len(v) == 2 * 40_000
+    for b in (1, 2):
+        np.testing.assert_allclose(v.total_flux(b), phi * rho ** b, rtol=1e-4)
+    first = v.bounce == 1
+    on_x = first & (np.abs(v.position[:, 0]) > 1 - 1e-4)
+    share = v.flux[on_x, 0].sum() / v.flux[first, 0].sum()
+    expected = _face_fraction(1.0)
+    assert 0.21 < expected < 0.23
+    assert share == pytest.approx(expected, abs=0.006)      # ~3.5 standard errors of 40k paths
+    # azimuth about the tube: the ±Y and ±Z faces share the rest equally
+    on_y = first & (np.abs(v.position[:, 1]) > 1 - 1e-4)
+    assert v.flux[on_y, 0].sum() / v.flux[first, 0].sum() == pytest.approx((1 - expected) / 2, abs=0.01)
+
+
+def test_shaped_cylinder_light_power_and_vpl_flux():
+    """A cone about the light's -Z on a tube: power by the 2-D midpoint rule against a fine spherical
+    quadrature, and VPL flux (profile-sampled paths weighted by the cone) against that power."""
+    from test_vpl import backend_for, box, snapshot
+    from usdml.lighting.vpl import generate_vpls, light_power
+
+    snap = snapshot([box((-1, -1, -1), (1, 1, 1), (1.0, 1.0, 1.0))])
+    one = np.ones(3)
+    # a 90° cone keeps the half of the tube's emission on its -Z side
+    half = light_power(snap, _cylinder_light(intensity=one, axis=(0.0, 0.0, -1.0), cone=90.0))[0]
+    np.testing.assert_allclose(half, math.pi ** 2 / 2, rtol=1e-3)
+    # a 40° cone: ∫ over the cap about -Z of sin θ_x dω, on a fine (θ, φ) grid
+    m = 2000
+    t = (np.arange(m) + 0.5) / m * math.radians(40)
+    p = (np.arange(m) + 0.5) / m * 2 * math.pi
+    tt, pp = np.meshgrid(t, p)
+    x = np.sin(tt) * np.cos(pp)                     # the tube axis component of the direction
+    cap = (np.sqrt(1 - x * x) * np.sin(tt)).sum() * (math.radians(40) / m) * (2 * math.pi / m)
+    lights = _cylinder_light(intensity=one, axis=(0.0, 0.0, -1.0), cone=40.0)
+    got = light_power(snap, lights)[0]
+    np.testing.assert_allclose(got, cap, rtol=0.004)             # measured 0.0015
+    v = generate_vpls(snap, backend_for(snap), lights, bounces=1, paths=40_000, seed=5)
+    np.testing.assert_allclose(v.total_flux(1), got, rtol=0.02)
+    # everything lands on the -Z face, inside the cone's footprint
+    assert np.allclose(v.position[:, 2], -1.0, atol=1e-4)
+    assert (np.hypot(v.position[:, 0], v.position[:, 1]) <= math.tan(math.radians(40)) + 1e-3).all()
