@@ -182,7 +182,7 @@ def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | N
     elif t == LightType.RECT:
         area = proj = params.width * params.height * xy_area * m2
     elif t == LightType.CYLINDER:
-        # an elliptic section (Y and Z scaled apart) has Ramanujan's perimeter, as hdEmbree's area;
+        # an elliptic section (Y and Z scaled apart) has Ramanujan's perimeter (OpenUSD hdEmbree's UsdLux area);
         # its mean width over directions is perimeter / π (Cauchy), so the radius perimeter / 2π keeps
         # the power of I⊥·sinθ at π·L·area for any scale
         a, b = params.radius * sy, params.radius * sz
