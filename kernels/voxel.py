@@ -270,7 +270,8 @@ class LightTable:
 
     pos: wp.array(dtype=wp.vec3)
     axis: wp.array(dtype=wp.vec3)
-    flags: wp.array(dtype=wp.int32)     # 1 distant, 2 one-sided, 4 shaped, 8 focused, 16 casts shadows
+    flags: wp.array(dtype=wp.int32)     # 1 distant, 2 one-sided, 4 shaped, 8 focused, 16 casts shadows, 32 cylinder
+    cylinder_axis: wp.array(dtype=wp.vec3)  # unit local X of the light (the axis of a cylinder light)
     cone: wp.array(dtype=wp.vec3)       # cos outer, smoothstep width (<= 0: hard), focus exponent
     base: wp.array(dtype=wp.vec3)
     focus_rgb: wp.array(dtype=wp.vec3)
@@ -459,10 +460,10 @@ def light_term(p: wp.vec3, n: wp.vec3, ng: wp.vec3, l: int, lt: LightTable, rule
                vs: VoxelScene) -> wp.vec4:
     """Light ``l`` at surface point ``p`` with shading normal ``n`` and geometric normal ``ng``
     (Alg. 3, lines 6-8, with shading): the unshadowed irradiance as ``usdml.lighting.direct`` computes
-    it (inverse square in metres, cosine of ``n``, one-sided disk/rect, cone with smoothstep softness,
-    focus; nothing from behind ``ng``), and a voxel shadow ray leaving along ``ng`` when the light
-    faces ``p`` and casts shadows. Returns (RGB contribution, code): code 0 not facing, 1 facing and
-    visible, 2 facing and blocked (RGB 0)."""
+    it (inverse square in metres, cosine of ``n``, one-sided disk/rect, a cylinder's side seen at
+    sin θ, cone with smoothstep softness, focus; nothing from behind ``ng``), and a voxel shadow ray
+    leaving along ``ng`` when the light faces ``p`` and casts shadows. Returns (RGB contribution,
+    code): code 0 not facing, 1 facing and visible, 2 facing and blocked (RGB 0)."""
     flags = lt.flags[l]
     dist = flags & 1
     dvec = lt.pos[l] - p
@@ -481,6 +482,9 @@ def light_term(p: wp.vec3, n: wp.vec3, ng: wp.vec3, l: int, lt: LightTable, rule
     g = cos_s
     if dist == 0:
         g = g * lt.inv_m2 / wp.max(d2, lt.min_d2)
+    if (flags & 32) != 0:
+        cos_c = wp.dot(lt.cylinder_axis[l], dvec) * inv_d
+        g = g * wp.sqrt(wp.max(1.0 - cos_c * cos_c, 0.0))
     f = float(0.0)
     if (flags & 14) != 0:
         cos_l = -wp.dot(lt.axis[l], dvec) * inv_d
@@ -510,7 +514,8 @@ def light_term(p: wp.vec3, n: wp.vec3, ng: wp.vec3, l: int, lt: LightTable, rule
 
 @wp.kernel
 def shade_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
-                geometric: wp.array(dtype=wp.vec3), first: int, tile: int, lt: LightTable, rule: RayRule, vs: VoxelScene,
+                geometric: wp.array(dtype=wp.vec3), first: int, tile: int, lt: LightTable, rule: RayRule,
+                vs: VoxelScene,
                 radiance: wp.array(dtype=wp.vec3), blocked: wp.array(dtype=wp.int32),
                 facing: wp.array(dtype=wp.int32)):
     """Alg. 3 over a tile of ``tile`` spatially coherent points (``first + tid * tile …``), lights in

@@ -163,10 +163,10 @@ def test_bad_light_values_are_errors_naming_the_attribute(new_stage, attr, value
 
 def test_unsupported_light_types_warn(new_stage, warnings_log):
     stage = new_stage()
-    UsdLux.CylinderLight.Define(stage, "/tube")
+    UsdLux.PortalLight.Define(stage, "/portal")
     UsdLux.DomeLight.Define(stage, "/dome")            # supported: a dome, sampled per frame
     assert len(_lights(stage)) == 0
-    assert "/tube: CylinderLight is not supported" in warnings_log.text
+    assert "/portal: PortalLight is not supported" in warnings_log.text
     assert "DomeLight" not in warnings_log.text
     snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
     assert [d.path for d in snap.domes] == ["/dome"]

@@ -3,11 +3,12 @@
 For a surface point P with unit normal n and Lambertian albedo ρ, each light contributes
 outgoing radiance ``ρ/π · E``, with irradiance
 
-* point, sphere, disk, rect lights (treated as points at their centre):
+* point, sphere, disk, rect, cylinder lights (treated as points at their centre):
   ``E = I · S(θ_l) · max(0, n·ω) / d²`` (d in metres) where ω is the unit direction to the light, d its distance,
   θ_l the angle between the light's axis and −ω, ``I`` the light's radiant intensity
   (:class:`usdml.scene.Lights`); disk and rect lights emit one-sided with a ``max(0, cos θ_l)``
-  profile, sphere and point lights isotropically;
+  profile, sphere and point lights isotropically, cylinder lights with the projected area of their
+  side, ``sin θ_c`` (θ_c the angle between −ω and the cylinder's axis, its local X);
 * distant lights: ``E = E₀ · max(0, n·ω)`` with ω = −axis.
 
 ``S`` is UsdLux shaping: zero outside the cone half-angle, a smoothstep from ``cos(angle)`` to
@@ -73,6 +74,8 @@ class _LightTable:
         self.axis = lights.axis.T.astype(np.float32)                   # (3, L)
         self.distant = lights.type == LightType.DISTANT
         self.one_sided = (lights.type == LightType.DISK) | (lights.type == LightType.RECT)
+        self.cylinder = lights.type == LightType.CYLINDER
+        self.cylinder_axis = lights.cylinder_axis().T.astype(np.float32)   # (3, L)
         self.cone = lights.cone_angle.astype(np.float32)
         self.softness = lights.cone_softness.astype(np.float32)
         self.focus = lights.focus.astype(np.float32)
@@ -107,6 +110,11 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable, geometric
         ng = geometric.astype(np.float32)
         g[ng[:, 0:1] * dx + ng[:, 1:2] * dy + ng[:, 2:3] * dz <= 0.0] = 0.0
     g *= np.where(t.distant[None, :], 1.0, t.inv_m2 / np.maximum(d2, t.min_d2)).astype(np.float32)
+    if t.cylinder.any():
+        c = t.cylinder
+        cos_c = (t.cylinder_axis[0][None, c] * dx[:, c] + t.cylinder_axis[1][None, c] * dy[:, c]
+                 + t.cylinder_axis[2][None, c] * dz[:, c]) * inv_d[:, c]
+        g[:, c] *= np.sqrt(np.maximum(1.0 - cos_c * cos_c, 0.0))
     f = None
     if t.one_sided.any() or t.shaped.any() or t.focused.any():
         cols = t.one_sided | t.shaped | t.focused

@@ -13,12 +13,15 @@ Emitted power Φ_l of each light (what ``light_power`` returns), with the emissi
 :func:`usdml.lighting.direct._geometry` (θ the angle from the light's ``axis``, ``c = cos θ``):
 
 * point / sphere: isotropic, ``profile = 1``;  disk / rect: one-sided cosine, ``profile = max(0, c)``;
+  cylinder: its side's projected area, ``profile = sin θ_c`` (θ_c from its local X axis, ``Lights.intensity``
+  the intensity perpendicular to it), so ``Φ = π²·I`` (= π·L·2πr·length, a Lambertian area's π·L·A);
 * UsdLux shaping multiplies both: the cone smoothstep ``S(c)`` (zero outside the cone half-angle,
   smoothstep across ``softness``) and focus ``tint + (1 − tint)·clip(c, 0, 1)^focus`` (RGB);
 * ``Φ_l = I · 2π ∫ profile(c) dc``. Unshaped lights use the closed forms ``4π·I`` and ``π·I``; a hard cone
   of half-angle a gives ``2π(1 − cos a)·I`` (isotropic) or ``π sin²a·I`` (cosine). Softness and focus are
   **integrated numerically** (1024-point midpoint rule over the sampling distribution below), not
-  ignored, so a soft or focused spot light gets its true power;
+  ignored, so a soft or focused spot light gets its true power; so is any cone or focus on a cylinder
+  light (``CYLINDER_POWER_NODES``² midpoint nodes of its direction sampling);
 * distant lights: ``Φ = E · π R² · metersPerUnit²``, with R the radius of the bounding sphere of the
   snapshot's world bounds (``Snapshot.world_bounds``), i.e. the irradiance E times the area of the
   scene's bounding disk perpendicular to the light. (The light's angular diameter is ignored, as
@@ -31,13 +34,14 @@ Light paths
   unbiased subset, see "count" below). Lights of zero power are never chosen.
 * **Emission direction** from the profile's *envelope*: uniform on the spherical cap of the cone
   (whole sphere without a cone) for point / sphere lights; cosine-weighted on the cap (hemisphere
-  without a cone, cap clamped at 90°) for disk / rect lights; ``axis`` for distant lights, whose
+  without a cone, cap clamped at 90°) for disk / rect lights; exactly ∝ ``sin θ_c`` for cylinder lights
+  (whose envelope is their profile, ``P_env = π²``; :func:`_cylinder_directions`); ``axis`` for distant lights, whose
   origins are uniform on the bounding disk, placed upstream outside the bounding sphere.
   The path's starting flux is ``I · P_env · profile/envelope(θ) / (p_l · paths)``, with ``P_env`` the
   envelope's power (``2π(1 − cos a)`` or ``π sin²a``): the profile/envelope ratio (cone softness and
   focus, ≤ 1, RGB) weights each path, so VPL flux is unbiased for any shaping, and exactly
   ``Φ_l / (p_l · paths)`` for unshaped lights.
-* **Origins**: point, sphere, disk and rect lights emit from their *centre* (the point-light model that
+* **Origins**: point, sphere, disk, rect and cylinder lights emit from their *centre* (the point-light model that
   direct shading uses too: sphere radius and area extent are ignored), moved ``eps`` along the ray so
   a light mounted flush on a surface does not hit that surface at t = 0.
 * **Bounces**: all live paths are traced together, one :func:`usdml.render.gbuffer.surface_at_hits`
@@ -109,8 +113,10 @@ POWER_NODES = 1024
 MAX_ROUNDS = 6
 #: a round traces at most this many paths per requested VPL
 MAX_PATH_FACTOR = 16
+#: midpoint nodes per side of the (u1, u2) grid that integrates a shaped cylinder light's power
+CYLINDER_POWER_NODES = 64
 
-_KIND_ISO, _KIND_COS, _KIND_DISTANT = 0, 1, 2
+_KIND_ISO, _KIND_COS, _KIND_DISTANT, _KIND_CYL = 0, 1, 2, 3
 
 
 # ------------------------------------------------------------------------------------------ the VPLs
@@ -195,6 +201,7 @@ class _Emitters:
     kind: np.ndarray        #: (L,) _KIND_*
     position: np.ndarray    #: (L, 3)
     axis: np.ndarray        #: (L, 3) unit
+    cylinder_axis: np.ndarray   #: (L, 3) unit local X (cylinder lights)
     intensity: np.ndarray   #: (L, 3) float64 I (or E for distant lights)
     cone: np.ndarray        #: (L,) degrees
     softness: np.ndarray
@@ -226,7 +233,8 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     n = len(lights)
     t = np.asarray(lights.type)
     kind = np.where(t == LightType.DISTANT, _KIND_DISTANT,
-                    np.where((t == LightType.DISK) | (t == LightType.RECT), _KIND_COS, _KIND_ISO))
+                    np.where((t == LightType.DISK) | (t == LightType.RECT), _KIND_COS,
+                             np.where(t == LightType.CYLINDER, _KIND_CYL, _KIND_ISO)))
     cone = np.asarray(lights.cone_angle, np.float64)
     softness = np.asarray(lights.cone_softness, np.float64)
     focus = np.asarray(lights.focus, np.float64)
@@ -236,6 +244,9 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     a_cos = np.radians(np.clip(cone, 0.0, 90.0))
     span = np.where(kind == _KIND_COS, np.sin(a_cos) ** 2, 1.0 - np.cos(a_iso))
     p_env = np.where(kind == _KIND_COS, np.pi * span, 2.0 * np.pi * span)
+    cyl = kind == _KIND_CYL
+    p_env = np.where(cyl, np.pi ** 2, p_env)
+    cylinder_axis = lights.cylinder_axis()
 
     bounds = snapshot.world_bounds()
     if bounds is None:
@@ -247,9 +258,10 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     p_env = np.where(distant, np.pi * (radius * snapshot.meters_per_unit) ** 2, p_env)
     soft_edge = (cone < 180.0) & (softness > 0)
     shaped = ~distant & (soft_edge | (focus > 0))
+    shaped |= cyl & (cone < 180.0)      # a cylinder's envelope has no cone cap
 
     factor = np.ones((n, 3))
-    rows = np.flatnonzero(shaped)
+    rows = np.flatnonzero(shaped & ~cyl)
     if rows.size:
         u = (np.arange(POWER_NODES) + 0.5) / POWER_NODES
         for lo in range(0, rows.size, 4096):
@@ -259,9 +271,14 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
             c = _envelope_cos(kind[rr], span[rr], np.tile(u, k))
             ratio = _ratio(c, cone[rr], softness[rr], focus[rr], tint[rr])
             factor[r] = ratio.reshape(k, POWER_NODES, 3).mean(axis=1)
+    axis = np.asarray(lights.axis, np.float64).reshape(n, 3)
+    rows = np.flatnonzero(shaped & cyl)
+    if rows.size:
+        factor[rows] = _cylinder_power_factor(cylinder_axis[rows], axis[rows], cone[rows], softness[rows],
+                                              focus[rows], tint[rows])
     power = intensity * p_env[:, None] * factor
     return _Emitters(kind=kind, position=np.asarray(lights.position, np.float64).reshape(n, 3),
-                     axis=np.asarray(lights.axis, np.float64).reshape(n, 3), intensity=intensity, cone=cone,
+                     axis=axis, cylinder_axis=cylinder_axis, intensity=intensity, cone=cone,
                      softness=softness, focus=focus, tint=tint, span=span, p_env=p_env, shaped=shaped,
                      power=power, center=center, radius=radius)
 
@@ -284,6 +301,54 @@ def _epsilon(snapshot: Snapshot, backend) -> float:
 def _offset(p: np.ndarray, eps: float) -> np.ndarray:
     """(N,) ``eps(P) = max(eps, |P|_max · 2^-20)``."""
     return np.maximum(eps, np.abs(p).max(axis=1) * FLOAT_MARGIN)
+
+
+# ------------------------------------------------------------------------------------------ cylinder lights
+
+
+def _cylinder_directions(cylinder_axis: np.ndarray, axis: np.ndarray, u1: np.ndarray, u2: np.ndarray):
+    """Unit directions ``(N, 3)`` with density ``sin θ_c / π²`` about the unit ``cylinder_axis`` (N, 3)
+    (a cylinder side's radiant intensity) from uniform ``u1, u2`` (N,), and their ``(N,)`` cos to the
+    light's shaping ``axis``.
+
+    ``(x, y)`` uniform on the unit disk: ``x`` has the semicircle density ∝ √(1 − x²), i.e. ∝ sin θ_c
+    for ``x = cos θ_c`` (dω = d cos θ · dφ), and ``y / √(1 − x²)`` is uniform on [−1, 1] given ``x``:
+    it sets the azimuth, so two numbers sample the profile exactly.
+    """
+    r, a = np.sqrt(u1), 2.0 * np.pi * u2
+    x, y = r * np.cos(a), r * np.sin(a)
+    s = np.sqrt(np.maximum(1.0 - x * x, 0.0))
+    phi = np.pi * (1.0 + np.clip(y / np.maximum(s, 1e-300), -1.0, 1.0))
+    d = _around(cylinder_axis, x, phi)
+    return d, np.einsum("ij,ij->i", d, axis)
+
+
+def _cylinder_power_factor(cylinder_axis, axis, cone, softness, focus, tint) -> np.ndarray:
+    """(K, 3) mean shaping ratio (cone × focus) over a cylinder light's emission: its power is
+    ``π²·I`` times this. Midpoint nodes of :func:`_cylinder_directions`' (u1, u2) square."""
+    m = CYLINDER_POWER_NODES
+    g = (np.arange(m) + 0.5) / m
+    u1, u2 = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    out = np.empty((len(cone), 3))
+    for i in range(len(cone)):
+        rep = np.full(m * m, i)
+        _, c = _cylinder_directions(cylinder_axis[rep], axis[rep], u1, u2)
+        out[i] = _ratio(c, cone[rep], softness[rep], focus[rep], tint[rep]).mean(axis=0)
+    return out
+
+
+def _emit_cylinders(em: _Emitters, li, rows, u1, u2, eps: float, origins, dirs, weight) -> None:
+    """Paths ``rows`` (of lights ``li[rows]``, cylinder lights) in place: directions ∝ sin θ_c from their
+    centre, weights × the shaping ratio where a cone or focus shapes them."""
+    lj = li[rows]
+    d, c = _cylinder_directions(em.cylinder_axis[lj], em.axis[lj], u1[rows], u2[rows])
+    p = em.position[lj]
+    dirs[rows] = d
+    origins[rows] = p + d * _offset(p, eps)[:, None]
+    shaped = em.shaped[lj]
+    if shaped.any():
+        ls = lj[shaped]
+        weight[rows[shaped]] *= _ratio(c[shaped], em.cone[ls], em.softness[ls], em.focus[ls], em.tint[ls])
 
 
 # ------------------------------------------------------------------------------------------ tracing
@@ -310,7 +375,7 @@ def _emit(em: _Emitters, prob: np.ndarray, cdf: np.ndarray, n: int, eps: float, 
     dirs = np.empty((n, 3))
     weight = em.intensity[li] * (em.p_env[li] / prob[li])[:, None]
 
-    local = kind != _KIND_DISTANT
+    local = (kind != _KIND_DISTANT) & (kind != _KIND_CYL)
     if local.any():
         lj = li[local]
         c = _envelope_cos(kind[local], em.span[lj], u1[local])
@@ -323,7 +388,10 @@ def _emit(em: _Emitters, prob: np.ndarray, cdf: np.ndarray, n: int, eps: float, 
             idx = np.flatnonzero(local)[shaped]
             ls = lj[shaped]
             weight[idx] *= _ratio(c[shaped], em.cone[ls], em.softness[ls], em.focus[ls], em.tint[ls])
-    far = ~local
+    cyl = kind == _KIND_CYL
+    if cyl.any():
+        _emit_cylinders(em, li, np.flatnonzero(cyl), u1, u2, eps, origins, dirs, weight)
+    far = kind == _KIND_DISTANT
     if far.any():
         lj = li[far]
         axis = em.axis[lj]

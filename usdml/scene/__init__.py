@@ -110,6 +110,7 @@ class LightType(IntEnum):
     DISK = 2
     RECT = 3
     DISTANT = 4
+    CYLINDER = 5  #: emits from its side, around its axis (the light's X)
 
 
 @dataclass(eq=False)
@@ -120,6 +121,7 @@ class Lights:
     divided by the world-space emitting area in m² when ``normalize`` is on. ``intensity`` is what a
     point-like evaluation needs: radiant intensity along the axis in nit·m² (sphere/point: L·π·r²,
     disk: L·π·r², rect: L·w·h, lengths in metres), to be divided by the squared distance in metres;
+    for cylinders the intensity perpendicular to their axis, L·2r·length (the side's projected area);
     or, for distant lights, the irradiance at normal incidence.
     """
 
@@ -129,8 +131,8 @@ class Lights:
     xform: np.ndarray           #: (N, 4, 4) float64 light-to-world
     radiance: np.ndarray        #: (N, 3) float32 L, nits per channel
     intensity: np.ndarray       #: (N, 3) float32 see class doc
-    radius: np.ndarray          #: (N,) float64 world radius (sphere, point, disk)
-    width: np.ndarray           #: (N,) float64 world width (rect)
+    radius: np.ndarray          #: (N,) float64 world radius (sphere, point, disk, cylinder)
+    width: np.ndarray           #: (N,) float64 world width (rect), world length (cylinder)
     height: np.ndarray          #: (N,) float64 world height (rect)
     angle: np.ndarray           #: (N,) float64 angular diameter in degrees (distant)
     cone_angle: np.ndarray      #: (N,) float64 shaping cone half-angle in degrees, 180 = no shaping
@@ -164,6 +166,12 @@ class Lights:
             kw[name] = (np.concatenate(arrs).astype(dtype) if arrs else np.zeros((0,) + shape, dtype))
         kw["paths"] = [s for p in parts for s in p.paths]
         return Lights(**kw)
+
+    def cylinder_axis(self) -> np.ndarray:
+        """(N, 3) float64 unit world direction of each light's local X (a cylinder light's axis)."""
+        x = np.asarray(self.xform, np.float64)[:, :3, 0]
+        norm = np.linalg.norm(x, axis=1, keepdims=True)
+        return np.where(norm > 0, x / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0])
 
     def type_counts(self) -> dict[str, int]:
         names, counts = np.unique(self.type, return_counts=True)

@@ -3,9 +3,12 @@
 Radiometry (UsdLux, README "Light units"):
 
 * radiance ``L = intensity · 2^exposure · color (· blackbody(colorTemperature)) · diffuse``;
-  ``normalize`` divides L by the world-space emitting area (sphere 4πr², disk πr², rect w·h);
+  ``normalize`` divides L by the world-space emitting area (sphere 4πr², disk πr², rect w·h,
+  cylinder side 2πr·length);
 * sphere and point lights: radiant intensity ``I = L · π · r²`` (r world radius), so a normalized one
   has ``I = intensity · 2^exposure · color / 4``; disk ``I = L · π · r²``, rect ``I = L · w · h`` on axis;
+* cylinder lights: ``I⊥ = L · 2r · length`` perpendicular to their axis (the side's projected area; at
+  angle θ to the axis it is ``I⊥ · sin θ``), so a normalized one has ``I⊥ = intensity · 2^exposure · color / π``;
 * distant lights: irradiance at normal incidence ``E = L · π · sin²(angle / 2)``, or with ``normalize``
   ``E = intensity · 2^exposure · color`` (lux); an unnormalized zero-angle distant light uses ``E = L``.
 
@@ -23,7 +26,7 @@ from pxr import Usd, UsdLux
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, LightType
 
-SUPPORTED = {"SphereLight", "DiskLight", "RectLight", "DistantLight"}
+SUPPORTED = {"SphereLight", "DiskLight", "RectLight", "DistantLight", "CylinderLight"}
 
 
 @dataclass
@@ -35,7 +38,7 @@ class LightParams:
     base_radiance: np.ndarray   # (3,) L before normalize
     normalize: bool
     radius: float
-    width: float
+    width: float                # rect width; cylinder length
     height: float
     angle: float
     cone_angle: float
@@ -104,7 +107,7 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
 
     radius = width = height = angle = 0.0
     ltype = {"SphereLight": LightType.SPHERE, "DiskLight": LightType.DISK, "RectLight": LightType.RECT,
-             "DistantLight": LightType.DISTANT}[kind]
+             "DistantLight": LightType.DISTANT, "CylinderLight": LightType.CYLINDER}[kind]
     if ltype in (LightType.SPHERE, LightType.DISK):
         radius = float(value("inputs:radius", 0.5))
         if radius < 0:
@@ -120,6 +123,16 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
             raise UsdmlError(f"{path}.inputs:width/height: negative size; use sizes >= 0")
         if prim.GetAttribute("inputs:texture:file") and prim.GetAttribute("inputs:texture:file").Get(time):
             warn(f"{path}: RectLight texture is not supported; using its color")
+    elif ltype == LightType.CYLINDER:
+        # treatAsLine (a zero-radius hint) changes nothing: every light is shaded as a point at its
+        # centre with its shape's emission profile, and the radius still sets the emitting area
+        radius, width = float(value("inputs:radius", 0.5)), float(value("inputs:length", 1.0))
+        for name, v in (("radius", radius), ("length", width)):
+            if v < 0:
+                raise UsdmlError(f"{path}.inputs:{name}: negative {name} {v:g}; use a {name} >= 0")
+        if (radius == 0 or width == 0) and not normalize:
+            warn(f"{path}: cylinder light with radius or length 0 and normalize off emits nothing "
+                 "(I = L·2r·length); set inputs:normalize = true or a radius and length > 0")
     else:
         angle = float(value("inputs:angle", 0.53))
 
@@ -168,13 +181,24 @@ def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | N
         area = proj = np.pi * params.radius ** 2 * xy_area * m2
     elif t == LightType.RECT:
         area = proj = params.width * params.height * xy_area * m2
+    elif t == LightType.CYLINDER:
+        # an elliptic section (Y and Z scaled apart) has Ramanujan's perimeter (OpenUSD hdEmbree's UsdLux area);
+        # its mean width over directions is perimeter / π (Cauchy), so the radius perimeter / 2π keeps
+        # the power of I⊥·sinθ at π·L·area for any scale
+        a, b = params.radius * sy, params.radius * sz
+        perimeter = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
+        radius = perimeter / (2 * np.pi)
+        area = perimeter * params.width * sx * m2
+        proj = area / np.pi
     else:
         half = np.radians(params.angle) / 2
         area = proj = np.full(n, np.pi * np.sin(half) ** 2 if params.angle > 0 else 1.0)
     if params.normalize:
         safe = np.where(area > 0, area, 1.0)
         radiance = np.where((area > 0)[:, None], base / safe[:, None], 0.0)
-        intensity = base * np.where(area > 0, proj / safe, 0.25 if t in (LightType.SPHERE, LightType.POINT) else 1.0)[:, None]
+        # at zero area, the limit of proj / area as the size goes to 0
+        limit = {LightType.SPHERE: 0.25, LightType.POINT: 0.25, LightType.CYLINDER: 1 / np.pi}.get(t, 1.0)
+        intensity = base * np.where(area > 0, proj / safe, limit)[:, None]
         if t == LightType.DISTANT:
             intensity = base.copy()
     else:
@@ -187,8 +211,8 @@ def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | N
     return Lights(
         type=np.full(n, int(t), np.int8), position=m[:, :3, 3].copy(), axis=axis, xform=m.copy(),
         radiance=radiance.astype(np.float32), intensity=intensity.astype(np.float32),
-        radius=radius if t in (LightType.SPHERE, LightType.POINT, LightType.DISK) else np.zeros(n),
-        width=params.width * sx if t == LightType.RECT else np.zeros(n),
+        radius=radius if t in (LightType.SPHERE, LightType.POINT, LightType.DISK, LightType.CYLINDER) else np.zeros(n),
+        width=params.width * sx if t in (LightType.RECT, LightType.CYLINDER) else np.zeros(n),
         height=params.height * sy if t == LightType.RECT else np.zeros(n),
         angle=np.full(n, params.angle), cone_angle=np.full(n, params.cone_angle),
         cone_softness=np.full(n, params.cone_softness), focus=np.full(n, params.focus),
