@@ -233,7 +233,7 @@ def energy_ratio(image: np.ndarray, reference: np.ndarray) -> float:
 
 
 def block_error(image: np.ndarray, reference: np.ndarray, block: int = 16) -> float:
-    """Median over ``block`` × ``block`` pixel blocks of |mean lum(image) − mean lum(reference)| / mean lum(reference)."""
+    """Median over ``block`` × ``block`` pixel blocks of |mean lum(image) − mean lum(ref)| / mean lum(ref)."""
     a, r = (np.asarray(x, np.float64) @ LUMA for x in (image, reference))
     h, w = (s // block * block for s in r.shape)
     fold = lambda x: x[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3))  # noqa: E731
