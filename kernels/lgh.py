@@ -15,7 +15,10 @@ every term weighted by the trilinear weight ``w``:
 * ``[7]``   Σ w·lum(I)·|p − x_v|²   second moment, about x_v
 
 Moments are taken about the vertex (not the origin) so that the variance E|p|² − |E p|² does not
-cancel catastrophically in float32 far from the origin. Pure compute: arrays in, arrays out.
+cancel catastrophically in float32 far from the origin. Beside it, a ``vec3`` per vertex holds the
+emission lobe's moment Σ w·lum(I)·n of lights that carry a unit normal n (VPLs, cosine emitters; zero
+for isotropic lights): divided by Σ w·lum it is the grid light's mean normal ν, |ν| ≤ 1, from which
+:mod:`usdml.kernels.lgh_lighting` shapes its emission. Pure compute: arrays in, arrays out.
 """
 
 import warp as wp
@@ -85,9 +88,12 @@ def corner_weight(d: wp.vec3i, f: wp.vec3) -> float:
 def scatter_s1(
     position: wp.array(dtype=wp.vec3),   # (N,) light positions relative to the grid origin, scene units
     intensity: wp.array(dtype=wp.vec3),  # (N,) RGB radiant intensity
+    normal: wp.array(dtype=wp.vec3),     # (N,) unit emission normals, or (1,) unused when has_normal is 0
+    has_normal: int,
     h: float,                            # S1 spacing h_1
     dims: wp.vec3i,                      # S1 vertices per axis
     acc: wp.array(dtype=acc8),           # (V,) out, accumulated
+    lobe: wp.array(dtype=wp.vec3),       # (V,) out, accumulated Σ w lum n
 ):
     t = wp.tid()
     I = intensity[t]
@@ -104,7 +110,10 @@ def scatter_s1(
             v = cell + d
             e = p - wp.vec3(float(v[0]), float(v[1]), float(v[2])) * h
             wl = w * lum
-            wp.atomic_add(acc, flat_index(v[0], v[1], v[2], dims), pack(w * I, wl, wl * e, wl * wp.dot(e, e)))
+            idx = flat_index(v[0], v[1], v[2], dims)
+            wp.atomic_add(acc, idx, pack(w * I, wl, wl * e, wl * wp.dot(e, e)))
+            if has_normal != 0:
+                wp.atomic_add(lobe, idx, wl * normal[t])
 
 
 @wp.kernel
@@ -182,7 +191,9 @@ def gather_level(
     h: float,                            # level spacing h_l
     dims: wp.vec3i,                      # level-l vertices per axis
     first: int,                          # first flat level-l vertex of this launch
+    s1_lobe: wp.array(dtype=wp.vec3),    # (V1,) S1 lobe moments Σ w lum n
     out: wp.array(dtype=acc8),           # (V_l,) level-l accumulators, moments about each level-l vertex
+    out_lobe: wp.array(dtype=wp.vec3),   # (V_l,) level-l lobe moments
 ):
     """Level l by gather from S1 (paper 004 §3.1): each S1 grid light, a point at its illumination
     centre c_u, is distributed over the level-l grid with level-l trilinear weights; this thread sums
@@ -204,6 +215,7 @@ def gather_level(
     m0 = float(0.0)
     m1 = wp.vec3(0.0, 0.0, 0.0)
     m2 = float(0.0)
+    nl = wp.vec3(0.0, 0.0, 0.0)
     a0 = wp.max(ci - stride, 0)
     a1 = wp.min(ci + stride, s1_dims[0] - 1)
     b0 = wp.max(cj - stride, 0)
@@ -231,7 +243,9 @@ def gather_level(
                                     # re-centred from the S1 light's centre to V (parallel-axis theorem)
                                     m1 += ww * d
                                     m2 += w * u[7] + ww * wp.dot(d, d)
+                                    nl += w * s1_lobe[row + c]
     out[v] = pack(acc, m0, m1, m2)
+    out_lobe[v] = nl
 
 
 @wp.kernel
@@ -251,10 +265,12 @@ def compact_level(
     origin: wp.vec3,                     # grid origin, scene units
     h: float,                            # level spacing
     dims: wp.vec3i,
+    lobe: wp.array(dtype=wp.vec3),           # (V,) lobe moments of the level
     out_position: wp.array(dtype=wp.vec3),   # (M,) illumination-weighted centre, scene units
     out_intensity: wp.array(dtype=wp.vec3),  # (M,) RGB intensity
     out_variance: wp.array(dtype=float),     # (M,) E|p − centre|², scene units²
     out_vertex: wp.array(dtype=wp.int64),    # (M,) flat vertex index
+    out_lobe: wp.array(dtype=wp.vec3),       # (M,) mean emission normal ν (|ν| <= 1; 0: isotropic)
 ):
     """Stream compaction and finalization: one grid light per non-empty vertex, in vertex order."""
     v = wp.tid()
@@ -271,3 +287,4 @@ def compact_level(
     out_intensity[s] = wp.vec3(a[0], a[1], a[2])
     out_variance[s] = wp.max(a[7] / w0 - wp.dot(mean, mean), 0.0)
     out_vertex[s] = wp.int64(v)
+    out_lobe[s] = lobe[v] / w0

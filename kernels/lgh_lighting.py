@@ -36,9 +36,23 @@ def blend(level: int, top: int, d: float, r: float) -> float:
 
 
 @wp.func
-def light_term(p: wp.vec3, n: wp.vec3, q: wp.vec3, intensity: wp.vec3, level: int, top: int, r: float,
-               inv_m2: float, clamp_d2: float, scale: float) -> wp.vec3:
-    """Irradiance at ``p`` (normal ``n``) from an isotropic light at ``q``: B_level(d) · I · cos / max(d², d_c²)."""
+def lobe_factor(nu: wp.vec3, w: wp.vec3, d: float) -> float:
+    """Emission toward the receiver relative to isotropic, for a light of mean normal ``nu`` (|ν| <= 1)
+    at ``-w`` from it: ``(1 − |ν|) + 4·max(0, ν·ω)``, ω = −w/d the unit direction light → receiver.
+
+    A blend of an isotropic part and a cosine lobe about ν that keeps the power 4π·I for any |ν|: one
+    VPL (|ν| = 1) is the exact Lambertian emitter Φ·cos/π (I = Φ/4π); a grid light of coplanar VPLs is
+    exact too; where normals disagree (corners, thin sheets lit from both sides) |ν| shrinks and the
+    light tends to isotropic, the paper's grid light."""
+    c = -wp.dot(nu, w) / d
+    return 1.0 - wp.length(nu) + 4.0 * wp.max(c, 0.0)
+
+
+@wp.func
+def light_term(p: wp.vec3, n: wp.vec3, q: wp.vec3, intensity: wp.vec3, nu: wp.vec3, level: int, top: int,
+               r: float, inv_m2: float, clamp_d2: float, scale: float) -> wp.vec3:
+    """Irradiance at ``p`` (normal ``n``) from a light at ``q`` of isotropic-equivalent intensity ``I`` and
+    mean normal ``nu``: B_level(d) · I · lobe_factor · cos / max(d², d_c²)."""
     w = q - p
     d2 = wp.dot(w, w)
     d = wp.sqrt(d2)
@@ -48,7 +62,10 @@ def light_term(p: wp.vec3, n: wp.vec3, q: wp.vec3, intensity: wp.vec3, level: in
     cos_s = wp.dot(n, w) / d
     if b <= 0.0 or cos_s <= 0.0:
         return wp.vec3(0.0, 0.0, 0.0)
-    return intensity * (b * cos_s * inv_m2 / wp.max(d2, clamp_d2) * scale)
+    lobe = lobe_factor(nu, w, d)
+    if lobe <= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    return intensity * (b * lobe * cos_s * inv_m2 / wp.max(d2, clamp_d2) * scale)
 
 
 @wp.func
@@ -101,7 +118,8 @@ def lgh_gather(
     level_offset: wp.array(dtype=int),        # (L,) offset of the level in vertex_light
     vertex_light: wp.array(dtype=int),        # (sum of vertex counts,) light index or -1
     light_pos: wp.array(dtype=wp.vec3),       # (M,) grid light positions
-    light_int: wp.array(dtype=wp.vec3),       # (M,) RGB isotropic intensity (nit·m²)
+    light_int: wp.array(dtype=wp.vec3),       # (M,) RGB isotropic-equivalent intensity (nit·m²): power 4π·I
+    light_lobe: wp.array(dtype=wp.vec3),      # (M,) mean emission normal ν (0: isotropic)
     light_std: wp.array(dtype=float),         # (M,) per-axis positional std. dev. for jittered samples
     n_levels: int,
     s0: int,                                  # 1: the input lights are level S0 (below S1), 0: start from S1
@@ -110,6 +128,7 @@ def lgh_gather(
     s0_light: wp.array(dtype=int),            # input light indices sorted by cell
     s0_pos: wp.array(dtype=wp.vec3),          # (N,) input light positions
     s0_int: wp.array(dtype=wp.vec3),          # (N,) input light intensities
+    s0_lobe: wp.array(dtype=wp.vec3),         # (N,) input light normals (0: isotropic)
     alpha: float,
     inv_m2: float,                            # 1 / metersPerUnit²: falloff in metres
     clamp_d2: float,                          # clamped geometry term: d² >= clamp_d2 (scene units²)
@@ -152,7 +171,7 @@ def lgh_gather(
                         if tiles > 1 and v % tiles != tile[tid]:
                             continue
                         q = s0_pos[v]
-                        e = light_term(p, n, q, s0_int[v], 0, top, r0, inv_m2, clamp_d2, scale)
+                        e = light_term(p, n, q, s0_int[v], s0_lobe[v], 0, top, r0, inv_m2, clamp_d2, scale)
                         f = wp.dot(e, LUMA)
                         if f <= 0.0:
                             continue
@@ -190,7 +209,7 @@ def lgh_gather(
                     if tiles > 1 and v % tiles != tile[tid]:
                         continue
                     q = light_pos[v]
-                    e = light_term(p, n, q, light_int[v], l + s0, top, r, inv_m2, clamp_d2, scale)
+                    e = light_term(p, n, q, light_int[v], light_lobe[v], l + s0, top, r, inv_m2, clamp_d2, scale)
                     f = wp.dot(e, LUMA)
                     if f <= 0.0:
                         continue

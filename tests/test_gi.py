@@ -35,17 +35,17 @@ def cornell():
 
 
 def _unshadowed_error(cornell):
-    """error(alpha, start_level): relative RMSE of unshadowed LGH lighting against every VPL."""
+    """error(alpha, start_level): relative RMSE of unshadowed LGH lighting against every VPL (cosine emitters)."""
     snap, ex, gb, pts, nrm, alb, vpls = cornell
-    lights = vpls.as_lights(isotropic=True)
-    lgh = build_lgh(lights.position, lights.intensity)
+    intensity = vpls.flux / np.float32(4 * np.pi)
+    lgh = build_lgh(vpls.position, intensity, normal=vpls.normal)
     clamp = 0.5 * lgh.h1
-    reference = shade_direct(pts, nrm, alb, lights, None, meters_per_unit=snap.meters_per_unit,
-                             min_distance=clamp).radiance.astype(np.float64)
+    reference = shade_direct(pts, nrm, alb, vpls.as_lights(isotropic=False), None,
+                             meters_per_unit=snap.meters_per_unit, min_distance=clamp).radiance.astype(np.float64)
 
     def error(alpha, start=1):
         got = lgh_indirect(pts, nrm, alb, lgh, None, alpha=alpha, meters_per_unit=snap.meters_per_unit,
-                           clamp_distance=clamp, sources=(lights.position, lights.intensity),
+                           clamp_distance=clamp, sources=(vpls.position, intensity, vpls.normal),
                            start_level=start).radiance
         return np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
 
@@ -61,7 +61,10 @@ def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
 
 def test_s0_start_brings_lgh_lighting_closer_to_brute_force(cornell):
     error = _unshadowed_error(cornell)
-    assert error(2.0, 0) < 0.6 * error(2.0, 1)
+    # cosine VPLs on faceted blocks (measured 0.087 against 0.115, and 0.043; with smooth normals
+    # 0.092 against 0.139, and 0.053): the near field is exact from S0, what is left is the coarse
+    # levels' lobe (isotropic VPLs, before: 0.043 against 0.123, and 0.014)
+    assert error(2.0, 0) < 0.8 * error(2.0, 1) and error(2.0, 0) < 0.1
     assert error(4.0, 0) < 0.05
 
 

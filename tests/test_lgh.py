@@ -270,3 +270,30 @@ def test_split_scatter_matches_one_launch(monkeypatch, on_planes):
         np.testing.assert_array_equal(a.vertex, b.vertex)
         np.testing.assert_allclose(a.intensity, b.intensity, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(a.position, b.position, atol=1e-3)
+
+
+def test_lobe_is_the_luminance_weighted_mean_normal(device):
+    """Coplanar cosine emitters keep |ν| = 1 on every level; a sheet lit from both sides averages to ν ≈ 0;
+    the luminance-weighted mean normal is the same on every level (the moments are conserved)."""
+    rng = np.random.default_rng(4)
+    p = np.concatenate([rng.random((2000, 3)) * [10, 0, 10], rng.random((2000, 3)) * [0, 10, 10]])
+    p[:, 1] += 0.5                                  # off the grid planes
+    inten = (rng.random((4000, 3)) + 0.1).astype(np.float32)
+    up, side = np.array([0, 1, 0], np.float32), np.array([1, 0, 0], np.float32)
+    normal = np.concatenate([np.tile(up, (2000, 1)), np.tile(side, (2000, 1))])
+    lgh = build_lgh(p, inten, levels=4, device=device, normal=normal)
+    lum = inten.astype(np.float64) @ LUMA
+    mean = (lum[:, None] * normal).sum(axis=0) / lum.sum()
+    for lv in lgh.levels:
+        w = lv.intensity.astype(np.float64) @ LUMA
+        np.testing.assert_allclose((w[:, None] * lv.lobe).sum(axis=0) / w.sum(), mean, atol=1e-4)
+    floor_only = build_lgh(p[:2000], inten[:2000], levels=4, device=device, normal=normal[:2000])
+    for lv in floor_only.levels:
+        np.testing.assert_allclose(lv.lobe, np.tile(up, (len(lv.lobe), 1)), atol=1e-5)
+    two_sided = build_lgh(p[:2000], inten[:2000], levels=3, device=device,
+                          normal=np.where(np.arange(2000)[:, None] % 2 == 0, up, -up))
+    top = two_sided.levels[-1]
+    assert np.linalg.norm(top.lobe, axis=1).max() < 0.1
+    assert build_lgh(p, inten, levels=3, device=device).lobe.max() == 0.0     # no normals: isotropic
+    with pytest.raises(UsdmlError, match="normals"):
+        build_lgh(p, inten, normal=normal[:10])

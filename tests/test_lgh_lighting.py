@@ -201,3 +201,28 @@ def test_gather_visits_every_grid_light_that_counts(alpha, start):
         g = _blend_np(index, top, d, alpha * h) * cos / np.maximum(d2, clamp ** 2)
         want += (g[..., None] * inte[None]).sum(1)
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-6 * want.max())
+
+
+@pytest.mark.parametrize("start", [1, 0])
+def test_one_cosine_emitter_is_lambertian_at_every_distance(start):
+    """A VPL with a normal is the Lambertian emitter Φ·cos θ_l / π (I = Φ/4π, lobe 4·max(0, cos θ_l)) on
+    every level: its grid lights share its position and normal, and the blending weights sum to one.
+    Analytic reference: E = Φ cos θ_l cos θ_s / (π d²)."""
+    from usdml.lighting.lgh import build_lgh
+
+    q = np.array([[0.3, 0.2, -0.1]], np.float32)
+    n_l = np.array([[0.0, 0.6, 0.8]], np.float32)
+    flux = np.array([[2.0, 1.0, 0.5]], np.float32)
+    inten = flux / np.float32(4 * np.pi)
+    lgh = build_lgh(q, inten, levels=3, normal=n_l)
+    rng = np.random.default_rng(8)
+    pts = (q + rng.normal(size=(400, 3)) * [0.3, 3, 3]).astype(np.float32)
+    w = q - pts
+    d = np.linalg.norm(w, axis=1, keepdims=True)
+    nrm = (w / d).astype(np.float32)                               # receivers face the light
+    s0 = (q, inten, n_l) if start == 0 else None
+    got = lgh_lighting(pts, nrm, lgh, alpha=1.0, samples=0, clamp_distance=1e-4, s0=s0).irradiance
+    cos_l = np.maximum(-(w / d) @ n_l[0], 0.0)
+    want = flux * (cos_l / (np.pi * d[:, 0] ** 2))[:, None]
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
+    assert (got[cos_l == 0] == 0).all() and (cos_l == 0).sum() > 100     # nothing behind its surface

@@ -43,12 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for count in (int(x) for x in args.vpls.split(",") if x):
         t0 = time.perf_counter()
-        vpls = generate_vpls(snap, renderer.exact, lights, count, 3, 0).as_lights(isotropic=True)
+        vpls = generate_vpls(snap, renderer.exact, lights, count, 3, 0)
+        intensity = vpls.flux / np.float32(4.0 * np.pi)     # as usdml.lighting.gi builds it, normals included
         vpl_seconds = time.perf_counter() - t0
         builds = []
         for _ in range(max(1, args.repeat)):
             t0 = time.perf_counter()
-            lgh = build_lgh(vpls.position, vpls.intensity, device=args.device)
+            lgh = build_lgh(vpls.position, intensity, device=args.device, normal=vpls.normal)
             builds.append((time.perf_counter() - t0, lgh.stats))
         builds.sort(key=lambda b: b[0])
         seconds, stats = builds[len(builds) // 2]

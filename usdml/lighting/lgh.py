@@ -12,13 +12,14 @@ Construction, as the paper splits it:
 1. bounds of all lights;
 2. S1 by *scatter*: each light adds its RGB intensity, times its trilinear weight, to the 8 S1
    vertices around it, together with the luminance-weighted first and second moments of its
-   position (kernels: ``usdml.kernels.lgh``);
+   position and, for lights with a normal (VPLs), of its normal (kernels: ``usdml.kernels.lgh``);
 3. levels 2..L by *gather* from the S1 grid lights (not from the input lights): each level-l vertex
    sums the S1 grid lights in its support, each weighted by the level-l trilinear weight of its
    illumination centre, so every level conserves the total intensity and the global
    luminance-weighted centre;
 4. stream compaction per level (vertices with zero luminance weight are dropped) and
-   finalization: ``position = Σ w lum p / Σ w lum`` and ``variance = E|p|² − |E p|²``;
+   finalization: ``position = Σ w lum p / Σ w lum``, ``variance = E|p|² − |E p|²`` and
+   ``lobe = Σ w lum n / Σ w lum`` (the mean normal ν, |ν| ≤ 1, zero for isotropic lights);
 5. merge: all levels land in one buffer per attribute (S1 first) and come back to the host once.
 
 Luminance is Rec. 709 (0.2126, 0.7152, 0.0722). On CPU Warp runs a launch on one thread and releases
@@ -60,6 +61,7 @@ class LGHLevel:
     intensity: np.ndarray      #: (M, 3) float32 RGB radiant intensity (Σ trilinear-weighted input intensities)
     variance: np.ndarray       #: (M,) float32 E|p − position|², scene units², of the illumination around position
     vertex: np.ndarray         #: (M,) int64 flat grid-vertex index of each light, increasing
+    lobe: np.ndarray = field(default=None, repr=False)  #: (M, 3) float32 mean emission normal ν, |ν| <= 1
 
 
 @dataclass
@@ -74,12 +76,24 @@ class LGH:
     intensity: np.ndarray = field(default=None, repr=False)   #: (ΣM, 3) float32
     variance: np.ndarray = field(default=None, repr=False)    #: (ΣM,) float32
     offsets: np.ndarray = field(default=None, repr=False)     #: (L+1,) int64
+    lobe: np.ndarray = field(default=None, repr=False)        #: (ΣM, 3) float32
 
 
 def _warp():
     from usdml.kernels import warp
 
     return warp()
+
+
+def _check_normals(normal, shape) -> np.ndarray | None:
+    if normal is None:
+        return None
+    n = np.asarray(normal, np.float32)
+    if n.shape != shape:
+        raise UsdmlError(f"LGH: light normals must have shape {shape} like the positions, got {n.shape}")
+    if not np.isfinite(n).all():
+        raise UsdmlError("LGH: light normals contain NaN or infinity")
+    return n
 
 
 def _check_inputs(position, intensity) -> tuple[np.ndarray, np.ndarray]:
@@ -245,12 +259,16 @@ def auto_levels(n_lights: int, position: np.ndarray | None = None, intensity: np
     return _auto_levels(n, lo, hi, _upload(wp, p, i, lo, device), device)
 
 
-def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, device: str = "cpu") -> LGH:
+def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, device: str = "cpu",
+              normal: np.ndarray | None = None) -> LGH:
     """Build a lighting grid hierarchy over point lights (paper 004 §3.1).
 
     ``position``: (N, 3) float32/float64 scene units; ``intensity``: (N, 3) float32 RGB isotropic
-    radiant intensity (non-negative). ``levels``: the number of levels L (1..:data:`MAX_LEVELS`), or 0
-    for :func:`auto_levels`. ``device``: a Warp device (``cpu``, ``cuda``, ``cuda:0``).
+    radiant intensity (non-negative; power 4π·I). ``normal``: (N, 3) unit normals of cosine emitters
+    (VPLs: power 4π·I into the hemisphere about n, radiant intensity 4·I·max(0, cos)), or None for
+    isotropic lights; each grid light gets the mean normal ν of what it aggregates (``lobe``).
+    ``levels``: the number of levels L (1..:data:`MAX_LEVELS`), or 0 for :func:`auto_levels`.
+    ``device``: a Warp device (``cpu``, ``cuda``, ``cuda:0``).
     Raises :class:`UsdmlError` for malformed lights or an absurd level count.
     """
     wp = _warp()
@@ -258,6 +276,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
 
     t_start = _time.perf_counter()
     p, inten = _check_inputs(position, intensity)
+    nrm = _check_normals(normal, p.shape)
     n = len(p)
     stats: dict = {"n_lights": n, "device": str(device)}
 
@@ -287,12 +306,17 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     v1 = int(dims1.prod())
     wdims1 = wp.vec3i(*map(int, dims1))
     s1 = wp.zeros(v1, dtype=K.acc8, device=device)
+    s1_lobe = wp.zeros(v1, dtype=wp.vec3, device=device)
     parts = _slabs(p, lo, h1, int(cells1[0]), len(_slices(n, workers)))
+    no_normal = wp.zeros(1, dtype=wp.vec3, device=device)
 
     def scatter(rows):
         if rows is None or len(rows):
             pw, iw = (pos_w, int_w) if rows is None else _upload(wp, p[rows], inten[rows], lo, device)
-            wp.launch(K.scatter_s1, dim=len(pw), device=device, inputs=[pw, iw, float(h1), wdims1], outputs=[s1])
+            nw = no_normal if nrm is None else wp.array(nrm if rows is None else nrm[rows], dtype=wp.vec3,
+                                                        device=device)
+            wp.launch(K.scatter_s1, dim=len(pw), device=device,
+                      inputs=[pw, iw, nw, int(nrm is not None), float(h1), wdims1], outputs=[s1, s1_lobe])
 
     run_parallel(scatter, parts[:-1], workers)
     scatter(parts[-1])            # the lights near the slab boundaries, once the slabs are done
@@ -309,24 +333,25 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     wblocks = wp.vec3i(*map(int, blocks))
     occupied = wp.zeros(int(blocks.prod()), dtype=wp.uint8, device=device)
     wp.launch(K.mark_blocks, dim=v1, device=device, inputs=[s1_lights, wdims1, wblocks], outputs=[occupied])
-    grid_of = {1: (dims1, s1)}
+    grid_of = {1: (dims1, s1, s1_lobe)}
     tasks = []
     for level in range(2, levels + 1):
         dims = _level_dims(cells1, level)
         count = int(dims.prod())
         acc = wp.empty(count, dtype=K.acc8, device=device)
-        grid_of[level] = (dims, acc)
+        acc_lobe = wp.empty(count, dtype=wp.vec3, device=device)
+        grid_of[level] = (dims, acc, acc_lobe)
         wdims = wp.vec3i(*map(int, dims))
         # a level-l vertex visits (2·2^(l-1) + 1)³ S1 vertices: split by that work, not by vertex count
         for a, b in _slices(count * (2 * (1 << (level - 1)) + 1) ** 3, workers, count):
-            tasks.append((level, wdims, acc, a, b))
+            tasks.append((level, wdims, acc, acc_lobe, a, b))
 
     def gather(task):
-        level, wdims, acc, a, b = task
+        level, wdims, acc, acc_lobe, a, b = task
         wp.launch(K.gather_level, dim=b - a, device=device,
                   inputs=[s1_lights, wdims1, wblocks, occupied, 1 << (level - 1), float(h1 * (1 << (level - 1))),
-                          wdims, a],
-                  outputs=[acc])
+                          wdims, a, s1_lobe],
+                  outputs=[acc, acc_lobe])
 
     run_parallel(gather, tasks, workers)
     sync()
@@ -336,7 +361,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     t0 = _time.perf_counter()
 
     def scan(level):
-        dims, acc = grid_of[level]
+        dims, acc, _ = grid_of[level]
         count = int(dims.prod())
         flags = wp.empty(count, dtype=int, device=device)
         slot = wp.empty(count, dtype=int, device=device)
@@ -344,7 +369,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
         wp.utils.array_scan(flags, slot, inclusive=False)
         return slot, flags
 
-    all_vertices = sum(int(dims.prod()) for dims, _ in grid_of.values())
+    all_vertices = sum(int(dims.prod()) for dims, _, _ in grid_of.values())
     compact_workers = workers if all_vertices >= _COMPACT_SPLIT_MIN else 1
     scans = run_parallel(scan, range(1, levels + 1), compact_workers)
     # the last slot plus the last flag is the level's light count (one small read per level)
@@ -355,15 +380,16 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     out_int = wp.empty(total, dtype=wp.vec3, device=device)
     out_var = wp.empty(total, dtype=float, device=device)
     out_vtx = wp.empty(total, dtype=wp.int64, device=device)
+    out_lobe = wp.empty(total, dtype=wp.vec3, device=device)
     origin = wp.vec3(*map(float, lo))
 
     def compact(level):
-        dims, acc = grid_of[level]
+        dims, acc, acc_lobe = grid_of[level]
         slot, _ = scans[level - 1]
         wp.launch(K.compact_level, dim=int(dims.prod()), device=device,
                   inputs=[acc, slot, int(offsets[level - 1]), origin, float(h1 * (1 << (level - 1))),
-                          wp.vec3i(*map(int, dims))],
-                  outputs=[out_pos, out_int, out_var, out_vtx])
+                          wp.vec3i(*map(int, dims)), acc_lobe],
+                  outputs=[out_pos, out_int, out_var, out_vtx, out_lobe])
 
     run_parallel(compact, range(1, levels + 1), compact_workers)
     sync()
@@ -375,14 +401,15 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     int_np = np.array(out_int.numpy(), np.float32).reshape(-1, 3)
     var_np = np.array(out_var.numpy(), np.float32).reshape(-1)
     vtx_np = np.array(out_vtx.numpy(), np.int64).reshape(-1)
+    lobe_np = np.array(out_lobe.numpy(), np.float32).reshape(-1, 3)
     out = []
     for level in range(1, levels + 1):
         a, b = offsets[level - 1], offsets[level]
         out.append(LGHLevel(level=level, spacing=float(h1 * (1 << (level - 1))), origin=lo.copy(),
                             dims=grid_of[level][0].astype(np.int64), position=pos_np[a:b],
-                            intensity=int_np[a:b], variance=var_np[a:b], vertex=vtx_np[a:b]))
+                            intensity=int_np[a:b], variance=var_np[a:b], vertex=vtx_np[a:b], lobe=lobe_np[a:b]))
     stats["merge"] = _time.perf_counter() - t0
     stats["lights_per_level"] = counts
     stats["total"] = _time.perf_counter() - t_start
     return LGH(levels=out, h1=float(h1), bounds=(lo, hi), stats=stats, position=pos_np, intensity=int_np,
-               variance=var_np, offsets=offsets)
+               variance=var_np, offsets=offsets, lobe=lobe_np)

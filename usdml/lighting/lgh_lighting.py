@@ -1,8 +1,9 @@
 """Lighting with a lighting grid hierarchy and stochastic shadows (paper 004 §3.2–3.3).
 
 For every G-buffer pixel, every grid light of every level whose blending function is non-zero at
-the pixel's distance contributes ``B_l(d) · I · cos / max(d², d_c²)`` (a clamped geometry term,
-Lambertian receiver), starting from S1 as the paper does, or from the input lights themselves (S0)
+the pixel's distance contributes ``B_l(d) · I · lobe(ω) · cos / max(d², d_c²)`` (a clamped geometry
+term, Lambertian receiver; ``lobe`` the grid light's emission from the mean normal of its VPLs, 1 for
+isotropic lights), starting from S1 as the paper does, or from the input lights themselves (S0)
 as an option. While accumulating, k shadow samples are picked per pixel by streaming importance
 sampling (Appendix A: probability ∝ the light's luminance contribution f_i). Shadow rays go to an
 input light of the chosen grid light's cluster (:class:`ClusterSampler`), or to the grid light's
@@ -51,7 +52,7 @@ def _flatten(lgh):
     counts = dims.prod(axis=1).astype(np.int64)
     offset = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
     vertex_light = np.full(int(counts.sum()), -1, np.int32)
-    pos, inten, std = [], [], []
+    pos, inten, std, lobe = [], [], [], []
     base = 0
     for lv, off in zip(levels, offset):
         m = len(lv.position)
@@ -59,9 +60,11 @@ def _flatten(lgh):
         pos.append(np.asarray(lv.position, np.float32))
         inten.append(np.asarray(lv.intensity, np.float32))
         std.append(np.sqrt(np.maximum(np.asarray(lv.variance, np.float32), 0.0) / 3.0))   # per axis
+        nu = getattr(lv, "lobe", None)          # None: isotropic lights
+        lobe.append(np.zeros((m, 3), np.float32) if nu is None else np.asarray(nu, np.float32))
         base += m
     return (origin, spacing, dims, offset, vertex_light, np.concatenate(pos).reshape(-1, 3),
-            np.concatenate(inten).reshape(-1, 3), np.concatenate(std))
+            np.concatenate(inten).reshape(-1, 3), np.concatenate(std), np.concatenate(lobe).reshape(-1, 3))
 
 
 def _in_blocks(run: Callable[[int, int], None], n: int, device: str, blocks_per_worker: int = 1,
@@ -90,10 +93,11 @@ def s0_cells(lgh, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  device: str = "cpu", tile: np.ndarray | None = None, tiles: int = 1,
-                 s0: tuple[np.ndarray, np.ndarray] | None = None, jitter: bool = True) -> LGHShading:
+                 s0: tuple | None = None, jitter: bool = True) -> LGHShading:
     """Unshadowed LGH irradiance and k shadow samples per point (``points``, ``normals``: (P, 3)).
 
-    ``s0 = (positions (N, 3), intensities (N, 3))``: the input lights the hierarchy was built from,
+    ``s0 = (positions (N, 3), intensities (N, 3)[, normals (N, 3)])``: the input lights the hierarchy was
+    built from (with normals: cosine emitters, as ``build_lgh(normal=)``),
     used as level S0 below S1 (blending radius r_0 = alpha h_1 / 2): exact near-field lighting at the
     cost of visiting the input lights within alpha h_1 of each point. Without it lighting starts from
     S1, as paper 004 does (§4.1). A shadow sample on an S0 light has ``sample_light`` = M + its index
@@ -113,7 +117,7 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     wp = warp()
     n = len(points)
     k = max(int(samples), 0)
-    origin, spacing, dims, offset, vertex_light, pos, inten, std = _flatten(lgh)
+    origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe = _flatten(lgh)
     if clamp_distance is None:
         clamp_distance = 0.5 * float(lgh.h1)
     irr = np.zeros((n, 3), np.float32)
@@ -132,17 +136,21 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
         light_pos=wp.array(pos, dtype=wp.vec3, device=device),
         light_int=wp.array(inten, dtype=wp.vec3, device=device),
         light_std=wp.array(std.astype(np.float32), dtype=float, device=device),
+        light_lobe=wp.array(lobe, dtype=wp.vec3, device=device),
     )
     if s0 is not None:
         cells, start, order = s0_cells(lgh, s0[0])
         s0_args = [1, wp.vec3i(*map(int, cells)), wp.array(start, dtype=int, device=device),
                    wp.array(order, dtype=int, device=device),
                    wp.array(np.ascontiguousarray(s0[0], np.float32), dtype=wp.vec3, device=device),
-                   wp.array(np.ascontiguousarray(s0[1], np.float32), dtype=wp.vec3, device=device)]
+                   wp.array(np.ascontiguousarray(s0[1], np.float32), dtype=wp.vec3, device=device),
+                   wp.array(np.ascontiguousarray(s0[2] if len(s0) > 2 and s0[2] is not None
+                                                 else np.zeros((len(s0[0]), 3)), np.float32),
+                            dtype=wp.vec3, device=device)]
     else:
         empty3 = wp.zeros(1, dtype=wp.vec3, device=device)
         s0_args = [0, wp.vec3i(1, 1, 1), wp.zeros(2, dtype=int, device=device), wp.zeros(1, dtype=int, device=device),
-                   empty3, empty3]
+                   empty3, empty3, empty3]
     pts = np.ascontiguousarray(points, np.float32)
     nrm = np.ascontiguousarray(normals, np.float32)
     tile_ids = np.zeros(n, np.int32) if tile is None or tiles <= 1 else np.ascontiguousarray(tile, np.int32)
@@ -157,7 +165,7 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
         wp.launch(lgh_gather, dim=m, device=device, inputs=[
             wp.array(pts[lo:hi], dtype=wp.vec3, device=device), wp.array(nrm[lo:hi], dtype=wp.vec3, device=device),
             shared["level_origin"], shared["level_spacing"], shared["level_dims"], shared["level_offset"],
-            shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_std"],
+            shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_lobe"], shared["light_std"],
             len(spacing), *s0_args, float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2), k,
             int(bool(jitter)), int(seed), lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), int(max(tiles, 1)),
             out_irr, out_pos, out_ok, out_light, out_weight])
@@ -302,7 +310,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  start_level: int = 1, shadow_targets: str = "cluster") -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
-    ``sources = (positions, intensities)`` are the input lights the LGH was built from: shadow rays go
+    ``sources = (positions, intensities[, normals])`` are the input lights the LGH was built from
+    (normals: cosine emitters, as ``build_lgh(normal=)``): shadow rays go
     to them (:class:`ClusterSampler`) unless ``shadow_targets`` is "jitter" (the grid light's centre
     jittered by its variance, as the paper), and with ``start_level`` 0 they are level S0 (the paper
     starts from S1, ``start_level`` 1).
@@ -328,7 +337,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     if occluded is None:
         return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats)
     t1 = _time.perf_counter()
-    sampler = ClusterSampler(lgh, *sources) if sources is not None and shadow_targets == "cluster" else None
+    cluster = sources is not None and shadow_targets == "cluster"
+    sampler = ClusterSampler(lgh, sources[0], sources[1]) if cluster else None
     visible, shadowed, rays = shadow_fraction(points, normals, shading, occluded, sampler, seed)
     stats["shadow_seconds"] = _time.perf_counter() - t1
     stats["shadow_rays"] = rays
