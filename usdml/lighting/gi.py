@@ -43,30 +43,52 @@ def warm_up(device: str = "cpu") -> float:
     return _time.perf_counter() - t0
 
 
-def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
-                      albedo: np.ndarray, settings: UsdmlSettings, image: tuple | None = None,
-                      device: str = "cpu") -> GIResult:
-    """Indirect radiance at ``points`` by ``settings.gi`` ("lgh" or "vpl-bruteforce").
+@dataclass
+class VPLField:
+    """What every pass of a frame gathers indirect light from: the frame's VPLs and their LGH."""
 
-    ``exact`` traces the light paths that place the VPLs (closest hits); ``occluded`` is the
-    chosen visibility backend's shadow query; ``image = (hit, positions)`` lets the LGH shadow
-    ratio be filtered in screen space.
-    """
+    vpls: object                    #: :class:`usdml.lighting.vpl.VPLs`
+    lgh: object | None              #: the lighting grid hierarchy over them (None without VPLs)
+    intensity: np.ndarray | None    #: (V, 3) float32 isotropic-equivalent intensity Φ/4π
+    stats: dict = field(default_factory=dict)
+
+
+def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings, device: str = "cpu") -> VPLField:
+    """Trace the frame's light paths into VPLs (``exact``: closest hits) and build their LGH, once
+    per frame however many primary rays per pixel gather from them."""
     stats: dict = {}
     t0 = _time.perf_counter()
     vpls = generate_vpls(snap, exact, lights, settings.vpl_count, settings.vpl_bounces, settings.seed)
     stats["vpl_seconds"] = _time.perf_counter() - t0
     stats["vpls"] = len(vpls)
     if len(vpls) == 0:
-        return GIResult(np.zeros((len(points), 3), np.float32), stats)
+        return VPLField(vpls, None, None, stats)
     # the LGH takes isotropic-equivalent intensity Φ/4π plus each VPL's normal (cosine emission);
     # brute force gathers the same VPLs as one-sided cosine emitters (Φ/π on the normal)
-    position, normal = vpls.position, vpls.normal
     intensity = (vpls.flux / np.float32(4.0 * np.pi)).astype(np.float32)
     t1 = _time.perf_counter()
-    lgh = build_lgh(position, intensity, levels=settings.lgh_levels, device=device, normal=normal)
+    lgh = build_lgh(vpls.position, intensity, levels=settings.lgh_levels, device=device, normal=vpls.normal)
     stats["lgh_seconds"] = _time.perf_counter() - t1
     stats["lgh_levels"] = len(lgh.levels)
+    return VPLField(vpls, lgh, intensity, stats)
+
+
+def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
+                      albedo: np.ndarray, settings: UsdmlSettings, image: tuple | None = None,
+                      device: str = "cpu", vpl_field: VPLField | None = None) -> GIResult:
+    """Indirect radiance at ``points`` by ``settings.gi`` ("lgh" or "vpl-bruteforce").
+
+    ``exact`` traces the light paths that place the VPLs (closest hits) unless ``vpl_field``
+    (:func:`prepare_vpls`) already holds them; ``occluded`` is the chosen visibility backend's
+    shadow query; ``image = (hit, positions)`` lets the LGH shadow ratio be filtered in screen space.
+    """
+    if vpl_field is None:
+        vpl_field = prepare_vpls(snap, exact, lights, settings, device)
+    stats = dict(vpl_field.stats)
+    vpls, lgh, intensity = vpl_field.vpls, vpl_field.lgh, vpl_field.intensity
+    if lgh is None:
+        return GIResult(np.zeros((len(points), 3), np.float32), stats)
+    position, normal = vpls.position, vpls.normal
     clamp = 0.5 * float(lgh.h1)
     if settings.gi == "lgh":
         r = lgh_indirect(points, normals, albedo, lgh, occluded, alpha=settings.lgh_alpha,

@@ -115,9 +115,16 @@ class FrameRenderer:
         stats.update(gbuffer_seconds=0.0, shading_seconds=0.0, shadow_queries=0)
         samples = self.settings.pixel_samples
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
+        vpl_field = None
+        if self.settings.gi != "none":       # one set of VPLs for every pass of the frame
+            from usdml.lighting.gi import prepare_vpls
+
+            vpl_field = prepare_vpls(snap, self.exact, lights, self.settings, device=self.device)
+            stats["gi_seconds"] = vpl_field.stats["vpl_seconds"] + vpl_field.stats.get("lgh_seconds", 0.0)
         image = _PixelFilter(width, height)
         for offsets in pixel_offsets(width, height, samples, self.settings.seed):
-            gb, direct, indirect = self._trace(snap, lights, camera, width, height, offsets, stats, pixel_progress)
+            gb, direct, indirect = self._trace(snap, lights, camera, width, height, offsets, stats, pixel_progress,
+                                               vpl_field)
             image.add(self._buffers(gb, gb.hit.ravel(), direct, indirect, camera, aovs), offsets)
         stats["lights"] = len(lights)
         stats["pixels"] = width * height
@@ -126,8 +133,9 @@ class FrameRenderer:
         return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
 
     def _trace(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
-               offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None):
-        """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light."""
+               offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None, vpl_field=None):
+        """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light
+        (gathered from ``vpl_field``, :func:`usdml.lighting.gi.prepare_vpls`)."""
         t2 = _time.perf_counter()
         gb = build_gbuffer(snap, self.exact, width, height, offsets)
         stats["gbuffer_seconds"] += _time.perf_counter() - t2
@@ -154,14 +162,14 @@ class FrameRenderer:
                 self._told_camera_light = True
         stats["shading_seconds"] += _time.perf_counter() - t3
         indirect = np.zeros_like(direct.radiance)
-        if self.settings.gi != "none":
+        if vpl_field is not None:
             from usdml.lighting.gi import indirect_lighting
 
             t4 = _time.perf_counter()
             gi = indirect_lighting(
                 snap, self.exact, self.backend.occluded, lights, gb.position.reshape(-1, 3)[hit],
                 gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
-                image=(gb.hit, gb.position), device=self.device)
+                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field)
             indirect = gi.radiance
             stats["gi"] = gi.stats                  # the last pass's
             if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
