@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     delegate = StageDelegate(args.stage)
     settings = delegate.usdml_settings.updated(
         voxel_resolution=args.voxel_resolution, direction_step=args.direction_step,
-        voxel_mapping=args.voxel_mapping, voxel_rebuild=args.voxel_rebuild, fully_dynamic=args.fully_dynamic)
+        voxel_mapping=args.voxel_mapping, voxel_rebuild=args.voxel_rebuild, fully_dynamic=args.fully_dynamic,
+        pixel_samples=1)     # one primary ray per pixel: the visibility backends' cost, not anti-aliasing's
     f0 = delegate.start_time if args.frame is None else args.frame
     f1 = next_frame(delegate, f0)
     rows = []
