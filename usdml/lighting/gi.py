@@ -75,12 +75,15 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
 
 def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
                       albedo: np.ndarray, settings: UsdmlSettings, image: tuple | None = None,
-                      device: str = "cpu", vpl_field: VPLField | None = None) -> GIResult:
+                      device: str = "cpu", vpl_field: VPLField | None = None,
+                      geometric: np.ndarray | None = None) -> GIResult:
     """Indirect radiance at ``points`` by ``settings.gi`` ("lgh" or "vpl-bruteforce").
 
     ``exact`` traces the light paths that place the VPLs (closest hits) unless ``vpl_field``
     (:func:`prepare_vpls`) already holds them; ``occluded`` is the chosen visibility backend's
-    shadow query; ``image = (hit, positions)`` lets the LGH shadow ratio be filtered in screen space.
+    shadow query; ``image = (hit, positions)`` lets the LGH shadow ratio be filtered in screen space;
+    ``geometric`` normals, when given, decide which VPLs face a point and where shadow rays start
+    (:func:`usdml.lighting.direct.shade_direct`).
     """
     if vpl_field is None:
         vpl_field = prepare_vpls(snap, exact, lights, settings, device)
@@ -97,12 +100,12 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
                          interleave=settings.interleave, device=device,
                          sources=(position, intensity, normal), start_level=settings.lgh_start_level,
                          filter_iterations=settings.shadow_filter_iterations,
-                         shadow_targets=settings.shadow_targets)
+                         shadow_targets=settings.shadow_targets, geometric=geometric)
         stats.update(r.stats)
         return GIResult(r.radiance, stats)
     t2 = _time.perf_counter()
     r = shade_direct(points, normals, albedo, vpls.as_lights(isotropic=False), occluded,
-                     meters_per_unit=snap.meters_per_unit, min_distance=clamp)
+                     meters_per_unit=snap.meters_per_unit, min_distance=clamp, geometric=geometric)
     stats["lighting_seconds"] = _time.perf_counter() - t2
     stats["shadow_rays"] = r.queries
     return GIResult(r.radiance, stats)

@@ -307,7 +307,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  image: tuple[np.ndarray, np.ndarray] | None = None, filter_iterations: int = -1,
                  interleave: int = 1, device: str = "cpu", sources: tuple | None = None,
-                 start_level: int = 1, shadow_targets: str = "cluster") -> IndirectResult:
+                 start_level: int = 1, shadow_targets: str = "cluster",
+                 geometric: np.ndarray | None = None) -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``sources = (positions, intensities[, normals])`` are the input lights the LGH was built from
@@ -318,7 +319,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
 
     ``image = (hit (H, W) bool, positions (H, W, 3))`` lays the points out as an image so the
     shadow ratio can be filtered (edge stops on normal, position and value); without it the raw
-    ratio is used. ``occluded`` None gives unshadowed lighting.
+    ratio is used. ``occluded`` None gives unshadowed lighting. Shadow rays leave along the
+    ``geometric`` normals when given (the shading ``normals`` otherwise).
     """
     stats: dict = {}
     t0 = _time.perf_counter()
@@ -339,7 +341,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     t1 = _time.perf_counter()
     cluster = sources is not None and shadow_targets == "cluster"
     sampler = ClusterSampler(lgh, sources[0], sources[1]) if cluster else None
-    visible, shadowed, rays = shadow_fraction(points, normals, shading, occluded, sampler, seed)
+    visible, shadowed, rays = shadow_fraction(points, normals if geometric is None else geometric, shading,
+                                              occluded, sampler, seed)
     stats["shadow_seconds"] = _time.perf_counter() - t1
     stats["shadow_rays"] = rays
     t2 = _time.perf_counter()

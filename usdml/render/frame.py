@@ -169,7 +169,7 @@ class FrameRenderer:
             gi = indirect_lighting(
                 snap, self.exact, self.backend.occluded, lights, gb.position.reshape(-1, 3)[hit],
                 gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
-                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field)
+                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field, geometric=geometric)
             indirect = gi.radiance
             stats["gi"] = gi.stats                  # the last pass's
             if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
