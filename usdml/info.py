@@ -110,7 +110,8 @@ def format_info(info: dict) -> str:
         lines.append("render      no RenderSettings")
     s = info["usdmlSettings"]
     lines.append(f"usdml       visibility {s['visibility']}, voxels {s['voxel_resolution']}^3 @ {s['direction_step']:g} deg, "
-                 f"{n(s['vpl_count'])} VPLs, LGH alpha {s['lgh_alpha']:g}, {s['shadow_samples']} shadow samples, seed {s['seed']}")
+                 f"{n(s['vpl_count'])} VPLs, LGH alpha {s['lgh_alpha']:g}, {s['shadow_samples']} shadow samples, "
+                 f"{s['pixel_samples']} pixel samples, seed {s['seed']}")
     lines.append(f"voxel mem   {vm['arrays']} array(s) x {human_bytes(vm['bytesPerArray'])} = {human_bytes(vm['totalBytes'])} "
                  f"({n(vm['directions'])} directions at {vm['resolution']}^3)")
     lines.append(f"loaded in   {info['loadSeconds']:.2f} s" + (f", {len(info['warnings'])} warning(s)" if info["warnings"] else ""))
