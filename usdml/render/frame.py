@@ -13,9 +13,9 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.aov.names import find_aov
 from usdml.errors import UsdmlError, log
 from usdml.lighting.direct import shade_direct
-from usdml.aov.names import find_aov
 from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.scene import Camera, Lights, Snapshot, diff
@@ -239,7 +239,7 @@ class _PixelFilter:
         self.best = np.minimum(self.best, d2)
         for name, b in buffers.items():
             if find_aov(name).filtered:
-                self.sums[name] = self.sums[name] + b.astype(np.float64) if name in self.sums else b.astype(np.float64)
+                self.sums[name] = self.sums.get(name, 0.0) + b.astype(np.float64)
             elif name not in self.nearest:
                 self.nearest[name] = b
             else:
