@@ -96,6 +96,8 @@ def _lights(stage: Usd.Stage, time: Usd.TimeCode, cache: UsdGeom.XformCache, to_
         if not prim.IsA(UsdLux.SphereLight):
             raise ValueError(f"{prim.GetPath()}: only SphereLights are supported by the reference")
         light = UsdLux.SphereLight(prim)
+        if prim.HasAPI(UsdLux.ShapingAPI) or light.GetEnableColorTemperatureAttr().Get(time):
+            raise ValueError(f"{prim.GetPath()}: shaping and colour temperature are not supported by the reference")
         radiance = (light.GetIntensityAttr().Get(time) * 2.0 ** light.GetExposureAttr().Get(time)
                     * np.asarray(light.GetColorAttr().Get(time), np.float64))
         m = _world(cache, prim)
