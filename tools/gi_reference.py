@@ -1,7 +1,7 @@
 """VPL indirect light against references that share none of usdml's VPL code.
 
 * **Path tracing**: Mitsuba 3 (``pip install -e ".[reference]"``, ``scalar_rgb`` variant) renders the same
-  USD stage (its meshes, albedos, point lights and camera converted here) with ``max_depth = bounces + 2``
+  USD stage (read by :mod:`usdml.reference` with pxr alone) with ``max_depth = bounces + 2``
   and ``max_depth = 2``; their difference (same seed, so the direct parts cancel sample by sample) is
   the indirect light of ``bounces`` diffuse bounces, which usdml's ``indirect`` AOV with
   ``usdml:vpl:bounces = bounces`` should match.
@@ -162,66 +162,14 @@ def render_usdml(stage: str, method: str, vpls: int, bounces: int, width: int, s
     return {k: np.asarray(b[k], np.float32) for k in ("direct", "indirect")}
 
 
-def mitsuba_scene(stage: str, width: int, max_depth: int, spp: int, seed: int = 0) -> dict:
-    """The stage as a Mitsuba 3 scene dict: usdml's own snapshot geometry (world-space triangles, per-mesh
-    albedo as two-sided ``diffuse``), point lights of usdml's radiant intensity, a perspective camera
-    through the same pixel centres, a box-filtered ``hdrfilm``, ``path`` with ``max_depth``."""
-    import mitsuba as mi
-
-    from usdml.scene import LightType
-    from usdml.stage import StageDelegate
-
-    d = StageDelegate(stage)
-    snap = d.snapshot(d.start_time)
-    if snap.prototypes:
-        raise ValueError("mitsuba_scene: instanced geometry is not converted")
-    cam = snap.camera
-    w, h = cam.resolution(width)
-    m = cam.xform
-    eye, fwd, up = m[:3, 3], -m[:3, 2], m[:3, 1]
-    fov = math.degrees(2.0 * math.atan(cam.horizontal_aperture / (2.0 * cam.focal_length)))
-    scene = {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
-        "sensor": {"type": "perspective", "fov": fov, "fov_axis": "x",
-                   "near_clip": float(cam.clipping_range[0]), "far_clip": float(cam.clipping_range[1]),
-                   "to_world": mi.ScalarTransform4f.look_at(origin=eye.tolist(), target=(eye + fwd).tolist(),
-                                                            up=up.tolist()),
-                   "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)}},
-    }
-    for i, mesh in enumerate(snap.meshes):
-        rho = np.asarray(mesh.albedo, np.float64).reshape(-1, 3)
-        bsdf = mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse",
-                             "reflectance": {"type": "rgb", "value": rho.mean(axis=0).tolist()}}})
-        props = mi.Properties()
-        props["bsdf"] = bsdf
-        mm = mi.Mesh(f"mesh{i}", len(mesh.points), len(mesh.triangles), props=props)
-        params = mi.traverse(mm)
-        params["vertex_positions"] = np.asarray(mesh.points, np.float32).ravel()
-        params["faces"] = np.asarray(mesh.triangles, np.uint32).ravel()
-        params.update()
-        scene[f"mesh{i}"] = mm
-    lights = snap.lights
-    for i in range(len(lights)):
-        if int(lights.type[i]) not in (int(LightType.POINT), int(LightType.SPHERE)):
-            raise ValueError(f"mitsuba_scene: light {lights.paths[i]} is not a point light")
-        scene[f"light{i}"] = {"type": "point", "position": np.asarray(lights.position[i], float).tolist(),
-                              "intensity": {"type": "rgb", "value": np.asarray(lights.intensity[i], float).tolist()}}
-    return scene
-
-
 def render_mitsuba(stage: str, width: int, bounces: int, spp: int, seed: int = 0) -> dict:
-    """``{"direct", "indirect"}`` (H, W, 3) float32 path traced by Mitsuba 3 (``scalar_rgb``)."""
-    import mitsuba as mi
+    """``{"direct", "indirect"}`` (H, W, 3) float32 path traced by Mitsuba 3 (``scalar_rgb``) from the
+    stage as :mod:`usdml.reference` reads it with pxr alone (none of usdml's stage code)."""
+    from usdml import reference
 
-    mi.set_variant("scalar_rgb")
-    out = {}
-    for name, depth in (("direct", 2), ("all", bounces + 2)):
-        scene = mi.load_dict(mitsuba_scene(stage, width, depth, spp, seed))
-        out[name] = np.array(mi.render(scene, spp=int(spp), seed=int(seed)), np.float32)[..., :3]
-    return {"direct": out["direct"], "indirect": out["all"] - out["direct"]}
+    scene = reference.load(stage, None, width)
+    direct, total = (reference.render(scene, spp, b, seed, by_light=False) for b in (0, bounces))
+    return {"direct": direct, "indirect": total - direct}
 
 
 # ---------------------------------------------------------------------------------------------- measures

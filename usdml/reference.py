@@ -136,15 +136,16 @@ def _camera(stage: Usd.Stage, time: Usd.TimeCode, cache: UsdGeom.XformCache, wid
     return sensor, height
 
 
-def load(stage_path: str, time: float, width: int, folder: str | None = None) -> ReferenceScene:
-    """The stage at ``time`` as a Mitsuba scene ``width`` pixels wide (height from the apertures).
+def load(stage_path: str, time: float | None, width: int, folder: str | None = None) -> ReferenceScene:
+    """The stage at ``time`` (None: its start time code) as a Mitsuba scene ``width`` pixels wide
+    (height from the apertures).
 
     Meshes are written as OBJ files into ``folder`` (a temporary one by default) for Mitsuba's
     loader; faces are grouped by albedo.
     """
     mi = mitsuba()
     stage = Usd.Stage.Open(str(stage_path))
-    t = Usd.TimeCode(time)
+    t = Usd.TimeCode(stage.GetStartTimeCode() if time is None else time)
     cache = UsdGeom.XformCache(t)
     to_metres = UsdGeom.GetStageMetersPerUnit(stage)
     folder = folder or tempfile.mkdtemp(prefix="usdml-reference-")
@@ -181,18 +182,22 @@ def load(stage_path: str, time: float, width: int, folder: str | None = None) ->
                           float(np.linalg.norm(hi - lo)))
 
 
-def render(ref: ReferenceScene, spp: int, bounces: int = 0, seed: int = 0) -> np.ndarray:
+def render(ref: ReferenceScene, spp: int, bounces: int = 0, seed: int = 0,
+           by_light: bool | None = None) -> np.ndarray:
     """``(H, W, 3)`` float32 linear radiance, box-filtered over each pixel with ``spp`` stratified
     samples: direct light only (``bounces = 0``) or up to ``bounces`` diffuse bounces after it.
 
-    Direct light is rendered one light at a time and summed, so the only noise left is where in the
-    pixel a sample lands (a path tracer picking one of many lights per sample is far noisier).
+    ``by_light`` (default: for direct light only) renders one light at a time and sums, so the only
+    noise left in direct light is where in the pixel a sample lands (a path tracer picking one of
+    many lights per sample is far noisier); without it, two renders of one seed share their samples,
+    so their difference (indirect = all bounces − direct) cancels the direct part sample by sample.
     """
     mi = mitsuba()
     integrator = mi.load_dict({"type": "path", "max_depth": bounces + 2, "hide_emitters": True})
     sampler = {"type": "stratified", "sample_count": spp, "jitter": True}
     ref.definition["sensor"]["sampler"] = sampler
-    groups = [[i] for i in range(len(ref.lights))] if bounces == 0 else [None]
+    by_light = bounces == 0 if by_light is None else by_light
+    groups = [[i] for i in range(len(ref.lights))] if by_light else [None]
     image = np.zeros((ref.height, ref.width, 3), np.float64)
     for k, lights in enumerate(groups):
         image += np.array(mi.render(ref.scene(lights), integrator=integrator, spp=spp, seed=seed + k), np.float64)
