@@ -103,6 +103,23 @@ def test_usdz_rigged_figure_loads_skinned(assets):
     assert not np.allclose(a.meshes[0].points, b.meshes[0].points)
 
 
+def test_skinned_polygonal_mesh_with_authored_normals_shades_smooth(assets):
+    """RiggedFigure (a glTF export: subdivisionScheme none, primvars:normals, skinned): its normals
+    come from the posed points, smooth (one per point), not faceted as a normal-less polygon mesh."""
+    d = StageDelegate(str(assets / "usd-wg/USDZ/RiggedFigure/RiggedFigure.usdz"))
+    mesh = d.snapshot(10).meshes[0]
+    p = mesh.points.astype(np.float64)[mesh.triangles]
+    face = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    keep = np.linalg.norm(face, axis=1) > 0
+    face = face[keep] / np.linalg.norm(face[keep], axis=1, keepdims=True)
+    along = np.einsum("tcj,tj->tc", mesh.normals[keep].astype(np.float64), face)
+    assert (along < 0.9999).mean() > 0.5            # most corners lean off their triangle's plane
+    by_point: dict[int, list] = {}
+    for v, n in zip(mesh.triangles.ravel(), mesh.normals.reshape(-1, 3)):
+        by_point.setdefault(int(v), []).append(n)
+    assert all(np.allclose(ns, ns[0], atol=1e-5) for ns in by_point.values())
+
+
 #: OpenUSD's testUsdImagingGLUsdSkel arm (bogus authored normals) and usdview's bake of it (tests/data/README.md)
 ARM = Path(__file__).parent / "data/openusd/arm.usda"
 ARM_BAKED = Path(__file__).parent / "data/openusd/arm_baked.usda"

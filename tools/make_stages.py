@@ -941,7 +941,7 @@ BEAR_JOINTS = [
 
 
 def load_bear():
-    """Points/topology of the first Mesh in warp's bundled bear.usd."""
+    """Points, topology and (faceVarying) normals of the first Mesh in warp's bundled bear.usd."""
     import warp.examples
     src = Usd.Stage.Open(os.path.join(warp.examples.get_asset_directory(), "bear.usd"))
     mesh = next(UsdGeom.Mesh(p) for p in src.Traverse() if p.IsA(UsdGeom.Mesh))
@@ -950,7 +950,9 @@ def load_bear():
     pts = (np.c_[pts, np.ones(len(pts))] @ xf)[:, :3] * BEAR_SCALE
     counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
     indices = np.array(mesh.GetFaceVertexIndicesAttr().Get())
-    return pts, counts, indices
+    normals = np.array(mesh.GetNormalsAttr().Get(), dtype=float) @ np.linalg.inv(xf[:3, :3]).T
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return pts, counts, indices, normals
 
 
 def bear_joints(pts):
@@ -1015,7 +1017,7 @@ def translation_matrix(t):
 
 def write_bear_asset(out_dir):
     """Rigged bear: SkelRoot > Skeleton + skinned Mesh (bind pose = rest)."""
-    pts, counts, indices = load_bear()
+    pts, counts, indices, normals = load_bear()
     joints, ends = bear_joints(pts)
     jidx, jw = skin_weights(pts, joints, ends)
 
@@ -1044,6 +1046,9 @@ def write_bear_asset(out_dir):
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(indices.tolist()))
     mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(points))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    # the source's smooth normals: skinning ignores them, but they say the bear shades smooth
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(settled(normals, 6).astype(np.float32)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
     set_display_color(mesh, [(0.36, 0.24, 0.15)])
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skel.GetPath()])

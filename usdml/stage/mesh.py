@@ -182,7 +182,8 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
     Authored normals are read only for polygonal meshes (``subdivisionScheme = "none"``): usdImaging's
     mesh adapter drops them on subdivision surfaces (catmullClark, the schema default, loop, bilinear),
     whose normals come from the surface. Without normals, polygonal meshes shade faceted, subdivision
-    meshes smooth.
+    meshes smooth; so does a polygonal mesh whose authored normals are ignored (``authored_normals``
+    False: skinned), since it authored them smooth.
     Returns None (after a warning) for a mesh with nothing renderable.
     """
     mesh = UsdGeom.Mesh(prim)
@@ -190,19 +191,21 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
         points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3, f"{prim.GetPath()}.points", warn)
     normals = None
     polygonal = mesh.GetSubdivisionSchemeAttr().Get(time) == UsdGeom.Tokens.none
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+    primvar = bool(pv and pv.HasAuthoredValue())
     if authored_normals and polygonal:
-        pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
-        if pv and pv.HasAuthoredValue():
-            normals = (pv.ComputeFlattened(time), pv.GetInterpolation())
-        else:
-            normals = (mesh.GetNormalsAttr().Get(time), mesh.GetNormalsInterpolation())
+        normals = (pv.ComputeFlattened(time), pv.GetInterpolation()) if primvar else \
+            (mesh.GetNormalsAttr().Get(time), mesh.GetNormalsInterpolation())
+    # authored normals that do not follow the pose (a skinned mesh) still say the surface is smooth:
+    # a skinned character exported polygonal (glTF, FBX) shades smooth from its posed points
+    smooth_intent = not authored_normals and (primvar or mesh.GetNormalsAttr().HasAuthoredValue())
     return build_mesh(
         prim, time, mesh_id, points,
         *(_array(a.Get(time), np.int64, None, f"{prim.GetPath()}.{a.GetName()}", warn)
           for a in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr(), mesh.GetHoleIndicesAttr())),
         mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded, to_space, normals,
         bool(mesh.GetDoubleSidedAttr().Get(time)), deforming, warn, materials,
-        faceted=polygonal)
+        faceted=polygonal and not smooth_intent)
 
 
 def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndarray, counts: np.ndarray,
