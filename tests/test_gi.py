@@ -87,7 +87,7 @@ def test_compare_gi_json(capsys):
     out = json.loads(capsys.readouterr().out)
     assert {"rel_rmse", "seconds", "speedup", "vpls", "pixels"} <= set(out)
     assert out["vpls"] == 1000 and out["seconds"]["lgh"] > 0 and out["seconds"]["vpl-bruteforce"] > 0
-    assert 0 < out["rel_rmse"] < 2
+    assert 0 < out["rel_rmse"] < 0.35           # measured 0.260 (1000 VPLs, 32 px)
     assert out["lgh_start_level"] == 1 and out["breakdown"]["lgh"]["filter_iterations"] == 3
 
 
@@ -98,7 +98,7 @@ def test_compare_gi_with_s0_and_more_samples(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["lgh_start_level"] == 0 and out["shadow_samples"] == 16
     assert out["breakdown"]["lgh"]["filter_iterations"] == 1
-    assert 0 < out["rel_rmse"] < 2
+    assert 0 < out["rel_rmse"] < 0.3            # measured 0.213: S0 and 16 samples, below the default's 0.260
 
 
 @pytest.mark.parametrize("flag,value", [("--lgh-start-level", "2"), ("--shadow-filter-iterations", "11")])
