@@ -34,10 +34,6 @@ def _usdml(samples: int) -> dict:
         r.close()
 
 
-def _relative_rmse(got, ref):
-    return float(np.sqrt(np.mean((got.astype(np.float64) - ref) ** 2)) / np.mean(ref))
-
-
 def test_exact_shadows_and_direct_light_match_mitsuba_at_pixel_centres(boxes):
     shadow, facing, direct = reference.shadow_fraction(boxes)
     b = _usdml(1)
@@ -46,11 +42,11 @@ def test_exact_shadows_and_direct_light_match_mitsuba_at_pixel_centres(boxes):
     # with smooth normals on these boxes usdml was 0.057 off per pixel here (bias +0.048) and 9 % dark
     assert np.abs(b["shadow"] - shadow).mean() < 1e-3
     assert abs(b["direct"].mean() / direct.mean() - 1) < 2e-3
-    assert _relative_rmse(b["direct"], direct) < 0.01
+    assert reference.relative_rmse(b["direct"], direct) < 0.01
 
 
 def test_pixel_samples_approach_a_pixel_integrated_mitsuba_render(boxes):
     truth = reference.render(boxes, spp=256)
-    error = {n: _relative_rmse(_usdml(n)["direct"], truth) for n in (1, 16)}
+    error = {n: reference.relative_rmse(_usdml(n)["direct"], truth) for n in (1, 16)}
     assert error[1] > 0.12
     assert error[16] < 0.5 * error[1] and error[16] < 0.06

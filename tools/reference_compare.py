@@ -28,10 +28,7 @@ import time
 
 import numpy as np
 
-
-def relative_rmse(got: np.ndarray, ref: np.ndarray) -> float:
-    """RMSE over every pixel and channel, divided by the reference's mean."""
-    return float(np.sqrt(np.mean((got.astype(np.float64) - ref) ** 2)) / np.mean(ref))
+from usdml.reference import relative_rmse
 
 
 def render_usdml(stage: str, width: int, samples: int, out: str) -> float:

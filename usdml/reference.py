@@ -204,6 +204,12 @@ def render(ref: ReferenceScene, spp: int, bounces: int = 0, seed: int = 0,
     return image.astype(np.float32)
 
 
+def relative_rmse(got: np.ndarray, reference: np.ndarray) -> float:
+    """RMSE of ``got`` over every pixel and channel, divided by the reference image's mean."""
+    reference = np.asarray(reference, np.float64)
+    return float(np.sqrt(np.mean((np.asarray(got, np.float64) - reference) ** 2)) / np.mean(reference))
+
+
 def shadow_fraction(ref: ReferenceScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """At every pixel centre: ``(shadow (H, W), facing (H, W), direct (H, W, 3))`` from Mitsuba's
     intersector.
