@@ -74,6 +74,32 @@ def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
     return np.einsum("nij,vj->nvi", proto.xforms[:, :3, :3], p) + proto.xforms[:, None, :3, 3]
 
 
+def _cuda_available() -> bool:
+    """Whether Warp sees a CUDA device (False, not an error, where Warp has no CUDA build or driver)."""
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        return wp.is_cuda_available()
+    except Exception:   # no usable Warp: the cuda cases skip, and the cpu ones fail loudly on their own
+        return False
+
+
+#: one case per Warp device, as Warp's own tests (``add_function_test``) and Mitsuba's variant fixtures do:
+#: the CUDA path runs wherever a GPU exists and is skipped, by name, where there is none
+DEVICES = [
+    pytest.param("cpu", id="cpu"),
+    pytest.param("cuda:0", id="cuda_0", marks=pytest.mark.skipif(not _cuda_available(), reason="no CUDA device")),
+]
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    """The Warp device a kernel test runs on: ``cpu``, and ``cuda:0`` where a GPU is present."""
+    return request.param
+
+
 @pytest.fixture
 def warnings_log(caplog):
     caplog.set_level(logging.WARNING, logger="usdml")

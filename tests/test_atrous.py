@@ -11,23 +11,6 @@ from usdml.lighting.atrous import (atrous_filter, atrous_filter_reference, deint
                                    pixel_footprint, tile_index)
 
 
-def _cuda_available() -> bool:
-    try:
-        import warp as wp
-
-        wp.config.quiet = True
-        wp.init()
-        return wp.is_cuda_available()
-    except Exception:   # no usable Warp build: the cuda tests are skipped, the cpu ones fail loudly
-        return False
-
-
-DEVICES = [
-    pytest.param("cpu", id="cpu"),
-    pytest.param("cuda:0", id="cuda_0", marks=pytest.mark.skipif(not _cuda_available(), reason="no CUDA device")),
-]
-
-
 def _gbuffer(h: int, w: int, rng: np.random.Generator, tilt: float = 0.15):
     """A bumpy plane z ≈ 0 seen from +Z: normals near +Z, positions on a 0.1-unit pixel grid far from the origin."""
     n = rng.normal(size=(h, w, 3)) * tilt + np.array([0.0, 0.0, 1.0])
@@ -37,7 +20,6 @@ def _gbuffer(h: int, w: int, rng: np.random.Generator, tilt: float = 0.15):
     return n.astype(np.float32), p
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_constant_image_unchanged(device):
     rng = np.random.default_rng(1)
     h, w = 20, 27
@@ -52,7 +34,6 @@ def test_constant_image_unchanged(device):
     np.testing.assert_allclose(out1, 2.5, rtol=1e-6)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("channels", [None, 3])
 @pytest.mark.parametrize("sigma_normal", [128.0, 8.0])
 def test_matches_numpy_reference(device, channels, sigma_normal):
@@ -84,7 +65,6 @@ def _corner(h: int, w: int, rng: np.random.Generator, sigma: float = 0.05):
     return noisy, truth, n, p, left
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_edges_kept_noise_removed(device):
     rng = np.random.default_rng(3)
     h, w = 48, 64
@@ -101,7 +81,6 @@ def test_edges_kept_noise_removed(device):
         assert after * 4 < before, (before, after)
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_depth_gap_stops_position_term(device):
     """Same normal on both sides, but the right half is 1 world unit (100 footprints) behind the left."""
     h, w = 32, 64
@@ -118,7 +97,6 @@ def test_depth_gap_stops_position_term(device):
     assert np.abs(out - v).max() > 0.1
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_invalid_pixels_untouched_and_ignored(device):
     rng = np.random.default_rng(4)
     h, w = 24, 30

@@ -37,7 +37,7 @@ def _lum(image):
 
 
 @pytest.mark.parametrize("method,settings,low,high", [
-    ("vpl-bruteforce", {}, 0.98, 1.02),
+    pytest.param("vpl-bruteforce", {}, 0.98, 1.02, marks=pytest.mark.slow),    # 6 s: every VPL, exact rays
     # the hierarchy at the default alpha 1 (measured 0.86): every point of a sphere sees all of it, so the
     # coarse levels, whose grid lights sit inside the sphere, carry most of the light
     ("lgh", {}, 0.82, 0.90),
@@ -69,7 +69,9 @@ def test_mitsuba_max_depth_is_bounces_plus_two(furnace):
                                    rtol=0.01)
 
 
-@pytest.mark.parametrize("method,energy,blocks", [("vpl-bruteforce", 0.04, 0.05), ("lgh", 0.1, 0.15)])
+@pytest.mark.parametrize("method,energy,blocks", [
+    pytest.param("vpl-bruteforce", 0.04, 0.05, marks=pytest.mark.slow),          # 9 s: every VPL, exact rays
+    ("lgh", 0.1, 0.15)])
 def test_indirect_energy_matches_path_tracing(box, mitsuba_box, method, energy, blocks):
     """Closed box, two point lights: direct within 1 %; indirect energy and median 16x16-block error within
     the targets (10 %, 15 %), tighter for brute force (measured 5000 VPLs, 32 px: brute force 0.982 / 1.3 %,

@@ -12,15 +12,8 @@ wp = pytest.importorskip("warp")
 wp.config.quiet = True
 wp.init()
 
-# one parameter per Warp device, as Warp's own tests do: the CUDA path is tested wherever a GPU exists
-DEVICES = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 CITY = np.array([360.0, 120.0, 360.0])
-
-
-@pytest.fixture(params=DEVICES)
-def device(request) -> str:
-    return request.param
 
 
 def random_lights(n: int, box=CITY, seed: int = 0, offset=(0.0, 0.0, 0.0)):

@@ -21,12 +21,12 @@ def _blend_sum(d: wp.array(dtype=float), levels: int, alpha: float, h1: float, o
 
 
 @pytest.mark.parametrize("levels,alpha", [(1, 1.0), (2, 1.0), (4, 1.0), (6, 2.0), (5, 0.5)])
-def test_blending_functions_are_a_partition_of_unity(levels, alpha):
+def test_blending_functions_are_a_partition_of_unity(levels, alpha, device):
     wp.init()
     d = np.concatenate([np.linspace(0, 200, 4001), [1e-6, 1e6]]).astype(np.float32)
-    out = wp.zeros(len(d), dtype=float, device="cpu")
-    wp.launch(_blend_sum, dim=len(d), inputs=[wp.array(d, dtype=float, device="cpu"), levels, alpha, 1.0, out],
-              device="cpu")
+    out = wp.zeros(len(d), dtype=float, device=device)
+    wp.launch(_blend_sum, dim=len(d), inputs=[wp.array(d, dtype=float, device=device), levels, alpha, 1.0, out],
+              device=device)
     np.testing.assert_allclose(out.numpy(), 1.0, atol=1e-5)
 
 
@@ -40,7 +40,7 @@ def _one_level(positions, intensities, spacing=100.0):
 
 
 @pytest.mark.parametrize("samples", [2, 16])
-def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samples):
+def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samples, device):
     rng = np.random.default_rng(1)
     lights = np.array([[0, 5, 0], [3, 4, 1], [-2, 6, 2], [1, 2, -3], [4, 9, 0]], np.float32)
     inten = rng.uniform(0.2, 3.0, (5, 3)).astype(np.float32)
@@ -48,7 +48,7 @@ def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samp
     points = np.zeros((n, 3), np.float32)
     normals = np.tile(np.float32([0, 1, 0]), (n, 1))
     lgh = _one_level(lights, inten)
-    out = lgh_lighting(points, normals, lgh, alpha=1.0, samples=samples, seed=3, clamp_distance=1e-3)
+    out = lgh_lighting(points, normals, lgh, device=device, alpha=1.0, samples=samples, seed=3, clamp_distance=1e-3)
     # analytic contributions f_i = lum(I_i) cos / d²
     d2 = (lights ** 2).sum(1)
     f = (inten @ LUMA) * (lights[:, 1] / np.sqrt(d2)) / d2
@@ -62,18 +62,19 @@ def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samp
     chi2 = ((counts - exp) ** 2 / exp).sum()
     assert chi2 < 18.5            # chi-square, 4 degrees of freedom, p = 0.001
     # deterministic for a seed
-    again = lgh_lighting(points[:100], normals[:100], lgh, samples=samples, seed=3, clamp_distance=1e-3)
+    again = lgh_lighting(points[:100], normals[:100], lgh, device=device, samples=samples, seed=3, clamp_distance=1e-3)
     assert np.array_equal(again.sample_pos, out.sample_pos[:100])
 
 
-def test_lights_behind_the_surface_are_not_sampled():
+def test_lights_behind_the_surface_are_not_sampled(device):
     lgh = _one_level([[0, -5, 0], [0, 5, 0]], [[1, 1, 1], [1, 1, 1]])
-    out = lgh_lighting(np.zeros((50, 3)), np.tile([0.0, 1.0, 0.0], (50, 1)), lgh, samples=1, clamp_distance=1e-3)
+    out = lgh_lighting(np.zeros((50, 3)), np.tile([0.0, 1.0, 0.0], (50, 1)), lgh, device=device, samples=1,
+                       clamp_distance=1e-3)
     assert np.allclose(out.sample_pos[:, 0], [0, 5, 0])
     np.testing.assert_allclose(out.irradiance[:, 1], 1 / 25, rtol=1e-5)
 
 
-def test_interleaved_sampling_is_unbiased_over_a_tile():
+def test_interleaved_sampling_is_unbiased_over_a_tile(device):
     """Each pixel of an n x n tile gathers 1/n² of the lights × n²: the tile average equals the full sum."""
     rng = np.random.default_rng(4)
     lights = rng.uniform([-5, 1, -5], [5, 6, 5], (37, 3)).astype(np.float32)
@@ -81,8 +82,9 @@ def test_interleaved_sampling_is_unbiased_over_a_tile():
     lgh = _one_level(lights, inten)
     pts = np.zeros((16, 3), np.float32)
     nrm = np.tile(np.float32([0, 1, 0]), (16, 1))
-    full = lgh_lighting(pts[:1], nrm[:1], lgh, samples=0, clamp_distance=1e-3).irradiance[0]
-    tiled = lgh_lighting(pts, nrm, lgh, samples=0, clamp_distance=1e-3, tile=np.arange(16), tiles=16).irradiance
+    full = lgh_lighting(pts[:1], nrm[:1], lgh, device=device, samples=0, clamp_distance=1e-3).irradiance[0]
+    tiled = lgh_lighting(pts, nrm, lgh, device=device, samples=0, clamp_distance=1e-3, tile=np.arange(16),
+                         tiles=16).irradiance
     np.testing.assert_allclose(tiled.mean(0), full, rtol=1e-5)
     assert not np.allclose(tiled[0], full)
 
@@ -99,7 +101,7 @@ def _random_lights(seed: int, lights: int, points: int):
     return pos, inten, build_lgh(pos, inten, levels=3), pts, nrm
 
 
-def test_s0_start_is_exact_when_every_light_is_in_its_reach():
+def test_s0_start_is_exact_when_every_light_is_in_its_reach(device):
     """With S0 the input lights are the finest level: once r_0 = alpha h_1 / 2 covers every light, the
     blending leaves all the weight on S0 and the LGH sum is the brute-force sum, light by light."""
     lights, inten, lgh, pts, nrm = _random_lights(7, 300, 64)
@@ -109,18 +111,19 @@ def test_s0_start_is_exact_when_every_light_is_in_its_reach():
     d2 = (w ** 2).sum(-1)
     g = np.maximum(w[..., 1], 0) / np.sqrt(d2) / np.maximum(d2, clamp ** 2)
     exact = (g[..., None] * inten[None]).sum(1)
-    s0 = lgh_lighting(pts, nrm, lgh, alpha=alpha, samples=0, clamp_distance=clamp, s0=(lights, inten)).irradiance
+    s0 = lgh_lighting(pts, nrm, lgh, device=device, alpha=alpha, samples=0, clamp_distance=clamp, s0=(lights,
+                      inten)).irradiance
     np.testing.assert_allclose(s0, exact, rtol=1e-4)
-    s1 = lgh_lighting(pts, nrm, lgh, alpha=1.0, samples=0, clamp_distance=clamp).irradiance
+    s1 = lgh_lighting(pts, nrm, lgh, device=device, alpha=1.0, samples=0, clamp_distance=clamp).irradiance
     assert np.abs(s1 - exact).max() / exact.max() > 1e-2     # S1 alone is an approximation
 
 
-def test_s0_samples_point_at_the_input_lights():
+def test_s0_samples_point_at_the_input_lights(device):
     """A shadow sample drawn on an S0 light carries index M + i and the light's own position."""
     from usdml.lighting.lgh_lighting import ClusterSampler
 
     lights, inten, lgh, pts, nrm = _random_lights(8, 200, 400)
-    out = lgh_lighting(pts, nrm, lgh, alpha=2.0, samples=4, clamp_distance=0.05, s0=(lights, inten))
+    out = lgh_lighting(pts, nrm, lgh, device=device, alpha=2.0, samples=4, clamp_distance=0.05, s0=(lights, inten))
     grid = sum(len(lv.position) for lv in lgh.levels)
     picked = out.sample_light[out.sample_ok]
     own = picked >= grid
@@ -131,7 +134,7 @@ def test_s0_samples_point_at_the_input_lights():
     np.testing.assert_allclose(targets[own], lights[picked[own] - grid])
 
 
-def test_shadowed_estimate_is_unbiased_per_colour_channel():
+def test_shadowed_estimate_is_unbiased_per_colour_channel(device):
     """A red light that is blocked and a green one that is not: the shadowed estimate F · mean(V e / f)
     averages to the green light's irradiance alone; a luminance visibility fraction would tint it."""
     from usdml.lighting.lgh_lighting import shadow_fraction
@@ -141,7 +144,7 @@ def test_shadowed_estimate_is_unbiased_per_colour_channel():
     n = 20000
     pts = np.zeros((n, 3), np.float32)
     nrm = np.tile(np.float32([0, 1, 0]), (n, 1))
-    shading = lgh_lighting(pts, nrm, _one_level(lights, inten), samples=4, seed=5, clamp_distance=1e-3)
+    shading = lgh_lighting(pts, nrm, _one_level(lights, inten), device=device, samples=4, seed=5, clamp_distance=1e-3)
 
     def occluded(origins, targets, normals=None):
         return np.asarray(targets)[:, 0] < 0          # the red light (x = -1) is behind a wall
@@ -174,7 +177,7 @@ def _blend_np(level, top, d, r):
 
 
 @pytest.mark.parametrize("alpha,start", [(1.0, 1), (2.0, 1), (1.5, 0)])
-def test_gather_visits_every_grid_light_that_counts(alpha, start):
+def test_gather_visits_every_grid_light_that_counts(alpha, start, device):
     """The kernel visits only the vertices near a point; the sum must equal the blended sum over every
     grid light of every level (and every input light as S0), computed without any window."""
     from usdml.lighting.lgh import build_lgh
@@ -188,7 +191,7 @@ def test_gather_visits_every_grid_light_that_counts(alpha, start):
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     clamp = 0.05
     s0 = (lights, inten) if start == 0 else None
-    got = lgh_lighting(pts, nrm, lgh, alpha=alpha, samples=0, clamp_distance=clamp, s0=s0).irradiance
+    got = lgh_lighting(pts, nrm, lgh, device=device, alpha=alpha, samples=0, clamp_distance=clamp, s0=s0).irradiance
     layers = ([(lights, inten, 0.5 * lgh.h1)] if start == 0 else []) + \
         [(lv.position, lv.intensity, lv.spacing) for lv in lgh.levels]
     top = len(layers) - 1
@@ -204,7 +207,7 @@ def test_gather_visits_every_grid_light_that_counts(alpha, start):
 
 
 @pytest.mark.parametrize("start", [1, 0])
-def test_one_cosine_emitter_is_lambertian_at_every_distance(start):
+def test_one_cosine_emitter_is_lambertian_at_every_distance(start, device):
     """A VPL with a normal is the Lambertian emitter Φ·cos θ_l / π (I = Φ/4π, lobe 4·max(0, cos θ_l)) on
     every level: its grid lights share its position and normal, and the blending weights sum to one.
     Analytic reference: E = Φ cos θ_l cos θ_s / (π d²)."""
@@ -221,7 +224,7 @@ def test_one_cosine_emitter_is_lambertian_at_every_distance(start):
     d = np.linalg.norm(w, axis=1, keepdims=True)
     nrm = (w / d).astype(np.float32)                               # receivers face the light
     s0 = (q, inten, n_l) if start == 0 else None
-    got = lgh_lighting(pts, nrm, lgh, alpha=1.0, samples=0, clamp_distance=1e-4, s0=s0).irradiance
+    got = lgh_lighting(pts, nrm, lgh, device=device, alpha=1.0, samples=0, clamp_distance=1e-4, s0=s0).irradiance
     cos_l = np.maximum(-(w / d) @ n_l[0], 0.0)
     want = flux * (cos_l / (np.pi * d[:, 0] ** 2))[:, None]
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)

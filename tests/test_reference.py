@@ -45,6 +45,7 @@ def test_exact_shadows_and_direct_light_match_mitsuba_at_pixel_centres(boxes):
     assert reference.relative_rmse(b["direct"], direct) < 0.01
 
 
+@pytest.mark.slow      # 6 s: a 16-sample usdml render against a pixel-integrated Mitsuba one
 def test_pixel_samples_approach_a_pixel_integrated_mitsuba_render(boxes):
     truth = reference.render(boxes, spp=256)
     error = {n: reference.relative_rmse(_usdml(n)["direct"], truth) for n in (1, 16)}

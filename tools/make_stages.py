@@ -31,12 +31,16 @@ significant digits.
 
 Everything is seeded; no timestamps are written, and every computed value is
 rounded before it is written (``settled``: matrices to 1e-9, positions to 1e-5
-scene units), so re-running produces byte-identical files with any numpy, on
-any machine: last-ulp differences of its arithmetic never reach the file.
+scene units), so re-running reproduces the files with any numpy, on any machine.
+``--check`` regenerates into a scratch folder and compares layer by layer: the same
+specs and fields, numbers within ``CHECK_TOLERANCE`` (a last-digit flip of a settled
+value passes; a moved point, light or frame does not).
 """
 import argparse
 import math
 import os
+import sys
+import tempfile
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
@@ -1657,12 +1661,91 @@ def make_boxes(out_dir):
     return {"boxes": 25, "lights": 16}
 
 
+#: absolute tolerance of ``--check`` on every number of a layer: twice the finest rounding ``settled`` writes
+#: positions with (1e-5), so one last-digit flip passes and any real change fails
+CHECK_TOLERANCE = 2e-5
+
+
+def _same_value(a, b, tol: float) -> bool:
+    """Whether two layer field values agree: numbers (scalars, Gf vectors/matrices, Vt arrays) within ``tol``,
+    dictionaries and lists element by element, everything else exactly."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same_value(a[k], b[k], tol) for k in a)
+    if isinstance(a, (bool, str)) or isinstance(b, (bool, str)) or a is None or b is None:
+        return a == b
+    try:
+        x, y = np.asarray(a), np.asarray(b)
+    except Exception:
+        return a == b
+    if x.dtype.kind in "fiu" and y.dtype.kind in "fiu":
+        return x.shape == y.shape and bool(np.all(np.abs(x.astype(np.float64) - y.astype(np.float64)) <= tol))
+    if x.dtype == object or y.dtype == object:
+        if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+            return len(a) == len(b) and all(_same_value(u, v, tol) for u, v in zip(a, b))
+        return a == b
+    return x.shape == y.shape and bool(np.all(x == y))
+
+
+def _info(layer, spec, key: str):
+    """``spec``'s field ``key`` as Python values (the one field pxr's bindings cannot convert read another way)."""
+    if key == "subLayerOffsets":
+        return [(o.offset, o.scale) for o in layer.subLayerOffsets]
+    return spec.GetInfo(key)
+
+
+def layer_differences(path_a: str, path_b: str, tol: float = CHECK_TOLERANCE) -> list[str]:
+    """What differs between two USD layers (one line each, naming the spec and field); ``[]`` when none."""
+    a, b = Sdf.Layer.OpenAsAnonymous(path_a), Sdf.Layer.OpenAsAnonymous(path_b)
+    specs_a, specs_b = [], []
+    a.Traverse(Sdf.Path.absoluteRootPath, specs_a.append)
+    b.Traverse(Sdf.Path.absoluteRootPath, specs_b.append)
+    out = [f"<{p}> only in one of them" for p in sorted(set(specs_a) ^ set(specs_b))]
+    for p in specs_a:
+        if p not in set(specs_b):
+            continue
+        sa, sb = a.GetObjectAtPath(p), b.GetObjectAtPath(p)
+        if sa is None or sb is None:     # a path with no spec of its own (a relationship target, a variant)
+            continue
+        keys_a, keys_b = set(sa.ListInfoKeys()), set(sb.ListInfoKeys())
+        out += [f"<{p}>.{f} only in one of them" for f in sorted(keys_a ^ keys_b)]
+        out += [f"<{p}>.{f} differs" for f in sorted(keys_a & keys_b)
+                if not _same_value(_info(a, sa, f), _info(b, sb, f), tol)]
+    return out
+
+
+def stage_differences(committed: str, generated: str, tol: float = CHECK_TOLERANCE) -> list[str]:
+    """Every difference between two folders of generated stages: files on one side only, then layer differences."""
+    def files(root):
+        return sorted(os.path.relpath(os.path.join(d, f), root) for d, _, fs in os.walk(root) for f in fs)
+    fa, fb = files(committed), files(generated)
+    out = [f"{f}: only in one of them" for f in sorted(set(fa) ^ set(fb))]
+    for f in sorted(set(fa) & set(fb)):
+        out += [f"{f}: {line}" for line in layer_differences(os.path.join(committed, f), os.path.join(generated, f), tol)]
+    return out
+
+
 def main(argv=None):
     default_out = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "stages")
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default=default_out, help="output directory (default: <repo>/stages)")
+    parser.add_argument("--check", action="store_true",
+                        help="regenerate into a scratch folder and compare with --out; exit 1 listing what differs")
     args = parser.parse_args(argv)
-    out = os.path.abspath(args.out)
+    if args.check:
+        with tempfile.TemporaryDirectory() as scratch:
+            generate(scratch)
+            differences = stage_differences(os.path.abspath(args.out), scratch)
+        for line in differences[:50]:
+            print(line, file=sys.stderr)
+        if differences:
+            print(f"{len(differences)} difference(s): run tools/make_stages.py to regenerate", file=sys.stderr)
+        return 1 if differences else 0
+    generate(os.path.abspath(args.out))
+    return 0
+
+
+def generate(out: str) -> None:
+    """Write every sample stage under ``out`` and print what each holds."""
     for sub in ("", "assets", "anim"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
 
@@ -1676,4 +1759,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
