@@ -39,37 +39,25 @@ class Attribute(NamedTuple):
     default: object
 
 
-#: The schema's attributes, all uniform, with the papers' defaults. Kept by hand in step with
-#: schema.usda; tests/test_schema.py checks it against the registered prim definition.
-ATTRIBUTES: tuple[Attribute, ...] = (
-    Attribute("usdml:visibility", str, "exact"),             # token
-    Attribute("usdml:voxel:resolution", int, 128),           # paper 000
-    Attribute("usdml:voxel:directionStep", float, 2.0),      # degrees, k in paper 000
-    Attribute("usdml:voxel:fullyDynamic", bool, False),      # paper 000, Alg. 5
-    Attribute("usdml:voxel:rebuild", str, "rotate"),         # token, paper 000 Alg. 5 or Alg. 1
-    Attribute("usdml:voxel:mapping", str, "point"),          # token, Alg. 5's voxel mapping
-    Attribute("usdml:gi", str, "none"),                      # token
-    Attribute("usdml:vpl:bounces", int, 3),                  # paper 004
-    Attribute("usdml:vpl:count", int, 100_000),              # paper 004
-    Attribute("usdml:lgh:alpha", float, 1.0),                # r_l = alpha h_l, paper 004
-    Attribute("usdml:lgh:levels", int, 0),                   # 0 = automatic, paper 004
-    Attribute("usdml:lgh:interleave", int, 1),               # paper 004, interleaved sampling
-    Attribute("usdml:lgh:startLevel", int, 1),               # 1 = S1 (paper 004), 0 = S0
-    Attribute("usdml:shadow:samples", int, 4),               # paper 004
-    Attribute("usdml:shadow:filterIterations", int, -1),     # à-trous iterations, -1 = by samples
-    Attribute("usdml:shadow:targets", str, "cluster"),       # token: cluster, or jitter (paper 004)
-    Attribute("usdml:pixelSamples", int, 4),                 # s x s stratified primary rays, box filter
-    Attribute("usdml:seed", int, 0),
-)
+#: The schema's attributes, all uniform, with the papers' defaults (:data:`ATTRIBUTES`), and the
+#: allowed values of its token attributes (:data:`ALLOWED_TOKENS`): both follow from usdml's
+#: parameter table, :data:`usdml.params.PARAMS`, which ``tools/gen_schema.py`` writes schema.usda
+#: from; built when first asked for, so that importing this module imports neither usdml nor pxr.
+ATTRIBUTES: tuple[Attribute, ...]
+ALLOWED_TOKENS: dict[str, tuple[str, ...]]
 
-#: Allowed values of the token attributes.
-ALLOWED_TOKENS: dict[str, tuple[str, ...]] = {
-    "usdml:visibility": ("exact", "voxel", "insm", "svo"),
-    "usdml:gi": ("none", "lgh", "vpl-bruteforce"),
-    "usdml:voxel:rebuild": ("rotate", "geometry"),
-    "usdml:voxel:mapping": ("point", "conservative"),
-    "usdml:shadow:targets": ("cluster", "jitter"),
-}
+
+def __getattr__(name: str):
+    if name == "ATTRIBUTES":
+        from usdml.params import PARAMS
+
+        return tuple(Attribute(p.attribute, p.type, p.default) for p in PARAMS.values())
+    if name == "ALLOWED_TOKENS":
+        from usdml.params import PARAMS
+
+        return {p.attribute: tuple(p.choices) for p in PARAMS.values() if p.type is str and p.choices}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 _lock = threading.Lock()
 _registered = False

@@ -249,7 +249,7 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
     (["--frames", "9"], "outside the stage's range"),
     (["--frames", "1:x"], "FrameSpec"),
     (["--imageWidth", "0"], "--imageWidth 0"),
-    (["--visibility", "svo"], "not available yet"),
+    (["--visibility", "svo"], "unknown visibility backend 'svo'"),
     (["--aovs", "beauty"], "beauty"),
     (["--gi", "lgh", "--lgh-alpha", "nan"], "LGH alpha must be finite"),
     (["--seed", "-1"], "seed must be >= 0"),

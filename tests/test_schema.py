@@ -193,22 +193,43 @@ def test_generated_files_up_to_date():
 
 
 def test_check_detects_stale_files(tmp_path):
+    """--check fails when schema.usda's attributes are not the parameter table's, or when the generated
+    files are not schema.usda's; regenerating fixes both."""
     for name in ("schema.usda", "generatedSchema.usda", "plugInfo.json"):
         shutil.copy(schemas.PLUGIN_DIR / name, tmp_path / name)
-    schema = tmp_path / "schema.usda"
-    schema.write_text(schema.read_text().replace("uniform int usdml:seed = 0", "uniform int usdml:seed = 7"))
+    schema, generated = tmp_path / "schema.usda", tmp_path / "generatedSchema.usda"
 
     def run(*args):
         return subprocess.run([sys.executable, str(GEN_SCHEMA), str(schema), *args],
                               capture_output=True, text=True, timeout=120)
 
-    stale = run("--check")
-    assert stale.returncode == 1 and "usdml:seed = 7" in stale.stdout
-    assert run().returncode == 0
     assert run("--check").returncode == 0
-    assert "uniform int usdml:seed = 7" in (tmp_path / "generatedSchema.usda").read_text()
-    # regeneration is deterministic and keeps plugInfo.json as it was
-    assert (tmp_path / "plugInfo.json").read_text() == (schemas.PLUGIN_DIR / "plugInfo.json").read_text()
+    # a hand edit of a table attribute in schema.usda: stale against usdml/params.py, and undone
+    schema.write_text(schema.read_text().replace("uniform int usdml:seed = 0", "uniform int usdml:seed = 7"))
+    stale = run("--check")
+    assert stale.returncode == 1 and "-    uniform int usdml:seed = 7" in stale.stdout
+    assert "schema.usda" in stale.stderr and "generatedSchema.usda" not in stale.stderr
+    assert run().returncode == 0 and run("--check").returncode == 0
+    assert schema.read_text() == (schemas.PLUGIN_DIR / "schema.usda").read_text()
+    # a stale generated file
+    generated.write_text(generated.read_text().replace("uniform int usdml:seed = 0", "uniform int usdml:seed = 7"))
+    stale = run("--check")
+    assert stale.returncode == 1 and "generatedSchema.usda" in stale.stderr and "usdml:seed = 7" in stale.stdout
+    assert run().returncode == 0 and run("--check").returncode == 0
+    # regeneration is deterministic and keeps the files as they were
+    for name in ("schema.usda", "generatedSchema.usda", "plugInfo.json"):
+        assert (tmp_path / name).read_text() == (schemas.PLUGIN_DIR / name).read_text(), name
+
+
+def test_schema_outside_the_table_is_kept(tmp_path):
+    """Only UsdmlRenderSettingsAPI's body is the table's: the layer's doc and class metadata stay as written."""
+    for name in ("schema.usda", "generatedSchema.usda", "plugInfo.json"):
+        shutil.copy(schemas.PLUGIN_DIR / name, tmp_path / name)
+    schema = tmp_path / "schema.usda"
+    schema.write_text(schema.read_text().replace("usdml's render settings, applied", "usdml's settings, applied"))
+    assert subprocess.run([sys.executable, str(GEN_SCHEMA), str(schema)], capture_output=True, timeout=120).returncode == 0
+    assert 'doc = """usdml\'s settings, applied' in schema.read_text()
+    assert "usdml's settings, applied" in (tmp_path / "generatedSchema.usda").read_text()
 
 
 def test_settings_defaults_agree():

@@ -24,7 +24,7 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
-    from usdml.settings import VOXEL_MAPPINGS, VOXEL_REBUILDS
+    from usdml.params import add_cmdline_args, overrides_from_args
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("stage")
@@ -32,13 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imageWidth", type=int, default=192)
     p.add_argument("--frame", type=float, help="first of the two frames (default: the stage's start)")
     p.add_argument("--backends", default="voxel,exact")
-    p.add_argument("--voxel-resolution", type=int)
-    p.add_argument("--direction-step", type=float)
-    p.add_argument("--voxel-mapping", choices=VOXEL_MAPPINGS)
-    p.add_argument("--voxel-rebuild", choices=VOXEL_REBUILDS)
-    p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the resampled lights (default: %(default)s)")
     p.add_argument("--json", action="store_true")
+    add_cmdline_args(p, "bench")      # the voxel settings, as usdml bench takes them
     args = p.parse_args(argv)
 
     from usdml.bench import next_frame, resample_lights, steady_frame
@@ -46,8 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
     delegate = StageDelegate(args.stage)
     settings = delegate.usdml_settings.updated(
-        voxel_resolution=args.voxel_resolution, direction_step=args.direction_step,
-        voxel_mapping=args.voxel_mapping, voxel_rebuild=args.voxel_rebuild, fully_dynamic=args.fully_dynamic,
+        **overrides_from_args(args),
         pixel_samples=1)     # one primary ray per pixel: the visibility backends' cost, not anti-aliasing's
     f0 = delegate.start_time if args.frame is None else args.frame
     f1 = next_frame(delegate, f0)

@@ -88,8 +88,11 @@ def resample_lights(lights, n: int, seed: int = 0):
 
 
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
-                     frame: float | None = None, settings=None, backend_options: dict | None = None) -> list[dict]:
-    """One result per backend: build and query seconds on the same queries, ratios to ``exact``."""
+                     frame: float | None = None, settings=None, backend_options: dict | None = None,
+                     device: str = "cpu") -> list[dict]:
+    """One result per backend: build and query seconds on the same queries, ratios to ``exact``.
+
+    ``device`` is the Warp device the backends other than ``exact`` (Embree, on the CPU) run on."""
     stage = delegate.path
     frame = delegate.start_time if frame is None else frame
     snap = delegate.snapshot(frame)
@@ -109,7 +112,7 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             backend, build = exact, exact_build
         else:
             base = settings if settings is not None else delegate.usdml_settings
-            backend = backend_for(base.updated(visibility=name), **(backend_options or {}))
+            backend = backend_for(base.updated(visibility=name), device, **(backend_options or {}))
             t0 = _time.perf_counter()
             backend.update(snap, diff(None, snap))
             build = _time.perf_counter() - t0

@@ -13,6 +13,8 @@ import logging
 import sys
 import time
 
+from usdml.params import add_cmdline_args, overrides_from_args
+
 
 def _add_stage_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("stage", help="USD stage to read (.usd, .usda, .usdc, .usdz)")
@@ -25,7 +27,7 @@ def _add_stage_args(p: argparse.ArgumentParser) -> None:
                         "RenderSettings' includedPurposes, else 'render' -- final-frame geometry; "
                         "'proxy' for usdview's interactive look)")
     p.add_argument("--implicit-detail", type=int, default=10, metavar="N",
-                   help="segments around implicit prims (Sphere, Cylinder ...), default 10 as usdImaging")
+                   help="segments around implicit prims (Sphere, Cylinder ...); default %(default)s as usdImaging")
 
 
 #: imageable purposes besides 'default' (always drawn) that --purposes may name
@@ -73,61 +75,12 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _settings_overrides(args: argparse.Namespace) -> dict:
-    a = lambda name: getattr(args, name, None)     # noqa: E731 -- not every command has every flag
-    values = {"visibility": a("visibility"), "seed": a("seed"),
-              "dome_samples": a("dome_samples"), "gi": a("gi"), "vpl_count": a("vpls"),
-              "lgh_alpha": a("lgh_alpha"), "lgh_levels": a("lgh_levels"),
-              "shadow_samples": a("shadow_samples"), "interleave": a("interleave"),
-              "lgh_start_level": a("lgh_start_level"), "shadow_filter_iterations": a("shadow_filter_iterations"),
-              "shadow_targets": a("shadow_targets"),
-              "voxel_resolution": getattr(args, "voxel_resolution", None),
-              "direction_step": getattr(args, "direction_step", None),
-              "voxel_rebuild": a("voxel_rebuild"), "voxel_mapping": a("voxel_mapping"),
-              "fully_dynamic": a("fully_dynamic"), "pixel_samples": a("pixel_samples")}
-    return {k: v for k, v in values.items() if v is not None}
+    """The settings this command's flags gave (their flags come from the table: ``add_cmdline_args``)."""
+    return overrides_from_args(args)
 
 
-def _add_lighting_args(p: argparse.ArgumentParser) -> None:
-    from usdml.settings import SHADOW_TARGETS
-
-    p.add_argument("--seed", type=int, help="random seed (VPLs, shadow samples, dome light sampling)")
-    p.add_argument("--dome-samples", type=int, metavar="K",
-                   help="distant lights each DomeLight is importance-sampled into per frame (default 256)")
-    p.add_argument("--gi", choices=["none", "lgh", "vpl-bruteforce"],
-                   help="indirect light: VPLs through a lighting grid hierarchy (paper 004), or every VPL "
-                        "with exact visibility (reference); default: the stage's usdml:gi, else none")
-    p.add_argument("--vpls", type=int, metavar="N", help="virtual point lights per frame (default 100000)")
-    p.add_argument("--lgh-alpha", type=float, help="LGH blending radius factor alpha (default 1)")
-    p.add_argument("--lgh-levels", type=int, help="LGH levels (default 0 = the paper's rule)")
-    p.add_argument("--lgh-start-level", type=int, choices=[0, 1],
-                   help="finest LGH level lit from: 1 = S1 as the paper (default), 0 = the VPLs themselves (S0)")
-    p.add_argument("--shadow-samples", type=int, help="stochastic shadow samples per pixel (default 4)")
-    p.add_argument("--shadow-filter-iterations", type=int, metavar="N",
-                   help="a-trous iterations over the stochastic shadows (0 = unfiltered; default: 3 at 4 "
-                        "samples per pixel, one fewer per 4x more samples, at least 1)")
-    p.add_argument("--shadow-targets", choices=SHADOW_TARGETS,
-                   help="LGH shadow rays to a VPL of the chosen grid light (cluster, default) or to its centre "
-                        "jittered by its variance (jitter, as paper 004)")
-    p.add_argument("--interleave", type=int, choices=[1, 2, 4], help="interleaved sampling tile size (default 1)")
-
-
-def _add_voxel_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--voxel-resolution", type=int, metavar="N",
-                   help="voxels per axis of each direction's voxelization (default: usdml:voxel:resolution, else 128)")
-    p.add_argument("--direction-step", type=float, metavar="DEG",
-                   help="degrees between direction bins (default: usdml:voxel:directionStep, else 2)")
-    from usdml.settings import VOXEL_MAPPINGS, VOXEL_REBUILDS
-
-    p.add_argument("--voxel-rebuild", choices=VOXEL_REBUILDS,
-                   help="per-frame voxel arrays (deforming meshes, fully dynamic scenes): rotate one "
-                        "voxelization (paper 000 Alg. 5) or voxelize every direction (Alg. 1); "
-                        "default: usdml:voxel:rebuild, else rotate")
-    p.add_argument("--voxel-mapping", choices=VOXEL_MAPPINGS,
-                   help="Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) or every "
-                        "voxel it overlaps (conservative); default: usdml:voxel:mapping, else point")
-    p.add_argument("--fully-dynamic", action=argparse.BooleanOptionalAction, default=None,
-                   help="voxelize the whole scene every frame (Alg. 5) instead of a static array plus "
-                        "prototype arrays; default: usdml:voxel:fullyDynamic")
+def _add_device_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default: %(default)s)")
 
 
 def _cmd_bake(args: argparse.Namespace) -> int:
@@ -209,11 +162,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     _check_width(args.imageWidth)
     delegate = _delegate(args)
-    voxel_keys = ("voxel_resolution", "direction_step", "voxel_rebuild", "voxel_mapping", "fully_dynamic")
-    settings = delegate.usdml_settings.updated(**{k: v for k, v in _settings_overrides(args).items() if k in voxel_keys})
+    settings = delegate.usdml_settings.updated(**_settings_overrides(args))
     results = bench_visibility(delegate, backends=args.visibility or ["exact"],
                                image_width=args.imageWidth, frame=args.frame, settings=settings,
-                               backend_options=voxel_messages())
+                               device=args.device, backend_options=voxel_messages())
     print(json.dumps(results, indent=2) if args.json else format_bench(results))
     return 0
 
@@ -260,15 +212,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(out.####.exr); default: the RenderSettings products")
     render.add_argument("--frames", help="FrameSpec as usdrecord: 1:48, 1:10x2, 1,5,9 (default: the start frame)")
     render.add_argument("--imageWidth", type=int, help="image width in pixels (height from the aspect ratio)")
-    render.add_argument("--visibility", help="visibility backend (default: the stage's usdml:visibility, else exact)")
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
-    render.add_argument("--device", default="cpu", help="cpu or cuda (Warp kernels)")
-    render.add_argument("--pixel-samples", type=int, metavar="N",
-                        help="primary rays per pixel, a square number (an s x s stratified grid, box filter); "
-                             "default: the stage's usdml:pixelSamples, else 4; 1 = the pixel centre only")
-    _add_voxel_args(render)
-    _add_lighting_args(render)
+    _add_device_arg(render)
+    add_cmdline_args(render, "render")
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
     render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
     render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",
@@ -283,30 +230,30 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi)")
     compare.add_argument("--heatmap", metavar="PNG", help="with --visibility: write the shadow error heat map "
                          "(paper 000 Fig. 6: blue darker, red brighter, error x 10)")
-    _add_voxel_args(compare)
-    compare.add_argument("--imageWidth", type=int, default=128, help="image width (default 128)")
-    compare.add_argument("--device", default="cpu", help="cpu or cuda")
+    compare.add_argument("--imageWidth", type=int, default=128, help="image width (default: %(default)s)")
+    _add_device_arg(compare)
     compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")
     compare.add_argument("--json", action="store_true", help="print JSON")
-    _add_lighting_args(compare)
+    add_cmdline_args(compare, "compare")
     compare.set_defaults(run=_cmd_compare)
 
     bench = sub.add_parser("bench", help="time the visibility queries of one frame")
     _add_stage_args(bench)
     bench.add_argument("--visibility", action="append", help="backend to time (repeat for several; default exact)")
-    bench.add_argument("--imageWidth", type=int, default=512, help="image width in pixels (default 512)")
+    bench.add_argument("--imageWidth", type=int, default=512, help="image width in pixels (default: %(default)s)")
     bench.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
+    _add_device_arg(bench)
     bench.add_argument("--json", action="store_true", help="print JSON")
-    _add_voxel_args(bench)
+    add_cmdline_args(bench, "bench")
     bench.set_defaults(run=_cmd_bench)
 
     bake = sub.add_parser("bake", help="build the voxel arrays of a stage into the cache (usdml:voxel settings)")
     _add_stage_args(bake)
     bake.add_argument("--frames", help="FrameSpec whose prototypes to bake (default: the start frame)")
-    bake.add_argument("--device", default="cpu", help="cpu or cuda")
+    _add_device_arg(bake)
     bake.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
     bake.add_argument("--json", action="store_true", help="print JSON")
-    _add_voxel_args(bake)
+    add_cmdline_args(bake, "bake")
     bake.set_defaults(run=_cmd_bake)
     return parser
 

@@ -74,7 +74,8 @@ def read_render_settings(prim: Usd.Prim, time: Usd.TimeCode) -> RenderSettings:
 
 
 def read_usdml_settings(prim: Usd.Prim | None) -> UsdmlSettings:
-    """usdml parameters authored (or given fallbacks by the registered schema) on a RenderSettings prim."""
+    """usdml parameters authored (or given fallbacks by the registered schema) on a RenderSettings prim:
+    every attribute of the parameter table (:data:`usdml.params.PARAMS`)."""
     if prim is None:
         return UsdmlSettings()
     values = {}
@@ -85,7 +86,5 @@ def read_usdml_settings(prim: Usd.Prim | None) -> UsdmlSettings:
             values[field] = value if not hasattr(value, "GetText") else str(value)
     try:
         return UsdmlSettings().updated(**values)
-    except (TypeError, ValueError) as e:
-        raise UsdmlError(f"{prim.GetPath()}: bad usdml:* attribute value ({e})") from None
     except UsdmlError as e:
         raise UsdmlError(f"{prim.GetPath()}: {e}") from None

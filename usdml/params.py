@@ -1,0 +1,398 @@
+"""usdml's parameters, each declared once: one :class:`Param` row per setting.
+
+Everything else follows from :data:`PARAMS`: the fields and defaults of
+:class:`usdml.settings.UsdmlSettings`, the ``UsdmlRenderSettingsAPI`` attributes of
+``schemas/schema.usda`` (written by ``tools/gen_schema.py``), the command-line flags of each command
+(:func:`add_cmdline_args`, shaped like usdrecord's ``UsdAppUtils.*Args.AddCmdlineArgs``) and the one
+validation, :func:`check`. A value is taken, in increasing priority, from the row's default (the
+paper's), the stage's attribute on its RenderSettings prim, and the flag; so flags default to None.
+
+A leaf module: it imports nothing of usdml but :mod:`usdml.errors` and the backend registry (for the
+names ``visibility`` accepts), and no ``pxr``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Callable
+
+from usdml.errors import UsdmlError
+from usdml.visibility.registry import backend_names
+
+#: commands whose flags come from this table; a row lists the ones that take its flag
+RENDER, COMPARE, BENCH, BAKE = "render", "compare", "bench", "bake"
+COMMANDS = (RENDER, COMPARE, BENCH, BAKE)
+VOXEL_COMMANDS = (RENDER, COMPARE, BENCH, BAKE)
+LIGHTING_COMMANDS = (RENDER, COMPARE)
+
+#: most primary rays per pixel (a 32 x 32 grid)
+MAX_PIXEL_SAMPLES = 1024
+
+#: argparse's namespace attribute listing the settings fields whose flags a parser was given
+_ARGS_FIELDS = "usdml_settings_fields"
+
+
+@dataclass(frozen=True)
+class Range:
+    """Closed interval ``[low, high]``, either end open-ended (None); ``low_open`` excludes ``low``.
+    Float values must also be finite."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+
+    def __contains__(self, value) -> bool:
+        if not math.isfinite(value):
+            return False
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or value <= self.high
+
+    def rule(self, kind: type) -> str:
+        """What the range accepts, as an error message says it ("in [4, 2048]", "finite and > 0")."""
+        if self.low is not None and self.high is not None:
+            return f"in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}]"
+        bound = f"{'>' if self.low_open else '>='} {self.low:g}" if self.low is not None else f"<= {self.high:g}"
+        return f"finite and {bound}" if kind is float else bound
+
+
+@dataclass(frozen=True)
+class Param:
+    """One setting: its field, value type and default, where it is set (schema attribute, flag) and
+    what it accepts.
+
+    ``help`` is the flag's one line (argparse adds the default); ``doc`` is the schema attribute's
+    documentation, whose first sentence USD keeps (``userDocBrief``; default: ``help``).
+    ``choices``, ``range`` and ``valid`` (a predicate, described by ``rule``) are what :func:`check`
+    accepts; ``label`` is how its messages name the value (default: the field name in words).
+    ``source`` says where the default comes from.
+    """
+
+    field: str
+    type: type
+    default: object
+    attribute: str
+    flag: str
+    help: str
+    commands: tuple[str, ...]
+    source: str = ""
+    choices: tuple = ()
+    range: Range | None = None
+    valid: Callable[[object], bool] | None = None
+    rule: str = ""
+    label: str = ""
+    metavar: str | None = None
+    doc: str = ""
+    #: give argparse the choices (it refuses others itself); False leaves the refusal to check()
+    parser_choices: bool = True
+
+    @property
+    def name(self) -> str:
+        """How messages name the value."""
+        return self.label or self.field.replace("_", " ")
+
+    @property
+    def where(self) -> str:
+        """Where a user sets it: ``--voxel-resolution, usdml:voxel:resolution``."""
+        return f"{self.flag}, {self.attribute}"
+
+    @property
+    def schema_doc(self) -> str:
+        """The schema attribute's documentation, dedented (first sentence: the brief)."""
+        if self.doc:
+            return inspect.cleandoc(self.doc)
+        text = self.help[0].upper() + self.help[1:]
+        return text if text.endswith(".") else text + "."
+
+    def problem(self, value) -> str | None:
+        """Why ``value`` is refused (one clause naming the setting and what to use), or None."""
+        if not _is_a(self.type, value):
+            return f"{self.name} must be {_TYPE_WORDS[self.type]}, got {value!r}"
+        if self.choices and value not in self.choices:
+            listed = ", ".join(map(str, self.choices))
+            if self.type is str:
+                return f"unknown {self.name} {value!r}; use one of {listed}"
+            return f"{self.name} must be one of {listed}, got {value!r}"
+        if self.range is not None and value not in self.range:
+            return f"{self.name} must be {self.range.rule(self.type)}, got {value!r}"
+        if self.valid is not None and not self.valid(value):
+            return f"{self.name} must be {self.rule}, got {value!r}"
+        return None
+
+
+_TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a name"}
+
+
+def _is_a(kind: type, value) -> bool:
+    if kind is bool:
+        return isinstance(value, (bool, int)) and value in (0, 1)
+    if isinstance(value, bool):
+        return False
+    if kind is int:
+        return isinstance(value, numbers.Integral)
+    if kind is float:
+        return isinstance(value, numbers.Real)
+    return isinstance(value, kind)
+
+
+def _square(n: int) -> bool:
+    s = math.isqrt(n) if n >= 0 else -1
+    return s * s == n and 1 <= n <= MAX_PIXEL_SAMPLES
+
+
+def _or(names) -> str:
+    names = list(names)
+    return ", ".join(names[:-1]) + f" or {names[-1]}" if len(names) > 1 else "".join(names)
+
+
+_BACKENDS = backend_names()
+
+#: every setting, in the order of UsdmlSettings' fields
+_ROWS = (
+    Param("visibility", str, "exact", "usdml:visibility", "--visibility",
+          f"visibility backend for shadow rays ({', '.join(_BACKENDS)})", (RENDER,),
+          choices=_BACKENDS, label="visibility backend", metavar="NAME", parser_choices=False,
+          source="exact: the reference every approximate backend is checked against",
+          doc=f'''Visibility backend for shadow rays: {_or(_BACKENDS)}.
+
+          "exact" traces rays against the triangles (Embree) and is the reference
+          the approximate backends are checked against; "voxel" looks rays up in
+          the 2D array of per-direction voxelizations (paper 000).'''),
+
+    # -- voxel arrays (paper 000)
+    Param("voxel_resolution", int, 128, "usdml:voxel:resolution", "--voxel-resolution",
+          "voxels per axis of each direction's voxelization", VOXEL_COMMANDS, source="paper 000",
+          range=Range(4, 2048), metavar="N",
+          doc='''Voxels per axis of each direction voxelization (paper 000 uses 128).
+
+          Each voxelization holds resolution^3 bits: at 128 and a 2 degree
+          direction step, the 90 x 90 array takes just under 2 GB.'''),
+    Param("direction_step", float, 2.0, "usdml:voxel:directionStep", "--direction-step",
+          "degrees between direction bins (k in paper 000: 90 x 90 directions at 2)", VOXEL_COMMANDS,
+          source="paper 000", range=Range(0.1, 90), metavar="DEG",
+          doc='''Angular increment k, in degrees, of the (theta, phi) grid of voxelization directions (paper 000 uses 2).
+
+          theta and phi each run from 0 to 180 degrees in steps of k, so k = 2
+          gives 90 x 90 voxelizations; a ray uses the voxelization whose row
+          direction is closest to its own.'''),
+    Param("fully_dynamic", bool, False, "usdml:voxel:fullyDynamic", "--fully-dynamic",
+          "voxelize the whole scene every frame (paper 000 Alg. 5) instead of a static array plus "
+          "prototype arrays", VOXEL_COMMANDS, source="paper 000 (Alg. 4 unless the scene asks for Alg. 5)",
+          doc='''Re-voxelize the whole scene every frame, for scenes where much moves or deforms (paper 000, Algorithm 5).
+
+          Each frame one voxelization is computed and rotated with two degrees
+          of freedom to approximate the whole array, as paper 000 does for its
+          amusement park. When false, the static scene is voxelized once and
+          rigid instances reuse their prototype's voxelizations by transforming
+          rays into prototype space (paper 000, Algorithm 4).'''),
+    Param("voxel_rebuild", str, "rotate", "usdml:voxel:rebuild", "--voxel-rebuild",
+          "per-frame voxel arrays (deforming meshes, fully dynamic scenes): rotate one voxelization "
+          "(paper 000 Alg. 5) or voxelize every direction (Alg. 1)", VOXEL_COMMANDS,
+          source="paper 000, Alg. 5", choices=("rotate", "geometry"),
+          doc='''How voxel arrays rebuilt every frame (deforming meshes, or the whole scene when fullyDynamic) are made: rotate or geometry.
+
+          "rotate" voxelizes the frame's geometry once and fills every other
+          direction by rotating it (paper 000, Algorithm 5); "geometry"
+          voxelizes every direction from the geometry (Algorithm 1), slower
+          and more accurate.'''),
+    Param("voxel_mapping", str, "point", "usdml:voxel:mapping", "--voxel-mapping",
+          "Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) or every voxel it "
+          "overlaps (conservative)", VOXEL_COMMANDS, source="paper 000, Alg. 5", choices=("point", "conservative"),
+          doc='''How a rotated voxel marks the target voxelization in Algorithm 5: point or conservative.
+
+          "point" (the paper) sets the voxel holding the rotated voxel's
+          centre, leaving some holes in tilted surfaces; "conservative" sets
+          every voxel the rotated voxel overlaps: no holes, thicker surfaces,
+          slower.'''),
+    # leaving the surface (usdml.visibility.voxel's module doc): usdml's measured rule, not the paper's
+    Param("voxel_normal_offset", float, 1.0, "usdml:voxel:normalOffset", "--voxel-normal-offset",
+          "voxels (of the static array) a shadow ray starts off its surface, along the normal turned "
+          "toward the light", VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS",
+          doc='''Voxels (of the static array, in world units) a shadow ray starts off its surface, along the normal turned toward the light.
+
+          Occluders closer than about normalOffset + slab voxels to the shading
+          point do not shadow.'''),
+    Param("voxel_skip", float, 1.0, "usdml:voxel:skip", "--voxel-skip",
+          "voxels a shadow ray ignores at its start to leave its own surface (more at grazing angles)",
+          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+    Param("voxel_slab", float, 1.0, "usdml:voxel:slab", "--voxel-slab",
+          "voxels above the tangent plane a grazing shadow ray skips to (slab / sin(angle) along the ray, "
+          "at most the max skip)", VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+    Param("voxel_max_skip", float, 0.0, "usdml:voxel:maxSkip", "--voxel-max-skip",
+          "most voxels a grazing shadow ray skips to leave its surface; 0 = automatic: 2, or 4 with the "
+          "conservative mapping", VOXEL_COMMANDS, source="measured (usdml): 2 point, 4 conservative",
+          range=Range(0), metavar="VOXELS"),
+    Param("voxel_end_skip", float, 1.0, "usdml:voxel:endSkip", "--voxel-end-skip",
+          "voxels a shadow ray ignores at the light's end, so a light mounted on a wall is not hidden by it",
+          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+    Param("voxel_segment", int, 32, "usdml:voxel:segment", "--voxel-segment",
+          "voxels a shadow ray looks up in one row before it picks its row anew (a divisor of 32)",
+          VOXEL_COMMANDS, source="one 32-bit word of a row", choices=(1, 2, 4, 8, 16, 32)),
+    Param("voxel_core", float, 0.0, "usdml:voxel:core", "--voxel-core",
+          "voxelization rule of the cached arrays: 0 rasterizes rows' centre lines; a fraction > 0 marks "
+          "surface samples in that central part of a row", VOXEL_COMMANDS, source="measured (usdml)",
+          range=Range(0, 1), metavar="FRACTION"),
+    Param("voxel_frame_core", float, 0.0, "usdml:voxel:frameCore", "--voxel-frame-core",
+          "the same rule for per-frame arrays rebuilt from geometry (voxel rebuild geometry)",
+          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0, 1), metavar="FRACTION",
+          doc="Voxelization rule of per-frame arrays rebuilt from geometry (rebuild = geometry), as core."),
+    Param("voxel_memory_limit", float, 0.0, "usdml:voxel:memoryLimit", "--voxel-memory-limit",
+          "GiB the voxel arrays may take; 0 = automatic: 80 % of the available memory", VOXEL_COMMANDS,
+          source="the machine", range=Range(0), metavar="GIB"),
+
+    # -- global illumination (paper 004)
+    Param("gi", str, "none", "usdml:gi", "--gi",
+          "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), or every VPL with exact "
+          "visibility (vpl-bruteforce, the reference)", LIGHTING_COMMANDS,
+          choices=("none", "lgh", "vpl-bruteforce"), label="global illumination", source="off unless asked for",
+          doc='''Global illumination: none, lgh (VPLs through a lighting grid hierarchy, paper 004) or vpl-bruteforce (every VPL with exact visibility, the reference).
+
+          Indirect light lands in the indirect AOV and is added to color.'''),
+    Param("vpl_count", int, 100_000, "usdml:vpl:count", "--vpls", "virtual point lights per frame",
+          LIGHTING_COMMANDS, source="paper 004", range=Range(1), label="VPL count", metavar="N",
+          doc="Virtual point lights generated per frame (paper 004 uses 100K)."),
+    Param("vpl_bounces", int, 3, "usdml:vpl:bounces", "--vpl-bounces",
+          "diffuse bounces of the light paths that place VPLs", LIGHTING_COMMANDS, source="paper 004",
+          range=Range(1), label="VPL bounces", metavar="N",
+          doc="Diffuse bounces of the light paths that place VPLs (paper 004 traces up to three)."),
+    Param("lgh_alpha", float, 1.0, "usdml:lgh:alpha", "--lgh-alpha",
+          "LGH blending radius factor alpha, r_l = alpha h_l", LIGHTING_COMMANDS, source="paper 004",
+          range=Range(0, low_open=True), label="LGH alpha", metavar="ALPHA",
+          doc='''Lighting grid hierarchy blending radius factor alpha, r_l = alpha h_l (paper 004 uses 1).
+
+          h_l is the grid size of level l. Larger alpha widens the blending
+          functions: more grid lights per shading point, more accurate and
+          slower.'''),
+    Param("lgh_levels", int, 0, "usdml:lgh:levels", "--lgh-levels",
+          "LGH levels; 0 = the paper's rule (the most whose S1 has under half as many lights as VPLs)",
+          LIGHTING_COMMANDS, source="paper 004", range=Range(0), label="LGH levels", metavar="N",
+          doc='''Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
+
+          Any positive value forces that number of levels.'''),
+    Param("lgh_start_level", int, 1, "usdml:lgh:startLevel", "--lgh-start-level",
+          "finest LGH level lit from: 1 = S1 as the paper, 0 = the VPLs themselves (S0)", LIGHTING_COMMANDS,
+          source="paper 004, Sec. 4.1", choices=(0, 1), label="LGH start level",
+          doc='''Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
+
+          S0 makes the near field exact (each pixel visits the VPLs within
+          alpha h_1) at some extra lighting cost.'''),
+    Param("interleave", int, 1, "usdml:lgh:interleave", "--interleave",
+          "interleaved sampling tile size: each pixel of an n x n tile gathers 1/n^2 of the grid lights "
+          "(1 = off)", LIGHTING_COMMANDS, source="paper 004, Sec. 4 (off by default)", choices=(1, 2, 4),
+          doc='''Interleaved sampling tile size n (1, 2 or 4): each pixel of an n x n tile gathers a different 1/n^2 of the grid lights (paper 004, Sec. 4).
+
+          1 disables it.'''),
+    Param("shadow_samples", int, 4, "usdml:shadow:samples", "--shadow-samples",
+          "stochastic shadow samples per pixel", LIGHTING_COMMANDS, source="paper 004", range=Range(1),
+          metavar="N",
+          doc='''Stochastic shadow samples per pixel (paper 004 uses 4).
+
+          Shadow rays are importance-sampled from the lights that contribute to
+          the pixel and filtered before being used as shadow ratio estimators.'''),
+    Param("shadow_filter_iterations", int, -1, "usdml:shadow:filterIterations", "--shadow-filter-iterations",
+          "a-trous iterations over the stochastic shadows; 0 = unfiltered, -1 = by the samples (3 at 4 per "
+          "pixel, one fewer per 4x more, at least 1)", LIGHTING_COMMANDS,
+          source="paper 004, Sec. 3.3; -1: the best measured on cornell", range=Range(-1, 10), metavar="N",
+          doc='''Iterations of the edge-avoiding a-trous filter applied to the stochastic shadows before they are used as shadow ratio estimators (paper 004, Sec. 3.3); 0 leaves them unfiltered, -1 picks by the shadow samples.
+
+          Each iteration doubles the filter's reach (3 iterations: +-14 pixels).
+          -1: 3 iterations at 4 samples per pixel, one fewer for every 4x more
+          samples, at least 1 (the best measured on cornell).'''),
+    Param("shadow_targets", str, "cluster", "usdml:shadow:targets", "--shadow-targets",
+          "LGH shadow rays to a VPL of the chosen grid light (cluster) or to its centre jittered by its "
+          "variance (jitter, as paper 004)", LIGHTING_COMMANDS, source="measured (usdml): jitter over-occludes",
+          choices=("cluster", "jitter"),
+          doc='''Where an LGH shadow ray goes: cluster (a VPL of the chosen grid light, drawn by luminance) or jitter (the grid light's centre jittered by its stored variance, as paper 004 does).
+
+          Grid-light centres average surface points and often lie inside
+          geometry, so jittered targets over-occlude; cluster avoids that.'''),
+
+    # -- sampling
+    Param("dome_samples", int, 256, "usdml:dome:samples", "--dome-samples",
+          "distant lights each DomeLight is importance-sampled into per frame", LIGHTING_COMMANDS,
+          source="measured (usdml.lighting.dome): 1.0 % mean irradiance error at 256", range=Range(1),
+          metavar="K",
+          doc='''Distant lights each DomeLight is importance-sampled into per frame.
+
+          Each becomes a distant light with the many-light visibility of every
+          other light; at 256 the mean irradiance error of a sun-and-sky map is
+          about 1 percent.'''),
+    Param("pixel_samples", int, 4, "usdml:pixelSamples", "--pixel-samples",
+          "primary rays per pixel, a square number (an s x s stratified grid, box filter); 1 = the pixel centre",
+          (RENDER,), source="measured (usdml): halves edge error at 4", metavar="N",
+          valid=_square, rule=f"a square number from 1 to {MAX_PIXEL_SAMPLES} (1, 4, 9, 16, ...: an s x s "
+                              f"stratified grid)",
+          doc='''Primary rays per pixel, a square number n = s x s (correlated multi-jittered: one ray in each cell of an s x s grid over the pixel and in each of its n thin rows and columns), combined with a box filter: color, direct, indirect, shadow, albedo and lightCount are averaged; depth, positions, normals and ids come from the ray nearest the pixel centre.
+
+          1 traces the pixel centre only (no anti-aliasing). The default 4 halves
+          the per-pixel error of edges and shadow boundaries for about 4x the
+          shading time; 16 comes within about 3.5 percent of a pixel-integrated
+          render.'''),
+    Param("seed", int, 0, "usdml:seed", "--seed",
+          "random seed (VPLs, shadow samples, dome light sampling)", LIGHTING_COMMANDS, range=Range(0), metavar="N",
+          doc="Seed of usdml's random number generators (VPLs, shadow samples), for reproducible renders."),
+)
+
+#: field name -> its row, in UsdmlSettings' field order
+PARAMS: dict[str, Param] = {p.field: p for p in _ROWS}
+
+
+def check(name: str, value):
+    """``value`` if setting ``name`` (a :data:`PARAMS` field) accepts it; else a one-line
+    :class:`UsdmlError` naming the setting by its flag and schema attribute."""
+    param = PARAMS.get(name)
+    if param is None:
+        raise UsdmlError(f"unknown setting {name!r}; settings: {', '.join(PARAMS)}")
+    problem = param.problem(value)
+    if problem:
+        raise UsdmlError(f"{problem} ({param.where})")
+    return value
+
+
+def default_help(param: Param) -> str:
+    """Flag help ending in where the default comes from: the stage's attribute, else the table's."""
+    default = param.default
+    shown = ("on" if default else "off") if param.type is bool else f"{default:g}" if param.type is float else default
+    return f"{param.help} (default: the stage's {param.attribute}, else {shown})".replace("%", "%%")
+
+
+def add_cmdline_args(parser: argparse.ArgumentParser, command: str) -> None:
+    """Add the flags of every setting ``command`` takes, in groups (voxel arrays, lighting and sampling).
+
+    Each flag stores into the setting's field name and defaults to None, so the stage's value stays
+    unless the flag is given; :func:`overrides_from_args` collects what was given.
+    """
+    if command not in COMMANDS:
+        raise ValueError(f"unknown command {command!r}; the table knows {', '.join(COMMANDS)}")
+    rows = [p for p in PARAMS.values() if command in p.commands]
+    groups = {}
+    for p in rows:
+        title = ("visibility (usdml:visibility, usdml:voxel:*)"
+                 if p.attribute == "usdml:visibility" or p.attribute.startswith("usdml:voxel:")
+                 else "lighting and sampling (usdml:gi, usdml:vpl:*, usdml:lgh:*, usdml:shadow:* ...)")
+        group = groups.get(title) or groups.setdefault(title, parser.add_argument_group(title))
+        kw = {"dest": p.field, "default": None, "help": default_help(p)}
+        if p.type is bool:
+            kw["action"] = argparse.BooleanOptionalAction
+        else:
+            kw["type"] = p.type
+            if p.choices and p.parser_choices:
+                kw["choices"] = p.choices
+            if p.metavar:
+                kw["metavar"] = p.metavar
+        group.add_argument(p.flag, **kw)
+    parser.set_defaults(**{_ARGS_FIELDS: tuple(p.field for p in rows)})
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict:
+    """The settings the command line gave (field -> value), for ``UsdmlSettings.updated``."""
+    values = {f: getattr(args, f, None) for f in getattr(args, _ARGS_FIELDS, ())}
+    return {f: v for f, v in values.items() if v is not None}
+
+
+__all__ = ["COMMANDS", "MAX_PIXEL_SAMPLES", "PARAMS", "Param", "Range", "add_cmdline_args", "check",
+           "default_help", "overrides_from_args"]
