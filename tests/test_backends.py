@@ -103,17 +103,28 @@ def name(request) -> str:
     return request.param
 
 
+@pytest.fixture(params=["cpu", "cuda:0"])
+def device(request) -> str:
+    """Every Warp device: ``cuda:0`` skipped where there is none."""
+    if request.param != "cpu":
+        from usdml.kernels import warp
+
+        if warp().get_cuda_device_count() == 0:
+            pytest.skip("no CUDA device")
+    return request.param
+
+
 @pytest.fixture(autouse=True)
 def private_cache(tmp_path, monkeypatch):
     """Cached structures go to a folder of the test's own."""
     monkeypatch.setenv("USDML_CACHE_DIR", str(tmp_path / "cache"))
 
 
-def run_scene(name: str, scene: str, check):
-    """Update backend ``name`` (from ``SETTINGS``) frame by frame; ``check(backend, reference, snap, rng)``
-    per frame, the reference a fresh exact backend on that frame."""
+def run_scene(name: str, scene: str, check, device: str = "cpu"):
+    """Update backend ``name`` (from ``SETTINGS``, on ``device``) frame by frame;
+    ``check(backend, reference, snap, rng)`` per frame, the reference a fresh exact backend on that frame."""
     rng = np.random.default_rng(7)
-    backend = make_backend(name, SETTINGS.updated(visibility=name), **QUIET)
+    backend = make_backend(name, SETTINGS.updated(visibility=name), device, **QUIET)
     assert isinstance(backend, backend_class(name)) and backend.name == name
     previous = None
     out = []
@@ -130,7 +141,7 @@ def run_scene(name: str, scene: str, check):
 
 
 @pytest.mark.parametrize("scene", ["occluder", "instances", "deforming"])
-def test_backend_agrees_with_exact(name, scene):
+def test_backend_agrees_with_exact(name, scene, device):
     lit = lights(np.random.default_rng(1))
 
     def check(backend, reference, snap, rng):
@@ -141,7 +152,7 @@ def test_backend_agrees_with_exact(name, scene):
         assert np.array_equal(got, backend.occluded(o, t, **kw)), "answers are deterministic"
         return float((got != ref).mean())
 
-    mismatch = max(run_scene(name, scene, check))
+    mismatch = max(run_scene(name, scene, check, device))
     if name == ExactBackend.name:
         assert mismatch == 0.0
     else:
@@ -164,7 +175,7 @@ def test_capabilities_are_declared(name):
 
 
 @pytest.mark.parametrize("scene", ["occluder", "instances", "deforming"])
-def test_direct_shading_equals_lighting_direct_over_occluded(name, scene):
+def test_direct_shading_equals_lighting_direct_over_occluded(name, scene, device):
     """``SHADE_DIRECT``'s fused kernel (or the default) shades as ``lighting.direct.shade_direct``
     asking the same backend's ``occluded``."""
     lit = lights(np.random.default_rng(2))
@@ -179,7 +190,7 @@ def test_direct_shading_equals_lighting_direct_over_occluded(name, scene):
         assert np.allclose(got.radiance, want.radiance, rtol=1e-4, atol=1e-6)
         return float(got.shadow.max())
 
-    assert max(run_scene(name, scene, check)) > 0
+    assert max(run_scene(name, scene, check, device)) > 0
 
 
 def test_hit_distances_are_consistent_with_occluded(name):
@@ -221,3 +232,28 @@ def test_make_backend_reads_the_settings_and_options_override_them():
     assert make_backend("voxel", SETTINGS, resolution=16, **QUIET).resolution == 16
     assert make_backend("exact", SETTINGS, **QUIET).name == "exact"
     assert backend_class("voxel").supports(SHADE_DIRECT) and not backend_class("exact").supports(SHADE_DIRECT)
+
+
+def test_voxel_settings_fields_reach_the_backend():
+    """The leaving-the-surface, voxelization and memory fields, read where the settings have them;
+    0 means automatic for the longest skip and the memory limit."""
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class Knobs(UsdmlSettings):
+        voxel_normal_offset: float = 0.5
+        voxel_skip: float = 2.0
+        voxel_slab: float = 1.5
+        voxel_max_skip: float = 0.0
+        voxel_end_skip: float = 0.25
+        voxel_segment: int = 16
+        voxel_core: float = 0.5
+        voxel_frame_core: float = 0.25
+        voxel_memory_limit: float = 2.0
+
+    b = make_backend("voxel", Knobs(voxel_resolution=32, direction_step=10.0, voxel_mapping="conservative"), **QUIET)
+    assert (b.normal_offset, b.skip, b.slab, b.end_skip, b.segment) == (0.5, 2.0, 1.5, 0.25, 16)
+    assert (b.core, b.frame_core, b.memory_limit) == (0.5, 0.25, 2 << 30)
+    assert b.max_skip == 4.0            # automatic: the conservative mapping's
+    plain = make_backend("voxel", SETTINGS, **QUIET)    # settings without the fields: the defaults
+    assert (plain.normal_offset, plain.max_skip, plain.segment, plain.memory_limit) == (1.0, 2.0, 32, None)
