@@ -39,13 +39,20 @@ Optional capabilities
         ``usdml compare``'s near/far split. Default: ``NotImplementedError``.
     ``STATS`` ("stats")
         ``stats``: a dict of counters of the last :meth:`~VisibilityBackend.update` (builds, bytes,
-        seconds), and :meth:`~VisibilityBackend.describe`: the backend-specific fields ``usdml
-        bench`` and ``usdml compare`` add to their results. Default: an empty ``stats``, ``{}``.
+        seconds), :meth:`~VisibilityBackend.describe`: the backend-specific fields ``usdml bench`` and
+        ``usdml compare`` add to their results, and :meth:`~VisibilityBackend.per_frame_rebuild_seconds`
+        (``usdml bench``). Default: an empty ``stats``, ``{}``, ``{}``.
     ``MEMORY_ESTIMATE`` ("memory_estimate")
         classmethods :meth:`~VisibilityBackend.memory_estimate` (what a snapshot would cost at some
         settings, a JSON-able dict with ``totalBytes``, before anything is built) and
         :meth:`~VisibilityBackend.memory_line` (it as the one line ``usdml info`` prints).
         Default: ``None`` and ``""``.
+
+Adding a backend
+    One module with a :class:`VisibilityBackend` subclass (``name``, ``capabilities``, and
+    ``from_settings`` when it reads settings or runs on a device), one line in
+    :data:`usdml.visibility.registry.BACKENDS`, and its mismatch bound against ``exact`` in
+    ``tests/test_backends.py``, which runs every registered backend on the same scenes.
 """
 
 from __future__ import annotations
