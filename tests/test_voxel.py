@@ -16,7 +16,7 @@ from usdml.cache import Cache, CacheCorrupt
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, LightType, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel import CORE, array_cost, build_array, cached_array
+from usdml.visibility.voxel_array import CORE, array_cost, build_array, cached_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, surface_samples, worst_case_angle
 
 from conftest import ROOT

@@ -14,7 +14,7 @@ import pytest
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel import array_cube, build_array
+from usdml.visibility.voxel_array import array_cube, build_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, rotate_array
 

@@ -20,7 +20,7 @@ from usdml.render.gbuffer import build_gbuffer
 from usdml.scene import diff
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry, require_lights
-from usdml.visibility import ExactBackend, backend_for
+from usdml.visibility import ExactBackend, make_backend
 from usdml.visibility.voxel import SHADE_TILE, morton_order
 
 
@@ -43,7 +43,7 @@ def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
 
 def shading_order(points: np.ndarray, point_index: np.ndarray, light_index: np.ndarray,
                   tile: int = SHADE_TILE) -> np.ndarray:
-    """The permutation putting (point, light) queries in the order ``kernels.voxel.shade_tiles`` asks
+    """The permutation putting (point, light) queries in the order ``kernels.direct_shading.shade_tiles`` asks
     them on CPU: ``points`` along a Z-order curve in tiles of ``tile``, each tile light by light.
     (Rays from neighbouring points to one light share direction bins and rows; measured on the city
     at 160 px, 128³ / 2°: voxel 7.1 M queries/s in pixel-by-pixel order, 12.0 M/s in this one;
@@ -112,7 +112,7 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             backend, build = exact, exact_build
         else:
             base = settings if settings is not None else delegate.usdml_settings
-            backend = backend_for(base.updated(visibility=name), device, **(backend_options or {}))
+            backend = make_backend(name, base.updated(visibility=name), device, **(backend_options or {}))
             t0 = _time.perf_counter()
             backend.update(snap, diff(None, snap))
             build = _time.perf_counter() - t0
@@ -131,17 +131,13 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
             "speedup_vs_exact": reference[0] / seconds if seconds > 0 else float("inf"),
             "disagreement_vs_exact": float((blocked != reference[1]).mean()) if len(blocked) else 0.0,
             "triangles": snap.triangle_count(),
-            "bytes": int(getattr(backend, "stats", {}).get("bytes", 0)) if name != "exact" else 0,
+            "bytes": 0,
         })
-        if name == "voxel":
-            results[-1].update(voxel_resolution=backend.resolution, direction_step=backend.step,
-                               directions=backend.bins.count, arrays=backend.stats["arrays"],
-                               arrays_loaded_from_cache=backend.stats["loaded"],
-                               array_build_seconds=backend.stats["build_seconds"],
-                               fully_dynamic=backend.fully_dynamic, voxel_rebuild=backend.rebuild)
-            # the per-frame array (deforming meshes, or everything when fully dynamic): Alg. 5 and
-            # Alg. 1 rebuilds of this frame's geometry, in place as a sequence render does
-            results[-1].update(backend.per_frame_rebuild_seconds(snap))
+        # the backend's own fields (voxel: resolution, directions, arrays, bytes, ...) and what
+        # rebuilding its per-frame structures costs (voxel: Alg. 5 and Alg. 1 rebuilds of this
+        # frame's per-frame array, in place as a sequence render does)
+        results[-1].update(backend.describe())
+        results[-1].update(backend.per_frame_rebuild_seconds(snap))
         if backend is not exact:
             backend.close()
     exact.close()

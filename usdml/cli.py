@@ -84,10 +84,10 @@ def _add_device_arg(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_bake(args: argparse.Namespace) -> int:
-    from usdml.render.sequence import frame_spec, voxel_messages
+    from usdml.render.sequence import build_messages, frame_spec
     from usdml.scene import diff
     from usdml.stage.delegate import require_geometry
-    from usdml.visibility import VoxelBackend
+    from usdml.visibility import make_backend
 
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**_settings_overrides(args))
@@ -100,8 +100,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
             print(json.dumps({"stage": args.stage, "frames": frames, "fully_dynamic": True, "arrays": []}, indent=2))
         return 0
     t0 = time.perf_counter()
-    backend = VoxelBackend(resolution=settings.voxel_resolution, step=settings.direction_step,
-                           device=args.device, cache=args.cache, **voxel_messages())
+    backend = make_backend("voxel", settings, args.device, cache=args.cache, **build_messages())
     previous = None
     for f in frames:
         delegate.check_time(f)
@@ -158,14 +157,14 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from usdml.bench import bench_visibility, format_bench
 
-    from usdml.render.sequence import voxel_messages
+    from usdml.render.sequence import build_messages
 
     _check_width(args.imageWidth)
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**_settings_overrides(args))
     results = bench_visibility(delegate, backends=args.visibility or ["exact"],
                                image_width=args.imageWidth, frame=args.frame, settings=settings,
-                               device=args.device, backend_options=voxel_messages())
+                               device=args.device, backend_options=build_messages())
     print(json.dumps(results, indent=2) if args.json else format_bench(results))
     return 0
 
@@ -177,13 +176,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_width(args.imageWidth)
     if args.visibility:
         from usdml.compare import compare_visibility, format_visibility_comparison
-        from usdml.render.sequence import voxel_messages
+        from usdml.render.sequence import build_messages
 
         if args.gi:
             raise UsdmlError("compare one thing at a time: --visibility or --gi")
         overrides = {k: v for k, v in _settings_overrides(args).items() if k != "visibility"}
         r = compare_visibility(_delegate(args), args.visibility, args.against or "exact", args.frame,
-                               args.imageWidth, args.device, args.heatmap, overrides, voxel_messages())
+                               args.imageWidth, args.device, args.heatmap, overrides, build_messages())
         print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
         return 0
     if not args.gi:

@@ -104,12 +104,14 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
     from usdml.stage.delegate import require_geometry, require_lights
-    from usdml.visibility import ExactBackend, backend_for
+    from usdml.visibility import ExactBackend, backend_names, make_backend
+    from usdml.visibility.base import HIT_DISTANCES
 
-    if against != "exact":
+    if against != ExactBackend.name:
         raise UsdmlError(f"--against {against}: visibility is measured against exact (Embree) only")
-    if backend == "exact":
-        raise UsdmlError("--visibility exact against exact: give an approximate backend (voxel)")
+    if backend == ExactBackend.name:
+        approximate = [n for n in backend_names() if n != ExactBackend.name]
+        raise UsdmlError(f"--visibility exact against exact: give an approximate backend ({', '.join(approximate)})")
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     settings = delegate.usdml_settings.updated(**(overrides or {})).updated(visibility=backend)
@@ -118,7 +120,8 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     require_lights(delegate, snap, "compare")
     width, height = snap.camera.resolution(image_width)
     exact = ExactBackend()
-    approx = backend_for(settings, device, **(backend_options or {}))
+    approx = make_backend(backend, settings, device, **(backend_options or {}))
+    near_far = approx.supports(HIT_DISTANCES)
     try:
         exact.update(snap, diff(None, snap))
         t0 = _time.perf_counter()
@@ -143,7 +146,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
             t0 = _time.perf_counter()
             got = approx.occluded(*args, **kw)
             got_s += _time.perf_counter() - t0
-            if hasattr(approx, "hit_distances") and (got & ~ref).any():
+            if near_far and (got & ~ref).any():
                 dist = approx.hit_distances(*args, **kw)
                 hidden_near += int((got & ~ref & (dist >= 0) & (dist < NEAR_VOXELS)).sum())
             for key, sel in (("facing", slice(None)), ("blocked", ref), ("hidden", got & ~ref),
@@ -183,9 +186,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
         "build_seconds": build, "heatmap": heatmap,
     }
-    if backend == "voxel":
-        result.update(voxel_resolution=settings.voxel_resolution, direction_step=settings.direction_step,
-                      bytes=int(approx.stats["bytes"]))
+    result.update(approx.describe())    # the backend's own fields (voxel: resolution, step, bytes, ...)
     return result
 
 

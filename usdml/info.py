@@ -8,7 +8,8 @@ from collections import Counter
 from usdml.scene import Snapshot
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
-from usdml.voxel_budget import array_bytes, direction_count, human_bytes, plan_arrays
+from usdml.visibility import backend_class, backend_names
+from usdml.visibility.base import MEMORY_ESTIMATE
 
 
 def _render_settings(snap: Snapshot) -> dict | None:
@@ -40,8 +41,9 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
     seconds = _time.perf_counter() - t0
     require_geometry(delegate, snap)
     settings = delegate.usdml_settings
-    plan = plan_arrays(snap, settings)
-    per_array = array_bytes(settings.voxel_resolution, settings.direction_step)
+    # what each backend that can say so would take at these settings ("voxelMemory", ...)
+    memory = {f"{name}Memory": cls.memory_estimate(snap, settings) for name, cls in
+              ((name, backend_class(name)) for name in backend_names()) if cls.supports(MEMORY_ESTIMATE)}
     kinds = Counter(p.kind for p in snap.prototypes)
     return {
         "stage": delegate.path,
@@ -66,12 +68,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
         "renderSettings": _render_settings(snap),
         "usdmlSettings": settings.as_dict(),
-        "voxelMemory": {
-            "resolution": settings.voxel_resolution, "directionStep": settings.direction_step,
-            "directions": direction_count(settings.direction_step), "bytesPerArray": per_array,
-            "arrays": len(plan), "totalBytes": per_array * len(plan),
-            "plan": [{"role": r, "source": s} for r, s in plan],
-        },
+        **memory,
         "unsupported": dict(sorted(delegate.unsupported.items())),
         "warnings": list(delegate.warn.messages),
         "loadSeconds": round(seconds, 3),
@@ -82,7 +79,6 @@ def format_info(info: dict) -> str:
     """The human-readable summary printed by ``usdml info``."""
     n = "{:,}".format
     rs = info["renderSettings"]
-    vm = info["voxelMemory"]
     kinds = ", ".join(f"{k} {v}" for k, v in info["prototypeKinds"].items()) or "none"
     lines = [
         f"stage       {info['stage']}  ({info['upAxis']}-up, {info['metersPerUnit']:g} m/unit, timecodes "
@@ -112,7 +108,8 @@ def format_info(info: dict) -> str:
     lines.append(f"usdml       visibility {s['visibility']}, voxels {s['voxel_resolution']}^3 @ {s['direction_step']:g} deg, "
                  f"{n(s['vpl_count'])} VPLs, LGH alpha {s['lgh_alpha']:g}, {s['shadow_samples']} shadow samples, "
                  f"{s['pixel_samples']} pixel samples, seed {s['seed']}")
-    lines.append(f"voxel mem   {vm['arrays']} array(s) x {human_bytes(vm['bytesPerArray'])} = {human_bytes(vm['totalBytes'])} "
-                 f"({n(vm['directions'])} directions at {vm['resolution']}^3)")
+    for name in backend_names():
+        if info.get(f"{name}Memory"):
+            lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")
     lines.append(f"loaded in   {info['loadSeconds']:.2f} s" + (f", {len(info['warnings'])} warning(s)" if info["warnings"] else ""))
     return "\n".join(lines)

@@ -15,13 +15,12 @@ import numpy as np
 
 from usdml.aov.names import find_aov
 from usdml.errors import UsdmlError, log
-from usdml.lighting.direct import shade_direct
 from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
-from usdml.visibility import ExactBackend, backend_for
+from usdml.visibility import ExactBackend, make_backend
 
 #: AOVs written when neither --aovs nor RenderSettings choose
 DEFAULT_AOVS = ("color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
@@ -72,7 +71,8 @@ class FrameRenderer:
         self.settings = settings
         self.device = device
         self.exact = ExactBackend()
-        self.backend = self.exact if settings.visibility == "exact" else backend_for(settings, device, **(backend_options or {}))
+        self.backend = self.exact if settings.visibility == self.exact.name else \
+            make_backend(settings.visibility, settings, device, **(backend_options or {}))
         self._previous: Snapshot | None = None
         self._told_camera_light = False
         self._told_no_vpls = False
@@ -141,17 +141,12 @@ class FrameRenderer:
         stats["gbuffer_seconds"] += _time.perf_counter() - t2
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
-        # a backend with its own Alg. 3 kernel (voxel) shades in one pass; others answer shadow rays
-        shade = getattr(self.backend, "shade_direct", None)
+        # a SHADE_DIRECT backend shades in one kernel; the others through lighting.direct over their
+        # shadow rays (VisibilityBackend.shade_direct)
         geometric = gb.geometric.reshape(-1, 3)[hit]
-        if shade is not None:
-            direct = shade(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                           gb.albedo.reshape(-1, 3)[hit], lights, progress, meters_per_unit=snap.meters_per_unit,
-                           geometric=geometric)
-        else:
-            direct = shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                                  gb.albedo.reshape(-1, 3)[hit], lights, self.backend.occluded, progress,
-                                  meters_per_unit=snap.meters_per_unit, geometric=geometric)
+        direct = self.backend.shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                           gb.albedo.reshape(-1, 3)[hit], lights, progress,
+                                           meters_per_unit=snap.meters_per_unit, geometric=geometric)
         if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)

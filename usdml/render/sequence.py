@@ -24,6 +24,7 @@ from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
+from usdml.visibility import backend_names
 
 
 @dataclass
@@ -148,9 +149,10 @@ def check_device(device: str) -> None:
         raise UsdmlError("--device cuda: no CUDA device found; use --device cpu")
 
 
-def voxel_messages() -> dict:
-    """Voxel backend options that tell the user on stderr what arrays cost and how a build goes."""
-    import sys
+def build_messages() -> dict:
+    """The ``report`` and ``progress`` options every visibility backend accepts
+    (:mod:`usdml.visibility.base`), telling the user on stderr what a backend's structures cost and
+    how their build goes."""
 
     def report(line: str) -> None:
         print(f"usdml: {line}", file=sys.stderr, flush=True)
@@ -161,12 +163,12 @@ def voxel_messages() -> dict:
     tty = sys.stderr.isatty()
     every = 0.5 if tty else 10.0
 
-    def progress(done: int, total: int, label: str) -> None:
+    def progress(done: int, total: int, label: str, unit: str = "steps") -> None:
         now = _time.perf_counter()
         if done < total and now - last["t"] < every:
             return
         last["t"] = now
-        line = f"usdml: building voxel array ({label}): {done}/{total} directions {100 * done // max(total, 1)} %"
+        line = f"usdml: building {label}: {done}/{total} {unit} {100 * done // max(total, 1)} %"
         if tty:
             print("\r" + line, end="\n" if done >= total else "", file=sys.stderr, flush=True)
         else:
@@ -180,8 +182,9 @@ def render_sequence(job: RenderJob) -> dict:
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
-    if settings.visibility not in ("exact", "voxel"):
-        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility exact or voxel")
+    if settings.visibility not in backend_names():
+        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility "
+                         + " or ".join(backend_names()))
     check_device(job.device)
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
     for f in frames:
@@ -194,7 +197,7 @@ def render_sequence(job: RenderJob) -> dict:
     for folder in sorted({os.path.dirname(path) or "." for p in products for path in p.paths.values()}):
         make_output_folder(folder)       # before the first frame renders, not after it
     renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light,
-                             backend_options=voxel_messages())
+                             backend_options=build_messages())
     written, skipped, seconds = [], [], []
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:

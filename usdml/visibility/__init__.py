@@ -1,9 +1,11 @@
 """Visibility backends: one interface ("is the segment P → L blocked?"), several implementations.
 
-``make_backend(name, ...)`` builds one by name; each backend owns its acceleration structures and
-updates them per frame from a :class:`usdml.scene.Snapshot`. ``exact`` (Embree) is the reference the
-approximate backends are measured against. The names live in :mod:`usdml.visibility.registry`; this
-package imports a backend's module only when it is asked for (so listing names costs nothing).
+``make_backend(name, settings, device, **options)`` builds one by name through its class's
+``from_settings`` (the contract and the optional capabilities: :mod:`usdml.visibility.base`); each
+backend owns its acceleration structures and updates them per frame from a
+:class:`usdml.scene.Snapshot`. ``exact`` (Embree) is the reference the approximate backends are
+measured against. The names live in :mod:`usdml.visibility.registry`; this package imports a
+backend's module only when it is asked for (so listing names costs nothing).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 from usdml.visibility.registry import backend_class, backend_names
 
 __all__ = ["VisibilityBackend", "ExactBackend", "VoxelBackend", "make_backend", "available_backends",
-           "backend_for", "backend_class", "backend_names"]
+           "backend_class", "backend_names"]
 
 _LAZY = {"VisibilityBackend": "usdml.visibility.base", "ExactBackend": "usdml.visibility.exact",
          "VoxelBackend": "usdml.visibility.voxel"}
@@ -30,16 +32,9 @@ def available_backends() -> list[str]:
     return sorted(backend_names())
 
 
-def make_backend(name: str, **kw):
-    """A new backend ``name`` built with keyword settings ``kw`` (see each backend's class)."""
-    return backend_class(name)(**kw)
-
-
-def backend_for(settings, device: str = "cpu", **kw):
-    """The backend ``settings.visibility`` names, configured from ``settings`` (voxel resolution and
-    direction step, per-frame rebuild, mapping, fully dynamic) and ``kw`` (e.g. ``report``, ``progress`` for the voxel backend)."""
-    if settings.visibility == "voxel":
-        return backend_class("voxel")(resolution=settings.voxel_resolution, step=settings.direction_step,
-                                      device=device, rebuild=settings.voxel_rebuild, mapping=settings.voxel_mapping,
-                                      fully_dynamic=settings.fully_dynamic, **kw)
-    return make_backend(settings.visibility)
+def make_backend(name: str, settings=None, device: str = "cpu", **options):
+    """A new backend ``name`` (``UsdmlError`` naming the choices when there is none), configured from
+    ``settings`` (a :class:`usdml.settings.UsdmlSettings`; ``None``: the backend's defaults) on
+    ``device``, keyword ``options`` overriding them: ``cls.from_settings(settings, device, **options)``.
+    Every backend accepts ``report`` and ``progress`` (:mod:`usdml.visibility.base`)."""
+    return backend_class(name).from_settings(settings, device, **options)

@@ -14,17 +14,65 @@ Conventions shared by all backends:
   ``light_directions``, the direction the light *travels* (``Lights.axis``), so the shadow ray goes
   along ``-light_directions``.
 * Answers are deterministic: the same snapshot and queries give the same booleans.
+
+Building a backend
+    ``cls.from_settings(settings, device, **options)`` (what :func:`usdml.visibility.make_backend`
+    calls) builds a backend from a :class:`usdml.settings.UsdmlSettings` (``None``: the backend's
+    defaults), reading only the fields it has; keyword ``options`` override them. Every backend's
+    ``from_settings`` accepts ``report`` (``report(line)``: one line before something costly is
+    built) and ``progress`` (``progress(done, total, label, unit)`` while building), and may ignore
+    them. The default builds ``cls(**options)``: settings and device ignored.
+
+Optional capabilities
+    A backend declares what it implements beyond the queries in ``capabilities`` (a frozenset of the
+    names below); callers ask :meth:`VisibilityBackend.supports` instead of probing attributes. Each
+    capability's method exists on every backend, with the documented default for those that do
+    not declare it:
+
+    ``SHADE_DIRECT`` ("shade_direct")
+        :meth:`~VisibilityBackend.shade_direct` is the backend's own one-kernel Alg. 3 (paper 000),
+        equal to :func:`usdml.lighting.direct.shade_direct` over :meth:`~VisibilityBackend.occluded`
+        within float32 rounding. Default: that function with ``self.occluded``.
+    ``HIT_DISTANCES`` ("hit_distances")
+        :meth:`~VisibilityBackend.hit_distances`: per query, the distance from the ray's start to its
+        first hit in the backend's own units (``-1``: free; ``>= 0`` exactly where ``occluded``), for
+        ``usdml compare``'s near/far split. Default: ``NotImplementedError``.
+    ``STATS`` ("stats")
+        ``stats``: a dict of counters of the last :meth:`~VisibilityBackend.update` (builds, bytes,
+        seconds), :meth:`~VisibilityBackend.describe`: the backend-specific fields ``usdml bench`` and
+        ``usdml compare`` add to their results, and :meth:`~VisibilityBackend.per_frame_rebuild_seconds`
+        (``usdml bench``). Default: an empty ``stats``, ``{}``, ``{}``.
+    ``MEMORY_ESTIMATE`` ("memory_estimate")
+        classmethods :meth:`~VisibilityBackend.memory_estimate` (what a snapshot would cost at some
+        settings, a JSON-able dict with ``totalBytes``, before anything is built) and
+        :meth:`~VisibilityBackend.memory_line` (it as the one line ``usdml info`` prints).
+        Default: ``None`` and ``""``.
+
+Adding a backend
+    One module with a :class:`VisibilityBackend` subclass (``name``, ``capabilities``, and
+    ``from_settings`` when it reads settings or runs on a device), one line in
+    :data:`usdml.visibility.registry.BACKENDS`, and its mismatch bound against ``exact`` in
+    ``tests/test_backends.py``, which runs every registered backend on the same scenes.
 """
 
 from __future__ import annotations
 
 import abc
+from types import MappingProxyType
+from typing import Callable, Mapping
 
 import numpy as np
 
 from usdml.scene import Changes, Snapshot
 
-__all__ = ["VisibilityBackend"]
+__all__ = ["VisibilityBackend", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE"]
+
+#: optional capabilities (module doc, "Optional capabilities")
+SHADE_DIRECT = "shade_direct"
+HIT_DISTANCES = "hit_distances"
+STATS = "stats"
+MEMORY_ESTIMATE = "memory_estimate"
+CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE)
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:
@@ -70,9 +118,50 @@ class VisibilityBackend(abc.ABC):
 
     #: registry name (``make_backend(name)``)
     name: str = ""
+    #: optional capabilities it implements (module doc): a subset of ``CAPABILITIES``
+    capabilities: frozenset[str] = frozenset()
+    #: counters of the last update (``STATS``); backends that declare it set their own dict
+    stats: Mapping = MappingProxyType({})
     #: point-light pairs handed to one :meth:`occluded` call by :meth:`occluded_matrix`; bounds its
     #: temporary memory (about 200 bytes per pair, so ~200 MB at 2^20)
     matrix_chunk_pairs: int = 1 << 20
+
+    @classmethod
+    def from_settings(cls, settings=None, device: str = "cpu", *, report: Callable[[str], None] | None = None,
+                      progress: Callable[..., None] | None = None, **options) -> "VisibilityBackend":
+        """A backend configured from ``settings`` (a :class:`usdml.settings.UsdmlSettings`, or ``None``
+        for defaults) on Warp ``device``, keyword ``options`` overriding them (module doc). The default
+        is ``cls(**options)``: a backend with no settings of its own, nothing to report, one device."""
+        return cls(**options)
+
+    @classmethod
+    def supports(cls, capability: str) -> bool:
+        """Whether the backend declares optional ``capability`` (one of ``CAPABILITIES``)."""
+        if capability not in CAPABILITIES:
+            raise ValueError(f"unknown backend capability {capability!r}; one of {', '.join(CAPABILITIES)}")
+        return capability in cls.capabilities
+
+    @classmethod
+    def memory_estimate(cls, snapshot: Snapshot, settings) -> dict | None:
+        """``MEMORY_ESTIMATE``: what the structures for ``snapshot`` at ``settings`` would take, as a
+        JSON-able dict holding ``totalBytes`` (bytes), said before anything is built; ``None`` when the
+        backend does not estimate it."""
+        return None
+
+    @classmethod
+    def memory_line(cls, estimate: dict) -> str:
+        """``MEMORY_ESTIMATE``: :meth:`memory_estimate`'s result as one line of ``usdml info``."""
+        return ""
+
+    def describe(self) -> dict:
+        """``STATS``: backend-specific fields for ``usdml bench`` / ``usdml compare`` results (JSON-able),
+        after :meth:`update`; ``{}`` by default."""
+        return {}
+
+    def per_frame_rebuild_seconds(self, snapshot: Snapshot, repeats: int = 3) -> dict:
+        """``STATS``: timings of rebuilding what the backend rebuilds every frame of ``snapshot``
+        (``usdml bench``), after :meth:`update`; ``{}`` when it rebuilds nothing per frame."""
+        return {}
 
     @abc.abstractmethod
     def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
@@ -159,6 +248,24 @@ class VisibilityBackend(abc.ABC):
                     distant=np.tile(distant[l0:l1], k),
                 ).reshape(k, m)
         return out
+
+    def hit_distances(self, origins: np.ndarray, targets: np.ndarray, *, normals: np.ndarray | None = None,
+                      distant: np.ndarray | None = None) -> np.ndarray:
+        """``HIT_DISTANCES``: ``(N,) float`` distance from each ray's start to its first hit (the
+        backend's units; ``-1``: free), ``>= 0`` exactly where :meth:`occluded` is True. Arguments as
+        :meth:`occluded`. Backends that do not declare it raise ``NotImplementedError``."""
+        raise NotImplementedError(f"the {self.name or type(self).__name__} backend does not report hit distances")
+
+    def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights,
+                     progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None):
+        """Direct lighting of ``points`` by every light (paper 000 Alg. 3) with this backend's shadow
+        rays: :func:`usdml.lighting.direct.shade_direct` (same arguments, its ``DirectResult``) over
+        :meth:`occluded`. ``SHADE_DIRECT`` backends replace it with one fused kernel."""
+        from usdml.lighting.direct import shade_direct
+
+        return shade_direct(points, normals, albedo, lights, self.occluded, progress, meters_per_unit=meters_per_unit,
+                            min_distance=min_distance, geometric=geometric)
 
     def close(self) -> None:
         """Release threads and native memory; the backend needs :meth:`update` again afterwards."""

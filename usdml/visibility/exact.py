@@ -91,7 +91,7 @@ import numpy as np
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers
 from usdml.scene import Changes, Mesh, Prototype, Snapshot
-from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed, static_members
+from usdml.visibility.base import STATS, VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 
 try:
     from embreex import rtcore_scene as rtcs
@@ -285,9 +285,14 @@ class ExactBackend(VisibilityBackend):
         Threads for large batches (default: one per core this process may use).
     chunk_rays : int
         Rays per task handed to a worker (default 65536: smaller chunks lost ~30 % to overhead here).
+
+    Built from settings by the default ``from_settings`` (it reads none; CPU only). Declares ``STATS``
+    (``stats``: build counters) and nothing else: shading goes through the default
+    :meth:`~usdml.visibility.base.VisibilityBackend.shade_direct` over :meth:`occluded`.
     """
 
     name = "exact"
+    capabilities = frozenset({STATS})
 
     def __init__(self, *, rel_epsilon: float = 1e-5, epsilon: float | None = None,
                  workers: int | None = None, chunk_rays: int = 65536) -> None:

@@ -12,21 +12,9 @@ Arrays (paper 000 Alg. 4)
       by Alg. 5 (one voxelization rotated, :mod:`usdml.visibility.voxel_rotate`) or Alg. 1, written
       into its slot of the assembled words (nothing reallocated or copied per frame).
 
-    Every array covers its geometry's bounding sphere (so every direction's rotated cube holds it);
-    directions, rows and packing are in :mod:`usdml.visibility.voxel_grid`, the kernels in
-    :mod:`usdml.kernels.voxel`.
-
-Building (Alg. 1)
-    The paper depth-peels the rotated scene along three axes. Here each direction's voxelization
-    sets, for every row, the voxels where the row's centre line crosses a triangle: each triangle is
-    rasterized onto the rows whose centres its projection holds (``CORE`` 0,
-    ``kernels.voxel.voxelize_triangles``). The lines of the other two axes (the paper's other two
-    peels) add voxels only where a surface runs along the rows, which rays in that direction barely
-    see: measured on the city at 128³ / 2° they made ε_v / ε_s worse (1.99 / 1.25 % -> 2.38 /
-    1.91 %, more wrongly hidden rays) and the build 2x longer, so they are not peeled. The older rule,
-    ``core`` > 0, samples every triangle on a lattice finer than a voxel and sets the voxel holding
-    each rotated sample that lies in the central ``core`` fraction of its row: a cost set by surface
-    area, and thicker surfaces. Directions are split over the CPU cores.
+    One array (its cube, Alg. 1, the cache) is :mod:`usdml.visibility.voxel_array`; directions, rows
+    and packing are in :mod:`usdml.visibility.voxel_grid`; the query kernels in
+    :mod:`usdml.kernels.voxel`, the fused shading kernel (Alg. 3) in :mod:`usdml.kernels.direct_shading`.
 
 Leaving the surface (self-occlusion) and its cost
     The voxels around a shading point hold its own surface. A shadow ray therefore starts
@@ -49,43 +37,34 @@ Leaving the surface (self-occlusion) and its cost
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import logging
-import os
 import time
 from typing import Callable
 
 import numpy as np
 
-from usdml.cache import Cache, CacheCorrupt, cache_key
+from usdml import params
+from usdml.cache import Cache
 from usdml.errors import UsdmlError
-from usdml.parallel import cpu_workers, iter_parallel, run_parallel
-from usdml.scene import Changes, Lights, Snapshot, content_hash
+from usdml.parallel import cpu_workers, run_parallel
+from usdml.scene import Changes, Lights, Snapshot
 from usdml.settings import VOXEL_REBUILDS
-from usdml.visibility.base import VisibilityBackend, as_flags, as_vectors, members_changed
-from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, core_bounds, surface_samples
+from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags,
+                                   as_vectors, members_changed)
+from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
+                                          normalizing_transform, voxel_kernels, warp_module)
+from usdml.visibility.voxel_budget import array_roles, memory_estimate, memory_line
+from usdml.visibility.voxel_grid import DirectionBins, RowLayout, core_bounds
+from usdml.visibility.voxel_rotate import MAX_RESOLUTION, rotate_array
 
 log = logging.getLogger("usdml")
 
-__all__ = ["VoxelArray", "VoxelBackend", "build_array", "array_cost", "available_memory"]
+__all__ = ["VoxelBackend", "MAX_SKIP", "CONSERVATIVE_MAX_SKIP", "SHADE_TILE", "morton_order"]
 
-#: bump when the bits an array holds for the same inputs change
-FORMAT_VERSION = 2
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
 REBUILDS = VOXEL_REBUILDS
-#: sample spacing and dedup grid as fractions of the voxel size times the core fraction: a plane
-#: crossing a row's axis then has a sample within 0.58 · 0.5 + 1.73 · 0.12 = 0.5 of its core's
-#: half width of the crossing, inside the core (no holes along rows; see voxel_grid)
-SAMPLE_SPACING = 0.5
-SNAP = 0.12
-#: the voxelization rule of the arrays built once and cached (static scene, prototypes): 0 marks
-#: the voxels where rows' centre lines cross the surface (rasterized, module doc); a fraction > 0
-#: marks the voxel of every surface sample lying in that central part of its row's square
-#: (kernels.voxel.voxelize: 1 is every voxel a surface touches, occluders a voxel fatter). Measured
-#: at 128³ / 2° on the city (ε_v / ε_s, build): 1: 2.8 / 2.4 %, 59 s; 0.5: 2.13 / 1.63 %, 155 s;
-#: 0: 1.99 / 1.25 %, 50-58 s.
-CORE = 0.0
-#: the same for per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
+#: the voxelization rule (``voxel_array.CORE``) of per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
 #: (ε_v / ε_s, rebuild): creature 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
 #: 29.0 %, 3.0 s; 0: 19.0 / 9.6 %, 1.6 s. (Alg. 5's reference voxelization has its own rule:
 #: voxel_rotate.)
@@ -94,68 +73,7 @@ PER_FRAME_CORE = 0.0
 #: and with Alg. 5's conservative mapping, whose per-frame surfaces are about two voxels thick
 MAX_SKIP = 2.0
 CONSERVATIVE_MAX_SKIP = 4.0
-#: margin on the bounding sphere so that float rounding never puts a sample outside the cube
-SPHERE_MARGIN = 1.002
-
-
-@dataclass
-class VoxelArray:
-    """One array: bit-packed voxelizations of one geometry in every direction bin."""
-
-    words: np.ndarray           #: (directions * words_per_direction,) uint32
-    center: np.ndarray          #: (3,) float64 bounding-sphere centre (array space)
-    half: float                 #: half size of the cube = sphere radius × margin
-    resolution: int
-    step: float
-    samples: int = 0            #: items voxelized: surface samples (``core`` > 0) or triangles (0)
-    build_seconds: float = 0.0  #: 0 when loaded from the cache
-    sample_seconds: float = 0.0  #: part of build_seconds spent preparing the geometry (sampling)
-    occupied: int = 0           #: occupied voxels of the reference voxelization (Alg. 5 rebuilds)
-    key: str = ""
-    source: str = ""            #: what it holds (for messages)
-    cached: bool = False
-    #: (4, 4) world (or prototype) space -> array space; world-space arrays are stretched so that
-    #: their box is closer to a cube (:func:`normalizing_transform`)
-    to_array: np.ndarray = field(default_factory=lambda: np.eye(4))
-
-    @property
-    def nbytes(self) -> int:
-        return int(self.words.nbytes)
-
-    @property
-    def voxel_size(self) -> float:
-        return 2.0 * self.half / self.resolution
-
-
-def array_cost(resolution: int, step: float) -> int:
-    """Bytes of one array at ``resolution``³ / ``step`` degrees (said before building)."""
-    return DirectionBins.make(step).count * RowLayout.make(resolution).words * 4
-
-
-#: largest stretch between the axes of a world-space array's box (normalizing_transform)
-MAX_ANISOTROPY = 4.0
-
-
-def normalizing_transform(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """World -> array space for a world-space array covering box ``[lo, hi]``: centred on the box,
-    each axis scaled so its extent approaches the longest one (by at most ``MAX_ANISOTROPY``).
-
-    A city is wide and flat (350 × 106 × 350 here) and its lights hang a few metres above the street:
-    with cubic voxels the vertical resolution is that of the widest axis and rays grazing the street
-    run inside the street's voxel layer. Stretching the box to a cube gives every axis the same number
-    of voxels; rows stay straight lines in world space, so queries just move their endpoints (the
-    same path as instances, Alg. 4).
-    """
-    ext = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
-    top = float(ext.max()) if ext.max() > 0 else 1.0
-    scale = top / np.maximum(ext, top / MAX_ANISOTROPY)
-    m = np.eye(4)
-    m[:3, :3] = np.diag(scale)
-    m[:3, 3] = -scale * 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
-    return m
-
-
-#: points per tile of the CPU shading kernel (kernels.voxel.shade_tiles)
+#: points per tile of the CPU shading kernel (kernels.direct_shading.shade_tiles)
 SHADE_TILE = 64
 
 
@@ -170,206 +88,6 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def available_memory() -> int:
-    """Bytes of memory this process can still take (``MemAvailable``), or physical memory."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 1 << 40
-
-
-def _wp():
-    from usdml.kernels import warp
-
-    return warp()
-
-
-def _kernels():
-    from usdml.kernels import voxel
-
-    return voxel
-
-
-def bounding_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre of the bounding box and the largest distance of a point from it."""
-    lo, hi = points.min(axis=0).astype(np.float64), points.max(axis=0).astype(np.float64)
-    c = 0.5 * (lo + hi)
-    r = float(np.sqrt(((points.astype(np.float64) - c) ** 2).sum(axis=1).max()))
-    return c, max(r, 1e-6 * max(1.0, float(np.abs(c).max())), 1e-9)
-
-
-def array_cube(points: np.ndarray, triangles: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """The geometry an array holds and its cube: ``(points, triangles, centre, half size)``.
-
-    ``bounds`` (a box) restricts the array to that box (triangles are clipped to it); default: all
-    of the geometry.
-    """
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
-    if bounds is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in bounds)
-        points, triangles, _ = clip_to_box(points, triangles, lo, hi)
-        center, radius = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-9)
-    else:
-        center, radius = bounding_sphere(points[np.unique(triangles)] if len(triangles) else points)
-    return points, triangles, center, float(radius * SPHERE_MARGIN)
-
-
-def sample_spacing(half: float, resolution: int, core: float) -> float:
-    """Largest distance between surface samples for an array of ``resolution`` over half size ``half``."""
-    return SAMPLE_SPACING * core * 2.0 * half / resolution
-
-
-def prepare_geometry(points: np.ndarray, triangles: np.ndarray, resolution: int,
-                     bounds: tuple[np.ndarray, np.ndarray] | None, core: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Alg. 1's input for the sampled rule (``core`` > 0): the array's cube (centre, half size,
-    :func:`array_cube`) and the surface samples that mark voxels."""
-    points, triangles, center, half = array_cube(points, triangles, bounds)
-    h = 2.0 * half / resolution
-    return center, half, surface_samples(points, triangles, sample_spacing(half, resolution, core), snap=SNAP * core * h)
-
-
-def run_direction_chunks(n_dirs: int, per: int, launch: Callable[[int, int], int], device,
-                         workers: int | None = None, progress: Callable[[int, int], None] | None = None) -> None:
-    """``launch(d0, d1)`` over directions ``0 … n_dirs`` in chunks of ``per``: over the CPU cores (the
-    first chunk alone first: it compiles or loads the module before threads race for it), or one
-    after another on a GPU; ``progress(done, n_dirs)`` after each chunk."""
-    chunks = [(d0, min(n_dirs, d0 + per)) for d0 in range(0, n_dirs, max(1, per))]
-    done = 0
-    for k in iter_parallel(lambda c: launch(*c), chunks, cpu_workers(device, workers), first_on_caller=True):
-        done += k
-        if progress:
-            progress(done, n_dirs)
-
-
-def build_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, *,
-                device: str = "cpu", workers: int | None = None,
-                progress: Callable[[int, int], None] | None = None, source: str = "",
-                bounds: tuple[np.ndarray, np.ndarray] | None = None, core: float | None = None,
-                out=None, base: int = 0) -> VoxelArray:
-    """Alg. 1: voxelize triangles ``(points, triangles)`` (array space) in every direction bin.
-
-    ``core``: the rule (module doc), default ``CORE``: 0 rasterizes the rows' centre lines
-    (``kernels.voxel.voxelize_triangles``), > 0 voxelizes surface samples lying in that central
-    fraction of their row (``kernels.voxel.voxelize``). ``bounds``: see :func:`array_cube`.
-    ``progress(done, total)`` is called with directions finished. ``out``: a Warp ``uint32`` array
-    to fill in place from word ``base`` (see :func:`usdml.visibility.voxel_rotate.rotate_array`);
-    default: a new array.
-    """
-    wp = _wp()
-    k = _kernels()
-    t0 = time.perf_counter()
-    core = CORE if core is None else float(core)
-    bins = DirectionBins.make(step)
-    layout = RowLayout.make(resolution)
-    if core > 0:
-        center, half, samples = prepare_geometry(points, triangles, resolution, bounds, core)
-        items = len(samples)
-    else:
-        points, triangles, center, half = array_cube(points, triangles, bounds)
-        items = len(triangles)
-    sample_seconds = time.perf_counter() - t0
-    n_dirs, wpd = bins.count, layout.words
-    dev = wp.get_device(device)
-    out_np = None
-    if out is None:
-        out_np = np.zeros(n_dirs * wpd, np.uint32)
-        out = wp.array(out_np, dtype=wp.uint32, device=dev, copy=not dev.is_cpu)
-        base = 0
-    else:
-        clear_words(out, base, n_dirs * wpd, dev)
-    if items:
-        rows = [wp.array(a, dtype=wp.int32, device=dev) for a in (layout.w0, layout.nw, layout.offset)]
-        frames = wp.array(bins.frames, dtype=wp.mat33, device=dev)
-        c32 = wp.vec3(*center.astype(np.float32))
-        chunk = items if dev.is_cpu else 4096
-        n_chunks = -(-items // chunk)
-        if core > 0:
-            kernel, head = k.voxelize, [wp.array(samples, dtype=wp.vec3, device=dev), c32, float(half), resolution, core]
-            tail, per_item = [out], 1
-        else:
-            kernel = k.voxelize_triangles
-            head = [wp.array(points.astype(np.float32), dtype=wp.vec3, device=dev),
-                    wp.array(triangles.astype(np.int32), dtype=wp.vec3i, device=dev), c32, float(half), resolution]
-            tail, per_item = [int(not dev.is_cpu), out], 4
-
-        def launch(d0, d1):
-            wp.launch(kernel, dim=(d1 - d0, n_chunks), device=dev,
-                      inputs=head + [frames, d0, chunk] + rows + [wpd, int(base)] + tail)
-            return d1 - d0
-
-        # directions per launch: enough work per launch, frequent progress
-        run_direction_chunks(n_dirs, max(1, min(n_dirs, (1 << 24) // max(items * per_item, 1))), launch, dev,
-                             workers, progress)
-    arr = VoxelArray(_host_words(out, out_np, base, n_dirs * wpd, dev), center, float(half), resolution,
-                     float(step), int(items), time.perf_counter() - t0, sample_seconds, source=source)
-    log.debug(f"voxel array {source}: {items} {'samples' if core > 0 else 'triangles'} ready in "
-              f"{sample_seconds:.2f} s, {n_dirs} directions in {arr.build_seconds - sample_seconds:.2f} s")
-    return arr
-
-
-def clear_words(out, base: int, count: int, dev) -> None:
-    """Zero words ``base … base + count`` of Warp array ``out``."""
-    if dev.is_cpu:
-        out.numpy()[base:base + count] = 0
-    else:
-        out[base:base + count].zero_()
-
-
-def _host_words(out, out_np, base: int, count: int, dev) -> np.ndarray:
-    """The words an in-place or new build wrote: a view on CPU, a copy from a GPU for a new array,
-    and empty for an in-place GPU build (they stay on the device)."""
-    wp = _wp()
-    if not dev.is_cpu:
-        wp.synchronize_device(dev)
-        return out.numpy() if out_np is not None else np.zeros(0, np.uint32)
-    return out_np if out_np is not None else out.numpy()[base:base + count]
-
-
-def array_key(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, bounds=None,
-              core: float | None = None) -> str:
-    box = None if bounds is None else [np.asarray(b, np.float64).round(9).tolist() for b in bounds]
-    return cache_key("voxel-array", FORMAT_VERSION, SAMPLE_SPACING, SNAP, SPHERE_MARGIN, int(resolution), float(step),
-                     box, float(CORE if core is None else core), content_hash(np.asarray(points, np.float32), np.asarray(triangles, np.int32)))
-
-
-def cached_array(points, triangles, resolution: int, step: float, cache: Cache | None, *,
-                 device: str = "cpu", progress=None, source: str = "", bounds=None, core=None) -> VoxelArray:
-    """The array of ``(points, triangles)``, from ``cache`` when it holds a valid copy, else built
-    (and stored). A damaged entry is reported and rebuilt."""
-    key = array_key(points, triangles, resolution, step, bounds, core)
-    if cache is not None:
-        try:
-            got = cache.get("voxel", key)
-        except CacheCorrupt as e:
-            log.warning(f"voxel cache: {e}; rebuilding")
-            got = None
-        if got is not None:
-            words, meta = got
-            return VoxelArray(words, np.asarray(meta["center"], np.float64), float(meta["half"]),
-                              int(meta["resolution"]), float(meta["step"]), int(meta.get("samples", 0)),
-                              key=key, source=source, cached=True)
-    arr = build_array(points, triangles, resolution, step, device=device, progress=progress, source=source,
-                      bounds=bounds, core=core)
-    arr.key = key
-    if cache is not None:
-        try:
-            cache.put("voxel", key, arr.words, {"center": arr.center.tolist(), "half": arr.half,
-                                                "resolution": resolution, "step": step, "samples": arr.samples,
-                                                "format": FORMAT_VERSION, "source": source})
-        except OSError as e:
-            log.warning(f"voxel cache: could not write {cache.path('voxel', key)} ({e}); continuing without it")
-    return arr
-
-
 @dataclass
 class _Group:
     members: tuple
@@ -377,10 +95,42 @@ class _Group:
     geometry_key: str = ""
 
 
+def _shading_kernels():
+    from usdml.kernels import direct_shading
+
+    return direct_shading
+
+
+#: ``UsdmlSettings`` field -> constructor option, with the value that means "the constructor's
+#: default" (read with ``getattr`` so settings without the field build the same backend)
+_SETTINGS_OPTIONS = (("voxel_normal_offset", "normal_offset", None), ("voxel_skip", "skip", None),
+                     ("voxel_slab", "slab", None), ("voxel_max_skip", "max_skip", 0),
+                     ("voxel_end_skip", "end_skip", None), ("voxel_segment", "segment", None),
+                     ("voxel_core", "core", None), ("voxel_frame_core", "frame_core", None))
+
+
 def _world_geometry(snapshot: Snapshot, members) -> tuple[np.ndarray, np.ndarray]:
     from usdml.visibility.exact import _merged_geometry
 
     return _merged_geometry(snapshot, members)
+
+
+def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
+    """World units of "one voxel" for the ray rule's offset: the static (first world-space) array's
+    voxel along its smallest world extent, else the finest array's."""
+    if world_ids:
+        a = arrays[world_ids[0]]
+        return a.voxel_size / float(np.max(np.abs(np.diag(a.to_array)[:3])))
+    return min((a.voxel_size for a in arrays), default=0.0)
+
+
+def _scene_sphere(snapshot: Snapshot) -> tuple[np.ndarray, float]:
+    """Centre and radius of the sphere around ``snapshot``'s world box (where distant rays end)."""
+    bounds = snapshot.world_bounds()
+    if bounds is None:
+        return np.zeros(3), 1.0
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 
 class VoxelBackend(VisibilityBackend):
@@ -405,7 +155,13 @@ class VoxelBackend(VisibilityBackend):
     fully_dynamic : put every mesh and instance in the per-frame array (``usdml:voxel:fullyDynamic``:
         scenes where much moves), instead of a static array plus one array per moving prototype
     report : called with one line before anything is built (cost of each array), default: log.info
-    progress : ``progress(done, total, label)`` while building
+    progress : ``progress(done, total, label, unit)`` while building (label ``voxel array (<what>)``,
+        unit ``directions``)
+
+    Built from settings by :meth:`from_settings`. Declares every optional capability
+    (:mod:`usdml.visibility.base`): ``SHADE_DIRECT`` (:meth:`shade_direct`, Alg. 3 in one kernel),
+    ``HIT_DISTANCES`` (in voxels of the array hit), ``STATS`` and ``MEMORY_ESTIMATE``
+    (:mod:`usdml.visibility.voxel_budget`).
 
     After each :meth:`update`, ``built`` lists the arrays it built or loaded (empty when nothing
     changed that arrays hold: moving lights or a moving camera cost nothing) and ``stats`` holds the
@@ -413,6 +169,7 @@ class VoxelBackend(VisibilityBackend):
     """
 
     name = "voxel"
+    capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE})
 
     def __init__(self, *, resolution: int = 128, step: float = 2.0, device: str = "cpu", cache=None,
                  memory_limit: int | None = None, normal_offset: float = 1.0, skip: float = 1.0,
@@ -420,27 +177,18 @@ class VoxelBackend(VisibilityBackend):
                  core: float | None = None, frame_core: float | None = None, rebuild: str = "rotate",
                  mapping: str = "point",
                  fully_dynamic: bool = False, workers: int | None = None, report: Callable[[str], None] | None = None,
-                 progress: Callable[[int, int, str], None] | None = None) -> None:
+                 progress: Callable[[int, int, str, str], None] | None = None) -> None:
         self.resolution = int(resolution)
         self.step = float(step)
-        if not (4 <= self.resolution <= 2048):
-            raise UsdmlError(f"voxel resolution must be in [4, 2048], got {self.resolution}")
-        if not (0.1 <= self.step <= 90):
-            raise UsdmlError(f"direction step must be in [0.1, 90] degrees, got {self.step:g}")
-        if segment not in (1, 2, 4, 8, 16, 32):
-            raise UsdmlError(f"voxel segment must divide 32, got {segment}")
-        if rebuild not in REBUILDS:
-            raise UsdmlError(f"voxel rebuild must be one of {', '.join(REBUILDS)}, got {rebuild!r}")
-        from usdml.visibility.voxel_rotate import MAPPINGS
-        if mapping not in MAPPINGS:
-            raise UsdmlError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
         self.rebuild, self.mapping, self.fully_dynamic = rebuild, mapping, bool(fully_dynamic)
         self.device = device
         self.core = CORE if core is None else float(core)
         self.frame_core = PER_FRAME_CORE if frame_core is None else float(frame_core)
-        for name, value in (("core", self.core), ("frame core", self.frame_core)):
-            if not (0.0 <= value <= 1.0):
-                raise UsdmlError(f"voxel {name} must be in [0, 1] (0: rows' centre lines), got {value:g}")
+        # the one validation of these values, the parameter table's (what a flag or the stage may give)
+        for field, value in (("voxel_resolution", self.resolution), ("direction_step", self.step),
+                             ("voxel_segment", segment), ("voxel_rebuild", rebuild), ("voxel_mapping", mapping),
+                             ("voxel_core", self.core), ("voxel_frame_core", self.frame_core)):
+            params.check(field, value)
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
         self.memory_limit = memory_limit
         self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
@@ -462,6 +210,44 @@ class VoxelBackend(VisibilityBackend):
         self.built: list[str] = []
         self._reported: set[str] = set()
 
+    @classmethod
+    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "VoxelBackend":
+        """The backend ``settings`` describe (resolution, direction step, per-frame rebuild and
+        mapping, fully dynamic, leaving the surface, voxelization rules, memory limit in GiB; 0 for
+        ``voxel_max_skip`` / ``voxel_memory_limit``: automatic) on ``device``; ``options`` (constructor
+        keywords: ``cache``, ``report``, ``progress``, ...) override them."""
+        kw: dict = {}
+        if settings is not None:
+            kw.update(resolution=settings.voxel_resolution, step=settings.direction_step,
+                      rebuild=settings.voxel_rebuild, mapping=settings.voxel_mapping,
+                      fully_dynamic=settings.fully_dynamic)
+            for field, option, automatic in _SETTINGS_OPTIONS:
+                value = getattr(settings, field, None)
+                if value is not None and value != automatic:
+                    kw[option] = value
+            limit = getattr(settings, "voxel_memory_limit", 0)
+            if limit:
+                kw["memory_limit"] = int(float(limit) * 2**30)
+        kw.update(options)
+        return cls(device=device, **kw)
+
+    @classmethod
+    def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:
+        """The arrays ``snapshot`` needs at ``settings`` and their bytes (``usdml info``'s ``voxelMemory``)."""
+        return memory_estimate(snapshot, settings)
+
+    @classmethod
+    def memory_line(cls, estimate: dict) -> str:
+        return memory_line(estimate)
+
+    def describe(self) -> dict:
+        """Resolution, directions, arrays (bytes, loaded from the cache, build seconds) and how the
+        per-frame array is rebuilt, for ``usdml bench`` / ``usdml compare``."""
+        return {"voxel_resolution": self.resolution, "direction_step": self.step, "bytes": int(self.stats["bytes"]),
+                "directions": self.bins.count, "arrays": self.stats["arrays"],
+                "arrays_loaded_from_cache": self.stats["loaded"], "array_build_seconds": self.stats["build_seconds"],
+                "fully_dynamic": self.fully_dynamic, "voxel_rebuild": self.rebuild}
+
     # ------------------------------------------------------------------ building
 
     def _array(self, points, triangles, source: str, cacheable: bool = True, trim: bool = False,
@@ -471,7 +257,7 @@ class VoxelBackend(VisibilityBackend):
         (into ``out`` from word ``base`` when given)."""
         def prog(done, total):
             if self.progress:
-                self.progress(done, total, source)
+                self.progress(done, total, f"voxel array ({source})", "directions")
         bounds, to_array = None, np.eye(4)
         if trim:
             lo, hi, outside = core_bounds(points, triangles)
@@ -486,7 +272,6 @@ class VoxelBackend(VisibilityBackend):
         if per_frame:
             t0 = time.perf_counter()
             if self.rebuild == "rotate":
-                from usdml.visibility.voxel_rotate import rotate_array
                 arr = rotate_array(points, triangles, self.resolution, self.step, mapping=self.mapping,
                                    device=self.device, workers=self.workers, bounds=bounds,
                                    out=out, base=base, progress=prog, source=source)
@@ -514,9 +299,7 @@ class VoxelBackend(VisibilityBackend):
         return "dynamic scene" if self.fully_dynamic else "deforming geometry"
 
     def plan(self, snapshot: Snapshot) -> list[tuple[str, tuple]]:
-        """The arrays ``snapshot`` needs (:func:`usdml.voxel_budget.array_roles`)."""
-        from usdml.voxel_budget import array_roles
-
+        """The arrays ``snapshot`` needs (:func:`usdml.visibility.voxel_budget.array_roles`)."""
         return array_roles(snapshot, self.fully_dynamic)
 
     def check_memory(self, count: int, quiet: bool = False) -> int:
@@ -546,7 +329,6 @@ class VoxelBackend(VisibilityBackend):
         static = roles.get("static")
         per_frame = roles.get("deforming", roles.get("dynamic"))
         if per_frame is not None and self.rebuild == "rotate":
-            from usdml.visibility.voxel_rotate import MAX_RESOLUTION
             if self.resolution > MAX_RESOLUTION:
                 raise UsdmlError(f"--voxel-rebuild rotate (Alg. 5) handles up to {MAX_RESOLUTION}^3 voxels, got "
                                  f"{self.resolution}^3; lower --voxel-resolution or use --voxel-rebuild geometry")
@@ -622,62 +404,86 @@ class VoxelBackend(VisibilityBackend):
                 "mapping": self.mapping, "occupied_voxels": int(arr.occupied) if keep == "rotate" else None}
 
     def _assemble(self, snapshot: Snapshot, moving, proto_hashes, rebuild_words: bool) -> None:
-        """Concatenate the arrays for the kernels and rebuild the instance table and BVH."""
-        wp = _wp()
+        """Concatenate the arrays for the kernels (when ``rebuild_words`` or their number changed) and
+        rebuild the instance table and its BVH, the arrays' cubes and the ray rule's scales."""
+        arrays, world_ids, proto_index = self._array_order()
+        if rebuild_words or self._gpu.get("n_arrays") != len(arrays):
+            self._gpu = self._upload_words(arrays)
+            self.stats["bytes"] = int(sum(a.words.size for a in arrays) * 4)
+            self.stats["arrays"] = len(arrays)
+        g = self._gpu
+        wp = warp_module()
         dev = wp.get_device(self.device)
+        # cubes move with the per-frame array: refreshed every frame (a few floats per array)
+        g["center"] = wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev)
+        g["half"] = wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev)
+        self._upload_instances(g, *self._instance_table(arrays, world_ids, moving, proto_index, proto_hashes))
+        g["static"] = world_ids[0] if world_ids else -1
+        g["static_inv"] = wp.mat44(*(arrays[world_ids[0]].to_array if world_ids else np.eye(4)).astype(np.float32).ravel())
+        self.reference_voxel = _reference_voxel(arrays, world_ids)
+        self._scene = _scene_sphere(snapshot)
+        self.arrays = arrays
+
+    def _array_order(self) -> tuple[list[VoxelArray], list[int], dict[str, int]]:
+        """Every array in the order the kernels see them: the world-space ones (static, then
+        per-frame; their indices) first, then one per prototype hash (hash -> index)."""
         arrays: list[VoxelArray] = []
-        static_ids = []
+        world_ids = []
         for g in (self._static, self._deforming):
             if g is not None and g.array is not None:
-                static_ids.append(len(arrays))
+                world_ids.append(len(arrays))
                 arrays.append(g.array)
         proto_index = {}
         for h, a in self._protos.items():
             proto_index[h] = len(arrays)
             arrays.append(a)
-        if rebuild_words or self._gpu.get("n_arrays") != len(arrays):
-            total = sum(a.words.size for a in arrays)
-            if total >= 2 ** 31:
-                raise UsdmlError(f"voxel arrays hold {total} words, more than one Warp array can index (2^31); "
-                                 "lower --voxel-resolution or raise --direction-step")
-            if len(arrays) == 1 and arrays[0].words.dtype == np.uint32 and arrays[0].words.flags.c_contiguous:
-                words = arrays[0].words     # one array (a static scene alone): used as it is, not copied
-            else:
-                words = np.concatenate([a.words for a in arrays]) if arrays else np.zeros(1, np.uint32)
-            bases = np.concatenate([[0], np.cumsum([a.words.size for a in arrays])[:-1]]).astype(np.int64) \
-                if arrays else np.zeros(0, np.int64)
-            arr_int = np.zeros((max(1, len(arrays)), 4), np.int32)
-            for i, a in enumerate(arrays):
-                arr_int[i] = (a.resolution, self.layout.words, bases[i], 0)
-                if dev.is_cpu:
-                    # the assembled words are the only copy (per-frame rebuilds write into them)
-                    a.words = words[bases[i]:bases[i] + a.words.size]
-            g = {
-                "words_np": words,
-                "words": wp.array(words, dtype=wp.uint32, device=dev, copy=not dev.is_cpu),
-                "int": wp.array(arr_int, dtype=wp.int32, device=dev),
-                "w0": wp.array(self.layout.w0, dtype=wp.int32, device=dev),
-                "nw": wp.array(self.layout.nw, dtype=wp.int32, device=dev),
-                "off": wp.array(self.layout.offset, dtype=wp.int32, device=dev),
-                "frames": wp.array(self.bins.frames, dtype=wp.mat33, device=dev),
-                "ring_count": wp.array(self.bins.ring_count, dtype=wp.int32, device=dev),
-                "ring_start": wp.array(self.bins.ring_start, dtype=wp.int32, device=dev),
-                "n_arrays": len(arrays),
-            }
-            if self._deforming is not None and self._deforming.array is not None:
-                g["frame_slot"] = int(bases[[a is self._deforming.array for a in arrays].index(True)])
-            self._gpu = g
-            self.stats["bytes"] = int(sum(a.words.size for a in arrays) * 4)
-            self.stats["arrays"] = len(arrays)
-        g = self._gpu
-        # cubes move with the per-frame array: refreshed every frame (a few floats per array)
-        g["center"] = wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev)
-        g["half"] = wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev)
-        # the static and deforming arrays are both world space; with both, the deforming one is
-        # visited as an identity "instance" so a query still tests both
+        return arrays, world_ids, proto_index
+
+    def _upload_words(self, arrays: list[VoxelArray]) -> dict:
+        """The kernels' buffers: every array's words in one Warp array (on CPU the arrays become
+        views into it) with each array's table row, and the shared row layout and direction bins."""
+        wp = warp_module()
+        dev = wp.get_device(self.device)
+        total = sum(a.words.size for a in arrays)
+        if total >= 2 ** 31:
+            raise UsdmlError(f"voxel arrays hold {total} words, more than one Warp array can index (2^31); "
+                             "lower --voxel-resolution or raise --direction-step")
+        if len(arrays) == 1 and arrays[0].words.dtype == np.uint32 and arrays[0].words.flags.c_contiguous:
+            words = arrays[0].words     # one array (a static scene alone): used as it is, not copied
+        else:
+            words = np.concatenate([a.words for a in arrays]) if arrays else np.zeros(1, np.uint32)
+        bases = np.concatenate([[0], np.cumsum([a.words.size for a in arrays])[:-1]]).astype(np.int64) \
+            if arrays else np.zeros(0, np.int64)
+        arr_int = np.zeros((max(1, len(arrays)), 4), np.int32)
+        for i, a in enumerate(arrays):
+            arr_int[i] = (a.resolution, self.layout.words, bases[i], 0)
+            if dev.is_cpu:
+                # the assembled words are the only copy (per-frame rebuilds write into them)
+                a.words = words[bases[i]:bases[i] + a.words.size]
+        g = {
+            "words_np": words,
+            "words": wp.array(words, dtype=wp.uint32, device=dev, copy=not dev.is_cpu),
+            "int": wp.array(arr_int, dtype=wp.int32, device=dev),
+            "w0": wp.array(self.layout.w0, dtype=wp.int32, device=dev),
+            "nw": wp.array(self.layout.nw, dtype=wp.int32, device=dev),
+            "off": wp.array(self.layout.offset, dtype=wp.int32, device=dev),
+            "frames": wp.array(self.bins.frames, dtype=wp.mat33, device=dev),
+            "ring_count": wp.array(self.bins.ring_count, dtype=wp.int32, device=dev),
+            "ring_start": wp.array(self.bins.ring_start, dtype=wp.int32, device=dev),
+            "n_arrays": len(arrays),
+        }
+        if self._deforming is not None and self._deforming.array is not None:
+            g["frame_slot"] = int(bases[[a is self._deforming.array for a in arrays].index(True)])
+        return g
+
+    @staticmethod
+    def _instance_table(arrays: list[VoxelArray], world_ids: list[int], moving, proto_index: dict[str, int],
+                        proto_hashes: dict[str, str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Alg. 4's instances: ``(K, 4, 4)`` float32 world -> array space, ``(K,)`` int32 array index and
+        ``(K, 3)`` float32 world box corners. The static and per-frame arrays are both world space;
+        with both, the per-frame one is an identity-placed "instance" so a query still tests both."""
         inv, ids, lo, hi = [], [], [], []
-        extra = static_ids[1:]
-        for a_id in extra:
+        for a_id in world_ids[1:]:
             a = arrays[a_id]
             inv.append(a.to_array)
             ids.append(a_id)
@@ -698,17 +504,23 @@ class VoxelBackend(VisibilityBackend):
             ids.append(np.full(len(xf), a_id))
             lo.append(c_world - r_world[:, None])
             hi.append(c_world + r_world[:, None])
-        n_inst = 0
-        if inv:
-            inv_m = np.concatenate([np.asarray(m).reshape(-1, 4, 4) for m in inv]).astype(np.float32)
-            ids_a = np.concatenate([np.atleast_1d(i) for i in ids]).astype(np.int32)
-            lo_a = np.concatenate([np.asarray(x).reshape(-1, 3) for x in lo]).astype(np.float32)
-            hi_a = np.concatenate([np.asarray(x).reshape(-1, 3) for x in hi]).astype(np.float32)
-            n_inst = len(ids_a)
-            g["inst_inv"] = wp.array(inv_m, dtype=wp.mat44, device=dev)
-            g["inst_array"] = wp.array(ids_a, dtype=wp.int32, device=dev)
-            g["lowers"] = wp.array(lo_a, dtype=wp.vec3, device=dev)
-            g["uppers"] = wp.array(hi_a, dtype=wp.vec3, device=dev)
+        if not inv:
+            return (np.zeros((0, 4, 4), np.float32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32),
+                    np.zeros((0, 3), np.float32))
+        return (np.concatenate([np.asarray(m).reshape(-1, 4, 4) for m in inv]).astype(np.float32),
+                np.concatenate([np.atleast_1d(i) for i in ids]).astype(np.int32),
+                np.concatenate([np.asarray(x).reshape(-1, 3) for x in lo]).astype(np.float32),
+                np.concatenate([np.asarray(x).reshape(-1, 3) for x in hi]).astype(np.float32))
+
+    def _upload_instances(self, g: dict, inv: np.ndarray, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+        """The instance table into the kernels' buffers ``g``, with a Warp BVH over the world boxes."""
+        wp = warp_module()
+        dev = wp.get_device(self.device)
+        if len(ids):
+            g["inst_inv"] = wp.array(inv, dtype=wp.mat44, device=dev)
+            g["inst_array"] = wp.array(ids, dtype=wp.int32, device=dev)
+            g["lowers"] = wp.array(lo, dtype=wp.vec3, device=dev)
+            g["uppers"] = wp.array(hi, dtype=wp.vec3, device=dev)
             g["bvh"] = wp.Bvh(g["lowers"], g["uppers"])
             g["bvh_id"] = g["bvh"].id
         else:
@@ -716,28 +528,13 @@ class VoxelBackend(VisibilityBackend):
             g["inst_array"] = wp.zeros(1, dtype=wp.int32, device=dev)
             g["bvh"] = None
             g["bvh_id"] = wp.uint64(0)
-        g["n_inst"] = n_inst
-        g["static"] = static_ids[0] if static_ids else -1
-        g["static_inv"] = wp.mat44(*(arrays[static_ids[0]].to_array if static_ids else np.eye(4)).astype(np.float32).ravel())
-        # world units: offset by the static array's voxel (its smallest world extent), else the finest array's
-        if static_ids:
-            a = arrays[static_ids[0]]
-            self.reference_voxel = a.voxel_size / float(np.max(np.abs(np.diag(a.to_array)[:3])))
-        else:
-            self.reference_voxel = min((a.voxel_size for a in arrays), default=0.0)
-        bounds = snapshot.world_bounds()
-        if bounds is not None:
-            lo_b, hi_b = (np.asarray(b, np.float64) for b in bounds)
-            self._scene = (0.5 * (lo_b + hi_b), 0.5 * float(np.linalg.norm(hi_b - lo_b)))
-        else:
-            self._scene = (np.zeros(3), 1.0)
-        self.arrays = arrays
+        g["n_inst"] = len(ids)
 
     # ------------------------------------------------------------------ queries
 
     def _scene_struct(self):
         """The arrays as the kernels' ``VoxelScene``."""
-        g, k = self._gpu, _kernels()
+        g, k = self._gpu, voxel_kernels()
         vs = k.VoxelScene()
         vs.words, vs.arr_center, vs.arr_half, vs.arr_int = g["words"], g["center"], g["half"], g["int"]
         vs.row_w0, vs.row_nw, vs.row_off, vs.frames = g["w0"], g["nw"], g["off"], g["frames"]
@@ -749,18 +546,18 @@ class VoxelBackend(VisibilityBackend):
     def _ray_rule(self):
         """The kernels' ``RayRule``."""
         c, r = self._scene
-        rule = _kernels().RayRule()
+        rule = voxel_kernels().RayRule()
         rule.offset = float(self.normal_offset * self.reference_voxel)
         rule.skip, rule.slab, rule.max_skip, rule.end_skip = self.skip, self.slab, self.max_skip, self.end_skip
         # a distant ray ends its distance from the scene's centre plus the scene's diameter away
         # (per ray, in the kernel: a reduction over millions of origins cost a quarter of a query)
-        rule.far, rule.far_center = 2.0 * r + 1.0, _wp().vec3(*np.asarray(c, np.float32))
+        rule.far, rule.far_center = 2.0 * r + 1.0, warp_module().vec3(*np.asarray(c, np.float32))
         rule.seg = self.segment
         return rule
 
     def _split(self, n: int, launch: Callable[[int, int], None]) -> None:
         """Run ``launch(first, count)`` over ``n`` items: one launch on a GPU, bands over threads on CPU."""
-        wp = _wp()
+        wp = warp_module()
         dev = wp.get_device(self.device)
         if n == 0:
             return
@@ -777,8 +574,8 @@ class VoxelBackend(VisibilityBackend):
         """Distance in voxels from each ray's (offset, skipped) start to the first occupied voxel; -1: free."""
         if not self._gpu:
             raise RuntimeError("VoxelBackend.update() must be called before queries")
-        wp = _wp()
-        k = _kernels()
+        wp = warp_module()
+        k = voxel_kernels()
         dev = wp.get_device(self.device)
         # float32 once, and on CPU wrapped rather than copied again
         origins = np.ascontiguousarray(as_vectors(origins, "origins", dtype=np.float32))
@@ -806,44 +603,53 @@ class VoxelBackend(VisibilityBackend):
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
 
+    def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):
+        """The lights as the shading kernel's ``LightTable`` (the constants of
+        :func:`usdml.lighting.direct.shade_direct`), and whether every light casts shadows."""
+        from usdml.lighting.direct import _LightTable, cone_edges
+
+        wp, ks = warp_module(), _shading_kernels()
+        dev = wp.get_device(self.device)
+        t = _LightTable(lights, meters_per_unit, min_distance)
+        flags = ((t.distant * ks.DISTANT) | (t.one_sided * ks.ONE_SIDED) | (t.shaped * ks.SHAPED)
+                 | (t.focused * ks.FOCUSED) | (t.casts * ks.CASTS_SHADOWS) | (t.cylinder * ks.CYLINDER)).astype(np.int32)
+        outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
+        cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
+        lt = ks.LightTable()
+        lt.pos = wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev)
+        lt.axis = wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev)
+        lt.flags = wp.array(flags, dtype=wp.int32, device=dev)
+        lt.cylinder_axis = wp.array(np.ascontiguousarray(t.cylinder_axis.T), dtype=wp.vec3, device=dev)
+        lt.cone = wp.array(cone, dtype=wp.vec3, device=dev)
+        lt.base = wp.array(t.base, dtype=wp.vec3, device=dev)
+        lt.focus_rgb = wp.array(t.focus_rgb, dtype=wp.vec3, device=dev)
+        lt.inv_m2, lt.min_d2 = float(t.inv_m2), float(t.min_d2)
+        return lt, bool(t.casts.all())
+
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                      min_distance: float = 0.0, geometric: np.ndarray | None = None):
-        """Alg. 3 in one kernel: every pixel against every light with voxel shadow rays; the same
-        shading as :func:`usdml.lighting.direct.shade_direct` (returns its ``DirectResult``)."""
-        from usdml.lighting.direct import DirectResult, _LightTable, cone_edges
+        """Alg. 3 in one kernel (``kernels.direct_shading.shade_tiles``): every pixel against every
+        light with voxel shadow rays; the same shading as :func:`usdml.lighting.direct.shade_direct`
+        (returns its ``DirectResult``)."""
+        from usdml.lighting.direct import DirectResult
 
-        wp = _wp()
-        k = _kernels()
-        dev = wp.get_device(self.device)
         n_p, n_l = len(points), len(lights)
         if n_p == 0 or n_l == 0 or not self._gpu:
             from usdml.lighting.direct import shade_direct
             return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
                                 progress, meters_per_unit=meters_per_unit, min_distance=min_distance,
                                 geometric=geometric)
-        t = _LightTable(lights, meters_per_unit, min_distance)
-        flags = (t.distant.astype(np.int32) | (t.one_sided.astype(np.int32) << 1) | (t.shaped.astype(np.int32) << 2)
-                 | (t.focused.astype(np.int32) << 3) | (t.casts.astype(np.int32) << 4)
-                 | (t.cylinder.astype(np.int32) << 5))
-        outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
-        cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
+        wp, ks = warp_module(), _shading_kernels()
+        dev = wp.get_device(self.device)
+        lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
         pts = np.asarray(points, np.float32)
-        lt = k.LightTable()
-        lt.pos = wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev)
-        lt.axis = wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev)
-        lt.flags = wp.array(flags.astype(np.int32), dtype=wp.int32, device=dev)
-        lt.cylinder_axis = wp.array(np.ascontiguousarray(t.cylinder_axis.T), dtype=wp.vec3, device=dev)
-        lt.cone = wp.array(cone, dtype=wp.vec3, device=dev)
-        lt.base = wp.array(t.base, dtype=wp.vec3, device=dev)
-        lt.focus_rgb = wp.array(t.focus_rgb, dtype=wp.vec3, device=dev)
-        lt.inv_m2, lt.min_d2 = float(t.inv_m2), float(t.min_d2)
         rad = wp.zeros(n_p, dtype=wp.vec3, device=dev)
         blocked = wp.zeros(n_p, dtype=wp.int32, device=dev)
         facing = wp.zeros(n_p, dtype=wp.int32, device=dev)
         rule, vs = self._ray_rule(), self._scene_struct()
         # tiles of spatially coherent points (Morton order of their cells): one light's rays from a
-        # tile share bins and rows (kernels.voxel.shade_tiles); on a GPU one point per tile
+        # tile share bins and rows (kernels.direct_shading.shade_tiles); on a GPU one point per tile
         tile = SHADE_TILE if dev.is_cpu else 1
         order = morton_order(pts) if tile > 1 else np.arange(n_p)
         p_wp = wp.array(pts[order], dtype=wp.vec3, device=dev)
@@ -853,7 +659,7 @@ class VoxelBackend(VisibilityBackend):
         n_tiles = -(-n_p // tile)
 
         def launch(first_tile, count):
-            wp.launch(k.shade_tiles, dim=count, device=dev,
+            wp.launch(ks.shade_tiles, dim=count, device=dev,
                       inputs=[p_wp, n_wp, g_wp, first_tile * tile, tile, lt, rule, vs, rad, blocked, facing])
             if progress is not None:
                 progress(min(n_p, (first_tile + count) * tile) - first_tile * tile)
@@ -864,7 +670,7 @@ class VoxelBackend(VisibilityBackend):
         fac = facing.numpy()[inverse]
         blk = blocked.numpy()[inverse]
         shadow = np.where(fac > 0, blk / np.maximum(fac, 1), 0.0).astype(np.float32)
-        queries = int(fac.sum()) if t.casts.all() else -1
+        queries = int(fac.sum()) if all_cast else -1
         return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries)
 
     def close(self) -> None:

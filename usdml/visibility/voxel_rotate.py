@@ -42,7 +42,8 @@ import numpy as np
 
 from usdml.parallel import cpu_workers, run_parallel
 from usdml.settings import VOXEL_MAPPINGS
-from usdml.visibility.voxel import VoxelArray, _host_words, _wp, array_cube, clear_words, run_direction_chunks
+from usdml.visibility.voxel_array import (VoxelArray, array_cube, clear_words, host_words, run_direction_chunks,
+                                          warp_module)
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 
 __all__ = ["MAPPINGS", "RotationTables", "reference_occupied", "rotate_array"]
@@ -106,13 +107,13 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     ``out``: a Warp ``uint32`` array to fill in place from word ``base`` (the backend's assembled
     words, so a per-frame rebuild allocates and copies nothing); the returned array's ``words`` is
     then a view of it on CPU (empty on a GPU). Default: a new array. ``bounds``: as
-    :func:`usdml.visibility.voxel.build_array`.
+    :func:`usdml.visibility.voxel_array.build_array`.
     """
     if mapping not in MAPPINGS:
         raise ValueError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
     if resolution > MAX_RESOLUTION:
         raise ValueError(f"Alg. 5 rotates voxelizations of up to {MAX_RESOLUTION}^3, got {resolution}^3")
-    wp = _wp()
+    wp = warp_module()
     kr = _rotate_kernels()
     t0 = time.perf_counter()
     bins = DirectionBins.make(step)
@@ -155,7 +156,7 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
         per = CPU_DIRECTIONS_PER_LAUNCH if dev.is_cpu else \
             max(1, min(n_dirs, (1 << 22) // max(len(occupied) * (8 if conservative else 1), 1)))
         run_direction_chunks(n_dirs, per, launch, dev, workers, progress)
-    words_np = _host_words(out, words_np, base, n_dirs * wpd, dev)
+    words_np = host_words(out, words_np, base, n_dirs * wpd, dev)
     arr = VoxelArray(words_np, center, float(half), resolution, float(step), samples,
                      time.perf_counter() - t0, sample_seconds, source=source, occupied=int(len(occupied)))
     return arr
@@ -175,7 +176,7 @@ def reference_occupied(points: np.ndarray, triangles: np.ndarray, center: np.nda
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
     if len(triangles) == 0:
         return np.zeros((0, 3), np.int32), 0
-    wp = _wp()
+    wp = warp_module()
     kr = _rotate_kernels()
     dev = wp.get_device(device)
     words = -(-n ** 3 // 32)
@@ -236,7 +237,7 @@ _DEVICE_TABLES: dict = {}
 
 def _device_tables(tables: RotationTables, layout: RowLayout, dev) -> dict:
     """The tables as Warp arrays on ``dev``, made once per (resolution, step, device)."""
-    wp = _wp()
+    wp = warp_module()
     key = (tables.n, tables.step, str(dev))
     g = _DEVICE_TABLES.get(key)
     if g is None:

@@ -1,4 +1,6 @@
-"""What paper 000's per-direction voxel arrays cost, said before anything is built.
+"""What paper 000's per-direction voxel arrays cost, said before anything is built: the voxel
+backend's ``MEMORY_ESTIMATE`` capability (``usdml info``, and the arrays a snapshot needs,
+:func:`array_roles`, which :meth:`usdml.visibility.voxel.VoxelBackend.update` builds).
 
 An array holds one bit-packed voxelization per direction bin. The paper's (theta, phi) grid over
 [0, 180) x [0, 180) has 90 x 90 bins at 2 deg and a voxelization at 128^3 takes 256 KiB: about 2 GB
@@ -11,7 +13,8 @@ from __future__ import annotations
 
 from usdml.scene import Snapshot
 from usdml.settings import UsdmlSettings
-from usdml.visibility.voxel_grid import DirectionBins, array_bytes  # noqa: F401  (re-exported)
+from usdml.visibility.base import static_members
+from usdml.visibility.voxel_grid import DirectionBins, array_bytes
 
 
 def direction_count(step_deg: float) -> int:
@@ -24,8 +27,6 @@ def array_roles(snap: Snapshot, fully_dynamic: bool) -> list[tuple[str, tuple]]:
     space), ``prototype <path>`` (one per prototype whose instances move, shared by all of them,
     paper 000 Alg. 4), ``deforming`` (rebuilt per frame, Alg. 5) -- or, ``fully_dynamic``, just
     ``dynamic`` (every mesh and prototype, rebuilt per frame)."""
-    from usdml.visibility.base import static_members
-
     if fully_dynamic:
         everything = tuple([("mesh", m.path) for m in snap.meshes]
                            + [("proto", p.path) for p in snap.prototypes if p.triangle_count])
@@ -53,6 +54,24 @@ def plan_arrays(snap: Snapshot, settings: UsdmlSettings) -> list[tuple[str, str]
         kind, _, path = role.partition(" ")
         out.append((kind, names[path] if path else _SOURCES[kind]))
     return out
+
+
+def memory_estimate(snap: Snapshot, settings: UsdmlSettings) -> dict:
+    """The arrays :func:`plan_arrays` lists and their bytes at ``settings`` (``usdml info``'s ``voxelMemory``)."""
+    plan = plan_arrays(snap, settings)
+    per_array = array_bytes(settings.voxel_resolution, settings.direction_step)
+    return {
+        "resolution": settings.voxel_resolution, "directionStep": settings.direction_step,
+        "directions": direction_count(settings.direction_step), "bytesPerArray": per_array,
+        "arrays": len(plan), "totalBytes": per_array * len(plan),
+        "plan": [{"role": r, "source": s} for r, s in plan],
+    }
+
+
+def memory_line(vm: dict) -> str:
+    """:func:`memory_estimate`'s result as one line."""
+    return (f"{vm['arrays']} array(s) x {human_bytes(vm['bytesPerArray'])} = {human_bytes(vm['totalBytes'])} "
+            f"({vm['directions']:,} directions at {vm['resolution']}^3)")
 
 
 def human_bytes(n: float) -> str:
