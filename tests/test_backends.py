@@ -103,17 +103,6 @@ def name(request) -> str:
     return request.param
 
 
-@pytest.fixture(params=["cpu", "cuda:0"])
-def device(request) -> str:
-    """Every Warp device: ``cuda:0`` skipped where there is none."""
-    if request.param != "cpu":
-        from usdml.kernels import warp
-
-        if warp().get_cuda_device_count() == 0:
-            pytest.skip("no CUDA device")
-    return request.param
-
-
 @pytest.fixture(autouse=True)
 def private_cache(tmp_path, monkeypatch):
     """Cached structures go to a folder of the test's own."""

@@ -110,12 +110,12 @@ def numpy_voxelize(samples, center, half, n, bins, layout, core=1.0):
     return out
 
 
-def test_voxelize_kernel_matches_numpy():
+def test_voxelize_kernel_matches_numpy(device):
     """The sampled rule (core 0.5) against NumPy's voxels of the same samples."""
     rng = np.random.default_rng(0)
     tris = city_tris(rng)
     pts, ids = tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3)
-    arr = build_array(pts, ids, 16, 30.0, core=0.5)
+    arr = build_array(pts, ids, 16, 30.0, core=0.5, device=device)
     bins, layout = DirectionBins.make(30.0), RowLayout.make(16)
     h = 2 * arr.half / 16
     samples = surface_samples(pts, ids, 0.5 * 0.5 * h, snap=0.12 * 0.5 * h)
@@ -156,7 +156,7 @@ def centre_line_voxels(points: np.ndarray, triangles: np.ndarray, center: np.nda
     return voxels, crossings
 
 
-def test_centre_line_kernel_matches_numpy():
+def test_centre_line_kernel_matches_numpy(device):
     """The default rule (CORE 0): in every direction, the voxels where rows' centre lines cross a
     triangle, against NumPy's rasterization (float32 rounding of a crossing on a voxel face aside)."""
     assert CORE == 0.0
@@ -164,7 +164,7 @@ def test_centre_line_kernel_matches_numpy():
     tris = city_tris(rng)
     pts, ids = tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3)
     n, step = 16, 30.0
-    arr = build_array(pts, ids, n, step, workers=2)
+    arr = build_array(pts, ids, n, step, workers=2, device=device)
     assert arr.samples == len(ids)
     bins, layout = DirectionBins.make(step), RowLayout.make(n)
     ref = np.zeros_like(arr.words)
@@ -175,7 +175,7 @@ def test_centre_line_kernel_matches_numpy():
     total = np.unpackbits(ref.view(np.uint8)).sum()
     assert total > 1000 and diff <= total * 1e-3
     # thinner than every voxel the surface touches
-    fat = build_array(pts, ids, n, step, core=1.0)
+    fat = build_array(pts, ids, n, step, core=1.0, device=device)
     assert total < 0.8 * np.unpackbits(fat.words.view(np.uint8)).sum()
 
 
@@ -216,11 +216,11 @@ def numpy_segment_hit(arr, bins, layout, a, b, skip0=0.0, skip1=0.0, seg=32):
     return -1
 
 
-def test_query_kernel_matches_numpy_reference():
+def test_query_kernel_matches_numpy_reference(device):
     rng = np.random.default_rng(2)
     tris = city_tris(rng)
     backend = VoxelBackend(resolution=32, step=10.0, cache=False, normal_offset=0.0, skip=0.0, slab=0.0,
-                           end_skip=0.0, report=lambda line: None)
+                           end_skip=0.0, report=lambda line: None, device=device)
     backend.update(snapshot([soup("/city", tris)]))
     arr = backend.arrays[0]
     to_array = arr.to_array
@@ -249,9 +249,9 @@ def small_city():
     return snap, o, t, nrm, ref
 
 
-def test_voxel_backend_agrees_with_exact_on_a_small_scene(small_city):
+def test_voxel_backend_agrees_with_exact_on_a_small_scene(small_city, device):
     snap, o, t, nrm, ref = small_city
-    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None)
+    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None, device=device)
     backend.update(snap)
     got = backend.occluded(o, t, normals=nrm)
     assert 0.1 < ref.mean() < 0.9
@@ -272,7 +272,7 @@ def test_finer_arrays_err_less(small_city):
     assert errors[1] < errors[0]
 
 
-def test_instances_answer_as_their_array_queried_in_each_instance_space():
+def test_instances_answer_as_their_array_queried_in_each_instance_space(device):
     """Alg. 4: a moving prototype's ONE array, queried through each instance's inverse transform,
     answers like the OR of single-instance scenes; and it agrees with exact on the flattened scene."""
     rng = np.random.default_rng(4)
@@ -286,13 +286,13 @@ def test_instances_answer_as_their_array_queried_in_each_instance_space():
     o, t, nrm = ground_queries(rng, 3000)
     t[:, 1] += 3
     kw = dict(resolution=32, step=10.0, cache=False, report=lambda line: None)
-    both = VoxelBackend(**kw)
+    both = VoxelBackend(**kw, device=device)
     both.update(scene(xforms))
     assert len(both.arrays) == 2            # static ground + ONE plane array shared by 3 instances
     got = both.occluded(o, t, normals=nrm)
     one_by_one = np.zeros(len(o), bool)
     for xf in xforms:
-        single = VoxelBackend(**kw)
+        single = VoxelBackend(**kw, device=device)
         single.update(scene([xf]))
         one_by_one |= single.occluded(o, t, normals=nrm)
     assert np.array_equal(got, one_by_one)
@@ -311,11 +311,11 @@ def test_instances_answer_as_their_array_queried_in_each_instance_space():
     assert both.stats["builds"] == builds
 
 
-def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_city):
+def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_city, device):
     from usdml.lighting.direct import shade_direct
 
     snap, o, t, nrm, ref = small_city
-    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None)
+    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None, device=device)
     backend.update(snap)
     rng = np.random.default_rng(5)
     n = 40

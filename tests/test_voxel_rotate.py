@@ -61,14 +61,14 @@ def test_rotation_tables_match_numpy_rotations():
     assert np.allclose(tables.radius, 0.5 * np.abs(tables.rotations).sum(1), atol=1e-6)
 
 
-def test_reference_voxelization_in_warp_matches_numpy_centre_lines():
+def test_reference_voxelization_in_warp_matches_numpy_centre_lines(device):
     """V0 rasterized in Warp holds the voxels NumPy's three-axis centre lines cross (float32
     against float64 rounding of a crossing on a voxel face aside)."""
     n = 24
     pts, tris = rotated_object()
     frame = DirectionBins.make(15.0).frames[0]
     pts_c, tris_c, centre, half = array_cube(pts, tris)
-    got, count = reference_occupied(pts_c, tris_c, centre, half, n, frame, workers=2)
+    got, count = reference_occupied(pts_c, tris_c, centre, half, n, frame, workers=2, device=device)
     want, crossings = centre_line_voxels(pts_c, tris_c, centre, half, n, frame)
     assert len(want) > 100
     g = set(map(tuple, got.tolist()))
@@ -76,18 +76,18 @@ def test_reference_voxelization_in_warp_matches_numpy_centre_lines():
     # a crossing on a shared edge is counted by both triangles
     assert crossings <= count <= crossings * 1.05
     # every core gives the same grid: one worker sets the same voxels
-    one, _ = reference_occupied(pts_c, tris_c, centre, half, n, frame, workers=1)
+    one, _ = reference_occupied(pts_c, tris_c, centre, half, n, frame, workers=1, device=device)
     assert np.array_equal(one, got)
 
 
-def test_point_mapping_kernel_sets_exactly_the_numpy_voxels():
+def test_point_mapping_kernel_sets_exactly_the_numpy_voxels(device):
     """Each direction holds exactly the voxels of V0's rotated centres (read from the tables)."""
     n, step = 24, 15.0
     pts, tris = rotated_object()
     bins, layout, tables = DirectionBins.make(step), RowLayout.make(n), RotationTables.make(n, step)
-    arr = rotate_array(pts, tris, n, step, mapping="point")
+    arr = rotate_array(pts, tris, n, step, mapping="point", device=device)
     pts_c, tris_c, centre, half = array_cube(pts, tris)
-    occ, _ = reference_occupied(pts_c, tris_c, centre, half, n, bins.frames[0], layout)
+    occ, _ = reference_occupied(pts_c, tris_c, centre, half, n, bins.frames[0], layout, device=device)
     assert arr.occupied == len(occ) > 100
     want = np.zeros_like(arr.words)
     for d in range(bins.count):
@@ -96,15 +96,15 @@ def test_point_mapping_kernel_sets_exactly_the_numpy_voxels():
     assert np.array_equal(arr.words, want)
 
 
-def test_rigid_object_rotated_by_alg5_is_bounded_by_its_direct_voxelization():
+def test_rigid_object_rotated_by_alg5_is_bounded_by_its_direct_voxelization(device):
     """The rotated arrays against Alg. 1 on the same object with every voxel the surface touches
     (core 1, the envelope of a thinner voxelization): conservative holds almost all of them and no
     more than twice as many; point sets fewer, none farther than one voxel from Alg. 1's."""
     n, step = 32, 10.0
     pts, tris = rotated_object()
-    direct = build_array(pts, tris, n, step, core=1.0)
-    cons = rotate_array(pts, tris, n, step, mapping="conservative")
-    point = rotate_array(pts, tris, n, step, mapping="point")
+    direct = build_array(pts, tris, n, step, core=1.0, device=device)
+    cons = rotate_array(pts, tris, n, step, mapping="conservative", device=device)
+    point = rotate_array(pts, tris, n, step, mapping="point", device=device)
     total = bits(direct.words)
     assert total > 10_000
     # conservative: rotated cubes of a V0 one voxel thick cover the touched voxels but a corner clip
@@ -135,7 +135,7 @@ def _dense(words: np.ndarray, layout: RowLayout, n: int) -> np.ndarray:
     return out[:, :, :n].reshape(per.shape[0], n, n, n)
 
 
-def test_rotated_arrays_answer_shadow_rays_close_to_exact():
+def test_rotated_arrays_answer_shadow_rays_close_to_exact(device):
     """The whole path: a deforming object over a ground, Alg. 5 (both mappings) and Alg. 1."""
     rng = np.random.default_rng(5)
     ground = soup("/ground", box((-10, -0.5, -10), (10, 0, 10)), id=1)
@@ -150,7 +150,7 @@ def test_rotated_arrays_answer_shadow_rays_close_to_exact():
     assert 0.1 < ref.mean() < 0.9
     errors = {}
     for rebuild, mapping in (("geometry", "point"), ("rotate", "point"), ("rotate", "conservative")):
-        b = VoxelBackend(resolution=32, step=10.0, rebuild=rebuild, mapping=mapping, **QUIET)
+        b = VoxelBackend(resolution=32, step=10.0, rebuild=rebuild, mapping=mapping, **QUIET, device=device)
         b.update(snap)
         assert b.built == ["static scene", "deforming geometry"]
         got = b.occluded(o, t, normals=nrm)
@@ -193,7 +193,7 @@ def test_a_static_scene_rebuilds_nothing_on_its_second_frame_even_with_moving_li
     assert b.built == [] and b.stats["builds"] == 1 and b._gpu["words"] is words
 
 
-def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place():
+def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place(device):
     ground = soup("/ground", box((-10, -0.5, -10), (10, 0, 10)), id=1)
     plane = prototype("/plane", [soup("/plane/m", box((-2, -0.2, -0.5), (2, 0.2, 0.5)))], [translate(0, 3, 0)],
                       animated=True)
@@ -203,7 +203,7 @@ def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place():
         return snapshot([ground, blob], [prototype("/plane", plane.meshes, [translate(t, 3, 0)], animated=True)],
                         time=t)
 
-    b = VoxelBackend(resolution=16, step=15.0, **QUIET)
+    b = VoxelBackend(resolution=16, step=15.0, **QUIET, device=device)
     one, two, three = frame(1.0), frame(2.0), frame(3.0)
     b.update(one, diff(None, one))
     assert sorted(b.built) == ["deforming geometry", "prototype /plane", "static scene"]
@@ -212,7 +212,7 @@ def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place():
     assert b.built == ["deforming geometry"]
     assert b._gpu["words"] is words                  # written in its slot: nothing reallocated
     # the in-place array is the one a fresh backend builds for frame two
-    fresh = VoxelBackend(resolution=16, step=15.0, **QUIET)
+    fresh = VoxelBackend(resolution=16, step=15.0, **QUIET, device=device)
     fresh.update(two, diff(None, two))
     assert np.array_equal(b._gpu["words_np"], fresh._gpu["words_np"])
     o, t, nrm = ground_queries(np.random.default_rng(2), 2000)
