@@ -18,9 +18,11 @@ import hashlib
 
 import numpy as np
 
+from usdml.scene.dome import Dome, latlong_directions, latlong_texel
+
 __all__ = [
     "Mesh", "Prototype", "LightType", "Lights", "Camera", "RenderVar", "RenderProduct",
-    "RenderSettings", "Snapshot", "Changes", "diff", "content_hash",
+    "RenderSettings", "Snapshot", "Changes", "diff", "content_hash", "Dome", "latlong_directions", "latlong_texel",
 ]
 
 
@@ -279,8 +281,8 @@ class Snapshot:
     time_codes_per_second: float = 24.0
     meters_per_unit: float = 0.01
     up_axis: str = "Y"
-    #: dome lights (``usdml.stage.dome.Dome``: plain NumPy data), turned into distant lights per frame
-    domes: list = field(default_factory=list)
+    #: dome lights, turned into distant lights per frame (:func:`usdml.lighting.dome.dome_to_distant_lights`)
+    domes: list[Dome] = field(default_factory=list)
 
     @property
     def static_meshes(self) -> list[Mesh]:
