@@ -11,6 +11,8 @@ import pytest
 import usdml  # noqa: F401  (registers the schemas before pxr builds its schema registry)
 from pxr import Gf, Usd, UsdGeom
 
+from usdml.scene import instance_points
+
 ROOT = Path(__file__).resolve().parents[1]
 ASSETS = ROOT.parent / "shared" / "assets"
 STAGES = ROOT / "stages"
@@ -69,9 +71,8 @@ def world_points(stage: Usd.Stage, path: str, time: float) -> np.ndarray:
 
 
 def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
-    """(N, V, 3) world points of every instance of a usdml Prototype."""
-    p = proto.meshes[mesh_index].points.astype(np.float64)
-    return np.einsum("nij,vj->nvi", proto.xforms[:, :3, :3], p) + proto.xforms[:, None, :3, 3]
+    """(N, V, 3) world points of every instance of a usdml Prototype (:func:`usdml.scene.instance_points`)."""
+    return instance_points(proto.xforms, proto.meshes[mesh_index].points)
 
 
 @pytest.fixture

@@ -378,9 +378,9 @@ class _Group:
 
 
 def _world_geometry(snapshot: Snapshot, members) -> tuple[np.ndarray, np.ndarray]:
-    from usdml.visibility.exact import _merged_geometry
+    from usdml.scene import world_geometry
 
-    return _merged_geometry(snapshot, members)
+    return world_geometry(snapshot, members)
 
 
 class VoxelBackend(VisibilityBackend):
