@@ -811,7 +811,7 @@ class VoxelBackend(VisibilityBackend):
                      min_distance: float = 0.0, geometric: np.ndarray | None = None):
         """Alg. 3 in one kernel: every pixel against every light with voxel shadow rays; the same
         shading as :func:`usdml.lighting.direct.shade_direct` (returns its ``DirectResult``)."""
-        from usdml.lighting.direct import DirectResult, _LightTable, cone_edges
+        from usdml.lighting.direct import DirectResult, LightTable, cone_edges
 
         wp = _wp()
         k = _kernels()
@@ -822,10 +822,8 @@ class VoxelBackend(VisibilityBackend):
             return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
                                 progress, meters_per_unit=meters_per_unit, min_distance=min_distance,
                                 geometric=geometric)
-        t = _LightTable(lights, meters_per_unit, min_distance)
-        flags = (t.distant.astype(np.int32) | (t.one_sided.astype(np.int32) << 1) | (t.shaped.astype(np.int32) << 2)
-                 | (t.focused.astype(np.int32) << 3) | (t.casts.astype(np.int32) << 4)
-                 | (t.cylinder.astype(np.int32) << 5))
+        t = LightTable(lights, meters_per_unit, min_distance)
+        flags = t.flags
         outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
         cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
         pts = np.asarray(points, np.float32)
