@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -75,10 +76,65 @@ def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
     return instance_points(proto.xforms, proto.meshes[mesh_index].points)
 
 
+#: albedo of :func:`ground_stage`'s ground
+ALBEDO = 0.5
+
+
+def ground_stage(new_stage, light):
+    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``."""
+    stage = new_stage(start=1, end=1)
+    ground = add_quad(stage, "/World/ground", size=40)
+    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
+    cam.CreateFocalLengthAttr(18)
+    cam.CreateHorizontalApertureAttr(36)
+    cam.CreateVerticalApertureAttr(36)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
+    cam.AddTranslateOp().Set((0, 15, 0))
+    cam.AddRotateXOp().Set(-90)
+    light(stage)
+    stage.Save()
+    return stage.GetRootLayer().realPath
+
+
+def render_aovs(path, width=64, aovs=("direct", "P", "normal", "shadow", "color")):
+    """The buffers of ``aovs`` of the stage's start frame, ``width`` × ``width`` pixels, one ray per pixel."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    d = StageDelegate(path)
+    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1))     # point values at P: one ray through each pixel centre
+    try:
+        return r.render(d.start_time, width, width, set(aovs)).buffers
+    finally:
+        r.close()
+
+
+def assert_direct(b, expected_e, min_lit=0.3):
+    """direct == albedo/π · E to 1e-3 relative where E is not tiny."""
+    got = b["direct"][..., 0].astype(np.float64)
+    want = ALBEDO / math.pi * expected_e
+    mask = want > 1e-3 * want.max()
+    assert mask.mean() > min_lit
+    rel = np.abs(got[mask] - want[mask]) / want[mask]
+    assert rel.max() < 1e-3, rel.max()
+    assert np.all(got[~mask] <= 1e-3 * want.max() * (1 + 1e-3))
+
+
+@pytest.fixture(scope="module")
+def small_city():
+    """:func:`voxel_reference.small_city_scene`, built once per test module."""
+    from voxel_reference import small_city_scene
+
+    return small_city_scene()
+
+
 @pytest.fixture
 def warnings_log(caplog):
     caplog.set_level(logging.WARNING, logger="usdml")
     return caplog
 
 
-__all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_points"]
+__all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_points", "ALBEDO", "ground_stage",
+           "render_aovs", "assert_direct"]

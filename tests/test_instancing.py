@@ -7,7 +7,8 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh, instance_world_points
-from usdml.scene import Lights, LightType, Mesh, Prototype, Snapshot, instance_points, world_geometry
+from plain_scenes import mesh
+from usdml.scene import Lights, LightType, Prototype, Snapshot, instance_points, world_geometry
 from usdml.stage import StageDelegate
 
 
@@ -227,18 +228,10 @@ def test_prototypes_defined_under_an_over_are_drawn_only_as_instances(new_stage)
     assert proto.instance_count == 3 and [m.path for m in proto.meshes] == ["/World/pi/hidden/box"]
 
 
-def _plain_mesh(path: str, points, triangles, id: int) -> Mesh:
-    points = np.asarray(points, np.float32).reshape(-1, 3)
-    triangles = np.asarray(triangles, np.int32).reshape(-1, 3)
-    t = len(triangles)
-    return Mesh(path=path, id=id, points=points, triangles=triangles, normals=np.zeros((t, 3, 3), np.float32),
-                albedo=np.ones((t, 3, 3), np.float32), face_index=np.arange(t, dtype=np.int32))
-
-
 def test_world_geometry_flattens_instances_mesh_major():
-    tri = _plain_mesh("/tri", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)], 0)
-    quad = _plain_mesh("/quad", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [(0, 1, 2), (0, 2, 3)], 1)
-    ground = _plain_mesh("/ground", [(-5, 0, -5), (5, 0, -5), (0, 0, 5)], [(0, 2, 1)], 2)
+    tri = mesh("/tri", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)], 0)
+    quad = mesh("/quad", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [(0, 1, 2), (0, 2, 3)], 1)
+    ground = mesh("/ground", [(-5, 0, -5), (5, 0, -5), (0, 0, 5)], [(0, 2, 1)], 2)
     xforms = np.stack([_trs(p, np.array(q), s) for p, q, s in (
         ((0, 0, 0), (1, 0, 0, 0), (1, 1, 1)), ((3, 0, 0), (0.7071, 0, 0.7071, 0), (2, 2, 2)),
         ((0, 4, 1), (0.5, 0.5, 0.5, 0.5), (1, 2, 3)))])

@@ -18,8 +18,8 @@ from usdml.visibility.voxel import array_cube, build_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, rotate_array
 
-from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
-from test_voxel import box, centre_line_voxels, ground_queries, set_voxels
+from plain_scenes import prototype, rot_y, snapshot, soup, translate
+from voxel_reference import box, centre_line_voxels, ground_queries, set_voxels
 
 pytest.importorskip("embreex")
 
