@@ -268,7 +268,7 @@ def dome_to_distant_lights(dome: Dome, count: int = DEFAULT_COUNT, seed: int = 0
     x = np.cross(helper, z)
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(z, x)
-    origin = np.asarray(getattr(dome, "origin", np.zeros(3)), np.float64).reshape(3)
+    origin = np.asarray(dome.origin, np.float64).reshape(3)
     xform = np.zeros((n, 4, 4))
     xform[:, :3, 0], xform[:, :3, 1], xform[:, :3, 2] = x, y, z
     xform[:, :3, 3] = origin
@@ -279,7 +279,7 @@ def dome_to_distant_lights(dome: Dome, count: int = DEFAULT_COUNT, seed: int = 0
         axis=-world, xform=xform, radiance=big_l.astype(np.float32), intensity=e.astype(np.float32),
         radius=zeros.copy(), width=zeros.copy(), height=zeros.copy(), angle=zeros.copy(),
         cone_angle=np.full(n, 180.0), cone_softness=zeros.copy(), focus=zeros.copy(),
-        focus_tint=np.zeros((n, 3), np.float32), shadow=np.full(n, bool(getattr(dome, "shadow", True))),
+        focus_tint=np.zeros((n, 3), np.float32), shadow=np.full(n, bool(dome.shadow)),
         paths=[dome.path] * n, instance_ids=ids)
 
 
