@@ -24,7 +24,7 @@ CYLINDER = wp.constant(32)        # a cylinder seen from the side: irradiance ti
 
 @wp.struct
 class LightTable:
-    """Per-light constants of :func:`light_term` (as ``usdml.lighting.direct._LightTable``)."""
+    """Per-light constants of :func:`light_term` (as ``usdml.lighting.direct.LightTable``; ``flags`` holds its ``LightFlag`` bits)."""
 
     pos: wp.array(dtype=wp.vec3)
     axis: wp.array(dtype=wp.vec3)

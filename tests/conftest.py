@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,8 @@ import pytest
 
 import usdml  # noqa: F401  (registers the schemas before pxr builds its schema registry)
 from pxr import Gf, Usd, UsdGeom
+
+from usdml.scene import instance_points
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSETS = ROOT.parent / "shared" / "assets"
@@ -69,9 +72,62 @@ def world_points(stage: Usd.Stage, path: str, time: float) -> np.ndarray:
 
 
 def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
-    """(N, V, 3) world points of every instance of a usdml Prototype."""
-    p = proto.meshes[mesh_index].points.astype(np.float64)
-    return np.einsum("nij,vj->nvi", proto.xforms[:, :3, :3], p) + proto.xforms[:, None, :3, 3]
+    """(N, V, 3) world points of every instance of a usdml Prototype (:func:`usdml.scene.instance_points`)."""
+    return instance_points(proto.xforms, proto.meshes[mesh_index].points)
+
+
+#: albedo of :func:`ground_stage`'s ground
+ALBEDO = 0.5
+
+
+def ground_stage(new_stage, light):
+    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``."""
+    stage = new_stage(start=1, end=1)
+    ground = add_quad(stage, "/World/ground", size=40)
+    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
+    cam.CreateFocalLengthAttr(18)
+    cam.CreateHorizontalApertureAttr(36)
+    cam.CreateVerticalApertureAttr(36)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
+    cam.AddTranslateOp().Set((0, 15, 0))
+    cam.AddRotateXOp().Set(-90)
+    light(stage)
+    stage.Save()
+    return stage.GetRootLayer().realPath
+
+
+def render_aovs(path, width=64, aovs=("direct", "P", "normal", "shadow", "color")):
+    """The buffers of ``aovs`` of the stage's start frame, ``width`` × ``width`` pixels, one ray per pixel."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    d = StageDelegate(path)
+    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1))     # point values at P: one ray through each pixel centre
+    try:
+        return r.render(d.start_time, width, width, set(aovs)).buffers
+    finally:
+        r.close()
+
+
+def assert_direct(b, expected_e, min_lit=0.3):
+    """direct == albedo/π · E to 1e-3 relative where E is not tiny."""
+    got = b["direct"][..., 0].astype(np.float64)
+    want = ALBEDO / math.pi * expected_e
+    mask = want > 1e-3 * want.max()
+    assert mask.mean() > min_lit
+    rel = np.abs(got[mask] - want[mask]) / want[mask]
+    assert rel.max() < 1e-3, rel.max()
+    assert np.all(got[~mask] <= 1e-3 * want.max() * (1 + 1e-3))
+
+
+@pytest.fixture(scope="module")
+def small_city():
+    """:func:`voxel_reference.small_city_scene`, built once per test module."""
+    from voxel_reference import small_city_scene
+
+    return small_city_scene()
 
 
 def _cuda_available() -> bool:
@@ -106,4 +162,5 @@ def warnings_log(caplog):
     return caplog
 
 
-__all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_points"]
+__all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_points", "ALBEDO", "ground_stage",
+           "render_aovs", "assert_direct"]

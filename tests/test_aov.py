@@ -7,6 +7,7 @@ import json
 import os
 
 import numpy as np
+import OpenEXR
 import OpenImageIO as oiio
 import pytest
 
@@ -260,16 +261,29 @@ def test_exr_header_usdml_metadata(tmp_path):
 # --- atomic writes and completeness --------------------------------------------------------------
 
 def _failing_writer(exc):
-    def write(path, header, channels):
-        with open(path, "wb") as f:          # a partial file under the temporary name
-            f.write(b"\x76\x2f\x31\x01" + b"\0" * 100)
-        raise exc
-    return write
+    """Stands in for ``OpenEXR.File`` when writing: leaves a partial file, then fails with ``exc``."""
+
+    class FailingFile:
+        def __init__(self, header, channels):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc_info):
+            return False
+
+        def write(self, path):
+            with open(path, "wb") as f:          # a partial file under the temporary name
+                f.write(b"\x76\x2f\x31\x01" + b"\0" * 100)
+            raise exc
+
+    return FailingFile
 
 
 @pytest.mark.parametrize("exc", [RuntimeError("disk full"), KeyboardInterrupt()])
 def test_exr_failed_write_leaves_nothing(tmp_path, monkeypatch, exc):
-    monkeypatch.setattr(exr_mod, "_write_file", _failing_writer(exc))
+    monkeypatch.setattr(OpenEXR, "File", _failing_writer(exc))
     with pytest.raises(type(exc)):
         write_exr(tmp_path / "x.0001.exr", {"depth": np.zeros((H, W))})
     assert os.listdir(tmp_path) == []
@@ -278,7 +292,7 @@ def test_exr_failed_write_leaves_nothing(tmp_path, monkeypatch, exc):
 def test_exr_failed_overwrite_keeps_previous_file(tmp_path, monkeypatch):
     path = write_exr(tmp_path / "x.exr", {"depth": np.full((H, W), 3.0)})
     before = path.read_bytes()
-    monkeypatch.setattr(exr_mod, "_write_file", _failing_writer(KeyboardInterrupt()))
+    monkeypatch.setattr(OpenEXR, "File", _failing_writer(KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
         write_exr(path, {"depth": np.full((H, W), 4.0)})
     assert os.listdir(tmp_path) == ["x.exr"]
@@ -347,16 +361,21 @@ def test_png_preview_is_8bit_srgb(tmp_path):
     assert os.listdir(tmp_path) == ["prev.png"]
 
 
+def _srgb(x: float) -> float:
+    """IEC 61966-2-1 encoding of a linear value in [0, 1]."""
+    return 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1 / 2.4) - 0.055
+
+
 def test_png_preview_over_black_and_reinhard(tmp_path):
     rgba = np.zeros((1, 2, 4), np.float32)
     rgba[0, 0] = [0.25, 0.25, 0.25, 0.5]
     rgba[0, 1] = [3.0, 3.0, 3.0, 1.0]
     _, px, _ = _read_png(write_png_preview(tmp_path / "a.png", rgba, alpha=False, tonemap="reinhard"))
     assert px.shape == (1, 2, 3)
-    assert px[0, 0, 0] == round(255 * exr_mod._srgb_encode(np.array(0.2))[()])   # 0.25/(1+0.25)
-    assert px[0, 1, 0] == round(255 * exr_mod._srgb_encode(np.array(0.75))[()])  # 3/(1+3)
+    assert px[0, 0, 0] == round(255 * _srgb(0.2))   # 0.25/(1+0.25)
+    assert px[0, 1, 0] == round(255 * _srgb(0.75))  # 3/(1+3)
     _, px, _ = _read_png(write_png_preview(tmp_path / "b.png", rgba[..., :3], exposure=-1))
-    assert px.shape == (1, 2, 3) and px[0, 0, 0] == round(255 * exr_mod._srgb_encode(np.array(0.125))[()])
+    assert px.shape == (1, 2, 3) and px[0, 0, 0] == round(255 * _srgb(0.125))
     with pytest.raises(ValueError):
         write_png_preview(tmp_path / "c.png", rgba, tonemap="filmic")
     with pytest.raises(ValueError):

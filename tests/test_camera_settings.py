@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
 
-from conftest import add_cube_mesh
+from conftest import add_cube_mesh, add_quad
 from usdml.errors import UsdmlError
 from usdml.stage import StageDelegate
 
@@ -105,6 +105,9 @@ def test_render_settings_products_vars_and_camera(new_stage):
     assert [(v.name, v.source_name, v.data_type) for v in product.vars] == [
         ("color", "color", "color4f"), ("depth", "depth", "float"), ("N", "normal", "normal3f")]
     assert [v.source_type for v in product.vars] == ["raw"] * 3
+    # the delegate hands out the same plain data at any timecode, without a snapshot
+    assert d.render_settings(3).products[0].product_name == "beauty.0003.exr"
+    assert d.render_settings(2) == rs
     assert snap.camera.path == "/World/shot_cam"              # RenderSettings decide the camera
     assert StageDelegate(path, camera="main_cam").snapshot(2).camera.path == "/World/main_cam"
     # the schema's fallbacks plus the authored value
@@ -145,3 +148,11 @@ def test_bad_usdml_attribute_value_is_a_clear_error(new_stage):
     stage.Save()
     with pytest.raises(UsdmlError, match="/Render/Settings.*unknown visibility backend 'raytraced'"):
         StageDelegate(path)
+
+
+def test_no_render_settings_is_none(new_stage):
+    stage = new_stage("plain.usda")
+    add_quad(stage, "/ground")
+    stage.Save()
+    d = StageDelegate(stage.GetRootLayer().realPath)
+    assert d.render_settings(0) is None and d.snapshot(0).render_settings is None

@@ -8,13 +8,11 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
-from conftest import add_cube_mesh
+from conftest import add_cube_mesh, assert_direct, ground_stage, render_aovs
 from usdml.cli import main
 from usdml.lighting.direct import shade_direct
 from usdml.scene import Lights, LightType
 from usdml.stage import StageDelegate
-from test_render import _compare, _ground_stage, _render
-from test_voxel import small_city  # noqa: F401  (fixture)
 
 pytest.importorskip("embreex")
 
@@ -172,18 +170,18 @@ def test_cylinder_light_above_a_plane_matches_the_closed_form(new_stage):
         c.AddRotateYOp().Set(30.0)
         c.AddRotateZOp().Set(-50.0)
 
-    path = _ground_stage(new_stage, light)
+    path = ground_stage(new_stage, light)
     stage = Usd.Stage.Open(path)
     xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/tube")).ComputeLocalToWorldTransform(1)
     axis = np.array(xf.TransformDir(Gf.Vec3d(1, 0, 0)))
     axis /= np.linalg.norm(axis)
-    b = _render(path)
+    b = render_aovs(path)
     p = b["P"].astype(np.float64)
     to = centre - p
     d2 = (to ** 2).sum(-1)
     w = to / np.sqrt(d2)[..., None]
     sin_c = np.sqrt(np.maximum(1 - (w @ axis) ** 2, 0))
-    _compare(b, 400 * 2 * 0.2 * 4.0 * sin_c * w[..., 1] / d2)
+    assert_direct(b, 400 * 2 * 0.2 * 4.0 * sin_c * w[..., 1] / d2)
     assert b["shadow"].max() == 0
 
 
@@ -242,7 +240,7 @@ def test_voxel_render_of_a_cylinder_light_against_exact(new_stage):
         box = add_cube_mesh(stage, "/World/box", size=3)
         box.AddTranslateOp().Set((1.0, 1.5, 2.0))
 
-    path = _ground_stage(new_stage, light)
+    path = ground_stage(new_stage, light)
     images = {}
     for backend in ("exact", "voxel"):
         d = StageDelegate(path)
@@ -264,7 +262,7 @@ def test_voxel_render_of_a_cylinder_light_against_exact(new_stage):
 # ---------------------------------------------------------------------------------------------- VPLs
 
 def _cylinder_light(**kw) -> Lights:
-    from test_vpl import light
+    from vpl_scenes import light
     return light(LightType.CYLINDER, **kw)     # identity frame: the tube along +X
 
 
@@ -294,7 +292,7 @@ def test_cylinder_light_power_is_pi_L_area(new_stage):
 def test_cylinder_vpls_follow_the_side_profile_in_a_closed_box():
     """Closed cube around the tube: every bounce carries ρ^b·Φ, and the first bounce's share on the
     faces the tube points at is the profile's (0.220), not an isotropic light's (1/3)."""
-    from test_vpl import backend_for, box, snapshot
+    from vpl_scenes import backend_for, box, snapshot
     from usdml.lighting.vpl import generate_vpls, light_power
 
     rho = np.array([0.9, 0.6, 0.3])
@@ -321,7 +319,7 @@ def test_cylinder_vpls_follow_the_side_profile_in_a_closed_box():
 def test_shaped_cylinder_light_power_and_vpl_flux():
     """A cone about the light's -Z on a tube: power by the 2-D midpoint rule against a fine spherical
     quadrature, and VPL flux (profile-sampled paths weighted by the cone) against that power."""
-    from test_vpl import backend_for, box, snapshot
+    from vpl_scenes import backend_for, box, snapshot
     from usdml.lighting.vpl import generate_vpls, light_power
 
     snap = snapshot([box((-1, -1, -1), (1, 1, 1), (1.0, 1.0, 1.0))])

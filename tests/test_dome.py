@@ -10,9 +10,9 @@ from pxr import Gf, Usd, UsdGeom, UsdLux
 
 from usdml.errors import UsdmlError, Warnings
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.dome import LUMA, dome_irradiance, dome_to_distant_lights, latlong_directions
-from usdml.scene import LightType
-from usdml.stage.dome import Dome, load_texture, read_dome
+from usdml.lighting.dome import LUMA, dome_irradiance, dome_to_distant_lights
+from usdml.scene import Dome, LightType, latlong_directions
+from usdml.stage.dome import load_texture, read_dome
 
 W, H = 64, 32
 #: sun texels (row, column): upper hemisphere, in the +X/+Z quadrant

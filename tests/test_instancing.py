@@ -1,11 +1,14 @@
 """PointInstancer and native instancing: one prototype, N transforms, never flattened."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh, instance_world_points
-from usdml.scene import LightType
+from plain_scenes import mesh
+from usdml.scene import Lights, LightType, Prototype, Snapshot, instance_points, world_geometry
 from usdml.stage import StageDelegate
 
 
@@ -223,3 +226,33 @@ def test_prototypes_defined_under_an_over_are_drawn_only_as_instances(new_stage)
     assert snap.meshes == []
     (proto,) = snap.prototypes
     assert proto.instance_count == 3 and [m.path for m in proto.meshes] == ["/World/pi/hidden/box"]
+
+
+def test_world_geometry_flattens_instances_mesh_major():
+    tri = mesh("/tri", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)], 0)
+    quad = mesh("/quad", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [(0, 1, 2), (0, 2, 3)], 1)
+    ground = mesh("/ground", [(-5, 0, -5), (5, 0, -5), (0, 0, 5)], [(0, 2, 1)], 2)
+    xforms = np.stack([_trs(p, np.array(q), s) for p, q, s in (
+        ((0, 0, 0), (1, 0, 0, 0), (1, 1, 1)), ((3, 0, 0), (0.7071, 0, 0.7071, 0), (2, 2, 2)),
+        ((0, 4, 1), (0.5, 0.5, 0.5, 0.5), (1, 2, 3)))])
+    proto = Prototype(path="/protos/p", name="/pi", kind="pointInstancer", meshes=[tri, quad], xforms=xforms,
+                      instance_ids=np.arange(3, dtype=np.int64), instancers=["/pi"] * 3)
+    snap = Snapshot(time=1.0, stage_path="", meshes=[ground], prototypes=[proto], lights=Lights.empty(),
+                    camera=None, render_settings=None, mesh_paths=["/tri", "/quad", "/ground"])
+
+    points, triangles = world_geometry(snap, (("mesh", "/ground"), ("proto", "/protos/p")))
+    assert points.dtype == np.float32 and triangles.dtype == np.int32
+    assert points.shape == (3 + 3 * 3 + 3 * 4, 3) and triangles.shape == (1 + 3 * 1 + 3 * 2, 3)
+    expected = [ground.points[ground.triangles[0]]]
+    for m in (tri, quad):                       # mesh-major: every instance of one mesh, then the next mesh
+        for xf in xforms:
+            h = np.c_[m.points.astype(np.float64), np.ones(len(m.points))] @ xf.T
+            expected += list(h[:, :3][m.triangles])
+    assert np.allclose(points[triangles], np.array(expected), atol=1e-5)
+    assert np.allclose(instance_points(xforms, quad.points), instance_world_points(proto, 1))
+
+    local = world_geometry(replace(snap, prototypes=[replace(proto, xforms=np.eye(4)[None])]),
+                           (("proto", "/protos/p"),))
+    assert all(np.array_equal(a, b) for a, b in zip(local, proto.merged()))
+    empty = world_geometry(snap, ())
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3)

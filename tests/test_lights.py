@@ -8,6 +8,7 @@ from pxr import Sdf, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh
 from usdml.errors import UsdmlError
+from usdml.lighting.direct import LightFlag, LightTable
 from usdml.scene import LightType
 from usdml.stage import StageDelegate
 
@@ -170,3 +171,31 @@ def test_unsupported_light_types_warn(new_stage, warnings_log):
     assert "DomeLight" not in warnings_log.text
     snap = StageDelegate(stage.GetRootLayer().realPath).snapshot(0)
     assert [d.path for d in snap.domes] == ["/dome"]
+
+
+def test_light_table_flags(new_stage):
+    stage = new_stage()
+    for schema, path in ((UsdLux.DiskLight, "/spot"), (UsdLux.DistantLight, "/sun"), (UsdLux.RectLight, "/rect"),
+                         (UsdLux.CylinderLight, "/tube"), (UsdLux.SphereLight, "/bulb")):
+        schema.Define(stage, path)
+    UsdLux.ShapingAPI.Apply(stage.GetPrimAtPath("/spot")).CreateShapingConeAngleAttr(30)
+    UsdLux.ShapingAPI(stage.GetPrimAtPath("/spot")).CreateShapingFocusAttr(2)
+    UsdLux.ShadowAPI.Apply(stage.GetPrimAtPath("/sun")).CreateShadowEnableAttr(False)
+    lights = _lights(stage)
+    table = LightTable(lights)
+    F = LightFlag
+    assert table.flags.dtype == np.int32
+    assert table.flags.tolist() == [F.ONE_SIDED | F.SHAPED | F.FOCUSED | F.CASTS_SHADOWS, F.DISTANT,
+                                    F.ONE_SIDED | F.CASTS_SHADOWS, F.CYLINDER | F.CASTS_SHADOWS, F.CASTS_SHADOWS]
+    # the Warp kernels test these numbers (usdml.kernels.voxel.light_term)
+    assert [int(f) for f in F] == [1, 2, 4, 8, 16, 32]
+
+
+def test_light_flags_are_the_bits_the_shading_kernel_reads():
+    """One set of light flags: ``LightFlag`` composes them (``LightTable.flags``), the Warp kernel names the
+    same bits as constants."""
+    from usdml.kernels import direct_shading
+    from usdml.lighting.direct import LightFlag
+
+    for flag in LightFlag:
+        assert int(getattr(direct_shading, flag.name)) == int(flag), flag.name

@@ -8,7 +8,8 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils
 
 from conftest import add_cube_mesh, add_quad
-from usdml.stage.materials import MaterialResolver, srgb_to_linear
+from usdml.stage import materials
+from usdml.stage.materials import MaterialResolver, read_texture, srgb_to_linear
 from usdml.stage.mesh import Topology
 
 T0 = Usd.TimeCode.Default()
@@ -204,7 +205,7 @@ def test_textured_quad_gets_linearized_texels_at_texel_centres(new_stage, tmp_pa
     assert not log
 
 
-def test_texture_raw_single_channel_outputs_and_interface_varname(new_stage, tmp_path):
+def test_texture_raw_single_channel_outputs_and_interface_varname(new_stage, tmp_path, monkeypatch):
     stage = new_stage()
     write_png(tmp_path / "tex.png")
     cells = [(0, 0), (3, 0), (2, 3), (1, 2)]
@@ -219,13 +220,15 @@ def test_texture_raw_single_channel_outputs_and_interface_varname(new_stage, tmp
     g, _ = textured_material(stage, "/World/Looks/g", str(tmp_path / "tex.png"), st_input=iface, output="g")
     bind(q_raw, raw)
     bind(q_g, g)
+    reads = []
+    monkeypatch.setattr(materials, "read_texture", lambda path: reads.append(path) or read_texture(path))
     r = MaterialResolver(Log())
     per_vertex = np.array([texel(*c)[:3] / 255.0 for c in cells])
     assert np.allclose(albedo(r, q_raw), corner_expected(q_raw, per_vertex), atol=1e-6)
     green = np.array([srgb_ref(texel(*c)[1]) for c in cells])
     topo, _ = topo_of(q_g)
     assert np.allclose(albedo(r, q_g), np.repeat(green[topo.corner][..., None], 3, axis=2), atol=1e-6)
-    assert len(r._textures) == 1                 # one read for both materials
+    assert len(reads) == 1                       # one read for both materials
 
 
 @pytest.mark.parametrize("wrap,col", [("repeat", 0), ("useMetadata", 0), ("clamp", 3), ("mirror", 3), ("black", None)])

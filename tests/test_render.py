@@ -8,51 +8,12 @@ import numpy as np
 import pytest
 from pxr import Gf, UsdGeom, UsdLux
 
-from conftest import add_cube_mesh, add_quad
+from conftest import ALBEDO, add_cube_mesh, add_quad, assert_direct, ground_stage, render_aovs
 from usdml.aov.exr import is_complete_exr, read_exr
 from usdml.cli import main
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
-
-ALBEDO = 0.5
-
-
-def _ground_stage(new_stage, light):
-    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``."""
-    stage = new_stage(start=1, end=1)
-    ground = add_quad(stage, "/World/ground", size=40)
-    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
-    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
-    cam.CreateFocalLengthAttr(18)
-    cam.CreateHorizontalApertureAttr(36)
-    cam.CreateVerticalApertureAttr(36)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
-    cam.AddTranslateOp().Set((0, 15, 0))
-    cam.AddRotateXOp().Set(-90)
-    light(stage)
-    stage.Save()
-    return stage.GetRootLayer().realPath
-
-
-def _render(path, width=64, aovs=("direct", "P", "normal", "shadow", "color")):
-    d = StageDelegate(path)
-    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1))     # point values at P: one ray through each pixel centre
-    try:
-        return r.render(d.start_time, width, width, set(aovs)).buffers
-    finally:
-        r.close()
-
-
-def _compare(b, expected_e, min_lit=0.3):
-    """direct == albedo/π · E to 1e-3 relative where E is not tiny."""
-    got = b["direct"][..., 0].astype(np.float64)
-    want = ALBEDO / math.pi * expected_e
-    mask = want > 1e-3 * want.max()
-    assert mask.mean() > min_lit
-    rel = np.abs(got[mask] - want[mask]) / want[mask]
-    assert rel.max() < 1e-3, rel.max()
-    assert np.all(got[~mask] <= 1e-3 * want.max() * (1 + 1e-3))
 
 
 def test_point_light_inverse_square_and_cosine(new_stage):
@@ -63,12 +24,12 @@ def test_point_light_inverse_square_and_cosine(new_stage):
         s.CreateIntensityAttr(5000)
         s.AddTranslateOp().Set((3, 4, -2))
 
-    b = _render(_ground_stage(new_stage, light))
+    b = render_aovs(ground_stage(new_stage, light))
     p = b["P"].astype(np.float64)
     to = np.array([3, 4, -2]) - p
     d2 = (to ** 2).sum(-1)
     cos = to[..., 1] / np.sqrt(d2)
-    _compare(b, 5000 * math.pi * 0.01 * cos / d2)
+    assert_direct(b, 5000 * math.pi * 0.01 * cos / d2)
     assert np.allclose(b["normal"][..., 1], 1)
     assert b["shadow"].max() == 0
 
@@ -87,7 +48,7 @@ def test_spot_cone_and_softness(new_stage, softness):
         shaping.CreateShapingConeAngleAttr(30)
         shaping.CreateShapingConeSoftnessAttr(softness)
 
-    b = _render(_ground_stage(new_stage, light), width=96)
+    b = render_aovs(ground_stage(new_stage, light), width=96)
     p = b["P"].astype(np.float64)
     to = np.array([0, 5, 0]) - p
     d = np.sqrt((to ** 2).sum(-1))
@@ -103,7 +64,7 @@ def test_spot_cone_and_softness(new_stage, softness):
         edge = np.abs(np.degrees(np.arccos(np.clip(cos, -1, 1))) - 30) < 1.0
         b["direct"][edge] = 0
         expected[edge] = 0
-    _compare(b, expected, min_lit=0.02)            # the cone lights ~3 % of the view
+    assert_direct(b, expected, min_lit=0.02)            # the cone lights ~3 % of the view
     assert (b["direct"][..., 0][cos < outer - 0.01] == 0).all()
 
 
@@ -114,9 +75,9 @@ def test_distant_light(new_stage):
         s.CreateNormalizeAttr(True)
         s.AddRotateXOp().Set(-60)             # -Z tilted 60 deg toward -Y: 30 deg above the horizon
 
-    b = _render(_ground_stage(new_stage, light))
+    b = render_aovs(ground_stage(new_stage, light))
     cos = math.sin(math.radians(60))
-    _compare(b, np.full(b["direct"].shape[:2], 3 * cos))
+    assert_direct(b, np.full(b["direct"].shape[:2], 3 * cos))
 
 
 def test_shadow_under_a_box(new_stage):
@@ -128,7 +89,7 @@ def test_shadow_under_a_box(new_stage):
         box = add_cube_mesh(stage, "/World/box", size=2)
         box.AddTranslateOp().Set((5, 2, 0))
 
-    b = _render(_ground_stage(new_stage, light), width=96)
+    b = render_aovs(ground_stage(new_stage, light), width=96)
     p = b["P"].astype(np.float64)
     on_ground = np.abs(p[..., 1]) < 1e-4
 
@@ -150,7 +111,7 @@ def test_shadow_under_a_box(new_stage):
 
 
 def test_render_writes_every_aov_and_the_header(new_stage, tmp_path, capsys):
-    path = _ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((0, 3, 0)))
+    path = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((0, 3, 0)))
     out = tmp_path / "out" / "img.####.exr"
     assert main(["render", path, str(out), "--frames", "1", "--imageWidth", "32", "--preview"]) == 0
     exr = tmp_path / "out" / "img.0001.exr"
@@ -166,9 +127,9 @@ def test_render_writes_every_aov_and_the_header(new_stage, tmp_path, capsys):
 
 
 def test_render_is_deterministic(new_stage, tmp_path):
-    path = _ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((1, 3, 0)))
-    a = _render(path, aovs=("color", "shadow"))
-    b = _render(path, aovs=("color", "shadow"))
+    path = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((1, 3, 0)))
+    a = render_aovs(path, aovs=("color", "shadow"))
+    b = render_aovs(path, aovs=("color", "shadow"))
     for k in a:
         assert np.array_equal(a[k], b[k])
 
@@ -283,7 +244,7 @@ def test_bench_and_compare_check_the_width_and_need_lights(new_stage, capsys, co
     assert main([command, path, "--imageWidth", "0", *extra]) == 2
     err = capsys.readouterr().err
     assert "--imageWidth 0: use 1 to 16384 pixels" in err and "Traceback" not in err
-    dark = _ground_stage(new_stage, lambda stage: None)
+    dark = ground_stage(new_stage, lambda stage: None)
     assert main([command, dark, "--imageWidth", "8", *extra]) == 2
     assert f"no lights at time 1, so no shadow rays to {command}" in capsys.readouterr().err
 
@@ -328,14 +289,14 @@ def test_centimetre_stage_renders_like_the_metre_stage(new_stage, tmp_path, norm
         disk.AddTranslateOp().Set((-2 * scale, 4 * scale, 0))
         disk.AddRotateXOp().Set(-90)
         stage.Save()
-        images.append(_render(stage.GetRootLayer().realPath, width=32, aovs=("direct",))["direct"])
+        images.append(render_aovs(stage.GetRootLayer().realPath, width=32, aovs=("direct",))["direct"])
     assert images[0].max() > 0
     np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-7)
 
 
 def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, capsys):
-    dark = _ground_stage(new_stage, lambda stage: None)
-    b = _render(dark, aovs=("direct", "normal", "P"))
+    dark = ground_stage(new_stage, lambda stage: None)
+    b = render_aovs(dark, aovs=("direct", "normal", "P"))
     # usdrecord's camera light: albedo · cos(angle to the eye), no falloff, no shadow
     to_eye = np.array([0, 15, 0]) - b["P"].astype(np.float64)
     cos = to_eye[..., 1] / np.linalg.norm(to_eye, axis=-1)
@@ -351,7 +312,7 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     err = capsys.readouterr().err
     assert "--gi lgh: no VPLs at time 1: the stage has no lights" in err and err.count("no VPLs") == 1
     assert read_exr(tmp_path / "c.exr")[0]["indirect"].max() == 0
-    lit = _ground_stage(new_stage, lambda s: UsdLux.DistantLight.Define(s, "/World/sun"))
+    lit = ground_stage(new_stage, lambda s: UsdLux.DistantLight.Define(s, "/World/sun"))
     d = StageDelegate(lit)
     r = FrameRenderer(d, UsdmlSettings())
     assert "camera_light" not in r.render(1, 8, 8, {"color"}).stats
@@ -364,7 +325,7 @@ def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
         dome.CreateIntensityAttr(2.0)
         dome.CreateColorAttr((1.0, 0.5, 0.25))
 
-    b = _render(_ground_stage(new_stage, light), width=16, aovs=("direct", "shadow"))
+    b = render_aovs(ground_stage(new_stage, light), width=16, aovs=("direct", "shadow"))
     expected = ALBEDO * 2.0 * np.array([1.0, 0.5, 0.25])
     np.testing.assert_allclose(b["direct"].reshape(-1, 3), np.broadcast_to(expected, (256, 3)), rtol=0.01)
     assert b["shadow"].max() == 0

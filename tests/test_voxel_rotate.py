@@ -18,8 +18,8 @@ from usdml.visibility.voxel_array import array_cube, build_array
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout
 from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, rotate_array
 
-from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
-from test_voxel import box, centre_line_voxels, ground_queries, set_voxels
+from plain_scenes import prototype, rot_y, snapshot, soup, translate
+from voxel_reference import box, centre_line_voxels, ground_queries, set_voxels
 
 pytest.importorskip("embreex")
 
@@ -188,9 +188,9 @@ def test_a_static_scene_rebuilds_nothing_on_its_second_frame_even_with_moving_li
     b = VoxelBackend(resolution=16, step=15.0, **QUIET)
     b.update(one, diff(None, one))
     assert b.built == ["static scene"]
-    words = b._gpu["words"]
+    words = b.words
     b.update(two, diff(one, two))
-    assert b.built == [] and b.stats["builds"] == 1 and b._gpu["words"] is words
+    assert b.built == [] and b.stats["builds"] == 1 and b.words is words
 
 
 def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place(device):
@@ -207,14 +207,14 @@ def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place(device):
     one, two, three = frame(1.0), frame(2.0), frame(3.0)
     b.update(one, diff(None, one))
     assert sorted(b.built) == ["deforming geometry", "prototype /plane", "static scene"]
-    words = b._gpu["words"]
+    words = b.words
     b.update(two, diff(one, two))
     assert b.built == ["deforming geometry"]
-    assert b._gpu["words"] is words                  # written in its slot: nothing reallocated
+    assert b.words is words                  # written in its slot: nothing reallocated
     # the in-place array is the one a fresh backend builds for frame two
     fresh = VoxelBackend(resolution=16, step=15.0, **QUIET, device=device)
     fresh.update(two, diff(None, two))
-    assert np.array_equal(b._gpu["words_np"], fresh._gpu["words_np"])
+    assert np.array_equal(b.words.numpy(), fresh.words.numpy())
     o, t, nrm = ground_queries(np.random.default_rng(2), 2000)
     assert np.array_equal(b.occluded(o, t, normals=nrm), fresh.occluded(o, t, normals=nrm))
     # the same geometry again: nothing to do

@@ -24,6 +24,7 @@ light behind the surface must not light the point (the surface itself is in the 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import IntFlag
 from typing import Callable
 
 import numpy as np
@@ -63,8 +64,25 @@ def smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarra
     return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x)).astype(dtype)
 
 
-class _LightTable:
-    """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels."""
+class LightFlag(IntFlag):
+    """Bits of :attr:`LightTable.flags`, what the shading needs to know of each light's kind; the Warp
+    kernels (``usdml.kernels.voxel.LightTable.flags``) test the same bits."""
+
+    DISTANT = 1         #: a distant light: direction ``-axis``, no falloff
+    ONE_SIDED = 2       #: disk or rect: ``max(0, cos θ_l)`` emission profile
+    SHAPED = 4          #: shaping cone narrower than 180°
+    FOCUSED = 8         #: shaping focus > 0
+    CASTS_SHADOWS = 16  #: ShadowAPI ``inputs:shadow:enable``
+    CYLINDER = 32       #: cylinder light: projected area of its side
+
+
+class LightTable:
+    """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels.
+
+    ``lights`` are the frame's; ``meters_per_unit`` the stage's (falloff in metres); ``min_distance``
+    the clamp of the geometry term in scene units (see :func:`shade_direct`). Boolean ``(L,)`` masks
+    ``distant``, ``one_sided``, ``shaped``, ``focused``, ``casts``, ``cylinder``; :attr:`flags` packs them.
+    """
 
     def __init__(self, lights: Lights, meters_per_unit: float = 1.0, min_distance: float = 0.0):
         self.n = len(lights)
@@ -88,8 +106,18 @@ class _LightTable:
         self.focus_rgb = np.where(self.focused[:, None], intensity * (1.0 - tint), 0.0).astype(np.float32)
         self.casts = lights.shadow.copy()
 
+    @property
+    def flags(self) -> np.ndarray:
+        """``(L,) int32`` :class:`LightFlag` bits of every light."""
+        flags = np.zeros(self.n, np.int32)
+        for flag, mask in ((LightFlag.DISTANT, self.distant), (LightFlag.ONE_SIDED, self.one_sided),
+                           (LightFlag.SHAPED, self.shaped), (LightFlag.FOCUSED, self.focused),
+                           (LightFlag.CASTS_SHADOWS, self.casts), (LightFlag.CYLINDER, self.cylinder)):
+            flags[np.asarray(mask, bool)] |= np.int32(flag)
+        return flags
 
-def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable, geometric: np.ndarray | None = None):
+
+def _geometry(points: np.ndarray, normals: np.ndarray, t: LightTable, geometric: np.ndarray | None = None):
     """Scalar irradiance factor ``g`` and focus factor ``f`` ``(Pc, L)``, plus direction components;
     ``g`` is 0 where the light is behind ``geometric`` (the surface's own normal, when given)."""
     p = points.astype(np.float32)
@@ -130,7 +158,7 @@ def _geometry(points: np.ndarray, normals: np.ndarray, t: _LightTable, geometric
     return g, f, (dx * inv_d, dy * inv_d, dz * inv_d)
 
 
-def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lights):
+def shadow_queries(live: np.ndarray, directions, table: LightTable, lights: Lights):
     """The shadow rays a block needs: ``(pi, li)`` pair indices of facing, shadow-casting lights,
     their targets (light positions, or unit directions toward distant lights) and distant flags."""
     pi, li = np.nonzero(live & table.casts[None, :])
@@ -145,7 +173,7 @@ def shadow_queries(live: np.ndarray, directions, table: _LightTable, lights: Lig
 def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights, geometric: np.ndarray | None = None):
     """Yield ``(origins, targets, normals, distant, point_index, light_index)`` of every shadow query
     of :func:`shade_direct`, by block (``normals`` of the queries: the geometric ones when given)."""
-    table = _LightTable(lights)     # units do not change which pairs face each other
+    table = LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
     offset = normals if geometric is None else geometric
     for lo in range(0, len(points), step):
@@ -184,7 +212,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     queries = 0
     if n_l == 0 or n_p == 0:
         return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0)
-    table = _LightTable(lights, meters_per_unit, min_distance)
+    table = LightTable(lights, meters_per_unit, min_distance)
     step = max(1, PAIRS_PER_CHUNK // n_l)
     offset = normals if geometric is None else geometric
 

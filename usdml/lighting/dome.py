@@ -1,6 +1,6 @@
 """Dome lights as K distant lights per frame, by importance sampling (no ``pxr`` here).
 
-A dome light (:class:`usdml.stage.dome.Dome`) is an integral over directions: the irradiance of a
+A dome light (:class:`usdml.scene.Dome`) is an integral over directions: the irradiance of a
 surface with normal n is ``E(n) = ∫ L(ω) max(0, n·ω) dω``. :func:`dome_to_distant_lights` replaces it by
 K directions ω_k, each a DISTANT light (so it gets the many-light visibility of every other light) of
 irradiance at normal incidence
@@ -41,7 +41,7 @@ The map is treated as piecewise constant per texel (nearest filtering). Directio
 (black texels hit by the uniform strategy) contribute nothing and are dropped, so the number of lights
 returned can be below ``count``; ``instance_ids`` keep the sample index.
 
-Lat-long orientation: :mod:`usdml.stage.dome` (OpenEXR / UsdLux DomeLight convention: top of the image
+Lat-long orientation: :mod:`usdml.scene.dome` (OpenEXR / UsdLux DomeLight convention: top of the image
 at the dome's +Y pole, the centre column facing +Z, the quarter column +X); ``Dome.to_world`` rotates
 the dome into the world.
 """
@@ -50,17 +50,13 @@ from __future__ import annotations
 
 import threading
 import weakref
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from usdml.scene import Lights, LightType
-
-if TYPE_CHECKING:   # the stage layer imports pxr; only its plain dataclass is used here
-    from usdml.stage.dome import Dome
+from usdml.scene import Dome, Lights, LightType, latlong_texel
 
 __all__ = ["dome_to_distant_lights", "dome_irradiance", "fibonacci_sphere", "DEFAULT_COUNT",
-           "STRATEGIES", "LUMA", "latlong_directions", "latlong_texel"]
+           "STRATEGIES", "LUMA"]
 
 DEFAULT_COUNT = 256
 #: Rec. 709 / sRGB luminance weights
@@ -69,28 +65,6 @@ _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0     # 1/φ
 
 
 # --------------------------------------------------------------------------------------------- geometry
-
-def latlong_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Dome-space unit directions for image coordinates ``u = x/W`` (from the left), ``v = y/H`` (from the top).
-
-    Longitude φ = π(1 − 2u), polar angle θ = πv from the +Y pole: ω = (sin θ sin φ, cos θ, sin θ cos φ).
-    """
-    phi, theta = np.broadcast_arrays(np.pi * (1.0 - 2.0 * np.asarray(u, np.float64)),
-                                     np.pi * np.asarray(v, np.float64))
-    s = np.sin(theta)
-    return np.stack([s * np.sin(phi), np.cos(theta), s * np.cos(phi)], axis=-1)
-
-
-def latlong_texel(directions: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Column ``i`` and row ``j`` (row 0 = top) of the texel holding each dome-space unit direction."""
-    d = np.asarray(directions, np.float64)
-    phi = np.arctan2(d[..., 0], d[..., 2])
-    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
-    u = (1.0 - phi / np.pi) / 2.0
-    i = np.floor(u * width).astype(np.int64) % width
-    j = np.clip(np.floor(theta / np.pi * height).astype(np.int64), 0, height - 1)
-    return i, j
-
 
 def fibonacci_sphere(n: int) -> np.ndarray:
     """``(n, 3)`` near-uniform unit vectors (spherical Fibonacci lattice, equal-area in z)."""
@@ -254,7 +228,7 @@ def _sample_map(texture: np.ndarray, radiance: np.ndarray, count: int, rng: np.r
 
 # ------------------------------------------------------------------------------------------------ API
 
-def dome_to_distant_lights(dome: "Dome", count: int = DEFAULT_COUNT, seed: int = 0,
+def dome_to_distant_lights(dome: Dome, count: int = DEFAULT_COUNT, seed: int = 0,
                            meters_per_unit: float = 1.0) -> Lights:
     """``count`` DISTANT lights standing for ``dome`` (see the module doc), deterministic for ``seed``.
 
@@ -294,7 +268,7 @@ def dome_to_distant_lights(dome: "Dome", count: int = DEFAULT_COUNT, seed: int =
     x = np.cross(helper, z)
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(z, x)
-    origin = np.asarray(getattr(dome, "origin", np.zeros(3)), np.float64).reshape(3)
+    origin = np.asarray(dome.origin, np.float64).reshape(3)
     xform = np.zeros((n, 4, 4))
     xform[:, :3, 0], xform[:, :3, 1], xform[:, :3, 2] = x, y, z
     xform[:, :3, 3] = origin
@@ -305,11 +279,11 @@ def dome_to_distant_lights(dome: "Dome", count: int = DEFAULT_COUNT, seed: int =
         axis=-world, xform=xform, radiance=big_l.astype(np.float32), intensity=e.astype(np.float32),
         radius=zeros.copy(), width=zeros.copy(), height=zeros.copy(), angle=zeros.copy(),
         cone_angle=np.full(n, 180.0), cone_softness=zeros.copy(), focus=zeros.copy(),
-        focus_tint=np.zeros((n, 3), np.float32), shadow=np.full(n, bool(getattr(dome, "shadow", True))),
+        focus_tint=np.zeros((n, 3), np.float32), shadow=np.full(n, bool(dome.shadow)),
         paths=[dome.path] * n, instance_ids=ids)
 
 
-def dome_irradiance(dome: "Dome", normals: np.ndarray, supersample: int = 4) -> np.ndarray:
+def dome_irradiance(dome: Dome, normals: np.ndarray, supersample: int = 4) -> np.ndarray:
     """Reference irradiance ``(N, 3)`` of unoccluded planes with world ``normals`` ``(N, 3)``, by brute force.
 
     Every texel's radiance times ``∫_texel max(0, n·ω) dω``, the integral taken over ``supersample²``

@@ -44,7 +44,7 @@ Light paths
 * **Origins**: point, sphere, disk, rect and cylinder lights emit from their *centre* (the point-light model that
   direct shading uses too: sphere radius and area extent are ignored), moved ``eps`` along the ray so
   a light mounted flush on a surface does not hit that surface at t = 0.
-* **Bounces**: all live paths are traced together, one :func:`usdml.render.gbuffer.surface_at_hits`
+* **Bounces**: all live paths are traced together, one :func:`usdml.scene.surface.surface_at_hits`
   call (exact, Embree closest hit) per bounce. Each hit deposits a VPL: ``flux = path flux × albedo``
   (the power the Lambertian surface re-emits), ``normal`` = the interpolated shading normal turned to
   face the incoming ray (the ray's reverse where a mesh has no normals), ``bounce`` = 1 for the first
@@ -95,8 +95,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdml.lighting.direct import smoothstep_cone
-from usdml.render.gbuffer import surface_at_hits
 from usdml.scene import Lights, LightType, Snapshot
+from usdml.scene.surface import surface_at_hits
 
 __all__ = ["VPLs", "generate_vpls", "light_power", "LUMA"]
 
@@ -466,7 +466,7 @@ def generate_vpls(snapshot: Snapshot, backend, lights: Lights, count: int = 100_
     ----------
     snapshot : the frame's geometry (and ``meters_per_unit``, world bounds for distant lights).
     backend : an updated :class:`usdml.visibility.exact.ExactBackend` (anything with ``intersect``
-        and ``source`` that :func:`usdml.render.gbuffer.surface_at_hits` accepts).
+        and ``source`` that :func:`usdml.scene.surface.surface_at_hits` accepts).
     lights : the primary lights (usually ``snapshot.lights`` plus dome-derived distant lights).
     count : VPLs wanted in total (``--vpls N``); exactly ``count`` unless too few paths hit anything
         (module doc, "count").

@@ -80,15 +80,12 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
                              "(--preview adds a PNG of color beside it)")
         paths = output_paths(job.output, frames, frames_given=frames_given, min_precision=precision)
         return [Product(dict(zip(frames, paths)), {find_aov(n).name: find_aov(n).name for n in names})]
-    if delegate.settings_prim is None:
+    first = delegate.render_settings(frames[0])
+    if first is None:
         raise UsdmlError(f"{job.stage}: give an OUTPUT path (e.g. out/beauty.####.exr) or author "
                          "RenderSettings with a RenderProduct (renderSettingsPrimPath)")
-    from pxr import Usd
-    from usdml.stage.render_settings import read_render_settings
-
     products: list[Product] = []
     wanted = {find_aov(a).name for a in job.aovs or [] if find_aov(a)}
-    first = read_render_settings(delegate.settings_prim, Usd.TimeCode(frames[0]))
     if not first.products:
         raise UsdmlError(f"{first.path}.products: no RenderProduct; give an OUTPUT path instead")
     for k, rp in enumerate(first.products):
@@ -114,7 +111,7 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
         if rp.name_time_varying:
             paths = {}
             for f in frames:
-                name = read_render_settings(delegate.settings_prim, Usd.TimeCode(f)).products[k].product_name
+                name = delegate.render_settings(f).products[k].product_name
                 paths[f] = format_frame(name, f) if frame_placeholder(name) else name
             if len(set(paths.values())) != len(paths):
                 raise UsdmlError(f"{rp.path}.productName: several frames write the same file")

@@ -18,9 +18,13 @@ import hashlib
 
 import numpy as np
 
+from usdml.errors import UsdmlError
+from usdml.scene.dome import Dome, latlong_directions, latlong_texel
+
 __all__ = [
     "Mesh", "Prototype", "LightType", "Lights", "Camera", "RenderVar", "RenderProduct",
-    "RenderSettings", "Snapshot", "Changes", "diff", "content_hash",
+    "RenderSettings", "Snapshot", "Changes", "diff", "content_hash", "instance_points", "world_geometry",
+    "Dome", "latlong_directions", "latlong_texel",
 ]
 
 
@@ -92,13 +96,9 @@ class Prototype:
         return sum(m.triangle_count for m in self.meshes)
 
     def merged(self) -> tuple[np.ndarray, np.ndarray]:
-        """All meshes as one soup in prototype space: ``(V, 3) float32`` points, ``(T, 3) int32`` triangles."""
-        if not self.meshes:
-            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
-        offsets = np.cumsum([0] + [m.points.shape[0] for m in self.meshes[:-1]])
-        pts = np.concatenate([m.points for m in self.meshes])
-        tris = np.concatenate([m.triangles + o for m, o in zip(self.meshes, offsets)]).astype(np.int32)
-        return pts, tris
+        """All meshes as one soup in prototype space: ``(V, 3) float32`` points, ``(T, 3) int32`` triangles
+        (the prototype-space counterpart of :func:`world_geometry`)."""
+        return _soup([(m.points, m.triangles) for m in self.meshes])
 
     def geometry_hash(self) -> str:
         return content_hash(*self.merged())
@@ -279,8 +279,8 @@ class Snapshot:
     time_codes_per_second: float = 24.0
     meters_per_unit: float = 0.01
     up_axis: str = "Y"
-    #: dome lights (``usdml.stage.dome.Dome``: plain NumPy data), turned into distant lights per frame
-    domes: list = field(default_factory=list)
+    #: dome lights, turned into distant lights per frame (:func:`usdml.lighting.dome.dome_to_distant_lights`)
+    domes: list[Dome] = field(default_factory=list)
 
     @property
     def static_meshes(self) -> list[Mesh]:
@@ -317,6 +317,58 @@ class Snapshot:
         if not lo:
             return None
         return np.min(lo, 0), np.max(hi, 0)
+
+
+def _soup(pieces: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One triangle soup from ``(points (V, 3), triangles (T, 3))`` pieces, each piece's triangles
+    indexing its own points: ``(ΣV, 3)`` points (their dtype), ``(ΣT, 3) int32`` triangles."""
+    if not pieces:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+    sizes = [p.shape[0] for p, _ in pieces]
+    if sum(sizes) >= 2 ** 31:
+        raise UsdmlError(f"{sum(sizes)} flattened vertices exceed 32-bit triangle indices; render with an "
+                         "approximate backend (--visibility voxel) or fewer static instances")
+    offsets = np.cumsum([0] + sizes[:-1])
+    pts = np.concatenate([p for p, _ in pieces])
+    tris = np.concatenate([t + o for (_, t), o in zip(pieces, offsets)]).astype(np.int32)
+    return pts, tris
+
+
+def instance_points(xforms: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(N, V, 3) float64`` world positions of prototype-space ``points (V, 3)`` under each of
+    ``xforms (N, 4, 4)`` (prototype-to-world, column convention), transformed in float64."""
+    xf = np.asarray(xforms, np.float64).reshape(-1, 4, 4)
+    v = np.asarray(points, np.float64).reshape(-1, 3)
+    return np.einsum("nij,vj->nvi", xf[:, :3, :3], v) + xf[:, None, :3, 3]
+
+
+def world_geometry(snapshot: "Snapshot", members) -> tuple[np.ndarray, np.ndarray]:
+    """World-space ``(V, 3) float32`` points and ``(T, 3) int32`` triangles of ``members``, prototype
+    instances flattened into world copies.
+
+    ``members`` is a sequence of ``("mesh", path)`` (a mesh of ``snapshot.meshes``, already in world
+    space) and ``("proto", path)`` (every instance of a prototype of ``snapshot.prototypes``). The
+    triangles come in that order; a prototype's mesh-major: for each of its meshes, every instance
+    (the order of :class:`usdml.visibility.exact.SourceTable`). Raises :class:`UsdmlError` past
+    2³¹ vertices.
+    """
+    meshes = {m.path: m for m in snapshot.meshes}
+    protos = {p.path: p for p in snapshot.prototypes}
+    pieces: list[tuple[np.ndarray, np.ndarray]] = []
+    for kind, path in members:
+        if kind == "mesh":
+            m = meshes[path]
+            pieces.append((np.asarray(m.points, np.float32).reshape(-1, 3),
+                           np.asarray(m.triangles, np.int64).reshape(-1, 3)))
+            continue
+        p = protos[path]
+        for m in p.meshes:
+            world = instance_points(p.xforms, m.points)                 # (n, V, 3)
+            n, nv = world.shape[:2]
+            t = np.asarray(m.triangles, np.int64).reshape(-1, 3)
+            tris = (t[None] + (nv * np.arange(n, dtype=np.int64))[:, None, None]).reshape(-1, 3)
+            pieces.append((world.reshape(-1, 3).astype(np.float32), tris))
+    return _soup(pieces)
 
 
 @dataclass

@@ -17,10 +17,10 @@ import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 
 from usdml.errors import UsdmlError, Warnings, tf_message
-from usdml.scene import Lights, Mesh, Prototype, Snapshot
+from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.diagnostics import usd_diagnostics
-from usdml.stage.dome import Dome, is_dome, read_dome
+from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
 from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, MAX_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
@@ -196,6 +196,13 @@ class StageDelegate:
                 return prim
         return select_camera(self.stage, request, self.cameras)
 
+    def render_settings(self, time: float) -> RenderSettings | None:
+        """The stage's RenderSettings at ``time`` as plain data (each product's ``productName`` resolved
+        there), None when the stage has none; :meth:`snapshot` carries the same."""
+        if self.settings_prim is None:
+            return None
+        return read_render_settings(self.settings_prim, Usd.TimeCode(time))
+
     # ----------------------------------------------------------------------------------------------
     def snapshot(self, time: float) -> Snapshot:
         """The render index at ``time`` (a timecode of the stage)."""
@@ -206,7 +213,7 @@ class StageDelegate:
         self.check_time(time)
         t = Usd.TimeCode(time)
         xf = UsdGeom.XformCache(t)
-        rs = read_render_settings(self.settings_prim, t) if self.settings_prim is not None else None
+        rs = self.render_settings(time)
         purposes = self._purposes or set(rs.included_purposes if rs else ("default", "render")) | {"default"}
         self.unsupported = {}
 

@@ -1,39 +1,16 @@
-"""``UsdLux.DomeLight`` / ``DomeLight_1``: read a dome light at a timecode into plain data (:class:`Dome`).
+"""``UsdLux.DomeLight`` / ``DomeLight_1``: read a dome light at a timecode into plain data (:class:`usdml.scene.Dome`).
 
-:func:`usdml.lighting.dome.dome_to_distant_lights` turns a :class:`Dome` into K distant lights per frame,
-so dome-lit stages go through the same many-light visibility as every other light.
-
-Radiometry
-----------
-Emitted radiance toward the scene from direction ω (ω points from the scene *toward* the sky):
-``L(ω) = radiance ⊙ texture(ω)`` with ``radiance = intensity · 2^exposure · color (· blackbody) · diffuse``
-(as :mod:`usdml.stage.lights`; ``diffuse`` is folded in because usdml shades Lambertian surfaces only),
-and ``texture(ω)`` the lat-long map's linear RGB (1 for a constant dome). The map is piecewise constant
-per texel (nearest filtering): the sampler and the brute-force reference integrate the same function.
+:func:`usdml.lighting.dome.dome_to_distant_lights` turns a dome into K distant lights per frame,
+so dome-lit stages go through the same many-light visibility as every other light. What a
+:class:`~usdml.scene.Dome` holds (its radiometry, the lat-long map convention) is documented in
+:mod:`usdml.scene.dome`; this module reads the prim.
 
 ``inputs:normalize`` has no effect on dome lights: UsdLux LightAPI defines it as normalizing the power
 "by the surface area of the light" (``pxr/usd/usdLux/schema.usda``), and a dome, being infinitely far
 away, has no surface area to divide by. It is ignored here, without a warning.
 
-Lat-long convention
--------------------
-Source: OpenUSD ``pxr/usd/usdLux/schema.usda``, the docs of classes ``DomeLight`` and ``DomeLight_1``,
-which quote the OpenEXR lat-long specification (read at OpenUSD commit 59992d2). The dome's default
-orientation has its top pole on +Y. A pixel's x is longitude, its y latitude: the
-top-left corner of the data window is latitude +π/2, longitude +π, the bottom-right latitude −π/2,
-longitude −π. Latitude 0 / longitude 0 points to +Z (the image's centre column faces +Z), latitude 0 /
-longitude +π/2 to +X (the column at a quarter of the width faces +X, the three-quarter column −X,
-the left and right edges −Z). With image coordinates ``u = x / W`` (0 at the left edge, 1 at the
-right) and ``v = y / H`` (0 at the top):
-
-    φ = π (1 − 2u)   (longitude),    θ = π v   (angle from the +Y pole)
-    ω_dome = (sin θ sin φ,  cos θ,  sin θ cos φ)
-
-Hydra Storm samples its lat-long maps the same way (``pxr/imaging/hdSt/shaders/surfaceHelpers.glslfx``
-``ProjectToLatLong``: ``u = (atan2(z, x) + π/2) / 2π``, ``v = acos(y) / π``, which is the inverse of the
-formula above). Like Storm, usdml puts the poles and ±π on the image's *edges* (texture coordinates);
-OpenEXR's ``LatLongMap`` puts them on the centres of the first and last pixels, half a texel away.
-
+Pole axis and orientation
+-------------------------
 ``DomeLight_1`` adds ``poleAxis``: "Y" keeps the default; "Z" rotates the dome +90° about X before
 its transform (+Y → +Z, and longitude 0 then faces −Y, as the schema says); "scene" (the fallback) is
 "Z" when the stage's ``upAxis`` is Z, else "Y". This follows ``usdImaging/domeLight_1Adapter.cpp``
@@ -60,7 +37,6 @@ unreadable file warns and leaves a constant dome of the light's colour.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, field
 import os
 import threading
 from typing import Callable
@@ -69,11 +45,10 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
 from usdml.errors import UsdmlError
+from usdml.scene import Dome
 from usdml.stage.lights import attribute_value, emitted_radiance
-from usdml.lighting.dome import latlong_directions, latlong_texel
 
-__all__ = ["Dome", "read_dome", "is_dome", "load_texture", "latlong_directions", "dome_pole_rotation",
-           "clear_texture_cache"]
+__all__ = ["read_dome", "is_dome", "load_texture", "dome_pole_rotation", "clear_texture_cache"]
 
 #: Rotation (column convention) that puts the dome's pole on +Z: +90° about X (+Y → +Z, +Z → −Y).
 _Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -83,33 +58,6 @@ SUPPORTED_FORMATS = {"automatic", "latlong"}
 
 #: Most texture files kept in memory at once (a 8k × 4k float map is 400 MB).
 TEXTURE_CACHE_SIZE = 4
-
-
-@dataclass(eq=False)
-class Dome:
-    """A dome light at one timecode, as plain data (no ``pxr``)."""
-
-    path: str
-    radiance: np.ndarray            #: (3,) float64 intensity · 2^exposure · color (· blackbody) · diffuse
-    texture: np.ndarray | None      #: (H, W, 3) float32 linear RGB lat-long map, None for a constant dome
-    to_world: np.ndarray            #: (3, 3) float64 rotation, dome space -> world (column convention)
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: (3,) world translation (unused for shading)
-    shadow: bool = True             #: ``inputs:shadow:enable``
-    texture_file: str = ""          #: resolved path of the map ("" when none or unreadable)
-    pole_axis: str = "Y"            #: the pole actually used: "Y" or "Z"
-
-    @property
-    def constant(self) -> bool:
-        return self.texture is None
-
-    def radiance_at(self, directions: np.ndarray) -> np.ndarray:
-        """``(N, 3)`` radiance L(ω) toward the scene from world directions ``(N, 3)`` (pointing at the sky)."""
-        d = np.asarray(directions, np.float64).reshape(-1, 3)
-        if self.texture is None:
-            return np.broadcast_to(self.radiance, d.shape).copy()
-        local = d @ self.to_world          # R^T ω for each row
-        i, j = latlong_texel(local, self.texture.shape[1], self.texture.shape[0])
-        return self.texture[j, i].astype(np.float64) * self.radiance
 
 
 def dome_pole_rotation(pole_axis: str) -> np.ndarray:

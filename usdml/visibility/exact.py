@@ -90,7 +90,7 @@ import numpy as np
 
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers
-from usdml.scene import Changes, Mesh, Prototype, Snapshot
+from usdml.scene import Changes, Mesh, Prototype, Snapshot, world_geometry
 from usdml.visibility.base import STATS, VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 
 try:
@@ -165,7 +165,7 @@ class SourceTable:
 
 def _source_table(snapshot: Snapshot, members: tuple[tuple[str, str], ...]) -> SourceTable:
     """Sources of ``members`` (``("mesh", path)`` / ``("proto", path)``): a mesh is one source, a
-    prototype one per (mesh, instance), mesh-major, as :func:`_merged_geometry` lays triangles out."""
+    prototype one per (mesh, instance), mesh-major, as :func:`usdml.scene.world_geometry` lays triangles out."""
     mesh_index = {m.path: i for i, m in enumerate(snapshot.meshes)}
     proto_index = {p.path: i for i, p in enumerate(snapshot.prototypes)}
     cols: dict[str, list] = {k: [] for k in ("mesh", "prototype", "instance", "proto_mesh", "prim_id",
@@ -195,41 +195,6 @@ def _source_table(snapshot: Snapshot, members: tuple[tuple[str, str], ...]) -> S
         tri_offset=np.concatenate([[0], np.cumsum(cat["tris"])]).astype(np.int64))
 
 
-def _merged_geometry(snapshot: Snapshot, members: tuple[tuple[str, str], ...]) -> tuple[np.ndarray, np.ndarray]:
-    """World-space ``(V, 3) float32`` points and ``(T, 3) int32`` triangles of ``members``, in
-    :func:`_source_table` order (prototype instances flattened)."""
-    meshes = {m.path: m for m in snapshot.meshes}
-    protos = {p.path: p for p in snapshot.prototypes}
-    pts: list[np.ndarray] = []
-    tris: list[np.ndarray] = []
-    base = 0
-    for kind, path in members:
-        if kind == "mesh":
-            m = meshes[path]
-            pts.append(np.asarray(m.points, np.float32).reshape(-1, 3))
-            tris.append(np.asarray(m.triangles, np.int64).reshape(-1, 3) + base)
-            base += pts[-1].shape[0]
-            continue
-        p = protos[path]
-        xf = np.asarray(p.xforms, np.float64).reshape(-1, 4, 4)
-        n = xf.shape[0]
-        for m in p.meshes:
-            v = np.asarray(m.points, np.float64).reshape(-1, 3)
-            nv = v.shape[0]
-            # p_world = M @ [p, 1], for all instances at once: (n, V, 3), transformed in float64
-            world = np.einsum("nij,vj->nvi", xf[:, :3, :3], v) + xf[:, None, :3, 3]
-            pts.append(world.reshape(-1, 3).astype(np.float32))
-            t = np.asarray(m.triangles, np.int64).reshape(-1, 3)
-            tris.append((t[None] + (base + nv * np.arange(n, dtype=np.int64))[:, None, None]).reshape(-1, 3))
-            base += n * nv
-    if not tris:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
-    if base >= 2 ** 31:
-        raise UsdmlError(f"exact backend: {base} flattened vertices exceed Embree's 32-bit indices; "
-                         f"render with an approximate backend (--visibility voxel)")
-    return np.concatenate(pts), np.concatenate(tris).astype(np.int32)
-
-
 @dataclass
 class _EmbreeGroup:
     """One committed Embree scene and what it was built from."""
@@ -246,7 +211,7 @@ class _EmbreeGroup:
 
 def _build_group(snapshot: Snapshot, members: tuple[tuple[str, str], ...], table: SourceTable) -> _EmbreeGroup:
     t0 = time.perf_counter()
-    points, triangles = _merged_geometry(snapshot, members)
+    points, triangles = world_geometry(snapshot, members)
     scene = None
     if triangles.shape[0]:
         scene = rtcs.EmbreeScene()

@@ -48,7 +48,7 @@ from usdml import params
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_parallel
-from usdml.scene import Changes, Lights, Snapshot
+from usdml.scene import Changes, Lights, Snapshot, world_geometry
 from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags,
                                    as_vectors, members_changed)
@@ -107,12 +107,6 @@ _SETTINGS_OPTIONS = (("voxel_normal_offset", "normal_offset", None), ("voxel_ski
                      ("voxel_slab", "slab", None), ("voxel_max_skip", "max_skip", 0),
                      ("voxel_end_skip", "end_skip", None), ("voxel_segment", "segment", None),
                      ("voxel_core", "core", None), ("voxel_frame_core", "frame_core", None))
-
-
-def _world_geometry(snapshot: Snapshot, members) -> tuple[np.ndarray, np.ndarray]:
-    from usdml.visibility.exact import _merged_geometry
-
-    return _merged_geometry(snapshot, members)
 
 
 def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
@@ -352,7 +346,7 @@ class VoxelBackend(VisibilityBackend):
         if static is None:
             self._static = None
         elif need_static:
-            pts, tris = _world_geometry(snapshot, static)
+            pts, tris = world_geometry(snapshot, static)
             self._static = _Group(static, self._array(pts, tris, "static scene", trim=True) if len(tris) else None)
         for p in moving:
             h = proto_hashes[p.path]
@@ -365,7 +359,7 @@ class VoxelBackend(VisibilityBackend):
         if per_frame is None:
             self._deforming = None
         elif need_frame:
-            pts, tris = _world_geometry(snapshot, per_frame)
+            pts, tris = world_geometry(snapshot, per_frame)
             slot = self._gpu.get("frame_slot")
             # in place when only the per-frame array changes and it already has its slot
             in_place = (slot is not None and not need_static and not new_protos and len(tris) > 0
@@ -384,7 +378,7 @@ class VoxelBackend(VisibilityBackend):
         builds it. Empty when nothing is rebuilt per frame. Call after :meth:`update` for ``snapshot``."""
         if self._deforming is None or self._deforming.array is None or "frame_slot" not in self._gpu:
             return {}
-        pts, tris = _world_geometry(snapshot, self._deforming.members)
+        pts, tris = world_geometry(snapshot, self._deforming.members)
         source = self._frame_source
         seconds = {m: [] for m in REBUILDS}
         keep = self.rebuild
@@ -570,6 +564,17 @@ class VoxelBackend(VisibilityBackend):
         jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
         run_parallel(lambda j: launch(*j), jobs, self.workers, first_on_caller=True)
 
+    @property
+    def words(self):
+        """Every array's words as the kernels read them, one Warp ``uint32`` array (None before
+        :meth:`update`): a per-frame rebuild writes into it in place."""
+        return self._gpu.get("words")
+
+    @property
+    def host_words(self) -> np.ndarray | None:
+        """The same words on the host, ``(W,) uint32`` (on CPU the very memory the kernels read)."""
+        return self._gpu.get("words_np")
+
     def hit_distances(self, origins, targets, *, normals=None, distant=None, want_distance: bool = True) -> np.ndarray:
         """Distance in voxels from each ray's (offset, skipped) start to the first occupied voxel; -1: free."""
         if not self._gpu:
@@ -606,13 +611,12 @@ class VoxelBackend(VisibilityBackend):
     def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):
         """The lights as the shading kernel's ``LightTable`` (the constants of
         :func:`usdml.lighting.direct.shade_direct`), and whether every light casts shadows."""
-        from usdml.lighting.direct import _LightTable, cone_edges
+        from usdml.lighting.direct import LightTable, cone_edges
 
         wp, ks = warp_module(), _shading_kernels()
         dev = wp.get_device(self.device)
-        t = _LightTable(lights, meters_per_unit, min_distance)
-        flags = ((t.distant * ks.DISTANT) | (t.one_sided * ks.ONE_SIDED) | (t.shaped * ks.SHAPED)
-                 | (t.focused * ks.FOCUSED) | (t.casts * ks.CASTS_SHADOWS) | (t.cylinder * ks.CYLINDER)).astype(np.int32)
+        t = LightTable(lights, meters_per_unit, min_distance)
+        flags = t.flags        # LightFlag bits, which the kernel names as the same constants
         outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
         cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
         lt = ks.LightTable()

@@ -1,0 +1,79 @@
+"""What a ray hits: the surface of a snapshot at the closest hits of a batch of rays.
+
+The rays are traced by a visibility backend's ``intersect`` (the exact backend); what this module adds
+is the render index's side: which mesh each hit belongs to and its attributes there, the shading
+normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose
+of their instance transform) and the albedo (textures sampled at the hit, not per corner). Used by the
+G-buffer (:mod:`usdml.render.gbuffer`) and by VPL light paths (:mod:`usdml.lighting.vpl`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from usdml.scene import Snapshot
+
+__all__ = ["Hits", "surface_at_hits"]
+
+
+@dataclass
+class Hits:
+    """Surface attributes where rays hit (rays that missed have ``hit`` False and zeros)."""
+
+    hit: np.ndarray         #: (N,) bool
+    position: np.ndarray    #: (N, 3) float64 world position
+    normal: np.ndarray      #: (N, 3) float64 unit world shading normal (as authored, not flipped)
+    geometric: np.ndarray   #: (N, 3) float64 unit world geometric normal (of the triangle's winding)
+    albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
+    geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
+    t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
+
+
+def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.ndarray,
+                    tmax: np.ndarray | float | None = None) -> Hits:
+    """Closest hits of rays ``origins + t·dirs`` with ``backend.intersect`` (the exact backend), and
+    the surface there: interpolated shading normal and albedo (per-pixel texture lookups included).
+
+    ``origins``, ``dirs`` : (N, 3) float64 world positions and unit directions; ``tmax`` : (N,) or
+    scalar ray length (None: unbounded). ``backend`` is anything with ``intersect(origins, dirs, tmax)``
+    and ``source(geom)`` as :class:`usdml.visibility.exact.ExactBackend`.
+    """
+    r = backend.intersect(origins, dirs, tmax)
+    n = len(origins)
+    hit = r["geom"] >= 0
+    position = np.zeros((n, 3), np.float64)
+    position[hit] = origins[hit] + dirs[hit] * r["t"][hit].astype(np.float64)[:, None]
+    normal = np.zeros((n, 3), np.float64)
+    albedo = np.zeros((n, 3), np.float32)
+    geoms = r["geom"][hit]
+    rows = np.flatnonzero(hit)
+    order = np.argsort(geoms, kind="stable")
+    bounds = np.flatnonzero(np.diff(geoms[order])) + 1
+    for group in np.split(order, bounds):
+        if not len(group):
+            continue
+        src = backend.source(int(geoms[group[0]]))
+        mesh = src.mesh_of(snapshot)
+        px = rows[group]
+        tri = r["prim"][px]
+        u, v = r["u"][px].astype(np.float64), r["v"][px].astype(np.float64)
+        w = np.stack([1.0 - u - v, u, v], axis=1)[:, :, None]
+        nrm = (mesh.normals[tri] * w).sum(1)
+        if src.prototype >= 0:
+            m = snapshot.prototypes[src.prototype].xforms[src.instance]
+            nrm = nrm @ np.linalg.inv(m[:3, :3])      # inverse transpose, row vectors
+        normal[px] = nrm
+        if mesh.texture is not None:       # textures are sampled per pixel, not per corner
+            albedo[px] = mesh.texture.sample((mesh.uv[tri] * w).sum(1))
+        else:
+            albedo[px] = (mesh.albedo[tri] * w).sum(1)
+    return Hits(hit=hit, position=position, normal=_unit(normal), geometric=_unit(r["ng"].astype(np.float64)),
+                albedo=albedo, geom=r["geom"], t=r["t"])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` scaled to unit length; zero rows stay zero."""
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.where(length > 0, v / np.where(length > 0, length, 1.0), 0.0)
