@@ -13,6 +13,7 @@ exactly; an approximate backend within its stated bound (``MISMATCH``: the fract
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -23,8 +24,8 @@ from usdml.settings import UsdmlSettings
 from usdml.visibility import ExactBackend, backend_class, backend_names, make_backend
 from usdml.visibility.base import CAPABILITIES, HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS
 
-from test_visibility_exact import prototype, rot_y, snapshot, soup, translate
-from test_voxel import box
+from plain_scenes import prototype, rot_y, snapshot, soup, translate
+from voxel_reference import box
 
 pytest.importorskip("embreex")
 
@@ -246,3 +247,49 @@ def test_voxel_settings_fields_reach_the_backend():
     assert b.max_skip == 4.0            # automatic: the conservative mapping's
     plain = make_backend("voxel", SETTINGS, **QUIET)    # settings without the fields: the defaults
     assert (plain.normal_offset, plain.max_skip, plain.segment, plain.memory_limit) == (1.0, 2.0, 32, None)
+
+
+def test_a_new_backend_is_one_module_and_one_registry_line(tmp_path, new_stage):
+    """The contract's promise, kept by a user's own backend: a module with a subclass and one
+    ``BACKENDS`` entry, nothing else edited, and ``usdml render --visibility NAME`` renders with it
+    (the same image as exact here: it answers through Embree) and ``usdml info`` lists it."""
+    import subprocess
+    import sys
+
+    from conftest import ground_stage
+    from pxr import UsdLux
+    from usdml.aov.exr import read_exr
+
+    (tmp_path / "my_backend.py").write_text(
+        "from usdml.visibility.exact import ExactBackend\n\n\n"
+        "class MyBackend(ExactBackend):\n"
+        "    name = 'mine'\n"
+        "    calls = 0\n\n"
+        "    def occluded(self, *args, **kw):\n"
+        "        type(self).calls += 1\n"
+        "        return super().occluded(*args, **kw)\n")
+    launcher = ("import sys\n"
+                "from usdml.visibility import registry\n"
+                "registry.BACKENDS['mine'] = 'my_backend:MyBackend'       # the one registry line\n"
+                "from usdml.cli import main\n"
+                "code = main(sys.argv[1:])\n"
+                "import my_backend\n"
+                "print('calls', my_backend.MyBackend.calls, file=sys.stderr)\n"
+                "sys.exit(code)\n")
+    stage = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/bulb").AddTranslateOp().Set((1, 4, 0)))
+
+    def run(*argv):
+        env = dict(os.environ, PYTHONPATH=str(tmp_path) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        return subprocess.run([sys.executable, "-c", launcher, *argv], capture_output=True, text=True, env=env)
+
+    outputs = {}
+    for name in ("mine", "exact"):
+        out = tmp_path / f"{name}.exr"
+        done = run("render", str(stage), str(out), "--visibility", name, "--imageWidth", "16", "--aovs", "direct")
+        assert done.returncode == 0, done.stderr
+        outputs[name] = read_exr(out)[0]
+        if name == "mine":
+            assert "calls 0" not in done.stderr          # its shadow rays answered the frame
+    np.testing.assert_array_equal(outputs["mine"]["direct"], outputs["exact"]["direct"])
+    info = run("info", str(stage))
+    assert info.returncode == 0 and "mine: Embree ray casts" in info.stdout, info.stderr

@@ -13,7 +13,8 @@ import pytest
 from pxr import Sdf, UsdLux, UsdRender
 
 from conftest import add_cube_mesh
-from usdml.cli import _settings_overrides, build_parser, main
+from usdml.cli import build_parser, main
+from usdml.params import overrides_from_args
 from usdml.errors import UsdmlError
 from usdml.params import COMMANDS, PARAMS, check
 from usdml.settings import SCHEMA_ATTRIBUTES, UsdmlSettings
@@ -81,7 +82,7 @@ def test_flags_follow_the_table(command):
         text = action.help % {"default": action.default}
         assert text.endswith(f"(default: the stage's {p.attribute}, else {shown})"), text
     args = parser.parse_args(["stage.usda"])
-    assert _settings_overrides(args) == {}
+    assert overrides_from_args(args) == {}
     if command == "compare":
         assert "--visibility" in flags and "visibility" not in {p.field for p in rows}   # compare's own flag
 
@@ -101,11 +102,11 @@ def test_flags_reach_the_settings():
     argv = ["render", "s.usda", "--vpls", "500", "--direction-step", "5", "--no-fully-dynamic", "--voxel-segment",
             "8", "--voxel-max-skip", "3", "--voxel-memory-limit", "0.5", "--voxel-frame-core", "0.25",
             "--pixel-samples", "9", "--visibility", "voxel"]
-    s = UsdmlSettings().updated(**_settings_overrides(parser.parse_args(argv)))
+    s = UsdmlSettings().updated(**overrides_from_args(parser.parse_args(argv)))
     assert (s.vpl_count, s.direction_step, s.fully_dynamic, s.voxel_segment, s.voxel_max_skip) == (500, 5.0, False, 8, 3.0)
     assert (s.voxel_memory_limit, s.voxel_frame_core, s.pixel_samples, s.visibility) == (0.5, 0.25, 9, "voxel")
     bench = parser.parse_args(["bench", "s.usda", "--visibility", "voxel", "--visibility", "exact", "--voxel-skip", "2"])
-    assert bench.visibility == ["voxel", "exact"] and _settings_overrides(bench) == {"voxel_skip": 2.0}
+    assert bench.visibility == ["voxel", "exact"] and overrides_from_args(bench) == {"voxel_skip": 2.0}
 
 
 def _stage_with(new_stage, values: dict) -> str:
@@ -135,7 +136,7 @@ def test_every_attribute_is_read_from_the_stage_and_the_flag_wins(new_stage):
     assert {k: v for k, v in s.as_dict().items() if k not in {SCHEMA_ATTRIBUTES[n] for n in authored}} == \
         {p.field: p.default for p in PARAMS.values() if p.attribute not in authored}
     args = build_parser().parse_args(["render", path, "--voxel-segment", "16", "--dome-samples", "32"])
-    s = s.updated(**_settings_overrides(args))
+    s = s.updated(**overrides_from_args(args))
     assert (s.voxel_segment, s.dome_samples, s.voxel_max_skip, s.vpl_bounces) == (16, 32, 3.0, 2)
 
 

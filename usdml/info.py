@@ -68,6 +68,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
         "renderSettings": _render_settings(snap),
         "usdmlSettings": settings.as_dict(),
+        "backends": {name: backend_class(name).summary for name in backend_names()},
         **memory,
         "unsupported": dict(sorted(delegate.unsupported.items())),
         "warnings": list(delegate.warn.messages),
@@ -108,6 +109,8 @@ def format_info(info: dict) -> str:
     lines.append(f"usdml       visibility {s['visibility']}, voxels {s['voxel_resolution']}^3 @ {s['direction_step']:g} deg, "
                  f"{n(s['vpl_count'])} VPLs, LGH alpha {s['lgh_alpha']:g}, {s['shadow_samples']} shadow samples, "
                  f"{s['pixel_samples']} pixel samples, seed {s['seed']}")
+    lines.append("backends    " + "; ".join(f"{name}: {summary}" if summary else name
+                                             for name, summary in info["backends"].items()))
     for name in backend_names():
         if info.get(f"{name}Memory"):
             lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")

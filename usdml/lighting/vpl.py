@@ -10,7 +10,7 @@ turned into power (distant lights). A VPL of flux Φ is therefore a point light 
 divides by d² in metres: no further unit conversion anywhere.
 
 Emitted power Φ_l of each light (what ``light_power`` returns), with the emission profile of
-:func:`usdml.lighting.direct._geometry` (θ the angle from the light's ``axis``, ``c = cos θ``):
+the light geometry of :mod:`usdml.lighting.direct` (θ the angle from the light's ``axis``, ``c = cos θ``):
 
 * point / sphere: isotropic, ``profile = 1``;  disk / rect: one-sided cosine, ``profile = max(0, c)``;
   cylinder: its side's projected area, ``profile = sin θ_c`` (θ_c from its local X axis, ``Lights.intensity``

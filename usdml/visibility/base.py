@@ -49,7 +49,7 @@ Optional capabilities
         Default: ``None`` and ``""``.
 
 Adding a backend
-    One module with a :class:`VisibilityBackend` subclass (``name``, ``capabilities``, and
+    One module with a :class:`VisibilityBackend` subclass (``name``, ``summary``, ``capabilities``, and
     ``from_settings`` when it reads settings or runs on a device), one line in
     :data:`usdml.visibility.registry.BACKENDS`, and its mismatch bound against ``exact`` in
     ``tests/test_backends.py``, which runs every registered backend on the same scenes.
@@ -120,6 +120,8 @@ class VisibilityBackend(abc.ABC):
     name: str = ""
     #: optional capabilities it implements (module doc): a subset of ``CAPABILITIES``
     capabilities: frozenset[str] = frozenset()
+    #: one line saying what the backend is (``usdml info`` lists every registered backend with it)
+    summary: str = ""
     #: counters of the last update (``STATS``); backends that declare it set their own dict
     stats: Mapping = MappingProxyType({})
     #: point-light pairs handed to one :meth:`occluded` call by :meth:`occluded_matrix`; bounds its

@@ -257,6 +257,7 @@ class ExactBackend(VisibilityBackend):
     """
 
     name = "exact"
+    summary = "Embree ray casts: the reference every approximation is measured against"
     capabilities = frozenset({STATS})
 
     def __init__(self, *, rel_epsilon: float = 1e-5, epsilon: float | None = None,

@@ -163,6 +163,7 @@ class VoxelBackend(VisibilityBackend):
     """
 
     name = "voxel"
+    summary = "per-direction voxel arrays, shared by a prototype's instances (paper 000)"
     capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE})
 
     def __init__(self, *, resolution: int = 128, step: float = 2.0, device: str = "cpu", cache=None,
