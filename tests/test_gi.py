@@ -56,7 +56,7 @@ def test_lgh_lighting_approaches_brute_force_as_alpha_grows(cornell):
     error = _unshadowed_error(cornell)
     errors = [error(a) for a in (0.5, 1.0, 2.0, 4.0)]
     assert errors[0] > errors[1] > errors[2] >= errors[3] * 0.9
-    assert errors[-1] < 0.2
+    assert errors[-1] < 0.12                  # measured 0.37, 0.17, 0.115, 0.090 at alpha 0.5, 1, 2, 4
 
 
 def test_s0_start_brings_lgh_lighting_closer_to_brute_force(cornell):

@@ -182,8 +182,8 @@ def test_voxel_backend_agrees_with_exact_on_a_small_scene(small_city, device):
     got = backend.occluded(o, t, normals=nrm)
     assert 0.1 < ref.mean() < 0.9
     # paper 000 Table III reports ε_v 4.7 % at 32³ on its city; this toy city is coarser still
-    assert (got != ref).mean() < 0.08
-    assert abs(got.mean() - ref.mean()) < 0.05
+    assert (got != ref).mean() < 0.08                    # measured 0.070
+    assert abs(got.mean() - ref.mean()) < 0.04           # measured 0.029
     # deterministic
     assert np.array_equal(got, backend.occluded(o, t, normals=nrm))
 
@@ -229,7 +229,7 @@ def test_instances_answer_as_their_array_queried_in_each_instance_space(device):
     exact.update(flat)
     ref = exact.occluded(o, t, normals=nrm)
     assert ref.mean() > 0.03
-    assert (got != ref).mean() < 0.05
+    assert (got != ref).mean() < 0.04                    # measured 0.028
     # moving the instances rebuilds nothing
     builds = both.stats["builds"]
     before, after = scene(xforms), scene([translate(1, 0, 0) @ x for x in xforms])
@@ -362,7 +362,7 @@ def test_cli_compare_bake_render_with_voxels(lit_stage, tmp_path, monkeypatch, c
     r = json.loads(capsys.readouterr().out)
     assert {"eps_v", "eps_s", "pixels", "lights", "seconds"} <= set(r)
     assert r["lights"] == 3 and r["pixels"] > 100
-    assert 0 <= r["eps_s"] <= r["eps_v"] < 0.2
+    assert 0 <= r["eps_s"] <= r["eps_v"] < 0.13          # measured 0.097 / 0.093 at 16³ / 15°, 48 px
     assert set(r["seconds"]) == {"voxel", "exact"}
     assert heat.stat().st_size > 100
 

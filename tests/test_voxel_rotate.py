@@ -321,11 +321,13 @@ def test_cli_renders_compares_and_benches_a_deforming_stage(deforming_stage, tmp
                  *small]) == 0
     assert sorted(p.name for p in tmp_path.glob("f.*.exr")) == ["f.0001.exr", "f.0002.exr", "f.0003.exr"]
     capsys.readouterr()
-    for flags in (["--voxel-mapping", "conservative"], ["--voxel-rebuild", "geometry"], ["--fully-dynamic"]):
+    # ε_v bounds: measured 0.061, 0.016, 0.109 at 16³ / 15°, 32 px
+    for flags, bound in ((["--voxel-mapping", "conservative"], 0.09), (["--voxel-rebuild", "geometry"], 0.03),
+                         (["--fully-dynamic"], 0.15)):
         assert main(["compare", deforming_stage, "--visibility", "voxel", "--imageWidth", "32", "--json",
                      *small, *flags]) == 0
         r = json.loads(capsys.readouterr().out)
-        assert r["queries"] > 0 and 0.0 <= r["eps_v"] < 0.2
+        assert r["queries"] > 0 and 0.0 <= r["eps_v"] < bound, (flags, r["eps_v"])
     assert main(["bench", deforming_stage, "--visibility", "voxel", "--imageWidth", "16", "--json", *small,
                  "--voxel-mapping", "conservative"]) == 0
     rows = json.loads(capsys.readouterr().out)
