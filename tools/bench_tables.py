@@ -54,11 +54,8 @@ def _pct(x) -> str:
 
 
 def _pct3(x) -> str:
-    """A fraction as a percentage to three significant digits (``6.9 %``, ``14.0 %``, ``1.81 %``)."""
-    def fmt(v):
-        t = f"{100 * v:.3g}"
-        return t if "." in t or "e" in t or len(t) >= 3 else t + ".0"
-    return _span(x, fmt) + " %"
+    """A fraction as a percentage to three significant digits (``6.90 %``, ``14.0 %``, ``0.723 %``)."""
+    return _span(x, lambda v: f"{100 * v:#.3g}".rstrip(".")) + " %"
 
 
 def _stage(path: str) -> str:
@@ -279,7 +276,8 @@ def _json_output(stdout: str):
 def rerun(name: str, only: set[int] | None = None, timeout: float | None = None) -> int:
     data = load(name)
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    for i, run in enumerate(_runs(data)):
+    runs = _runs(data)
+    for i, run in enumerate(runs):
         if only is not None and i not in only:
             continue
         print(f"bench_tables: {run['command']}", flush=True)
@@ -292,10 +290,12 @@ def rerun(name: str, only: set[int] | None = None, timeout: float | None = None)
             sys.stderr.write(done.stderr)
             print(f"bench_tables: {run['command']!r} exited {done.returncode}; {name} left as it was", file=sys.stderr)
             return 1
-        run["output"] = _json_output(done.stdout)
+        output = _json_output(done.stdout)
         when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d")
-        run["source"] = f"measured at {rev or 'an unknown commit'} on {when}, {os.cpu_count()} CPUs"
-        run.pop("note", None)
+        for same in (r for r in runs if r["command"] == run["command"]):    # a command two rows share
+            same["output"] = output
+            same["source"] = f"measured at {rev or 'an unknown commit'} on {when}, {os.cpu_count()} CPUs"
+            same.pop("note", None)
     (DATA / f"{name}.json").write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
     return rewrite(check=False)
 
