@@ -242,3 +242,4 @@ def test_settings_defaults_agree():
     defaults = settings.UsdmlSettings().as_dict()
     for a in schemas.ATTRIBUTES:
         assert defaults[mapping[a.name]] == a.default, a.name
+

@@ -3,16 +3,18 @@
 
 Usage::
 
-    python tools/dome_error.py [--width 96] [--samples 64,256,1024] [--reference 8192] [--stage S]
+    python tools/dome_error.py [--width 96] [--samples 64,256,1024] [--reference 8192] [--stage S] [--json]
 
 Without ``--stage`` it builds a small test stage (a box on a ground slab under a constant
 DomeLight, seen by a camera at 3/4 view) in a temporary folder. Prints, per K, the RMSE of the
-``direct`` AOV against the reference render, relative to the reference mean, and seconds per frame.
+``direct`` AOV against the reference render, relative to the reference mean, and seconds per frame
+(``--json``: one object with the reference and a row per K).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -79,18 +81,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=96)
     parser.add_argument("--samples", default="64,256,1024")
     parser.add_argument("--reference", type=int, default=8192)
+    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     args = parser.parse_args(argv)
+    say = (lambda line: None) if args.json else print
+    result: dict = {"stage": args.stage, "width": args.width, "reference_samples": args.reference, "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
         stage = args.stage
         if stage is None:
             stage = str(Path(tmp) / "dome.usda")
             Path(stage).write_text(TEST_STAGE)
         ref, ref_s = render_direct(stage, args.width, args.reference)
-        print(f"reference K={args.reference}: {ref_s:.2f} s/frame, mean {ref.mean():.5f}")
+        result.update(reference_seconds=ref_s, reference_mean=float(ref.mean()))
+        say(f"reference K={args.reference}: {ref_s:.2f} s/frame, mean {ref.mean():.5f}")
         for k in (int(v) for v in args.samples.split(",")):
             img, s = render_direct(stage, args.width, k)
             rmse = float(np.sqrt(((img - ref) ** 2).mean()))
-            print(f"K={k:>6}: RMSE {rmse:.5f} ({100 * rmse / ref.mean():.2f} % of the mean), {s:.2f} s/frame")
+            result["rows"].append({"samples": k, "rmse": rmse, "rel_rmse": rmse / float(ref.mean()), "seconds": s})
+            say(f"K={k:>6}: RMSE {rmse:.5f} ({100 * rmse / ref.mean():.2f} % of the mean), {s:.2f} s/frame")
+    if args.json:
+        print(json.dumps(result, indent=2))
     return 0
 
 

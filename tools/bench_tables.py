@@ -1,0 +1,333 @@
+#!/usr/bin/env python
+"""The measured tables of ``docs/benchmarks.md``, written from the tools' JSON kept in ``docs/data/``.
+
+Usage::
+
+    python tools/bench_tables.py             # rewrite every table between its markers
+    python tools/bench_tables.py --check     # exit 1 (with a diff) if a table is not what its data says
+    python tools/bench_tables.py --list      # each table: where its data came from, and its commands
+    python tools/bench_tables.py --run NAME  # re-run NAME's commands, keep their JSON, rewrite the tables
+    python tools/bench_tables.py --run NAME --commands 0,2   # only those commands (numbered as --list shows)
+
+Each table ``NAME`` has one data file ``docs/data/NAME.json``: the commands that measured it, each with
+its JSON output as the tool printed it (``--json``) and a ``source`` saying when and where it was
+measured (or that the figures were carried over from an earlier README and await re-measuring). In a
+page under ``docs/``, the table sits between ``<!-- table: NAME -->`` and ``<!-- /table -->``; what is
+between the markers is generated (the table, then the commands), so edit the data, not the page.
+
+``--run`` needs usdml installed (the commands are ``python tools/...`` and ``usdml ...``; both are run
+with this interpreter); the rest is the standard library only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import difflib
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = ROOT / "docs"
+DATA = DOCS / "data"
+MARKER = re.compile(r"(<!-- table: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /table -->)", re.S)
+
+
+# ------------------------------------------------------------------------------------------- formatting
+
+
+def _span(x, fmt) -> str:
+    """``fmt`` of a figure, or ``lo–hi`` of a ``[lo, hi]`` range measured over several runs."""
+    if isinstance(x, (list, tuple)):
+        return "–".join(fmt(v) for v in x)
+    return fmt(x)
+
+
+def _pct(x) -> str:
+    """A fraction as a percentage: two decimals under 10 %, one above."""
+    return _span(x, lambda v: f"{100 * v:.2f}" if abs(100 * v) < 10 else f"{100 * v:.1f}") + " %"
+
+
+def _pct3(x) -> str:
+    """A fraction as a percentage to three significant digits (``6.90 %``, ``14.0 %``, ``0.723 %``)."""
+    return _span(x, lambda v: f"{100 * v:#.3g}".rstrip(".")) + " %"
+
+
+def _stage(path: str) -> str:
+    return Path(path).name.removesuffix(".usda")
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def _runs(data: dict) -> list[dict]:
+    """Every command of a data file, in order (``rows`` of ``voxel-alg5`` hold two each)."""
+    if "runs" in data:
+        return data["runs"]
+    return [run for row in data["rows"] for run in (row.get("compare"), row.get("bench")) if run]
+
+
+# -------------------------------------------------------------------------------------------- renderers
+
+
+def voxel_rows(data: dict) -> list[str]:
+    """``tools/voxel_table.py --json``: one row per stage, resolution and direction step."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]:
+            frame = (f"{r['frame_seconds']:.1f} ({r['exact_frame_seconds']:.1f})"
+                     if r.get("frame_seconds") is not None else "–")
+            rows.append([_stage(r["stage"]), f"{r['voxel_resolution']}³ / {r['direction_step']:g}°",
+                         _pct(r["eps_v"]), _pct(r["eps_s"]),
+                         f"{100 * r['wrongly_hidden']:.2f} / {100 * r['wrongly_visible']:.2f}",
+                         f"{r['build_seconds']:.1f}", f"{r['bytes'] / 2 ** 20:.0f} MiB",
+                         _span(r["queries_per_second"], lambda v: f"{v / 1e6:.1f}") + " M",
+                         _span(r["speedup_vs_exact"], lambda v: f"{v:.2f}") + "×", frame])
+    return _table(["stage", "grid", "ε_v", "ε_s", "hidden / visible (% pairs)", "build s", "bytes", "queries/s",
+                   "vs exact", "frame s (exact)"], rows)
+
+
+def voxel_alg5(data: dict) -> list[str]:
+    """``usdml compare --json`` (ε) and ``usdml bench --json`` (per-frame rebuild) per row."""
+    rows = []
+    for row in data["rows"]:
+        c = row["compare"]["output"]
+        b = next((r for r in row["bench"]["output"] if r["backend"] == "voxel"), {}) if row.get("bench") else {}
+        how = row["rebuild"]
+        if how == "alg5":
+            rebuild = (f"{b['rebuild_seconds']:.2f} s (Alg. 1: {b['full_rebuild_seconds']:.2f} s, "
+                       f"{b['rebuild_speedup']:.2g}×)")
+        elif how == "alg5-ratio":
+            rebuild = f"{b['rebuild_seconds']:.2f} s ({b['rebuild_speedup']:.2g}×)"
+        elif how == "alg1":
+            rebuild = f"{b['full_rebuild_seconds']:.2f} s"
+        else:
+            rebuild = "none"
+        rows.append([row["label"], rebuild, _pct3(c["eps_v"]), _pct3(c["eps_s"]), row.get("paper", "")])
+    return _table(["stage, 128³ / 2°", "per-frame rebuild", "ε_v", "ε_s", "paper 000 Table I"], rows)
+
+
+def light_scaling(data: dict) -> list[str]:
+    """``tools/light_scaling.py --json``: seconds per frame, one column per light count."""
+    counts = list(dict.fromkeys(r["lights"] for run in data["runs"] for r in run["output"]))
+    rows = []
+    for run in data["runs"]:
+        by_n = {r["lights"]: r for r in run["output"]}
+        cell = lambda n, f: f(by_n[n]) if n in by_n else "–"  # noqa: E731
+        rows.append([f"{run['label']} voxel (of which rebuild)"] + [
+            cell(n, lambda r: f"{r['voxel']['seconds']:.2f} ({r['voxel']['rebuild_seconds']:.2f})") for n in counts])
+        rows.append([f"{run['label']} exact"] + [cell(n, lambda r: f"{r['exact']['seconds']:.2f}") for n in counts])
+    return _table(["lights"] + [f"{n:,}" for n in counts], rows)
+
+
+def gi_lgh(data: dict) -> list[str]:
+    """``tools/gi_table.py --json``: one row per run, its S0 settings side by side (S1 in brackets)."""
+    rows = []
+    for run in data["runs"]:
+        out = run["output"]
+        s0 = [r for r in out["rows"] if r["start_level"] == 0]
+        s1 = {r["shadow_samples"]: r for r in out["rows"] if r["start_level"] == 1}
+        ks = " / ".join(str(r["shadow_samples"]) for r in s0)
+        err = " / ".join(f"{100 * r['rel_rmse']:.1f}" for r in s0) + " %"
+        if len(s0) == 1 and s0[0]["shadow_samples"] in s1:
+            err += f" (S1: {100 * s1[s0[0]['shadow_samples']]['rel_rmse']:.1f} %)"
+        speed = " / ".join(f"{r['speedup']:.0f}×" for r in s0)
+        w, h = out["resolution"]
+        rows.append([_stage(out["stage"]), f"{out['vpls']:,}", f"{w}×{h}", ks, err, speed])
+    return _table(["stage", "VPLs", "image", "k", "rel. RMSE of `indirect`", "speed-up over brute force"], rows)
+
+
+def lgh_build(data: dict) -> list[str]:
+    """``tools/lgh_build_times.py --json``: median build in ms, one column per stage."""
+    counts = list(dict.fromkeys(r["vpls"] for run in data["runs"] for r in run["output"]["rows"]))
+    cols = [(_stage(run["output"]["stage"]), {r["vpls"]: r for r in run["output"]["rows"]}) for run in data["runs"]]
+    rows = [[f"{n:,}"] + [f"{1000 * c[n]['seconds']:.4g}" if n in c else "–" for _, c in cols] for n in counts]
+    return _table(["VPLs"] + [name for name, _ in cols], rows)
+
+
+def gi_reference(data: dict) -> list[str]:
+    """``tools/gi_reference.py --json``: energy and block error against Mitsuba, furnace against ρ + … + ρ^B."""
+    labels = data.get("labels", {})
+    rows = []
+    for run in data["runs"]:
+        for method, r in run["output"]["methods"].items():
+            rows.append([labels.get(method, f"`{method}`"), f"{r['indirect_ratio']:.3f}",
+                         f"{100 * r['block_error']:.1f} %", f"{r['furnace_ratio']:.4g}"])
+    return _table(["method", "box energy", "box block error", "furnace"], rows)
+
+
+def anti_aliasing(data: dict) -> list[str]:
+    """``tools/reference_compare.py --json``: ``direct`` against the pixel-integrated reference per N."""
+    rows = []
+    for run in data["runs"]:
+        for n, r in run["output"]["pixel_samples"].items():
+            rows.append([str(n), _pct3(r["direct_rel_rmse"]), f"{r['seconds_per_frame']:.2f}"])
+    return _table(["pixel samples N", "rel. RMSE of `direct`", "seconds per frame"], rows)
+
+
+def bench(data: dict) -> list[str]:
+    """``usdml bench --json``: the voxel backend's queries per second beside Embree's, same queries."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]:
+            if r["backend"] == "exact":
+                continue
+            rows.append([_stage(r["stage"]), f"`{r['backend']}`",
+                         f"{r['voxel_resolution']}³ / {r['direction_step']:g}°" if "voxel_resolution" in r else "–",
+                         _span(r["queries_per_second"], lambda v: f"{v / 1e6:.1f}") + " M",
+                         _span(r["speedup_vs_exact"], lambda v: f"{v:.2f}") + "×"])
+    return _table(["stage", "backend", "grid", "queries/s", "vs exact"], rows)
+
+
+def dome_error(data: dict) -> list[str]:
+    """``tools/dome_error.py --json``: ``direct`` with K dome samples against K = ``reference_samples``."""
+    rows = []
+    for run in data["runs"]:
+        out = run["output"]
+        for r in out["rows"]:
+            rows.append([f"{r['samples']:,}", _pct3(r["rel_rmse"]), f"{r['seconds']:.2f}"])
+        rows.append([f"{out['reference_samples']:,} (reference)", "–", f"{out['reference_seconds']:.2f}"])
+    return _table(["dome samples K", "rel. RMSE of `direct`", "seconds per frame"], rows)
+
+
+RENDERERS = {
+    "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
+    "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
+    "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error,
+}
+
+
+# ------------------------------------------------------------------------------------------------ pages
+
+
+def load(name: str) -> dict:
+    path = DATA / f"{name}.json"
+    if not path.exists():
+        raise SystemExit(f"bench_tables: no data for table {name!r} ({path.relative_to(ROOT)})")
+    return json.loads(path.read_text())
+
+
+def block(name: str) -> str:
+    """What goes between the markers of table ``name``: the table, then where its figures come from."""
+    if name not in RENDERERS:
+        raise SystemExit(f"bench_tables: unknown table {name!r}; known: {', '.join(RENDERERS)}")
+    data = load(name)
+    lines = RENDERERS[name](data) + [""]
+    runs = _runs(data)
+    lines.append(f"Data `docs/data/{name}.json`, from:")
+    lines.append("")
+    for run in runs:
+        note = f"; {run['note']}" if run.get("note") else ""
+        lines.append(f"- `{run['command']}` ({run['source']}{note})")
+    return "\n".join(lines) + "\n"
+
+
+def render_page(text: str) -> str:
+    return MARKER.sub(lambda m: m.group(1) + block(m.group("name")) + m.group(4), text)
+
+
+def pages() -> list[Path]:
+    return sorted(DOCS.glob("*.md"))
+
+
+def rewrite(check: bool) -> int:
+    stale = 0
+    placed = {m.group("name") for page in pages() for m in MARKER.finditer(page.read_text())}
+    unplaced = sorted(set(RENDERERS) - placed)
+    if unplaced:
+        print(f"bench_tables: no page has a marker for {', '.join(unplaced)}", file=sys.stderr)
+    for page in pages():
+        old = page.read_text()
+        new = render_page(old)
+        if new == old:
+            continue
+        if check:
+            stale += 1
+            rel = str(page.relative_to(ROOT))
+            sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), new.splitlines(True), rel, rel + " (from data)"))
+        else:
+            page.write_text(new)
+            print(f"bench_tables: rewrote {page.relative_to(ROOT)}")
+    if check and stale:
+        print(f"bench_tables: {stale} page(s) out of date; run python tools/bench_tables.py", file=sys.stderr)
+    return 1 if unplaced or (check and stale) else 0
+
+
+# ------------------------------------------------------------------------------------------- re-running
+
+
+def _argv(command: str) -> list[str]:
+    argv = shlex.split(command)
+    if argv[0] == "python":
+        return [sys.executable] + argv[1:]
+    if argv[0] == "usdml":
+        return [sys.executable, "-m", "usdml.cli"] + argv[1:]
+    return argv
+
+
+def _json_output(stdout: str):
+    """The JSON document a tool printed (anything it printed before it is skipped)."""
+    for m in re.finditer(r"^[\[{]", stdout, re.M):
+        try:
+            return json.JSONDecoder().raw_decode(stdout[m.start():])[0]
+        except json.JSONDecodeError:
+            continue
+    raise ValueError("no JSON in the output")
+
+
+def rerun(name: str, only: set[int] | None = None, timeout: float | None = None) -> int:
+    data = load(name)
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    runs = _runs(data)
+    for i, run in enumerate(runs):
+        if only is not None and i not in only:
+            continue
+        print(f"bench_tables: {run['command']}", flush=True)
+        try:
+            done = subprocess.run(_argv(run["command"]), cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            print(f"bench_tables: {run['command']!r} took over {timeout:g} s; {name} left as it was", file=sys.stderr)
+            return 1
+        if done.returncode != 0:
+            sys.stderr.write(done.stderr)
+            print(f"bench_tables: {run['command']!r} exited {done.returncode}; {name} left as it was", file=sys.stderr)
+            return 1
+        output = _json_output(done.stdout)
+        when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d")
+        for same in (r for r in runs if r["command"] == run["command"]):    # a command two rows share
+            same["output"] = output
+            same["source"] = f"measured at {rev or 'an unknown commit'} on {when}, {os.cpu_count()} CPUs"
+            same.pop("note", None)
+    (DATA / f"{name}.json").write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
+    return rewrite(check=False)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--check", action="store_true", help="exit 1 if a table differs from its data")
+    g.add_argument("--list", action="store_true", help="print each table's data source and commands")
+    g.add_argument("--run", metavar="NAME", help="re-measure table NAME (its commands), then rewrite the tables")
+    p.add_argument("--commands", metavar="I,J", help="with --run: only these of its commands (numbered from 0)")
+    p.add_argument("--timeout", type=float, metavar="S", help="with --run: stop a command after S seconds")
+    args = p.parse_args(argv)
+    if args.list:
+        for name in RENDERERS:
+            for i, run in enumerate(_runs(load(name))):
+                print(f"{name} {i}: {run['command']}  [{run['source']}]")
+        return 0
+    if args.run:
+        only = None if args.commands is None else {int(i) for i in args.commands.split(",")}
+        return rerun(args.run, only, args.timeout)
+    return rewrite(args.check)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
