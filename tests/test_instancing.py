@@ -256,3 +256,27 @@ def test_world_geometry_flattens_instances_mesh_major():
     assert all(np.array_equal(a, b) for a, b in zip(local, proto.merged()))
     empty = world_geometry(snap, ())
     assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3)
+
+
+def test_primids_of_native_instances_are_the_same_in_every_process():
+    """USD names native prototypes (/__Prototype_N) in an order that changes between processes; the
+    primIds must not (a farm's frames, or a re-render, would disagree). Measured on the city before the
+    fix: four processes, four different primId maps."""
+    import subprocess
+    import sys
+
+    from conftest import STAGES
+
+    script = ("import sys\n"
+              "from usdml.stage import StageDelegate\n"
+              "d = StageDelegate(sys.argv[1])\n"
+              "first = {str(p.GetPath()): min(str(i.GetPath()) for i in p.GetInstances()) "
+              "for p in d.stage.GetPrototypes()}\n"
+              "snap = d.snapshot(d.start_time)\n"
+              "for proto in snap.prototypes:\n"
+              "    for m in proto.meshes:\n"
+              "        root = '/' + m.path.split('/')[1]\n"
+              "        print(m.id, first.get(root, root) + m.path[len(root):])\n")
+    maps = {subprocess.run([sys.executable, "-c", script, str(STAGES / "city.usda")], capture_output=True,
+                           text=True, check=True).stdout for _ in range(3)}
+    assert len(maps) == 1 and len(next(iter(maps)).splitlines()) > 5

@@ -165,8 +165,15 @@ class StageDelegate:
 
     # ----------------------------------------------------------------------------------------------
     def _assign_mesh_ids(self) -> None:
-        """primIds from one pass over the stage and its prototypes, so they do not depend on frames."""
-        roots = [self.stage.GetPseudoRoot()] + list(self.stage.GetPrototypes())
+        """primIds from one pass over the stage and its prototypes, so they do not depend on frames.
+
+        USD names native-instancing prototypes (``/__Prototype_N``) in an order that changes from one
+        process to the next, so prototypes are visited in the order of their first instance's path:
+        the same stage gives the same primIds in every process and on every farm worker."""
+        def first_instance(proto) -> str:
+            return min((str(i.GetPath()) for i in proto.GetInstances()), default=str(proto.GetPath()))
+
+        roots = [self.stage.GetPseudoRoot()] + sorted(self.stage.GetPrototypes(), key=first_instance)
         for root in roots:
             for prim in Usd.PrimRange(root):
                 if is_gprim(prim):
