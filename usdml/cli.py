@@ -74,11 +74,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _settings_overrides(args: argparse.Namespace) -> dict:
-    """The settings this command's flags gave (their flags come from the table: ``add_cmdline_args``)."""
-    return overrides_from_args(args)
-
-
 def _add_device_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default: %(default)s)")
 
@@ -90,7 +85,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     from usdml.visibility import make_backend
 
     delegate = _delegate(args)
-    settings = delegate.usdml_settings.updated(**_settings_overrides(args))
+    settings = delegate.usdml_settings.updated(**overrides_from_args(args))
     frames = frame_spec(args.frames, delegate.start_time, delegate.end_time)
     if settings.fully_dynamic:
         print(f"{args.stage} is fully dynamic (usdml:voxel:fullyDynamic or --fully-dynamic): its voxel array is "
@@ -138,7 +133,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
                     implicit_detail=args.implicit_detail, camera_light=args.cameraLightEnabled,
                     aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
                     device=args.device, resume=args.resume, preview=args.preview,
-                    overrides=_settings_overrides(args))
+                    overrides=overrides_from_args(args))
     _check_width(job.image_width)
     summary = render_sequence(job)
     if args.json:
@@ -161,7 +156,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     _check_width(args.imageWidth)
     delegate = _delegate(args)
-    settings = delegate.usdml_settings.updated(**_settings_overrides(args))
+    settings = delegate.usdml_settings.updated(**overrides_from_args(args))
     results = bench_visibility(delegate, backends=args.visibility or ["exact"],
                                image_width=args.imageWidth, frame=args.frame, settings=settings,
                                device=args.device, backend_options=build_messages())
@@ -180,14 +175,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
         if args.gi:
             raise UsdmlError("compare one thing at a time: --visibility or --gi")
-        overrides = {k: v for k, v in _settings_overrides(args).items() if k != "visibility"}
+        overrides = {k: v for k, v in overrides_from_args(args).items() if k != "visibility"}
         r = compare_visibility(_delegate(args), args.visibility, args.against or "exact", args.frame,
                                args.imageWidth, args.device, args.heatmap, overrides, build_messages())
         print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
         return 0
     if not args.gi:
         raise UsdmlError("give --gi METHOD (and --against METHOD) to compare")
-    overrides = {k: v for k, v in _settings_overrides(args).items() if k != "gi"}
+    overrides = {k: v for k, v in overrides_from_args(args).items() if k != "gi"}
     result = compare_gi(_delegate(args), args.gi, args.against or "vpl-bruteforce", args.frame,
                         args.imageWidth, args.device, args.png, overrides)
     print(json.dumps(result, indent=2) if args.json else format_gi_comparison(result))

@@ -101,12 +101,6 @@ def _shading_kernels():
     return direct_shading
 
 
-#: ``UsdmlSettings`` field -> constructor option, with the value that means "the constructor's
-#: default" (read with ``getattr`` so settings without the field build the same backend)
-_SETTINGS_OPTIONS = (("voxel_normal_offset", "normal_offset", None), ("voxel_skip", "skip", None),
-                     ("voxel_slab", "slab", None), ("voxel_max_skip", "max_skip", 0),
-                     ("voxel_end_skip", "end_skip", None), ("voxel_segment", "segment", None),
-                     ("voxel_core", "core", None), ("voxel_frame_core", "frame_core", None))
 
 
 def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
@@ -213,16 +207,14 @@ class VoxelBackend(VisibilityBackend):
         keywords: ``cache``, ``report``, ``progress``, ...) override them."""
         kw: dict = {}
         if settings is not None:
-            kw.update(resolution=settings.voxel_resolution, step=settings.direction_step,
-                      rebuild=settings.voxel_rebuild, mapping=settings.voxel_mapping,
-                      fully_dynamic=settings.fully_dynamic)
-            for field, option, automatic in _SETTINGS_OPTIONS:
-                value = getattr(settings, field, None)
-                if value is not None and value != automatic:
-                    kw[option] = value
-            limit = getattr(settings, "voxel_memory_limit", 0)
-            if limit:
-                kw["memory_limit"] = int(float(limit) * 2**30)
+            s = settings
+            kw.update(resolution=s.voxel_resolution, step=s.direction_step, rebuild=s.voxel_rebuild,
+                      mapping=s.voxel_mapping, fully_dynamic=s.fully_dynamic, normal_offset=s.voxel_normal_offset,
+                      skip=s.voxel_skip, slab=s.voxel_slab, end_skip=s.voxel_end_skip, segment=s.voxel_segment,
+                      core=s.voxel_core, frame_core=s.voxel_frame_core,
+                      # 0 = automatic: the mapping's max skip, 80 % of the available memory
+                      max_skip=s.voxel_max_skip or None,
+                      memory_limit=int(s.voxel_memory_limit * 2**30) or None)
         kw.update(options)
         return cls(device=device, **kw)
 
