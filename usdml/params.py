@@ -232,6 +232,16 @@ _ROWS = (
     Param("voxel_segment", int, 32, "usdml:voxel:segment", "--voxel-segment",
           "voxels a shadow ray looks up in one row before it picks its row anew (a divisor of 32)",
           VOXEL_COMMANDS, source="one 32-bit word of a row", choices=(1, 2, 4, 8, 16, 32)),
+    Param("voxel_cpu_kernel", str, "auto", "usdml:voxel:cpuKernel", "--voxel-cpu-kernel",
+          "how voxel queries run on a CPU: auto (the compiled kernel, AVX2 where the CPU has it, else Warp), "
+          "native (the compiled kernel; an error without it) or warp", VOXEL_COMMANDS,
+          source="measured (usdml): docs/voxel.md", choices=("auto", "native", "warp"),
+          doc='''How voxel shadow queries run on a CPU: auto, native or warp.
+
+          "native" is the compiled kernel built at install (8 queries at a
+          time with AVX2 when the CPU has it, else one at a time); "warp" the
+          Warp kernels (also what a GPU runs); "auto" the compiled kernel when
+          it was built, else Warp.'''),
     Param("voxel_core", float, 0.0, "usdml:voxel:core", "--voxel-core",
           "voxelization rule of the cached arrays: 0 rasterizes rows' centre lines; a fraction > 0 marks "
           "surface samples in that central part of a row", VOXEL_COMMANDS, source="measured (usdml)",

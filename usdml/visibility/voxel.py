@@ -121,6 +121,21 @@ def _scene_sphere(snapshot: Snapshot) -> tuple[np.ndarray, float]:
     return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 
+def _direct_result(order: np.ndarray, rad: np.ndarray, blocked: np.ndarray, facing: np.ndarray, albedo,
+                   all_cast: bool):
+    """The shading kernels' per-point sums (in ``order``) as ``usdml.lighting.direct.DirectResult``."""
+    from usdml.lighting.direct import DirectResult
+
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    radiance = rad[inverse] * (np.asarray(albedo, np.float32) / np.float32(np.pi))
+    fac = facing[inverse]
+    blk = blocked[inverse]
+    shadow = np.where(fac > 0, blk / np.maximum(fac, 1), 0.0).astype(np.float32)
+    queries = int(fac.sum()) if all_cast else -1
+    return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries)
+
+
 class VoxelBackend(VisibilityBackend):
     """Shadow rays by paper 000's voxel arrays (see the module doc for what is built and the costs).
 
@@ -165,7 +180,8 @@ class VoxelBackend(VisibilityBackend):
                  slab: float = 1.0, max_skip: float | None = None, end_skip: float = 1.0, segment: int = 32,
                  core: float | None = None, frame_core: float | None = None, rebuild: str = "rotate",
                  mapping: str = "point",
-                 fully_dynamic: bool = False, workers: int | None = None, report: Callable[[str], None] | None = None,
+                 fully_dynamic: bool = False, cpu_kernel: str = "auto", native_isa: str = "auto", workers: int | None = None,
+                 report: Callable[[str], None] | None = None,
                  progress: Callable[[int, int, str, str], None] | None = None) -> None:
         self.resolution = int(resolution)
         self.step = float(step)
@@ -176,8 +192,21 @@ class VoxelBackend(VisibilityBackend):
         # the one validation of these values, the parameter table's (what a flag or the stage may give)
         for field, value in (("voxel_resolution", self.resolution), ("direction_step", self.step),
                              ("voxel_segment", segment), ("voxel_rebuild", rebuild), ("voxel_mapping", mapping),
-                             ("voxel_core", self.core), ("voxel_frame_core", self.frame_core)):
+                             ("voxel_core", self.core), ("voxel_frame_core", self.frame_core),
+                             ("voxel_cpu_kernel", cpu_kernel)):
             params.check(field, value)
+        # the compiled CPU kernel (usdml.visibility.voxel_native) unless Warp is asked for or it was not
+        # built; a GPU always runs Warp. ``native_isa``: its instruction set (voxel_native.ISAS; narrower
+        # ones are for measuring and tests)
+        self.native = False
+        if str(device).startswith("cpu") and cpu_kernel != "warp":
+            from usdml.visibility import voxel_native
+            if voxel_native.library() is not None:
+                self.native = True
+            elif cpu_kernel == "native":
+                raise UsdmlError(f"--voxel-cpu-kernel native: {voxel_native.describe()}")
+        self.native_isa = native_isa
+        self._native = None
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
         self.memory_limit = memory_limit
         self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
@@ -211,7 +240,7 @@ class VoxelBackend(VisibilityBackend):
             kw.update(resolution=s.voxel_resolution, step=s.direction_step, rebuild=s.voxel_rebuild,
                       mapping=s.voxel_mapping, fully_dynamic=s.fully_dynamic, normal_offset=s.voxel_normal_offset,
                       skip=s.voxel_skip, slab=s.voxel_slab, end_skip=s.voxel_end_skip, segment=s.voxel_segment,
-                      core=s.voxel_core, frame_core=s.voxel_frame_core,
+                      core=s.voxel_core, frame_core=s.voxel_frame_core, cpu_kernel=s.voxel_cpu_kernel,
                       # 0 = automatic: the mapping's max skip, 80 % of the available memory
                       max_skip=s.voxel_max_skip or None,
                       memory_limit=int(s.voxel_memory_limit * 2**30) or None)
@@ -233,7 +262,15 @@ class VoxelBackend(VisibilityBackend):
         return {"voxel_resolution": self.resolution, "direction_step": self.step, "bytes": int(self.stats["bytes"]),
                 "directions": self.bins.count, "arrays": self.stats["arrays"],
                 "arrays_loaded_from_cache": self.stats["loaded"], "array_build_seconds": self.stats["build_seconds"],
-                "fully_dynamic": self.fully_dynamic, "voxel_rebuild": self.rebuild}
+                "fully_dynamic": self.fully_dynamic, "voxel_rebuild": self.rebuild, "cpu_kernel": self.kernel_name}
+
+    @property
+    def kernel_name(self) -> str:
+        """Which kernels answer queries: ``warp``, ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
+        if not self.native:
+            return "warp"
+        from usdml.visibility.voxel_native import WIDTH_NAMES, simd_width
+        return "native-" + WIDTH_NAMES[simd_width(self.native_isa)].replace("-", "").lower()
 
     # ------------------------------------------------------------------ building
 
@@ -404,8 +441,13 @@ class VoxelBackend(VisibilityBackend):
         # cubes move with the per-frame array: refreshed every frame (a few floats per array)
         g["center"] = wp.array(np.array([a.center for a in arrays] or [[0, 0, 0]], np.float32), dtype=wp.vec3, device=dev)
         g["half"] = wp.array(np.array([a.half for a in arrays] or [1.0], np.float32), dtype=float, device=dev)
-        self._upload_instances(g, *self._instance_table(arrays, world_ids, moving, proto_index, proto_hashes))
+        table = self._instance_table(arrays, world_ids, moving, proto_index, proto_hashes)
+        self._upload_instances(g, *table)
         g["static"] = world_ids[0] if world_ids else -1
+        if self.native:
+            from usdml.visibility.voxel_native import NativeScene
+            self._native = NativeScene(g["words_np"], arrays, self.layout, self.bins, g["static"], *table,
+                                       isa=self.native_isa)
         g["static_inv"] = wp.mat44(*(arrays[world_ids[0]].to_array if world_ids else np.eye(4)).astype(np.float32).ravel())
         self.reference_voxel = _reference_voxel(arrays, world_ids)
         self._scene = _scene_sphere(snapshot)
@@ -530,16 +572,27 @@ class VoxelBackend(VisibilityBackend):
         vs.bvh, vs.n_inst, vs.inst_inv, vs.inst_array = g["bvh_id"], int(g["n_inst"]), g["inst_inv"], g["inst_array"]
         return vs
 
-    def _ray_rule(self):
-        """The kernels' ``RayRule``."""
+    def _rule_values(self) -> dict:
+        """The ray rule's values (``kernels.voxel.RayRule``'s fields)."""
         c, r = self._scene
-        rule = voxel_kernels().RayRule()
-        rule.offset = float(self.normal_offset * self.reference_voxel)
-        rule.skip, rule.slab, rule.max_skip, rule.end_skip = self.skip, self.slab, self.max_skip, self.end_skip
         # a distant ray ends its distance from the scene's centre plus the scene's diameter away
         # (per ray, in the kernel: a reduction over millions of origins cost a quarter of a query)
-        rule.far, rule.far_center = 2.0 * r + 1.0, warp_module().vec3(*np.asarray(c, np.float32))
-        rule.seg = self.segment
+        return dict(offset=float(self.normal_offset * self.reference_voxel), skip=self.skip, slab=self.slab,
+                    max_skip=self.max_skip, end_skip=self.end_skip, far=2.0 * r + 1.0,
+                    far_center=np.asarray(c, np.float32), seg=self.segment)
+
+    def _native_rule(self):
+        """The compiled kernel's ray rule."""
+        from usdml.visibility.voxel_native import NativeScene
+        return NativeScene.rule(**self._rule_values())
+
+    def _ray_rule(self):
+        """The kernels' ``RayRule``."""
+        v = self._rule_values()
+        rule = voxel_kernels().RayRule()
+        rule.offset, rule.skip, rule.slab, rule.max_skip = v["offset"], v["skip"], v["slab"], v["max_skip"]
+        rule.end_skip, rule.far, rule.seg = v["end_skip"], v["far"], v["seg"]
+        rule.far_center = warp_module().vec3(*v["far_center"])
         return rule
 
     def _split(self, n: int, launch: Callable[[int, int], None]) -> None:
@@ -582,9 +635,15 @@ class VoxelBackend(VisibilityBackend):
         normals = np.zeros((n, 3), np.float32) if normals is None else \
             np.ascontiguousarray(as_vectors(normals, "normals", n, dtype=np.float32))
         distant = np.zeros(n, np.int32) if distant is None else as_flags(distant, "distant", n).astype(np.int32)
-        out = wp.zeros(n, dtype=float, device=dev)
         if n == 0 or self._gpu["n_arrays"] == 0:
             return np.full(n, -1.0, np.float32)
+        if self._native is not None:
+            res = np.empty(n, np.float32)
+            rule = self._native_rule()
+            self._split(n, lambda first, count: self._native.query(rule, first, count, origins, targets, normals,
+                                                                   distant, want_distance, res))
+            return res
+        out = wp.zeros(n, dtype=float, device=dev)
         wrap = dict(device=dev, copy=not dev.is_cpu)
         o = wp.array(origins, dtype=wp.vec3, **wrap)
         t = wp.array(targets, dtype=wp.vec3, **wrap)
@@ -603,15 +662,19 @@ class VoxelBackend(VisibilityBackend):
 
     def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):
         """The lights as the shading kernel's ``LightTable`` (the constants of
-        :func:`usdml.lighting.direct.shade_direct`), and whether every light casts shadows."""
+        :func:`usdml.lighting.direct.shade_direct`; the compiled kernel's table on the native path), and
+        whether every light casts shadows."""
         from usdml.lighting.direct import LightTable, cone_edges
 
-        wp, ks = warp_module(), _shading_kernels()
-        dev = wp.get_device(self.device)
         t = LightTable(lights, meters_per_unit, min_distance)
-        flags = t.flags        # LightFlag bits, which the kernel names as the same constants
+        flags = t.flags        # LightFlag bits, which the kernels name as the same constants
         outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
         cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
+        if self._native is not None:
+            return self._native.lights(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), cone,
+                                       t.base, t.focus_rgb, flags, t.inv_m2, t.min_d2), bool(t.casts.all())
+        wp, ks = warp_module(), _shading_kernels()
+        dev = wp.get_device(self.device)
         lt = ks.LightTable()
         lt.pos = wp.array(lights.position.astype(np.float32), dtype=wp.vec3, device=dev)
         lt.axis = wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev)
@@ -629,18 +692,18 @@ class VoxelBackend(VisibilityBackend):
         """Alg. 3 in one kernel (``kernels.direct_shading.shade_tiles``): every pixel against every
         light with voxel shadow rays; the same shading as :func:`usdml.lighting.direct.shade_direct`
         (returns its ``DirectResult``)."""
-        from usdml.lighting.direct import DirectResult
-
         n_p, n_l = len(points), len(lights)
         if n_p == 0 or n_l == 0 or not self._gpu:
             from usdml.lighting.direct import shade_direct
             return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
                                 progress, meters_per_unit=meters_per_unit, min_distance=min_distance,
                                 geometric=geometric)
-        wp, ks = warp_module(), _shading_kernels()
-        dev = wp.get_device(self.device)
         lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
         pts = np.asarray(points, np.float32)
+        if self._native is not None:
+            return self._shade_native(pts, normals, albedo, geometric, lt, all_cast, progress)
+        wp, ks = warp_module(), _shading_kernels()
+        dev = wp.get_device(self.device)
         rad = wp.zeros(n_p, dtype=wp.vec3, device=dev)
         blocked = wp.zeros(n_p, dtype=wp.int32, device=dev)
         facing = wp.zeros(n_p, dtype=wp.int32, device=dev)
@@ -661,14 +724,27 @@ class VoxelBackend(VisibilityBackend):
             if progress is not None:
                 progress(min(n_p, (first_tile + count) * tile) - first_tile * tile)
         self._split(n_tiles, launch)
-        inverse = np.empty_like(order)
-        inverse[order] = np.arange(n_p)
-        radiance = rad.numpy()[inverse] * (np.asarray(albedo, np.float32) / np.float32(np.pi))
-        fac = facing.numpy()[inverse]
-        blk = blocked.numpy()[inverse]
-        shadow = np.where(fac > 0, blk / np.maximum(fac, 1), 0.0).astype(np.float32)
-        queries = int(fac.sum()) if all_cast else -1
-        return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries)
+        return _direct_result(order, rad.numpy(), blocked.numpy(), facing.numpy(), albedo, all_cast)
+
+    def _shade_native(self, pts, normals, albedo, geometric, lt, all_cast: bool, progress):
+        """:meth:`shade_direct` by the compiled kernel: the same tiles, over the thread pool."""
+        n_p = len(pts)
+        order = morton_order(pts)
+        p = np.ascontiguousarray(pts[order])
+        nm = np.ascontiguousarray(np.asarray(normals, np.float32)[order])
+        g = nm if geometric is None else np.ascontiguousarray(np.asarray(geometric, np.float32)[order])
+        rad = np.zeros((n_p, 3), np.float32)
+        blocked = np.zeros(n_p, np.int32)
+        facing = np.zeros(n_p, np.int32)
+        rule = self._native_rule()
+        n_tiles = -(-n_p // SHADE_TILE)
+
+        def launch(first_tile, count):
+            self._native.shade(rule, lt, p, nm, g, first_tile, count, SHADE_TILE, rad, blocked, facing)
+            if progress is not None:
+                progress(min(n_p, (first_tile + count) * SHADE_TILE) - first_tile * SHADE_TILE)
+        self._split(n_tiles, launch)
+        return _direct_result(order, rad, blocked, facing, albedo, all_cast)
 
     def close(self) -> None:
         self._gpu = {}

@@ -1,0 +1,713 @@
+/* Paper 000's voxel shadow queries (Alg. 2 / 4) and many-light shading (Alg. 3) on the CPU, compiled:
+ * the rule of kernels/voxel.py and kernels/direct_shading.py, answering 8 queries at a time with AVX2
+ * (picked at run time) or one at a time in plain C. Loaded with ctypes by usdml.visibility.voxel_native,
+ * which says what every table below holds; called from a thread pool (ctypes releases the GIL).
+ *
+ * Differences from the Warp kernels, none changing the rule:
+ *   - one folded affine map per (array, direction bin), grid = F p + f, instead of world -> array then
+ *     array -> bin (for the static array the world -> array map is folded in too);
+ *   - a row's table entries packed in two words (start of its words, first and end word);
+ *   - instances found by a BVH over their world boxes built here (the Warp kernel uses wp.Bvh), the
+ *     segment, not the whole ray, tested against the boxes;
+ *   - when all 8 lanes share a direction bin (tiles of neighbouring points to one light mostly do) its
+ *     map is loaded once instead of gathered per lane.
+ * The answers agree with the Warp kernel's but for floating-point rounding at voxel borders
+ * (tests/test_voxel_native.py states the agreement).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#if defined(__x86_64__) || defined(_M_X64)
+#define VQ_X86 1
+#include <immintrin.h>
+#endif
+
+typedef struct {
+    const uint32_t *words;       /* every array's words */
+    const int32_t *arr_n;        /* per array: resolution */
+    const int32_t *arr_base;     /* per array: first word */
+    const float *arr_inv_h;      /* per array: voxels per array-space unit */
+    const float *fold;           /* per array, per bin: 12 floats, rows (F00 F01 F02 f0, ...): array space -> grid */
+    const float *static_fold;    /* per bin: the same for the static array from world space */
+    const int32_t *row_start;    /* per row r = i n + j: offset of its words minus its first word index */
+    const int32_t *row_span;     /* per row: first word | end word << 16 */
+    int32_t wpd;                 /* words per direction */
+    int32_t n_bins;
+    float d_theta;               /* degrees */
+    int32_t n_rings;
+    const int32_t *ring_count;
+    const int32_t *ring_start;
+    int32_t static_array;        /* -1: none */
+    float static_inv[12];        /* world -> static array space, 3 x 4 */
+    int32_t n_inst;
+    const float *inst_inv;       /* per instance: world -> its array's space, 3 x 4 */
+    const int32_t *inst_array;
+    int32_t n_nodes;             /* BVH over the instances' world boxes */
+    const float *node_box;       /* per node: lo xyz, hi xyz */
+    const int32_t *node_kids;    /* per node: (first, count) for a leaf (count > 0), (left, -right) inside */
+    const int32_t *bvh_items;
+} VQScene;
+
+typedef struct {
+    float offset, skip, slab, max_skip, end_skip, far;
+    float far_center[3];
+    int32_t seg;
+} VQRule;
+
+typedef struct {
+    int32_t n;
+    const float *pos, *axis, *cylinder_axis, *cone, *base, *focus_rgb;  /* 3 floats per light */
+    const int32_t *flags;
+    float inv_m2, min_d2;
+} VQLights;
+
+enum { DISTANT = 1, ONE_SIDED = 2, SHAPED = 4, FOCUSED = 8, CASTS_SHADOWS = 16, CYLINDER = 32 };
+
+#define DEG 57.29577951308232f
+#define BATCH 256
+#ifndef GROUPS
+#define GROUPS 4    /* SIMD groups whose memory reads overlap (voxelq_simd.h's batch) */
+#endif
+#ifndef DISTINCT_BINS
+#define DISTINCT_BINS 2     /* direction bins of one group loaded whole before the rest is gathered */
+#endif
+
+/* ---------------------------------------------------------------- scalar rule */
+
+static inline float fast_atan2(float y, float x) {
+    float ax = fabsf(x), ay = fabsf(y);
+    float mx = ax > ay ? ax : ay;
+    if (mx == 0.0f) return 0.0f;
+    float a = (ax < ay ? ax : ay) / mx;
+    float s = a * a;
+    float r = a * (0.99997726f + s * (-0.33262347f + s * (0.19354346f + s * (-0.11643287f + s * (0.05265332f - 0.01172120f * s)))));
+    if (ay > ax) r = 1.57079637f - r;
+    if (x < 0.0f) r = 3.14159274f - r;
+    if (y < 0.0f) r = -r;
+    return r;
+}
+
+static inline int direction_bin(const VQScene *s, float dx, float dy, float dz) {
+    if (dz < 0.0f) { dx = -dx; dy = -dy; dz = -dz; }
+    float theta = fast_atan2(sqrtf(dx * dx + dy * dy), dz) * DEG;
+    int ring = (int)(theta / s->d_theta + 0.5f);
+    if (ring < 0) ring = 0;
+    if (ring > s->n_rings - 1) ring = s->n_rings - 1;
+    float phi = fast_atan2(dy, dx) * DEG;
+    if (phi < 0.0f) phi += 360.0f;
+    int cnt = s->ring_count[ring];
+    int col = (int)(phi * (float)cnt * (1.0f / 360.0f) + 0.5f);
+    if (col >= cnt) col -= cnt;
+    return s->ring_start[ring] + col;
+}
+
+static inline void affine(const float *m, const float p[3], float out[3]) {
+    for (int i = 0; i < 3; i++) out[i] = m[4 * i] * p[0] + m[4 * i + 1] * p[1] + m[4 * i + 2] * p[2] + m[4 * i + 3];
+}
+
+static inline float len3(const float v[3]) { return sqrtf(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+/* first occupied voxel of the segment xa -> xb in array a, in voxels from its trimmed start; -1: free.
+ * ``tab``: the array's folded maps (from the space xa, xb are in); ``da``: the segment in array space. */
+static float array_hit(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
+                       const float da[3], float skip0, float skip1, int seg, int want_t) {
+    int n = s->arr_n[a];
+    float inv_h = s->arr_inv_h[a];
+    float length = len3(da) * inv_h;
+    if (length <= skip0 + skip1 || length <= 0.0f) return -1.0f;
+    int d = direction_bin(s, da[0], da[1], da[2]);
+    const float *F = tab + (size_t)d * 12;
+    float qa[3], qb[3], dq[3];
+    affine(F, xa, qa);
+    affine(F, xb, qb);
+    for (int i = 0; i < 3; i++) dq[i] = qb[i] - qa[i];
+    float t0 = skip0 / length, t1 = 1.0f - skip1 / length, fn = (float)n;
+    for (int ax = 0; ax < 3; ax++) {
+        int a_in = qa[ax] >= 0.0f && qa[ax] < fn, b_in = qb[ax] >= 0.0f && qb[ax] < fn;
+        if (!(a_in && b_in)) {
+            if (fabsf(dq[ax]) < 1.0e-12f) return -1.0f;
+            float inv = 1.0f / dq[ax];
+            float ta = (0.0f - qa[ax]) * inv, tb = (fn - qa[ax]) * inv;
+            float lo_t = ta < tb ? ta : tb, hi_t = ta < tb ? tb : ta;
+            if (lo_t > t0) t0 = lo_t;
+            if (hi_t < t1) t1 = hi_t;
+        }
+    }
+    if (t0 > t1) return -1.0f;
+    float wa = qa[2] + dq[2] * t0, wb = qa[2] + dq[2] * t1;
+    int lo = (int)(wa < wb ? wa : wb), hi = (int)(wa < wb ? wb : wa);
+    lo = lo < 0 ? 0 : (lo > n - 1 ? n - 1 : lo);
+    hi = hi < 0 ? 0 : (hi > n - 1 ? n - 1 : hi);
+    int forward = dq[2] >= 0.0f;
+    int64_t dir_base = (int64_t)s->arr_base[a] + (int64_t)d * s->wpd;
+    float inv_dw = fabsf(dq[2]) > 1.0e-12f ? 1.0f / dq[2] : 0.0f;
+    int npieces = hi / seg - lo / seg + 1;
+    for (int p = 0; p < npieces; p++) {
+        int ps = forward ? (lo / seg + p) * seg : (hi / seg - p) * seg;
+        int st = ps > lo ? ps : lo, en = ps + seg - 1 < hi ? ps + seg - 1 : hi;
+        float t = (0.5f * (float)(st + en + 1) - qa[2]) * inv_dw;
+        t = t < t0 ? t0 : (t > t1 ? t1 : t);
+        float fu = qa[0] + dq[0] * t, fv = qa[1] + dq[1] * t;
+        if (fu >= 0.0f && fu < fn && fv >= 0.0f && fv < fn) {
+            int r = (int)fu * n + (int)fv;
+            int w = st >> 5, span = s->row_span[r];
+            if (w >= (span & 0xFFFF) && w < (span >> 16)) {
+                uint32_t word = s->words[dir_base + s->row_start[r] + w];
+                uint32_t mask = (0xFFFFFFFFu >> (31 - (en & 31))) & (0xFFFFFFFFu << (st & 31));
+                uint32_t hit = word & mask;
+                if (hit) {
+                    if (!want_t) return 0.0f;
+                    int first = forward ? __builtin_ctz(hit) : 31 - __builtin_clz(hit);
+                    float vox = (float)((st >> 5) * 32 + first);
+                    float w_start = qa[2] + dq[2] * t0;
+                    float dist = forward ? vox - w_start : w_start - (vox + 1.0f);
+                    return dist > 0.0f ? dist : 0.0f;
+                }
+            }
+        }
+    }
+    return -1.0f;
+}
+
+/* the segment o -> e through the moving instances whose world boxes it meets (Alg. 4) */
+static float instance_hits(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
+                           int want_t) {
+    if (s->n_inst <= 0 || s->n_nodes <= 0) return -1.0f;
+    float dl[3] = {e[0] - o[0], e[1] - o[1], e[2] - o[2]};
+    if (len3(dl) <= 0.0f) return -1.0f;
+    float inv[3];
+    for (int i = 0; i < 3; i++) inv[i] = dl[i] != 0.0f ? 1.0f / dl[i] : (dl[i] >= 0.0f ? INFINITY : -INFINITY);
+    int stack[128], top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+        int node = stack[--top];
+        const float *b = s->node_box + 6 * (size_t)node;
+        float tn = 0.0f, tf = 1.0f;
+        int miss = 0;
+        for (int i = 0; i < 3 && !miss; i++) {
+            if (dl[i] == 0.0f) {
+                if (o[i] < b[i] || o[i] > b[3 + i]) miss = 1;
+                continue;
+            }
+            float ta = (b[i] - o[i]) * inv[i], tb = (b[3 + i] - o[i]) * inv[i];
+            if (ta > tb) { float x = ta; ta = tb; tb = x; }
+            if (ta > tn) tn = ta;
+            if (tb < tf) tf = tb;
+            if (tn > tf) miss = 1;
+        }
+        if (miss) continue;
+        int first = s->node_kids[2 * node], count = s->node_kids[2 * node + 1];
+        if (count > 0) {
+            for (int k = first; k < first + count; k++) {
+                int inst = s->bvh_items[k];
+                const float *m = s->inst_inv + 12 * (size_t)inst;
+                float pa[3], pb[3], da[3];
+                affine(m, o, pa);
+                affine(m, e, pb);
+                for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
+                int a = s->inst_array[inst];
+                float t = array_hit(s, a, s->fold + (size_t)a * s->n_bins * 12, pa, pb, da, skip0, skip1, seg, want_t);
+                if (t >= 0.0f) return t;
+            }
+        } else if (top + 2 <= 128) {
+            stack[top++] = -count;
+            stack[top++] = first;
+        }
+    }
+    return -1.0f;
+}
+
+/* where the ray leaves its surface and ends, and the voxels skipped at its start and end */
+static inline void ray_setup(const VQRule *r, const float p[3], const float tg[3], const float nm[3], int distant,
+                             float o[3], float e[3], float *skip0, float *skip1) {
+    float dir[3];
+    for (int i = 0; i < 3; i++) dir[i] = distant ? tg[i] : tg[i] - p[i];
+    float nn = len3(nm), ln = len3(dir);
+    for (int i = 0; i < 3; i++) o[i] = p[i];
+    if (nn > 0.0f) {
+        float nrm[3] = {nm[0] / nn, nm[1] / nn, nm[2] / nn};
+        float sg = nrm[0] * dir[0] + nrm[1] * dir[1] + nrm[2] * dir[2] < 0.0f ? -1.0f : 1.0f;
+        for (int i = 0; i < 3; i++) o[i] = p[i] + nrm[i] * sg * r->offset;
+    }
+    if (distant) {
+        float lt = len3(tg);
+        float oc[3] = {o[0] - r->far_center[0], o[1] - r->far_center[1], o[2] - r->far_center[2]};
+        float reach = (len3(oc) + r->far) / lt;
+        for (int i = 0; i < 3; i++) e[i] = o[i] + tg[i] * reach;
+        *skip1 = 0.0f;
+    } else {
+        for (int i = 0; i < 3; i++) e[i] = tg[i];
+        *skip1 = r->end_skip;
+    }
+    *skip0 = r->skip;
+    if (nn > 0.0f && ln > 0.0f && r->slab > 0.0f) {
+        float sin_b = fabsf(nm[0] * dir[0] + nm[1] * dir[1] + nm[2] * dir[2]) / (nn * ln);
+        float k = r->slab / (sin_b > 1.0e-6f ? sin_b : 1.0e-6f);
+        k = k < r->max_skip ? k : r->max_skip;
+        *skip0 = k > r->skip ? k : r->skip;
+    }
+}
+
+static float shadow_scalar(const VQScene *s, const VQRule *r, const float p[3], const float tg[3], const float nm[3],
+                           int distant, int want_t) {
+    float o[3], e[3], s0, s1;
+    ray_setup(r, p, tg, nm, distant, o, e, &s0, &s1);
+    if (s->static_array >= 0) {
+        float pa[3], pb[3], da[3];
+        affine(s->static_inv, o, pa);
+        affine(s->static_inv, e, pb);
+        for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
+        float t = array_hit(s, s->static_array, s->static_fold, o, e, da, s0, s1, r->seg, want_t);
+        if (t >= 0.0f) return t;
+    }
+    return instance_hits(s, o, e, s0, s1, r->seg, want_t);
+}
+
+/* a batch: p, target and normal either as 9 coordinate arrays (``stride`` 1) or as three (n, 3)
+ * arrays in c[0], c[3], c[6] (``stride`` 3); the distant flags */
+typedef struct {
+    const float *c[9];
+    const int32_t *distant;
+    int stride;
+} SoA;
+
+static void batch_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, int want_t, float *out) {
+    for (int i = 0; i < n; i++) {
+        float p[3], t[3], nm[3];
+        for (int k = 0; k < 3; k++) {
+            int j = b->stride == 3 ? 3 * i + k : i, c = b->stride == 3 ? 0 : k;
+            p[k] = b->c[c][j];
+            t[k] = b->c[3 + c][j];
+            nm[k] = b->c[6 + c][j];
+        }
+        out[i] = shadow_scalar(s, r, p, t, nm, b->distant[i] != 0, want_t);
+    }
+}
+
+/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 16 (AVX-512) queries at a time */
+
+typedef void (*BatchFn)(const VQScene *, const VQRule *, int, const SoA *, int, float *);
+
+#ifdef VQ_X86
+/* AVX2: masks are float vectors of all-ones / zero lanes */
+#define W 8
+#define SUFFIX(f) f##_avx2
+#define TARGET __attribute__((target("avx2,fma")))
+typedef __m256 V;
+typedef __m256i VI;
+typedef __m256 M;
+#define SET _mm256_set1_ps
+#define ISET _mm256_set1_epi32
+#define ADD _mm256_add_ps
+#define SUB _mm256_sub_ps
+#define MUL _mm256_mul_ps
+#define DIV _mm256_div_ps
+/* 1 / x to about 23 bits: the 12-bit estimate and one Newton step */
+#define RCP(x) ({ V x_ = (x), r_ = _mm256_rcp_ps(x_); _mm256_mul_ps(r_, _mm256_fnmadd_ps(x_, r_, _mm256_set1_ps(2.0f))); })
+#define FMA _mm256_fmadd_ps
+#define MIN _mm256_min_ps
+#define MAX _mm256_max_ps
+#define SQRT _mm256_sqrt_ps
+#define ABS(x) _mm256_andnot_ps(_mm256_set1_ps(-0.0f), x)
+#define LT(a, b) _mm256_cmp_ps(a, b, _CMP_LT_OQ)
+#define LE(a, b) _mm256_cmp_ps(a, b, _CMP_LE_OQ)
+#define GT(a, b) _mm256_cmp_ps(a, b, _CMP_GT_OQ)
+#define GE(a, b) _mm256_cmp_ps(a, b, _CMP_GE_OQ)
+#define EQ(a, b) _mm256_cmp_ps(a, b, _CMP_EQ_OQ)
+#define SEL(m, a, b) _mm256_blendv_ps(b, a, m)
+#define SELI(m, a, b) _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(b), _mm256_castsi256_ps(a), m))
+#define MAND _mm256_and_ps
+#define MOR _mm256_or_ps
+#define MANDN _mm256_andnot_ps
+#define MNONE _mm256_setzero_ps()
+#define MBITS(m) ((unsigned)_mm256_movemask_ps(m))
+#define IADD _mm256_add_epi32
+#define ISUB _mm256_sub_epi32
+#define IMUL _mm256_mullo_epi32
+#define IMIN _mm256_min_epi32
+#define IMAX _mm256_max_epi32
+#define IAND _mm256_and_si256
+#define ISRL(a, n) _mm256_srl_epi32(a, _mm_cvtsi32_si128(n))
+#define ISLL(a, n) _mm256_sll_epi32(a, _mm_cvtsi32_si128(n))
+#define ISRLV _mm256_srlv_epi32
+#define ISLLV _mm256_sllv_epi32
+#define IGT(a, b) _mm256_castsi256_ps(_mm256_cmpgt_epi32(a, b))
+#define IEQ(a, b) _mm256_castsi256_ps(_mm256_cmpeq_epi32(a, b))
+#define IGE(a, b) _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(b, a)), _mm256_castsi256_ps(_mm256_set1_epi32(-1)))
+#define INZ(x) _mm256_andnot_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(x, _mm256_setzero_si256())), _mm256_castsi256_ps(_mm256_set1_epi32(-1)))
+#define CVTT _mm256_cvttps_epi32
+#define CVTF _mm256_cvtepi32_ps
+#define GATHER_I(p, i) _mm256_i32gather_epi32((const int *)(p), i, 4)
+#define GATHER_F(p, i) _mm256_i32gather_ps(p, i, 4)
+#define MGATHER_I(p, i, m) _mm256_mask_i32gather_epi32(_mm256_setzero_si256(), (const int *)(p), i, _mm256_castps_si256(m), 4)
+#define LOAD _mm256_loadu_ps
+#define MLOAD(p, m) _mm256_maskload_ps(p, _mm256_castps_si256(m))
+#define ILOAD(p) _mm256_loadu_si256((const __m256i *)(p))
+#define MILOAD(p, m) _mm256_maskload_epi32((const int *)(p), _mm256_castps_si256(m))
+#define STORE _mm256_storeu_ps
+#define ISTORE(p, v) _mm256_storeu_si256((__m256i *)(p), v)
+#define IOTA _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)
+/* x, y, z of m <= 8 consecutive float triples */
+#define LOAD_XYZ(p, m, live, out) do { \
+        VI i3_ = _mm256_mullo_epi32(IOTA, _mm256_set1_epi32(3)); \
+        for (int k_ = 0; k_ < 3; k_++) \
+            (out)[k_] = _mm256_mask_i32gather_ps(_mm256_setzero_ps(), (p) + k_, i3_, live, 4); \
+    } while (0)
+#include "voxelq_simd.h"
+#undef W
+#undef SUFFIX
+#undef TARGET
+#undef SET
+#undef ISET
+#undef ADD
+#undef SUB
+#undef MUL
+#undef DIV
+#undef RCP
+#undef FMA
+#undef MIN
+#undef MAX
+#undef SQRT
+#undef ABS
+#undef LT
+#undef LE
+#undef GT
+#undef GE
+#undef EQ
+#undef SEL
+#undef SELI
+#undef MAND
+#undef MOR
+#undef MANDN
+#undef MNONE
+#undef MBITS
+#undef IADD
+#undef ISUB
+#undef IMUL
+#undef IMIN
+#undef IMAX
+#undef IAND
+#undef ISRL
+#undef ISLL
+#undef ISRLV
+#undef ISLLV
+#undef IGT
+#undef IGE
+#undef IEQ
+#undef INZ
+#undef CVTT
+#undef CVTF
+#undef GATHER_I
+#undef GATHER_F
+#undef MGATHER_I
+#undef LOAD
+#undef MLOAD
+#undef ILOAD
+#undef MILOAD
+#undef STORE
+#undef ISTORE
+#undef IOTA
+#undef LOAD_XYZ
+
+/* AVX-512: masks are k registers */
+#define W 16
+#define SUFFIX(f) f##_avx512
+#define TARGET __attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,avx2,fma")))
+typedef __m512 V16;
+typedef __m512i VI16;
+typedef __mmask16 M16;
+#define V V16
+#define VI VI16
+#define M M16
+#define SET _mm512_set1_ps
+#define ISET _mm512_set1_epi32
+#define ADD _mm512_add_ps
+#define SUB _mm512_sub_ps
+#define MUL _mm512_mul_ps
+#define DIV _mm512_div_ps
+/* 1 / x to about 23 bits: the 14-bit estimate and one Newton step */
+#define RCP(x) ({ V x_ = (x), r_ = _mm512_rcp14_ps(x_); _mm512_mul_ps(r_, _mm512_fnmadd_ps(x_, r_, _mm512_set1_ps(2.0f))); })
+#define FMA _mm512_fmadd_ps
+#define MIN _mm512_min_ps
+#define MAX _mm512_max_ps
+#define SQRT _mm512_sqrt_ps
+#define ABS _mm512_abs_ps
+#define LT(a, b) _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ)
+#define LE(a, b) _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ)
+#define GT(a, b) _mm512_cmp_ps_mask(a, b, _CMP_GT_OQ)
+#define GE(a, b) _mm512_cmp_ps_mask(a, b, _CMP_GE_OQ)
+#define EQ(a, b) _mm512_cmp_ps_mask(a, b, _CMP_EQ_OQ)
+#define SEL(m, a, b) _mm512_mask_blend_ps(m, b, a)
+#define SELI(m, a, b) _mm512_mask_blend_epi32(m, b, a)
+#define MAND(a, b) ((__mmask16)((a) & (b)))
+#define MOR(a, b) ((__mmask16)((a) | (b)))
+#define MANDN(a, b) ((__mmask16)(~(a) & (b)))
+#define MNONE ((__mmask16)0)
+#define MBITS(m) ((unsigned)(m))
+#define IADD _mm512_add_epi32
+#define ISUB _mm512_sub_epi32
+#define IMUL _mm512_mullo_epi32
+#define IMIN _mm512_min_epi32
+#define IMAX _mm512_max_epi32
+#define IAND _mm512_and_si512
+#define ISRL(a, n) _mm512_srl_epi32(a, _mm_cvtsi32_si128(n))
+#define ISLL(a, n) _mm512_sll_epi32(a, _mm_cvtsi32_si128(n))
+#define ISRLV _mm512_srlv_epi32
+#define ISLLV _mm512_sllv_epi32
+#define IGT _mm512_cmpgt_epi32_mask
+#define IGE _mm512_cmpge_epi32_mask
+#define IEQ _mm512_cmpeq_epi32_mask
+#define INZ(x) _mm512_test_epi32_mask(x, x)
+#define CVTT _mm512_cvttps_epi32
+#define CVTF _mm512_cvtepi32_ps
+#define GATHER_I(p, i) _mm512_i32gather_epi32(i, (const void *)(p), 4)
+#define GATHER_F(p, i) _mm512_i32gather_ps(i, (const void *)(p), 4)
+#define MGATHER_I(p, i, m) _mm512_mask_i32gather_epi32(_mm512_setzero_si512(), m, i, (const void *)(p), 4)
+#define LOAD _mm512_loadu_ps
+#define MLOAD(p, m) _mm512_maskz_loadu_ps(m, p)
+#define ILOAD(p) _mm512_loadu_si512((const void *)(p))
+#define MILOAD(p, m) _mm512_maskz_loadu_epi32(m, (const void *)(p))
+#define STORE _mm512_storeu_ps
+#define ISTORE(p, v) _mm512_storeu_si512((void *)(p), v)
+#define IOTA _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+/* x, y, z of m <= 16 consecutive float triples: three loads and six two-source permutes */
+#define LOAD_XYZ(p, m, live, out) do { \
+        __m512 a0_, a1_, a2_; \
+        if ((m) == 16) { a0_ = _mm512_loadu_ps(p); a1_ = _mm512_loadu_ps((p) + 16); a2_ = _mm512_loadu_ps((p) + 32); } \
+        else { \
+            __mmask64 all_ = (m) * 3 >= 64 ? ~(__mmask64)0 : (((__mmask64)1 << ((m) * 3)) - 1); \
+            a0_ = _mm512_maskz_loadu_ps((__mmask16)all_, p); \
+            a1_ = _mm512_maskz_loadu_ps((__mmask16)(all_ >> 16), (p) + 16); \
+            a2_ = _mm512_maskz_loadu_ps((__mmask16)(all_ >> 32), (p) + 32); \
+        } \
+        for (int k_ = 0; k_ < 3; k_++) { \
+            VI i1_ = _mm512_add_epi32(_mm512_mullo_epi32(IOTA, _mm512_set1_epi32(3)), _mm512_set1_epi32(k_)); \
+            __m512 t_ = _mm512_permutex2var_ps(a0_, i1_, a1_); /* lanes with index < 32 */ \
+            __mmask16 hi_ = _mm512_cmpge_epi32_mask(i1_, _mm512_set1_epi32(32)); \
+            VI i2_ = _mm512_mask_blend_epi32(hi_, IOTA, _mm512_sub_epi32(i1_, _mm512_set1_epi32(16))); \
+            (out)[k_] = _mm512_permutex2var_ps(t_, i2_, a2_); \
+        } \
+        (void)(live); \
+    } while (0)
+#include "voxelq_simd.h"
+#endif
+
+/* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
+static BatchFn pick(int kernel) {
+#ifdef VQ_X86
+    __builtin_cpu_init();
+    if (kernel == 0 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
+        __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw"))
+        return batch_avx512;
+    if (kernel != 1 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return batch_avx2;
+#endif
+    (void)kernel;
+    return batch_scalar;
+}
+
+/* ---------------------------------------------------------------- entry points */
+
+/* queries answered at once by ``kernel`` (as pick) on this CPU: 16 (AVX-512), 8 (AVX2) or 1 */
+int vq_simd_width(int32_t kernel) {
+    BatchFn fn = pick(kernel);
+#ifdef VQ_X86
+    if (fn == batch_avx512) return 16;
+    if (fn == batch_avx2) return 8;
+#endif
+    return 1;
+}
+
+/* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
+ * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free.
+ * kernel: as pick(). */
+void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const float *pts, const float *tgt,
+              const float *nrm, const int32_t *distant, int32_t want_t, int32_t kernel, float *out) {
+    BatchFn fn = pick(kernel);
+    SoA b = {{NULL}, NULL, 3};
+    b.c[0] = pts + 3 * first;
+    b.c[3] = tgt + 3 * first;
+    b.c[6] = nrm + 3 * first;
+    b.distant = distant + first;
+    fn(s, r, (int)count, &b, want_t, out + first);
+}
+
+static inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+/* light l at p (shading normal n, geometric ng): kernels/direct_shading.py's light_term without the
+ * shadow ray; returns 0 not facing, 1 lit (rgb set), 2 lit if its shadow ray (to tgt) is free */
+static inline int light_term(const VQLights *L, int l, const float *p, const float *n, const float *ng, float rgb[3],
+                             float tgt[3]) {
+    int flags = L->flags[l], dist = flags & DISTANT;
+    const float *lp = L->pos + 3 * (size_t)l, *ax = L->axis + 3 * (size_t)l;
+    float dv[3] = {lp[0] - p[0], lp[1] - p[1], lp[2] - p[2]};
+    float d2 = dot3(dv, dv);
+    if (dist) { dv[0] = -ax[0]; dv[1] = -ax[1]; dv[2] = -ax[2]; d2 = 1.0f; }
+    if (d2 <= 0.0f) return 0;
+    if (dot3(ng, dv) <= 0.0f) return 0;
+    float inv_d = 1.0f / sqrtf(d2 > 1.0e-30f ? d2 : 1.0e-30f);
+    float cos_s = dot3(n, dv) * inv_d;
+    if (cos_s <= 0.0f) return 0;
+    float g = cos_s;
+    if (!dist) g = g * L->inv_m2 / (d2 > L->min_d2 ? d2 : L->min_d2);
+    if (flags & CYLINDER) {
+        float cc = dot3(L->cylinder_axis + 3 * (size_t)l, dv) * inv_d, x = 1.0f - cc * cc;
+        g = g * sqrtf(x > 0.0f ? x : 0.0f);
+    }
+    float f = 0.0f;
+    if (flags & (ONE_SIDED | SHAPED | FOCUSED)) {
+        float cos_l = -dot3(ax, dv) * inv_d;
+        const float *cone = L->cone + 3 * (size_t)l;
+        if (flags & ONE_SIDED) g = g * (cos_l > 0.0f ? cos_l : 0.0f);
+        if (flags & SHAPED) {
+            if (cone[1] <= 0.0f) {
+                if (cos_l < cone[0]) g = 0.0f;
+            } else {
+                float x = (cos_l - cone[0]) / cone[1];
+                x = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
+                g = g * x * x * (3.0f - 2.0f * x);
+            }
+        }
+        if (flags & FOCUSED) f = powf(cos_l < 0.0f ? 0.0f : (cos_l > 1.0f ? 1.0f : cos_l), cone[2]);
+    }
+    if (g <= 0.0f) return 0;
+    const float *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
+    for (int k = 0; k < 3; k++) rgb[k] = bs[k] * g + fc[k] * (g * f);
+    for (int k = 0; k < 3; k++) tgt[k] = dist ? dv[k] : lp[k];
+    return (flags & CASTS_SHADOWS) ? 2 : 1;
+}
+
+/* the batched shadow rays of vq_shade: blocked ones counted, the others' light added; returns 0 */
+static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, float *res, float rgb_b[3][BATCH],
+                 const int32_t *who, float *radiance, int32_t *blocked) {
+    if (nb <= 0) return 0;
+    fn(s, r, nb, b, 0, res);
+    for (int q = 0; q < nb; q++) {
+        if (res[q] >= 0.0f) blocked[who[q]]++;
+        else for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
+    }
+    return 0;
+}
+
+/* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
+ * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
+void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
+              int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
+              int32_t *blocked, int32_t *facing) {
+    BatchFn fn = pick(kernel);
+    float buf[9][BATCH], rgb_b[3][BATCH], res[BATCH];
+    int32_t dist_b[BATCH], who[BATCH];
+    SoA b = {{NULL}, dist_b, 1};
+    for (int k = 0; k < 9; k++) b.c[k] = buf[k];
+    for (int64_t t = first_tile; t < first_tile + n_tiles; t++) {
+        int64_t i0 = t * tile, i1 = i0 + tile < n_points ? i0 + tile : n_points;
+        if (i0 >= i1) break;
+        for (int64_t i = i0; i < i1; i++) {
+            radiance[3 * i] = radiance[3 * i + 1] = radiance[3 * i + 2] = 0.0f;
+            blocked[i] = facing[i] = 0;
+        }
+        int nb = 0;
+        for (int l = 0; l < L->n; l++) {
+            for (int64_t i = i0; i < i1; i++) {
+                float rgb[3], tg[3];
+                int code = light_term(L, l, pts + 3 * i, nrm + 3 * i, geo + 3 * i, rgb, tg);
+                if (!code) continue;
+                facing[i]++;
+                if (code == 1) {
+                    for (int k = 0; k < 3; k++) radiance[3 * i + k] += rgb[k];
+                    continue;
+                }
+                for (int k = 0; k < 3; k++) {
+                    buf[k][nb] = pts[3 * i + k];
+                    buf[3 + k][nb] = tg[k];
+                    buf[6 + k][nb] = geo[3 * i + k];
+                    rgb_b[k][nb] = rgb[k];
+                }
+                dist_b[nb] = L->flags[l] & DISTANT;
+                who[nb++] = (int32_t)i;
+                if (nb == BATCH) nb = flush(fn, s, r, nb, &b, res, rgb_b, who, radiance, blocked);
+            }
+        }
+        flush(fn, s, r, nb, &b, res, rgb_b, who, radiance, blocked);
+    }
+}
+
+/* ---------------------------------------------------------------- BVH over instance boxes */
+
+typedef struct {
+    const float *lo, *hi;
+    int32_t *items;
+    float *box;
+    int32_t *kids;
+    int used;
+} Build;
+
+static float centroid(const Build *b, int item, int axis) { return b->lo[3 * item + axis] + b->hi[3 * item + axis]; }
+
+static void select_nth(Build *b, int *it, int n, int k, int axis) {
+    int lo = 0, hi = n - 1;
+    while (lo < hi) {
+        float pivot = centroid(b, it[(lo + hi) / 2], axis);
+        int i = lo, j = hi;
+        while (i <= j) {
+            while (centroid(b, it[i], axis) < pivot) i++;
+            while (centroid(b, it[j], axis) > pivot) j--;
+            if (i <= j) { int x = it[i]; it[i] = it[j]; it[j] = x; i++; j--; }
+        }
+        if (k <= j) hi = j;
+        else if (k >= i) lo = i;
+        else break;
+    }
+}
+
+static int build_node(Build *b, int first, int count) {
+    int node = b->used++;
+    float *box = b->box + 6 * (size_t)node;
+    float clo[3] = {INFINITY, INFINITY, INFINITY}, chi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (int k = 0; k < 3; k++) { box[k] = INFINITY; box[3 + k] = -INFINITY; }
+    for (int i = first; i < first + count; i++) {
+        int it = b->items[i];
+        for (int k = 0; k < 3; k++) {
+            if (b->lo[3 * it + k] < box[k]) box[k] = b->lo[3 * it + k];
+            if (b->hi[3 * it + k] > box[3 + k]) box[3 + k] = b->hi[3 * it + k];
+            float c = centroid(b, it, k);
+            if (c < clo[k]) clo[k] = c;
+            if (c > chi[k]) chi[k] = c;
+        }
+    }
+    if (count <= 4) {
+        b->kids[2 * node] = first;
+        b->kids[2 * node + 1] = count;
+        return node;
+    }
+    int axis = 0;
+    for (int k = 1; k < 3; k++)
+        if (chi[k] - clo[k] > chi[axis] - clo[axis]) axis = k;
+    int half = count / 2;
+    select_nth(b, b->items + first, count, half, axis);
+    int left = build_node(b, first, half);
+    int right = build_node(b, first + half, count - half);
+    b->kids[2 * node] = left;
+    b->kids[2 * node + 1] = -right;
+    return node;
+}
+
+/* a BVH over n boxes (lo, hi: 3 floats each): items (n), node boxes (6 per node) and kids (2 per
+ * node) sized for 2 n nodes; returns the node count */
+int32_t vq_build_bvh(int32_t n, const float *lo, const float *hi, int32_t *items, float *box, int32_t *kids) {
+    if (n <= 0) return 0;
+    Build b = {lo, hi, items, box, kids, 0};
+    for (int i = 0; i < n; i++) items[i] = i;
+    build_node(&b, 0, n);
+    return b.used;
+}
+
+/* an importable module, so that the import system finds the library (usdml.visibility.voxel_native) */
+static struct PyModuleDef vq_module = {PyModuleDef_HEAD_INIT, .m_name = "_voxelq",
+                                       .m_doc = "Compiled voxel shadow queries; called through ctypes.", .m_size = -1};
+
+PyMODINIT_FUNC PyInit__voxelq(void) { return PyModule_Create(&vq_module); }

@@ -1,0 +1,277 @@
+/* The SIMD body of kernels/voxelq.c, written once against a small vector API and included once per
+ * instruction set (AVX2: 8 lanes, AVX-512: 16). The including file defines:
+ *   W (lanes), SUFFIX(name), TARGET (the function attribute), V / VI / M (float, int32 and mask
+ *   vectors) and the operations used below (vq_* functions and macros, see voxelq.c).
+ * The rule is array_hit / shadow_scalar's in voxelq.c, lane by lane. */
+
+TARGET static inline V SUFFIX(vatan2)(V y, V x) {
+    V ax = ABS(x), ay = ABS(y);
+    V mx = MAX(ax, ay), mn = MIN(ax, ay);
+    M zero = EQ(mx, SET(0.0f));
+    V a = MUL(mn, RCP(SEL(zero, SET(1.0f), mx)));
+    V q2 = MUL(a, a);
+    V q = FMA(q2, SET(-0.01172120f), SET(0.05265332f));
+    q = FMA(q2, q, SET(-0.11643287f));
+    q = FMA(q2, q, SET(0.19354346f));
+    q = FMA(q2, q, SET(-0.33262347f));
+    q = FMA(q2, q, SET(0.99997726f));
+    V r = MUL(a, q);
+    r = SEL(GT(ay, ax), SUB(SET(1.57079637f), r), r);
+    r = SEL(LT(x, SET(0.0f)), SUB(SET(3.14159274f), r), r);
+    r = SEL(LT(y, SET(0.0f)), SUB(SET(0.0f), r), r);
+    return SEL(zero, SET(0.0f), r);
+}
+
+/* direction bin of W directions (direction_bin) */
+TARGET static inline VI SUFFIX(vbin)(const VQScene *s, V dx, V dy, V dz) {
+    V flip = SEL(LT(dz, SET(0.0f)), SET(-1.0f), SET(1.0f));
+    dx = MUL(dx, flip); dy = MUL(dy, flip); dz = MUL(dz, flip);
+    V theta = MUL(SUFFIX(vatan2)(SQRT(FMA(dx, dx, MUL(dy, dy))), dz), SET(DEG));
+    VI ring = CVTT(FMA(theta, SET(1.0f / s->d_theta), SET(0.5f)));
+    ring = IMIN(IMAX(ring, ISET(0)), ISET(s->n_rings - 1));
+    V phi = MUL(SUFFIX(vatan2)(dy, dx), SET(DEG));
+    phi = SEL(LT(phi, SET(0.0f)), ADD(phi, SET(360.0f)), phi);
+    VI cnt = GATHER_I(s->ring_count, ring);
+    VI col = CVTT(ADD(MUL(MUL(phi, CVTF(cnt)), SET(1.0f / 360.0f)), SET(0.5f)));
+    col = SELI(IGT(col, ISUB(cnt, ISET(1))), ISUB(col, cnt), col);
+    return IADD(GATHER_I(s->ring_start, ring), col);
+}
+
+/* one group of W queries against the static array between its two stages (see batch) */
+typedef struct {
+    V qa[3], dq[3], t0, t1, inv_dw;
+    VI lo, hi, lo_p, hi_p, npieces, dir_base, idx, st, en;
+    M active, forward, ok;
+    int maxp, seg_shift, n;
+} SUFFIX(Group);
+
+/* piece p of every active lane (Alg. 2's row lookup): the index of the word it reads, its first and
+ * last voxel and whether the row holds that word (``ok``) */
+TARGET static inline VI SUFFIX(piece)(const VQScene *s, const SUFFIX(Group) *g, int p, VI *st_out, VI *en_out,
+                                      M *ok_out) {
+    V zf = SET(0.0f), fn = SET((float)g->n);
+    VI pv = ISET(p);
+    M live_p = MAND(g->active, IGT(g->npieces, pv));
+    VI ps = SELI(g->forward, ISLL(IADD(g->lo_p, pv), g->seg_shift), ISLL(ISUB(g->hi_p, pv), g->seg_shift));
+    VI st = IMAX(ps, g->lo);
+    VI en = IMIN(IADD(ps, ISET((1 << g->seg_shift) - 1)), g->hi);
+    /* the ray's position at the middle of the piece */
+    V mid = MUL(SET(0.5f), CVTF(IADD(IADD(st, en), ISET(1))));
+    V t = MIN(MAX(MUL(SUB(mid, g->qa[2]), g->inv_dw), g->t0), g->t1);
+    V fu = FMA(g->dq[0], t, g->qa[0]), fv = FMA(g->dq[1], t, g->qa[1]);
+    M m = MAND(live_p, MAND(MAND(GE(fu, zf), LT(fu, fn)), MAND(GE(fv, zf), LT(fv, fn))));
+    VI r = IADD(IMUL(CVTT(fu), ISET(g->n)), CVTT(fv));
+    VI span = MGATHER_I(s->row_span, r, m);
+    VI rst = MGATHER_I(s->row_start, r, m);
+    VI w = ISRL(st, 5);
+    M ok = MAND(m, MAND(IGE(w, IAND(span, ISET(0xFFFF))), IGT(ISRL(span, 16), w)));
+    *st_out = st;
+    *en_out = en;
+    *ok_out = ok;
+    return IADD(IADD(g->dir_base, rst), w);
+}
+
+/* stage 1: everything up to the first piece's word, which is prefetched (a prefetch retires at once;
+ * a gather here would hold up the instructions behind it until its cache lines arrive) */
+TARGET static void SUFFIX(prepare)(const VQScene *s, SUFFIX(Group) *g, M live, const V o[3], const V e[3], V skip0,
+                                   V skip1, int seg_shift) {
+    int a = s->static_array, n = s->arr_n[a];
+    const float *A = s->static_inv;
+    V inv_h = SET(s->arr_inv_h[a]), fn = SET((float)n), zf = SET(0.0f);
+    g->maxp = 0;
+    g->n = n;
+    g->seg_shift = seg_shift;
+    V dl[3] = {SUB(e[0], o[0]), SUB(e[1], o[1]), SUB(e[2], o[2])};
+    V da[3];
+    for (int i = 0; i < 3; i++) da[i] = FMA(SET(A[4 * i]), dl[0], FMA(SET(A[4 * i + 1]), dl[1], MUL(SET(A[4 * i + 2]), dl[2])));
+    V length = MUL(SQRT(FMA(da[0], da[0], FMA(da[1], da[1], MUL(da[2], da[2])))), inv_h);
+    M active = MAND(live, MAND(GT(length, ADD(skip0, skip1)), GT(length, zf)));
+    if (!MBITS(active)) return;
+    VI d = SUFFIX(vbin)(s, da[0], da[1], da[2]);
+    /* the bins' folded maps: each of up to DISTINCT_BINS bins the active lanes hold is loaded once and
+     * blended into its lanes (neighbouring points' rays to one light mostly share one or two);
+     * more are gathered lane by lane */
+    V F[12];
+    const float *tab = s->static_fold;
+    d = SELI(active, d, ISET(0));
+    int lanes[W];
+    ISTORE(lanes, d);
+    M left = active;
+    for (int k = 0; k < 12; k++) F[k] = SET(0.0f);
+    for (int round = 0; MBITS(left) && round < DISTINCT_BINS; round++) {
+        int ref = lanes[__builtin_ctz(MBITS(left))];
+        M mine = MAND(left, IEQ(d, ISET(ref)));
+        const float *row = tab + (size_t)ref * 12;
+        for (int k = 0; k < 12; k++) F[k] = SEL(mine, SET(row[k]), F[k]);
+        left = MANDN(mine, left);
+    }
+    if (MBITS(left)) {
+        VI idx = IMUL(d, ISET(12));
+        for (int k = 0; k < 12; k++) F[k] = SEL(left, GATHER_F(tab + k, idx), F[k]);
+    }
+    V qa[3], qb[3], dq[3];
+    for (int i = 0; i < 3; i++) {
+        qa[i] = FMA(F[4 * i], o[0], FMA(F[4 * i + 1], o[1], FMA(F[4 * i + 2], o[2], F[4 * i + 3])));
+        qb[i] = FMA(F[4 * i], e[0], FMA(F[4 * i + 1], e[1], FMA(F[4 * i + 2], e[2], F[4 * i + 3])));
+        dq[i] = SUB(qb[i], qa[i]);
+    }
+    V inv_len = RCP(length);
+    V t0 = MUL(skip0, inv_len), t1 = SUB(SET(1.0f), MUL(skip1, inv_len));
+    /* clip to the cube [0, n]^3 */
+    for (int ax = 0; ax < 3; ax++) {
+        M both = MAND(MAND(GE(qa[ax], zf), LT(qa[ax], fn)), MAND(GE(qb[ax], zf), LT(qb[ax], fn)));
+        M flat = LT(ABS(dq[ax]), SET(1.0e-12f));
+        active = MANDN(MANDN(both, flat), active);
+        V inv = RCP(SEL(flat, SET(1.0f), dq[ax]));
+        V ta = MUL(SUB(zf, qa[ax]), inv), tb = MUL(SUB(fn, qa[ax]), inv);
+        t0 = SEL(both, t0, MAX(t0, MIN(ta, tb)));
+        t1 = SEL(both, t1, MIN(t1, MAX(ta, tb)));
+    }
+    active = MANDN(GT(t0, t1), active);
+    if (!MBITS(active)) return;
+    V wa = FMA(dq[2], t0, qa[2]), wb = FMA(dq[2], t1, qa[2]);
+    g->lo = IMIN(IMAX(CVTT(MIN(wa, wb)), ISET(0)), ISET(n - 1));
+    g->hi = IMIN(IMAX(CVTT(MAX(wa, wb)), ISET(0)), ISET(n - 1));
+    g->forward = GE(dq[2], zf);
+    M wflat = LE(ABS(dq[2]), SET(1.0e-12f));
+    g->inv_dw = SEL(wflat, zf, RCP(SEL(wflat, SET(1.0f), dq[2])));
+    g->dir_base = IADD(ISET(s->arr_base[a]), IMUL(d, ISET(s->wpd)));
+    g->lo_p = ISRL(g->lo, seg_shift);
+    g->hi_p = ISRL(g->hi, seg_shift);
+    g->npieces = IADD(ISUB(g->hi_p, g->lo_p), ISET(1));
+    for (int i = 0; i < 3; i++) { g->qa[i] = qa[i]; g->dq[i] = dq[i]; }
+    g->t0 = t0;
+    g->t1 = t1;
+    g->active = active;
+    int np[W];
+    ISTORE(np, g->npieces);
+    unsigned am = MBITS(active);
+    for (int l = 0; l < W; l++)
+        if ((am >> l & 1) && np[l] > g->maxp) g->maxp = np[l];
+    g->idx = SUFFIX(piece)(s, g, 0, &g->st, &g->en, &g->ok);
+    int idx[W];
+    ISTORE(idx, g->idx);
+    for (unsigned ok = MBITS(g->ok); ok; ok &= ok - 1) __builtin_prefetch(s->words + idx[__builtin_ctz(ok)]);
+}
+
+/* stage 2: the pieces in order from the ray's start, the first hit ending a lane. out: -1 free,
+ * >= 0 hit (the distance in voxels when want_t) */
+TARGET static void SUFFIX(finish)(const VQScene *s, SUFFIX(Group) *g, int want_t, float *out) {
+    V zf = SET(0.0f);
+    STORE(out, SET(-1.0f));
+    if (g->maxp == 0) return;
+    M active = g->active, hit_any = MNONE;
+    VI hit_word = ISET(0), hit_st = ISET(0);
+    VI st = g->st, en = g->en;
+    M ok = g->ok;
+    VI word = MGATHER_I(s->words, g->idx, ok);
+    for (int p = 0;;) {
+        VI mask = IAND(ISRLV(ISET(-1), ISUB(ISET(31), IAND(en, ISET(31)))), ISLLV(ISET(-1), IAND(st, ISET(31))));
+        M hm = MAND(ok, INZ(IAND(word, mask)));
+        hit_any = MOR(hit_any, hm);
+        if (want_t) {
+            hit_word = SELI(hm, IAND(word, mask), hit_word);
+            hit_st = SELI(hm, st, hit_st);
+        }
+        active = MANDN(hm, active);
+        g->active = active;
+        if (++p >= g->maxp || !MBITS(MAND(active, IGT(g->npieces, ISET(p))))) break;
+        VI idx = SUFFIX(piece)(s, g, p, &st, &en, &ok);
+        word = MGATHER_I(s->words, idx, ok);
+    }
+    unsigned hb = MBITS(hit_any);
+    if (!hb) return;
+    if (!want_t) {
+        STORE(out, SEL(hit_any, zf, SET(-1.0f)));
+        return;
+    }
+    int hw[W], hs[W];
+    float qa2[W], dq2[W], t0s[W];
+    ISTORE(hw, hit_word);
+    ISTORE(hs, hit_st);
+    STORE(qa2, g->qa[2]);
+    STORE(dq2, g->dq[2]);
+    STORE(t0s, g->t0);
+    for (int l = 0; l < W; l++) {
+        if (!(hb >> l & 1)) continue;
+        int fwd = dq2[l] >= 0.0f;
+        uint32_t w32 = (uint32_t)hw[l];
+        int first = fwd ? __builtin_ctz(w32) : 31 - __builtin_clz(w32);
+        float vox = (float)((hs[l] >> 5) * 32 + first);
+        float w_start = qa2[l] + dq2[l] * t0s[l];
+        float dist = fwd ? vox - w_start : w_start - (vox + 1.0f);
+        out[l] = dist > 0.0f ? dist : 0.0f;
+    }
+}
+
+/* a group's rays: where they leave their surfaces and end, the voxels skipped (ray_setup) */
+TARGET static inline void SUFFIX(setup)(const VQRule *r, const V c[9], M dist, V o[3], V e[3], V *skip0, V *skip1) {
+    V zf = SET(0.0f);
+    const V *p = c, *tg = c + 3, *nm = c + 6;
+    V dir[3];
+    for (int k = 0; k < 3; k++) dir[k] = SEL(dist, tg[k], SUB(tg[k], p[k]));
+    V nn = SQRT(FMA(nm[0], nm[0], FMA(nm[1], nm[1], MUL(nm[2], nm[2]))));
+    V ln = SQRT(FMA(dir[0], dir[0], FMA(dir[1], dir[1], MUL(dir[2], dir[2]))));
+    M hasn = GT(nn, zf);
+    V nd = FMA(nm[0], dir[0], FMA(nm[1], dir[1], MUL(nm[2], dir[2])));
+    /* offset world units along the normal turned toward the light */
+    V step = SEL(hasn, DIV(SEL(LT(nd, zf), SET(-r->offset), SET(r->offset)), SEL(hasn, nn, SET(1.0f))), zf);
+    for (int k = 0; k < 3; k++) o[k] = FMA(nm[k], step, p[k]);
+    /* a distant ray ends its distance from the scene's centre plus the scene's diameter away */
+    V oc0 = SUB(o[0], SET(r->far_center[0])), oc1 = SUB(o[1], SET(r->far_center[1])), oc2 = SUB(o[2], SET(r->far_center[2]));
+    V lt = SQRT(FMA(tg[0], tg[0], FMA(tg[1], tg[1], MUL(tg[2], tg[2]))));
+    V reach = DIV(ADD(SQRT(FMA(oc0, oc0, FMA(oc1, oc1, MUL(oc2, oc2)))), SET(r->far)), SEL(GT(lt, zf), lt, SET(1.0f)));
+    for (int k = 0; k < 3; k++) e[k] = SEL(dist, FMA(tg[k], reach, o[k]), tg[k]);
+    *skip1 = SEL(dist, zf, SET(r->end_skip));
+    M use = MAND(hasn, GT(ln, zf));
+    if (!(r->slab > 0.0f)) use = MNONE;
+    /* slab / sin β voxels, sin β = |n·dir| / (|n| |dir|), at most max_skip */
+    V nl = MUL(nn, ln);
+    V k = MIN(DIV(MUL(SET(r->slab), nl), MAX(ABS(nd), MUL(SET(1.0e-6f), nl))), SET(r->max_skip));
+    *skip0 = SEL(use, MAX(SET(r->skip), k), SET(r->skip));
+}
+
+/* shadow rays of a batch (batch_scalar's), GROUPS groups of W at a time: every group's first words are
+ * prefetched before the first group reads its own, so the groups' memory reads overlap */
+TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const SoA *b, int want_t, float *out) {
+    int seg_shift = __builtin_ctz((unsigned)r->seg);
+    SUFFIX(Group) grp[GROUPS];
+    V o[GROUPS][3], e[GROUPS][3], skip0[GROUPS], skip1[GROUPS];
+    for (int i0 = 0; i0 < n; i0 += GROUPS * W) {
+        int ng = (n - i0 + W - 1) / W;
+        ng = ng < GROUPS ? ng : GROUPS;
+        for (int h = 0; h < ng; h++) {
+            int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
+            M live = IGT(ISET(m), IOTA);
+            V c[9];
+            if (b->stride == 3) {
+                LOAD_XYZ(b->c[0] + 3 * j0, m, live, c);
+                LOAD_XYZ(b->c[3] + 3 * j0, m, live, c + 3);
+                LOAD_XYZ(b->c[6] + 3 * j0, m, live, c + 6);
+            } else {
+                for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live);
+            }
+            M dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live));
+            SUFFIX(setup)(r, c, dist, o[h], e[h], &skip0[h], &skip1[h]);
+            if (s->static_array >= 0) SUFFIX(prepare)(s, &grp[h], live, o[h], e[h], skip0[h], skip1[h], seg_shift);
+            else grp[h].maxp = 0;
+        }
+        for (int h = 0; h < ng; h++) {
+            int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
+            float res[W];
+            SUFFIX(finish)(s, &grp[h], want_t, res);
+            if (s->n_inst > 0) {
+                float ob[3][W], eb[3][W], s0b[W], s1b[W];
+                for (int k = 0; k < 3; k++) { STORE(ob[k], o[h][k]); STORE(eb[k], e[h][k]); }
+                STORE(s0b, skip0[h]);
+                STORE(s1b, skip1[h]);
+                for (int l = 0; l < m; l++) {
+                    if (res[l] >= 0.0f) continue;
+                    float ol[3] = {ob[0][l], ob[1][l], ob[2][l]}, el[3] = {eb[0][l], eb[1][l], eb[2][l]};
+                    res[l] = instance_hits(s, ol, el, s0b[l], s1b[l], r->seg, want_t);
+                }
+            }
+            memcpy(out + j0, res, sizeof(float) * m);
+        }
+    }
+}

@@ -1,0 +1,240 @@
+"""The compiled CPU path of the voxel backend: ``kernels/voxelq.c`` through ctypes.
+
+Why a compiled kernel
+    On a CPU the voxel query is compute-bound (docs/voxel.md, "CPU speed"): Warp runs a CPU launch on
+    one thread, one query at a time, and its code for this rule ran 1.4-1.8x slower than plain C.
+    ``voxelq.c`` answers the same rule 16 queries at a time with AVX-512, 8 with AVX2 (chosen at run
+    time, so one build serves every x86-64 CPU) or one at a time in C, from the thread pool of
+    :mod:`usdml.parallel` (ctypes releases the GIL during a call).
+
+What a machine gets
+    ``pip install`` builds the library as the optional extension ``usdml.kernels._voxelq`` (setup.py).
+    Without a C compiler it is skipped and :func:`library` returns None: the backend uses the Warp
+    kernels, as ``--voxel-cpu-kernel warp`` does; ``usdml info`` names the path (:func:`describe`). A CPU
+    without AVX2 (or not x86-64) runs the scalar C kernel. GPUs always run Warp.
+
+Tables (built here from the backend's arrays, what ``kernels/voxel.py``'s ``VoxelScene`` holds)
+    * ``fold``: per array and direction bin, the 3 x 4 map from array space to the bin's grid in voxels
+      (``frame · n / 2R`` and the cube's corner folded in); ``static_fold`` the same from world space
+      for the static array (its world -> array map folded in as well);
+    * ``row_start`` / ``row_span``: per row, the offset of its words minus its first word index, and its
+      first and end word indices packed ``w0 | w1 << 16``;
+    * the instances' world -> array maps (3 x 4) and a BVH over their world boxes (built in C).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib
+from functools import lru_cache
+
+import numpy as np
+
+from usdml.errors import UsdmlError
+
+__all__ = ["NativeScene", "library", "describe", "simd_width"]
+
+_f = ctypes.POINTER(ctypes.c_float)
+_i = ctypes.POINTER(ctypes.c_int32)
+_u = ctypes.POINTER(ctypes.c_uint32)
+
+
+class _Scene(ctypes.Structure):
+    _fields_ = [("words", _u), ("arr_n", _i), ("arr_base", _i), ("arr_inv_h", _f), ("fold", _f),
+                ("static_fold", _f), ("row_start", _i), ("row_span", _i), ("wpd", ctypes.c_int32),
+                ("n_bins", ctypes.c_int32), ("d_theta", ctypes.c_float), ("n_rings", ctypes.c_int32),
+                ("ring_count", _i), ("ring_start", _i), ("static_array", ctypes.c_int32),
+                ("static_inv", ctypes.c_float * 12), ("n_inst", ctypes.c_int32), ("inst_inv", _f),
+                ("inst_array", _i), ("n_nodes", ctypes.c_int32), ("node_box", _f), ("node_kids", _i),
+                ("bvh_items", _i)]
+
+
+class _Rule(ctypes.Structure):
+    _fields_ = [("offset", ctypes.c_float), ("skip", ctypes.c_float), ("slab", ctypes.c_float),
+                ("max_skip", ctypes.c_float), ("end_skip", ctypes.c_float), ("far", ctypes.c_float),
+                ("far_center", ctypes.c_float * 3), ("seg", ctypes.c_int32)]
+
+
+class _Lights(ctypes.Structure):
+    _fields_ = [("n", ctypes.c_int32), ("pos", _f), ("axis", _f), ("cylinder_axis", _f), ("cone", _f),
+                ("base", _f), ("focus_rgb", _f), ("flags", _i), ("inv_m2", ctypes.c_float),
+                ("min_d2", ctypes.c_float)]
+
+
+@lru_cache(maxsize=1)
+def _load() -> tuple[ctypes.CDLL | None, str]:
+    try:
+        mod = importlib.import_module("usdml.kernels._voxelq")
+    except ImportError as e:
+        return None, f"not built ({e})"
+    lib = ctypes.CDLL(mod.__file__)
+    P = ctypes.c_void_p
+    lib.vq_simd_width.argtypes = [ctypes.c_int32]
+    lib.vq_simd_width.restype = ctypes.c_int
+    lib.vq_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, P, P, P,
+                             P, ctypes.c_int32, ctypes.c_int32, P]
+    lib.vq_query.restype = None
+    lib.vq_shade.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), P, P, P,
+                             ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, P, P, P]
+    lib.vq_shade.restype = None
+    lib.vq_build_bvh.argtypes = [ctypes.c_int32, P, P, P, P, P]
+    lib.vq_build_bvh.restype = ctypes.c_int32
+    return lib, ""
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled kernel, or None where it was not built (no C compiler at install)."""
+    return _load()[0]
+
+
+#: the compiled kernel's instruction sets, widest first, by the number ``voxelq.c``'s ``pick`` takes:
+#: ``auto`` the widest this CPU has, ``avx2`` at most AVX2, ``scalar`` plain C
+ISAS = {"auto": 0, "avx2": 2, "scalar": 1}
+WIDTH_NAMES = {16: "AVX-512", 8: "AVX2", 1: "scalar"}
+
+
+def simd_width(isa: str = "auto") -> int:
+    """Queries the compiled kernel answers at once on this CPU with ``isa`` (:data:`ISAS`): 16
+    (AVX-512), 8 (AVX2) or 1 (scalar); 0 without the kernel."""
+    lib = library()
+    return int(lib.vq_simd_width(ISAS[isa])) if lib is not None else 0
+
+
+def describe() -> str:
+    """One line: which CPU path voxel queries take on this machine (``usdml info``)."""
+    lib, why = _load()
+    if lib is None:
+        return f"Warp kernels (the compiled kernel is {why}; reinstall with a C compiler for the fast path)"
+    w = simd_width()
+    if w == 1:
+        return "compiled kernel, scalar (no AVX2 on this CPU)"
+    return f"compiled kernel, {WIDTH_NAMES[w]} ({w} queries at a time)"
+
+
+def _ptr(a: np.ndarray, kind):
+    return a.ctypes.data_as(kind)
+
+
+def _c(a, dtype) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+class NativeScene:
+    """The tables the compiled kernel reads for one assembled set of arrays (module doc), queried
+    with instruction set ``isa`` (:data:`ISAS`). Holds every
+    NumPy buffer it points into; rebuild it whenever the backend re-assembles (cheap: per array a
+    few hundred KiB of maps; the words themselves are not copied)."""
+
+    def __init__(self, words: np.ndarray, arrays, layout, bins, static: int, inst_inv: np.ndarray,
+                 inst_array: np.ndarray, inst_lo: np.ndarray, inst_hi: np.ndarray, isa: str = "auto"):
+        lib = library()
+        if lib is None:
+            raise UsdmlError("the compiled voxel kernel was not built on this machine: reinstall usdml with a C "
+                             "compiler, or use --voxel-cpu-kernel warp")
+        self.lib = lib
+        self.kernel = ISAS[isa]
+        keep = self._keep = []
+
+        def hold(a):
+            keep.append(a)
+            return a
+
+        self.words = words
+        frames = np.asarray(bins.frames, np.float64)                  # (B, 3, 3) rows u, v, w
+        n_bins = frames.shape[0]
+        arr_n = hold(_c([a.resolution for a in arrays] or [1], np.int32))
+        base = np.concatenate([[0], np.cumsum([a.words.size for a in arrays])[:-1]]) if arrays else np.zeros(1)
+        arr_base = hold(_c(base, np.int32))
+        inv_h32 = [np.float32(a.resolution) / (np.float32(2.0) * np.float32(a.half)) for a in arrays] or [1.0]
+        arr_inv_h = hold(_c(inv_h32, np.float32))
+        folds = []
+        for a, ih in zip(arrays, inv_h32):
+            folds.append(self._fold(frames, float(ih), np.asarray(a.center, np.float64), float(a.half)))
+        fold = hold(_c(np.concatenate(folds) if folds else np.zeros((1, 12)), np.float32))
+        to_static = np.asarray(arrays[static].to_array if static >= 0 else np.eye(4), np.float64)
+        if static >= 0:
+            a = arrays[static]
+            sf = self._fold(frames, float(inv_h32[static]), np.asarray(a.center, np.float64), float(a.half),
+                            to_static)
+        else:
+            sf = np.zeros((1, 12))
+        static_fold = hold(_c(sf, np.float32))
+        w0 = np.asarray(layout.w0, np.int64)
+        nw = np.asarray(layout.nw, np.int64)
+        if len(w0) and (w0 + nw).max() >= 1 << 15:
+            raise UsdmlError("voxel rows longer than the compiled kernel indexes; use --voxel-cpu-kernel warp")
+        row_start = hold(_c(np.asarray(layout.offset, np.int64) - w0, np.int32))
+        row_span = hold(_c(w0 | ((w0 + nw) << 16), np.int32))
+        ring_count = hold(_c(bins.ring_count, np.int32))
+        ring_start = hold(_c(bins.ring_start, np.int32))
+        k = len(inst_array)
+        inv = hold(_c(np.asarray(inst_inv, np.float32).reshape(-1, 4, 4)[:, :3, :].reshape(-1, 12) if k
+                      else np.zeros((1, 12)), np.float32))
+        ids = hold(_c(inst_array if k else [0], np.int32))
+        lo = hold(_c(inst_lo if k else np.zeros((1, 3)), np.float32))
+        hi = hold(_c(inst_hi if k else np.zeros((1, 3)), np.float32))
+        items = hold(np.zeros(max(k, 1), np.int32))
+        box = hold(np.zeros((max(2 * k, 1), 6), np.float32))
+        kids = hold(np.zeros((max(2 * k, 1), 2), np.int32))
+        nodes = int(lib.vq_build_bvh(k, lo.ctypes.data, hi.ctypes.data, items.ctypes.data, box.ctypes.data,
+                                     kids.ctypes.data)) if k else 0
+        s = _Scene()
+        s.words = _ptr(words, _u)
+        s.arr_n, s.arr_base, s.arr_inv_h = _ptr(arr_n, _i), _ptr(arr_base, _i), _ptr(arr_inv_h, _f)
+        s.fold, s.static_fold = _ptr(fold, _f), _ptr(static_fold, _f)
+        s.row_start, s.row_span = _ptr(row_start, _i), _ptr(row_span, _i)
+        s.wpd, s.n_bins, s.d_theta, s.n_rings = int(layout.words), n_bins, float(bins.d_theta), len(bins.ring_count)
+        s.ring_count, s.ring_start = _ptr(ring_count, _i), _ptr(ring_start, _i)
+        s.static_array = int(static)
+        s.static_inv[:] = [float(x) for x in to_static[:3, :].astype(np.float32).ravel()]
+        s.n_inst, s.inst_inv, s.inst_array = k, _ptr(inv, _f), _ptr(ids, _i)
+        s.n_nodes, s.node_box, s.node_kids, s.bvh_items = nodes, _ptr(box, _f), _ptr(kids, _i), _ptr(items, _i)
+        self.scene = s
+
+    @staticmethod
+    def _fold(frames: np.ndarray, inv_h: float, center: np.ndarray, half: float,
+              world: np.ndarray | None = None) -> np.ndarray:
+        """(B, 12): per bin, rows of the map ``grid = F x + f`` with ``F = frame · inv_h`` (composed with
+        ``world``'s 3 x 4 map when given) and ``f = half · inv_h - F c``."""
+        F = frames * inv_h
+        f = half * inv_h - F @ center
+        if world is not None:
+            f = F @ world[:3, 3] + f
+            F = F @ world[:3, :3]
+        return np.concatenate([F, f[:, :, None]], axis=2).reshape(len(frames), 12)
+
+    @staticmethod
+    def rule(offset: float, skip: float, slab: float, max_skip: float, end_skip: float, far: float, far_center,
+             seg: int) -> _Rule:
+        r = _Rule()
+        r.offset, r.skip, r.slab, r.max_skip, r.end_skip, r.far = offset, skip, slab, max_skip, end_skip, far
+        r.far_center[:] = [float(x) for x in np.asarray(far_center, np.float32)]
+        r.seg = int(seg)
+        return r
+
+    def query(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
+              normals: np.ndarray, distant: np.ndarray, want_t: bool, out: np.ndarray) -> None:
+        """``out[first:first + count]``: queries ``first ..`` of the (n, 3) float32 / (n,) int32 inputs."""
+        self.lib.vq_query(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count), origins.ctypes.data,
+                          targets.ctypes.data, normals.ctypes.data, distant.ctypes.data, int(want_t), self.kernel,
+                          out.ctypes.data)
+
+    def lights(self, pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float):
+        """The lights as the compiled shading's table (the arrays are held by the returned object)."""
+        arrs = [_c(x, np.float32).reshape(-1, 3) for x in (pos, axis, cylinder_axis, cone, base, focus_rgb)]
+        fl = _c(flags, np.int32)
+        lt = _Lights()
+        lt.n = len(fl)
+        lt.pos, lt.axis, lt.cylinder_axis, lt.cone, lt.base, lt.focus_rgb = (_ptr(a, _f) for a in arrs)
+        lt.flags = _ptr(fl, _i)
+        lt.inv_m2, lt.min_d2 = float(inv_m2), float(min_d2)
+        lt._hold = (arrs, fl)
+        return lt
+
+    def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
+              first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
+              facing: np.ndarray) -> None:
+        """Alg. 3 over tiles ``first_tile ..`` (``kernels/direct_shading.py``'s ``shade_tiles``)."""
+        self.lib.vq_shade(ctypes.byref(self.scene), ctypes.byref(rule), ctypes.byref(lights), points.ctypes.data,
+                          normals.ctypes.data, geometric.ctypes.data, len(points), int(first_tile), int(n_tiles),
+                          int(tile), self.kernel, radiance.ctypes.data, blocked.ctypes.data, facing.ctypes.data)
