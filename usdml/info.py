@@ -69,6 +69,8 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "renderSettings": _render_settings(snap),
         "usdmlSettings": settings.as_dict(),
         "backends": {name: backend_class(name).summary for name in backend_names()},
+        "backendCpuPaths": {name: backend_class(name).cpu_path() for name in backend_names()
+                            if backend_class(name).cpu_path()},
         **memory,
         "unsupported": dict(sorted(delegate.unsupported.items())),
         "warnings": list(delegate.warn.messages),
@@ -111,6 +113,8 @@ def format_info(info: dict) -> str:
                  f"{s['pixel_samples']} pixel samples, seed {s['seed']}")
     lines.append("backends    " + "; ".join(f"{name}: {summary}" if summary else name
                                              for name, summary in info["backends"].items()))
+    for name, line in info["backendCpuPaths"].items():
+        lines.append(f"{name + ' cpu':<11} {line}")
     for name in backend_names():
         if info.get(f"{name}Memory"):
             lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")

@@ -155,6 +155,12 @@ class VisibilityBackend(abc.ABC):
         """``MEMORY_ESTIMATE``: :meth:`memory_estimate`'s result as one line of ``usdml info``."""
         return ""
 
+    @classmethod
+    def cpu_path(cls) -> str:
+        """How this backend runs on this machine's CPU, one line of ``usdml info`` (which kernels, which
+        instruction set); ``""`` when there is nothing to say."""
+        return ""
+
     def describe(self) -> dict:
         """``STATS``: backend-specific fields for ``usdml bench`` / ``usdml compare`` results (JSON-able),
         after :meth:`update`; ``{}`` by default."""

@@ -256,6 +256,12 @@ class VoxelBackend(VisibilityBackend):
     def memory_line(cls, estimate: dict) -> str:
         return memory_line(estimate)
 
+    @classmethod
+    def cpu_path(cls) -> str:
+        """The CPU path queries take at ``--voxel-cpu-kernel auto`` (:func:`voxel_native.describe`)."""
+        from usdml.visibility import voxel_native
+        return voxel_native.describe()
+
     def describe(self) -> dict:
         """Resolution, directions, arrays (bytes, loaded from the cache, build seconds) and how the
         per-frame array is rebuilt, for ``usdml bench`` / ``usdml compare``."""
