@@ -289,9 +289,71 @@ static void batch_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b,
     }
 }
 
-/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 16 (AVX-512) queries at a time */
+/* ---------------------------------------------------------------- Alg. 3 shading, shared */
 
 typedef void (*BatchFn)(const VQScene *, const VQRule *, int, const SoA *, int, float *);
+
+static inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+/* light l at p (shading normal n, geometric ng): kernels/direct_shading.py's light_term without the
+ * shadow ray; returns 0 not facing, 1 lit (rgb set), 2 lit if its shadow ray (to tgt) is free */
+static inline int light_term(const VQLights *L, int l, const float *p, const float *n, const float *ng, float rgb[3],
+                             float tgt[3]) {
+    int flags = L->flags[l], dist = flags & DISTANT;
+    const float *lp = L->pos + 3 * (size_t)l, *ax = L->axis + 3 * (size_t)l;
+    float dv[3] = {lp[0] - p[0], lp[1] - p[1], lp[2] - p[2]};
+    float d2 = dot3(dv, dv);
+    if (dist) { dv[0] = -ax[0]; dv[1] = -ax[1]; dv[2] = -ax[2]; d2 = 1.0f; }
+    if (d2 <= 0.0f) return 0;
+    if (dot3(ng, dv) <= 0.0f) return 0;
+    float inv_d = 1.0f / sqrtf(d2 > 1.0e-30f ? d2 : 1.0e-30f);
+    float cos_s = dot3(n, dv) * inv_d;
+    if (cos_s <= 0.0f) return 0;
+    float g = cos_s;
+    if (!dist) g = g * L->inv_m2 / (d2 > L->min_d2 ? d2 : L->min_d2);
+    if (flags & CYLINDER) {
+        float cc = dot3(L->cylinder_axis + 3 * (size_t)l, dv) * inv_d, x = 1.0f - cc * cc;
+        g = g * sqrtf(x > 0.0f ? x : 0.0f);
+    }
+    float f = 0.0f;
+    if (flags & (ONE_SIDED | SHAPED | FOCUSED)) {
+        float cos_l = -dot3(ax, dv) * inv_d;
+        const float *cone = L->cone + 3 * (size_t)l;
+        if (flags & ONE_SIDED) g = g * (cos_l > 0.0f ? cos_l : 0.0f);
+        if (flags & SHAPED) {
+            if (cone[1] <= 0.0f) {
+                if (cos_l < cone[0]) g = 0.0f;
+            } else {
+                float x = (cos_l - cone[0]) / cone[1];
+                x = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
+                g = g * x * x * (3.0f - 2.0f * x);
+            }
+        }
+        if (flags & FOCUSED) f = powf(cos_l < 0.0f ? 0.0f : (cos_l > 1.0f ? 1.0f : cos_l), cone[2]);
+    }
+    if (g <= 0.0f) return 0;
+    const float *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
+    for (int k = 0; k < 3; k++) rgb[k] = bs[k] * g + fc[k] * (g * f);
+    for (int k = 0; k < 3; k++) tgt[k] = dist ? dv[k] : lp[k];
+    return (flags & CASTS_SHADOWS) ? 2 : 1;
+}
+
+/* the batched shadow rays of vq_shade: blocked ones counted, the others' light added; returns 0 */
+static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, float *res, float rgb_b[3][BATCH],
+                 const int32_t *who, float *radiance, int32_t *blocked) {
+    if (nb <= 0) return 0;
+    fn(s, r, nb, b, 0, res);
+    for (int q = 0; q < nb; q++) {
+        if (res[q] >= 0.0f) blocked[who[q]]++;
+        else for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
+    }
+    return 0;
+}
+
+#define MAX_TILE 256     /* most points per shading tile of the SIMD shading */
+
+/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 16 (AVX-512) queries at a time */
+
 
 #ifdef VQ_X86
 /* AVX2: masks are float vectors of all-ones / zero lanes */
@@ -352,6 +414,11 @@ typedef __m256 M;
 #define STORE _mm256_storeu_ps
 #define ISTORE(p, v) _mm256_storeu_si256((__m256i *)(p), v)
 #define IOTA _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)
+/* the lanes of m stored one after another from p; returns how many */
+#define COMPRESS_F(p, m, v) ({ float t_[8]; _mm256_storeu_ps(t_, v); int c_ = 0; \
+        for (unsigned b_ = MBITS(m); b_; b_ &= b_ - 1) { (p)[c_++] = t_[__builtin_ctz(b_)]; } c_; })
+#define COMPRESS_I(p, m, v) ({ int t_[8]; _mm256_storeu_si256((__m256i *)t_, v); int c_ = 0; \
+        for (unsigned b_ = MBITS(m); b_; b_ &= b_ - 1) { (p)[c_++] = t_[__builtin_ctz(b_)]; } c_; })
 /* x, y, z of m <= 8 consecutive float triples */
 #define LOAD_XYZ(p, m, live, out) do { \
         VI i3_ = _mm256_mullo_epi32(IOTA, _mm256_set1_epi32(3)); \
@@ -412,6 +479,8 @@ typedef __m256 M;
 #undef STORE
 #undef ISTORE
 #undef IOTA
+#undef COMPRESS_F
+#undef COMPRESS_I
 #undef LOAD_XYZ
 
 /* AVX-512: masks are k registers */
@@ -475,6 +544,8 @@ typedef __mmask16 M16;
 #define STORE _mm512_storeu_ps
 #define ISTORE(p, v) _mm512_storeu_si512((void *)(p), v)
 #define IOTA _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+#define COMPRESS_F(p, m, v) ({ _mm512_mask_compressstoreu_ps(p, m, v); __builtin_popcount(m); })
+#define COMPRESS_I(p, m, v) ({ _mm512_mask_compressstoreu_epi32(p, m, v); __builtin_popcount(m); })
 /* x, y, z of m <= 16 consecutive float triples: three loads and six two-source permutes */
 #define LOAD_XYZ(p, m, live, out) do { \
         __m512 a0_, a1_, a2_; \
@@ -536,69 +607,19 @@ void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, c
     fn(s, r, (int)count, &b, want_t, out + first);
 }
 
-static inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-
-/* light l at p (shading normal n, geometric ng): kernels/direct_shading.py's light_term without the
- * shadow ray; returns 0 not facing, 1 lit (rgb set), 2 lit if its shadow ray (to tgt) is free */
-static inline int light_term(const VQLights *L, int l, const float *p, const float *n, const float *ng, float rgb[3],
-                             float tgt[3]) {
-    int flags = L->flags[l], dist = flags & DISTANT;
-    const float *lp = L->pos + 3 * (size_t)l, *ax = L->axis + 3 * (size_t)l;
-    float dv[3] = {lp[0] - p[0], lp[1] - p[1], lp[2] - p[2]};
-    float d2 = dot3(dv, dv);
-    if (dist) { dv[0] = -ax[0]; dv[1] = -ax[1]; dv[2] = -ax[2]; d2 = 1.0f; }
-    if (d2 <= 0.0f) return 0;
-    if (dot3(ng, dv) <= 0.0f) return 0;
-    float inv_d = 1.0f / sqrtf(d2 > 1.0e-30f ? d2 : 1.0e-30f);
-    float cos_s = dot3(n, dv) * inv_d;
-    if (cos_s <= 0.0f) return 0;
-    float g = cos_s;
-    if (!dist) g = g * L->inv_m2 / (d2 > L->min_d2 ? d2 : L->min_d2);
-    if (flags & CYLINDER) {
-        float cc = dot3(L->cylinder_axis + 3 * (size_t)l, dv) * inv_d, x = 1.0f - cc * cc;
-        g = g * sqrtf(x > 0.0f ? x : 0.0f);
-    }
-    float f = 0.0f;
-    if (flags & (ONE_SIDED | SHAPED | FOCUSED)) {
-        float cos_l = -dot3(ax, dv) * inv_d;
-        const float *cone = L->cone + 3 * (size_t)l;
-        if (flags & ONE_SIDED) g = g * (cos_l > 0.0f ? cos_l : 0.0f);
-        if (flags & SHAPED) {
-            if (cone[1] <= 0.0f) {
-                if (cos_l < cone[0]) g = 0.0f;
-            } else {
-                float x = (cos_l - cone[0]) / cone[1];
-                x = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
-                g = g * x * x * (3.0f - 2.0f * x);
-            }
-        }
-        if (flags & FOCUSED) f = powf(cos_l < 0.0f ? 0.0f : (cos_l > 1.0f ? 1.0f : cos_l), cone[2]);
-    }
-    if (g <= 0.0f) return 0;
-    const float *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
-    for (int k = 0; k < 3; k++) rgb[k] = bs[k] * g + fc[k] * (g * f);
-    for (int k = 0; k < 3; k++) tgt[k] = dist ? dv[k] : lp[k];
-    return (flags & CASTS_SHADOWS) ? 2 : 1;
-}
-
-/* the batched shadow rays of vq_shade: blocked ones counted, the others' light added; returns 0 */
-static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, float *res, float rgb_b[3][BATCH],
-                 const int32_t *who, float *radiance, int32_t *blocked) {
-    if (nb <= 0) return 0;
-    fn(s, r, nb, b, 0, res);
-    for (int q = 0; q < nb; q++) {
-        if (res[q] >= 0.0f) blocked[who[q]]++;
-        else for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
-    }
-    return 0;
-}
-
 /* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
  * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
 void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
               int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
               int32_t *blocked, int32_t *facing) {
     BatchFn fn = pick(kernel);
+#ifdef VQ_X86
+    if (tile <= MAX_TILE && (fn == batch_avx512 || fn == batch_avx2)) {
+        (fn == batch_avx512 ? shade_avx512 : shade_avx2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
+                                                         radiance, blocked, facing);
+        return;
+    }
+#endif
     float buf[9][BATCH], rgb_b[3][BATCH], res[BATCH];
     int32_t dist_b[BATCH], who[BATCH];
     SoA b = {{NULL}, dist_b, 1};

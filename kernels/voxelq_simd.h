@@ -275,3 +275,111 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
         }
     }
 }
+
+/* Alg. 3 over tiles (vq_shade's), W points of a tile against one light at a time: light_term's
+ * arithmetic in SIMD, the casting lanes compressed into the batch of shadow rays */
+TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
+                                 const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
+                                 int64_t n_tiles, int tile, float *radiance, int32_t *blocked, int32_t *facing) {
+    /* the batch of shadow rays (flushed while it has room for W more) and the tile in SoA form */
+    float sbuf[9][BATCH], srgb[3][BATCH], res[BATCH];
+    int32_t sdist[BATCH], swho[BATCH];
+    float P[9][MAX_TILE + W], acc[3][MAX_TILE + W];
+    int32_t fac[MAX_TILE + W];
+    SoA b = {{NULL}, sdist, 1};
+    for (int k = 0; k < 9; k++) b.c[k] = sbuf[k];
+    V zf = SET(0.0f);
+    for (int64_t t = first_tile; t < first_tile + n_tiles; t++) {
+        int64_t i0 = t * tile, i1 = i0 + tile < n_points ? i0 + tile : n_points;
+        if (i0 >= i1) break;
+        int m = (int)(i1 - i0);
+        for (int j = 0; j < m + W; j++) {
+            for (int k = 0; k < 3; k++) {
+                P[k][j] = j < m ? pts[3 * (i0 + j) + k] : 0.0f;
+                P[3 + k][j] = j < m ? nrm[3 * (i0 + j) + k] : 0.0f;
+                P[6 + k][j] = j < m ? geo[3 * (i0 + j) + k] : 0.0f;
+                acc[k][j] = 0.0f;
+            }
+            fac[j] = 0;
+        }
+        for (int64_t i = i0; i < i1; i++) {
+            radiance[3 * i] = radiance[3 * i + 1] = radiance[3 * i + 2] = 0.0f;
+            blocked[i] = 0;
+        }
+        int nb = 0;
+        for (int l = 0; l < L->n; l++) {
+            int flags = L->flags[l], dist = flags & DISTANT;
+            const float *lp = L->pos + 3 * (size_t)l, *ax = L->axis + 3 * (size_t)l, *cy = L->cylinder_axis + 3 * (size_t)l;
+            const float *cone = L->cone + 3 * (size_t)l, *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
+            for (int j0 = 0; j0 < m; j0 += W) {
+                M live = IGT(ISET(m - j0), IOTA);
+                V p[3], n[3], g[3], dv[3];
+                for (int k = 0; k < 3; k++) {
+                    p[k] = LOAD(P[k] + j0);
+                    n[k] = LOAD(P[3 + k] + j0);
+                    g[k] = LOAD(P[6 + k] + j0);
+                    dv[k] = dist ? SET(-ax[k]) : SUB(SET(lp[k]), p[k]);
+                }
+                V d2 = dist ? SET(1.0f) : FMA(dv[0], dv[0], FMA(dv[1], dv[1], MUL(dv[2], dv[2])));
+                M ok = MAND(live, MAND(GT(d2, zf), GT(FMA(g[0], dv[0], FMA(g[1], dv[1], MUL(g[2], dv[2]))), zf)));
+                V inv_d = RCP(SQRT(MAX(d2, SET(1.0e-30f))));
+                V cos_s = MUL(FMA(n[0], dv[0], FMA(n[1], dv[1], MUL(n[2], dv[2]))), inv_d);
+                ok = MAND(ok, GT(cos_s, zf));
+                if (!MBITS(ok)) continue;
+                V gg = cos_s;
+                if (!dist) gg = MUL(gg, MUL(SET(L->inv_m2), RCP(MAX(d2, SET(L->min_d2)))));
+                if (flags & CYLINDER) {
+                    V cc = MUL(FMA(SET(cy[0]), dv[0], FMA(SET(cy[1]), dv[1], MUL(SET(cy[2]), dv[2]))), inv_d);
+                    gg = MUL(gg, SQRT(MAX(SUB(SET(1.0f), MUL(cc, cc)), zf)));
+                }
+                V f = zf;
+                if (flags & (ONE_SIDED | SHAPED | FOCUSED)) {
+                    V cos_l = MUL(SUB(zf, FMA(SET(ax[0]), dv[0], FMA(SET(ax[1]), dv[1], MUL(SET(ax[2]), dv[2])))), inv_d);
+                    if (flags & ONE_SIDED) gg = MUL(gg, MAX(cos_l, zf));
+                    if (flags & SHAPED) {
+                        if (cone[1] <= 0.0f) {
+                            gg = SEL(LT(cos_l, SET(cone[0])), zf, gg);
+                        } else {
+                            V x = MIN(MAX(DIV(SUB(cos_l, SET(cone[0])), SET(cone[1])), zf), SET(1.0f));
+                            gg = MUL(gg, MUL(MUL(x, x), SUB(SET(3.0f), MUL(SET(2.0f), x))));
+                        }
+                    }
+                    if (flags & FOCUSED) {
+                        float cl[W], fo[W];
+                        STORE(cl, cos_l);
+                        for (int q = 0; q < W; q++)
+                            fo[q] = powf(cl[q] < 0.0f ? 0.0f : (cl[q] > 1.0f ? 1.0f : cl[q]), cone[2]);
+                        f = LOAD(fo);
+                    }
+                }
+                ok = MAND(ok, GT(gg, zf));
+                unsigned okb = MBITS(ok);
+                if (!okb) continue;
+                V gf = MUL(gg, f);
+                V rgb[3];
+                for (int k = 0; k < 3; k++) rgb[k] = FMA(SET(fc[k]), gf, MUL(SET(bs[k]), gg));
+                ISTORE(fac + j0, IADD(ILOAD(fac + j0), SELI(ok, ISET(1), ISET(0))));
+                if (!(flags & CASTS_SHADOWS)) {
+                    for (int k = 0; k < 3; k++) STORE(acc[k] + j0, ADD(LOAD(acc[k] + j0), SEL(ok, rgb[k], zf)));
+                    continue;
+                }
+                int c = 0;
+                for (int k = 0; k < 3; k++) {
+                    c = COMPRESS_F(sbuf[k] + nb, ok, p[k]);
+                    COMPRESS_F(sbuf[3 + k] + nb, ok, SET(dist ? -ax[k] : lp[k]));
+                    COMPRESS_F(sbuf[6 + k] + nb, ok, g[k]);
+                    COMPRESS_F(srgb[k] + nb, ok, rgb[k]);
+                }
+                COMPRESS_I(swho + nb, ok, IADD(ISET((int)(i0 + j0)), IOTA));
+                COMPRESS_I(sdist + nb, ok, ISET(dist));
+                nb += c;
+                if (nb > BATCH - W) nb = flush(SUFFIX(batch), s, r, nb, &b, res, srgb, swho, radiance, blocked);
+            }
+        }
+        flush(SUFFIX(batch), s, r, nb, &b, res, srgb, swho, radiance, blocked);
+        for (int j = 0; j < m; j++) {
+            for (int k = 0; k < 3; k++) radiance[3 * (i0 + j) + k] += acc[k][j];
+            facing[i0 + j] = fac[j];
+        }
+    }
+}
