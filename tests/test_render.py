@@ -329,3 +329,26 @@ def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
     expected = ALBEDO * 2.0 * np.array([1.0, 0.5, 0.25])
     np.testing.assert_allclose(b["direct"].reshape(-1, 3), np.broadcast_to(expected, (256, 3)), rtol=0.01)
     assert b["shadow"].max() == 0
+
+
+def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage):
+    """usdml bench's bare-embreex peer: on the rays exact traces, the same answers; the ratios follow
+    from the seconds (no timing asserted)."""
+    from usdml.bench import bench_visibility, format_bench
+
+    def lights(stage):
+        cube = add_cube_mesh(stage, "/World/cube", size=4)
+        cube.AddTranslateOp().Set((0, 2, 0))
+        for i, x in enumerate((-6, 0, 6)):
+            light = UsdLux.SphereLight.Define(stage, f"/World/light{i}")
+            light.CreateIntensityAttr(100.0)
+            light.AddTranslateOp().Set((x, 8, x / 2))
+
+    rows = bench_visibility(StageDelegate(ground_stage(new_stage, lights)), ["exact"], image_width=24)
+    assert [r["backend"] for r in rows] == ["exact"]
+    r = rows[0]
+    assert r["queries"] > 0 and 0 < r["blocked_fraction"] < 1
+    assert r["bare_embree_seconds"] > 0 and r["disagreement_vs_bare_embree"] == 0.0
+    assert r["speedup_vs_bare_embree"] == pytest.approx(r["bare_embree_seconds"] / r["seconds"])
+    assert r["exact_overhead_vs_bare_embree"] == pytest.approx(r["seconds"] / r["bare_embree_seconds"])
+    assert "bare embreex on the same rays" in format_bench(rows)

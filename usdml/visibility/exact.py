@@ -323,8 +323,9 @@ class ExactBackend(VisibilityBackend):
 
     # ------------------------------------------------------------------ threading
 
-    def _map_chunks(self, n: int, work) -> None:
-        """Run ``work(lo, hi)`` over ``[0, n)`` in ``chunk_rays`` slices, on the pool when it pays."""
+    def map_chunks(self, n: int, work) -> None:
+        """Run ``work(lo, hi)`` over ``[0, n)`` in ``chunk_rays`` slices, on the backend's pool when it pays
+        (``usdml bench`` times bare Embree through it, on the same chunks and threads)."""
         spans = [(lo, min(n, lo + self.chunk_rays)) for lo in range(0, n, self.chunk_rays)]
         if self.workers == 1 or len(spans) == 1:
             for lo, hi in spans:
@@ -436,7 +437,7 @@ class ExactBackend(VisibilityBackend):
                 live, keep = live[~hit], ~hit
                 o_l, d_l, t_l = o_l[keep], d_l[keep], t_l[keep]
 
-        self._map_chunks(n, work)
+        self.map_chunks(n, work)
         return out
 
     # ------------------------------------------------------------------ closest hits
@@ -493,7 +494,7 @@ class ExactBackend(VisibilityBackend):
                 out["v"][rows] = r["v"][hit]
                 out["ng"][rows] = r["Ng"][hit]
 
-        self._map_chunks(n, work)
+        self.map_chunks(n, work)
         return out
 
     def source(self, geom: int) -> GeometrySource:
