@@ -252,6 +252,8 @@ class _RayKernel:
         wp = self.wp = warp()
         self.kernel = kernels.shadow_rays
         self.device = wp.get_device("cpu")
+        # compile / load here, on the caller's thread, before the pool's workers launch it together
+        wp.load_module(kernels, device=self.device)
         # float32 -> float64 is exact, and the kernel rounds back to the same float32
         as64 = lambda a: np.ascontiguousarray(a, np.float64)      # noqa: E731
         wrap = lambda a, dtype: wp.array(a, dtype=dtype, device=self.device, copy=False)  # noqa: E731
