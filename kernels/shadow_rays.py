@@ -10,7 +10,7 @@ compiler run four rays at a time (SSE2, which every x86-64 has) in 10-14 ns per 
 Exactness: the same operations in the same order as the NumPy rule (sums left to right, ``1 / x``
 then a product where NumPy does that), no fused multiply-add (``fuse_fp`` off, and the generic
 x86-64 target has none), ``max`` that lets NaN through as ``np.maximum`` does. IEEE float32 ``+ - *
-/ sqrt`` are correctly rounded, so every output equals NumPy's; ``tests/test_exact.py`` checks it on
+/ sqrt`` are correctly rounded, so every output equals NumPy's; ``tests/test_visibility_exact.py`` checks it on
 edge cases (zero normals, distant rows, zero-length segments) and random rays.
 """
 

@@ -70,7 +70,8 @@ Parallelism
     random lights 5-40 units above the roofs, 85 % blocked, chunk 65536, in windows where no other
     process used the CPU: ``occluded`` 1 worker 2.6-3.4 M rays/s, 2 workers 5.3-6.3 M rays/s
     (≈ 1.9× scaling); bare ``run`` on the same rays 3.3-3.9 (1 thread) and 6.9-8.5 (2 threads)
-    M rays/s, so the epsilon arithmetic and gathers cost ~20 %. These random, incoherent rays are a
+    M rays/s, so the epsilon arithmetic and gathers cost ~20 % (in NumPy, before the compiled
+    ray set-up above). These random, incoherent rays are a
     worst case; DESIGN.md's ≈ 7 M rays/s per core was measured on another city and ray set.
     See ``ExactBackend.stats`` for per-scene triangle counts and build times.
 
