@@ -331,10 +331,12 @@ def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
     assert b["shadow"].max() == 0
 
 
-def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage):
-    """usdml bench's bare-embreex peer: on the rays exact traces, the same answers; the ratios follow
-    from the seconds (no timing asserted)."""
-    from usdml.bench import bench_visibility, format_bench
+def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage, tmp_path, monkeypatch, capsys):
+    """usdml bench's bare-embreex peer: on the rays exact traces, the same answers; every row's ratios
+    follow from the seconds (no timing asserted)."""
+    import json
+
+    from usdml.bench import format_bench
 
     def lights(stage):
         cube = add_cube_mesh(stage, "/World/cube", size=4)
@@ -344,11 +346,19 @@ def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage):
             light.CreateIntensityAttr(100.0)
             light.AddTranslateOp().Set((x, 8, x / 2))
 
-    rows = bench_visibility(StageDelegate(ground_stage(new_stage, lights)), ["exact"], image_width=24)
-    assert [r["backend"] for r in rows] == ["exact"]
-    r = rows[0]
-    assert r["queries"] > 0 and 0 < r["blocked_fraction"] < 1
-    assert r["bare_embree_seconds"] > 0 and r["disagreement_vs_bare_embree"] == 0.0
-    assert r["speedup_vs_bare_embree"] == pytest.approx(r["bare_embree_seconds"] / r["seconds"])
-    assert r["exact_overhead_vs_bare_embree"] == pytest.approx(r["seconds"] / r["bare_embree_seconds"])
-    assert "bare embreex on the same rays" in format_bench(rows)
+    monkeypatch.setenv("USDML_CACHE_DIR", str(tmp_path / "cache"))
+    path = ground_stage(new_stage, lights)
+    assert main(["bench", path, "--visibility", "exact", "--visibility", "voxel", "--voxel-resolution", "16",
+                 "--direction-step", "15", "--imageWidth", "24", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["backend"] for r in rows] == ["exact", "voxel"]
+    exact = rows[0]
+    assert exact["queries"] > 0 and 0 < exact["blocked_fraction"] < 1
+    assert exact["bare_embree_seconds"] > 0 and exact["disagreement_vs_bare_embree"] == 0.0
+    for r in rows:
+        assert r["bare_embree_seconds"] == exact["bare_embree_seconds"]
+        assert r["speedup_vs_bare_embree"] == pytest.approx(r["bare_embree_seconds"] / r["seconds"])
+        assert r["exact_overhead_vs_bare_embree"] == pytest.approx(exact["seconds"] / exact["bare_embree_seconds"])
+        assert r["disagreement_vs_bare_embree"] == pytest.approx(r["disagreement_vs_exact"])
+    lines = format_bench(rows).splitlines()
+    assert "bare embreex on the same rays" in lines[0] and "x bare embreex" in lines[1]
