@@ -329,3 +329,56 @@ def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
     expected = ALBEDO * 2.0 * np.array([1.0, 0.5, 0.25])
     np.testing.assert_allclose(b["direct"].reshape(-1, 3), np.broadcast_to(expected, (256, 3)), rtol=0.01)
     assert b["shadow"].max() == 0
+
+
+def _cube_on_ground(new_stage) -> str:
+    """ground_stage with a 4-unit cube on the ground and three sphere lights above it."""
+    def lights(stage):
+        cube = add_cube_mesh(stage, "/World/cube", size=4)
+        cube.AddTranslateOp().Set((0, 2, 0))
+        for i, x in enumerate((-6, 0, 6)):
+            light = UsdLux.SphereLight.Define(stage, f"/World/light{i}")
+            light.CreateIntensityAttr(100.0)
+            light.AddTranslateOp().Set((x, 8, x / 2))
+
+    return ground_stage(new_stage, lights)
+
+
+def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage, tmp_path, monkeypatch, capsys):
+    """usdml bench's bare-embreex peer: on the rays exact traces, the same answers; every row's ratios
+    follow from the seconds (no timing asserted)."""
+    import json
+
+    from usdml.bench import format_bench
+
+    monkeypatch.setenv("USDML_CACHE_DIR", str(tmp_path / "cache"))
+    assert main(["bench", _cube_on_ground(new_stage), "--visibility", "exact", "--visibility", "voxel",
+                 "--voxel-resolution", "16", "--direction-step", "15", "--imageWidth", "24", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["backend"] for r in rows] == ["exact", "voxel"]
+    exact = rows[0]
+    assert exact["queries"] > 0 and 0 < exact["blocked_fraction"] < 1
+    assert exact["bare_embree_seconds"] > 0 and exact["disagreement_vs_bare_embree"] == 0.0
+    for r in rows:
+        assert r["bare_embree_seconds"] == exact["bare_embree_seconds"]
+        assert r["speedup_vs_bare_embree"] == pytest.approx(r["bare_embree_seconds"] / r["seconds"])
+        assert r["exact_overhead_vs_bare_embree"] == pytest.approx(exact["seconds"] / exact["bare_embree_seconds"])
+        assert r["disagreement_vs_bare_embree"] == pytest.approx(r["disagreement_vs_exact"])
+    lines = format_bench(rows).splitlines()
+    assert "bare embreex on the same rays" in lines[0] and "x bare embreex" in lines[1]
+
+
+def test_exact_overhead_tool_agrees_with_bare_embree(new_stage):
+    """tools/exact_overhead.py: rounds of exact and bare embreex, same answers, ratios from the seconds."""
+    import json
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, str(root / "tools" / "exact_overhead.py"), _cube_on_ground(new_stage),
+                           "--imageWidth", "24", "--rounds", "2", "--json"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    assert r["queries"] > 0 and r["rounds"] == 2 and r["disagreements"] == 0
+    assert r["overhead_cpu"] and r["overhead_wall"] == pytest.approx(
+        [a / b for a, b in zip(r["exact_seconds"], r["bare_embree_seconds"])])

@@ -300,3 +300,62 @@ def test_empty_scene_and_degenerate_segments():
     assert not c.occluded([[0, 0, 0], [0, -1, 0]], [[0, 0, 0], [0, -1 + 1e-9, 0]]).any()
     with pytest.raises(RuntimeError, match="update"):
         ExactBackend().occluded([[0, 0, 0]], [[1, 1, 1]])
+
+
+# ---------------------------------------------------------------------------------------------- compiled rays
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> None:
+    """``a`` and ``b`` equal bit for bit (NaN where the other is NaN, whatever its payload)."""
+    nan = np.isnan(a)
+    np.testing.assert_array_equal(nan, np.isnan(b))
+    np.testing.assert_array_equal(np.where(nan, 0, a).view(np.uint32), np.where(nan, 0, b).view(np.uint32))
+
+
+@pytest.mark.parametrize("with_normals", [True, False])
+@pytest.mark.parametrize("with_distant", [True, False])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_compiled_rays_are_the_numpy_rule_bit_for_bit(with_normals, with_distant, dtype):
+    """occluded's compiled ray set-up (usdml.kernels.shadow_rays) gives exactly ExactBackend.shadow_rays's
+    float32 rays, edge cases included: zero and non-unit normals, distant rows, segments of no length or
+    shorter than the epsilons, points far from the origin, normals facing away from the light."""
+    from usdml.visibility.exact import _RayKernel
+
+    rng = np.random.default_rng(7)
+    n = 5000
+    P = rng.uniform(-300, 300, (n, 3)) * rng.choice([1e-6, 1.0, 1e3], (n, 1))
+    L = P + rng.normal(size=(n, 3)) * rng.choice([0.0, 1e-9, 1e-3, 1.0, 50.0], (n, 1))
+    N = rng.normal(size=(n, 3)) * rng.choice([0.0, 1.0, 0.5, 3.0], (n, 1))
+    far = rng.random(n) < 0.2
+    L[far] = rng.normal(size=(far.sum(), 3))
+    L[far] /= np.linalg.norm(L[far], axis=1, keepdims=True)
+    P, L = P.astype(dtype), L.astype(dtype)
+    normals = N.astype(np.float32) if with_normals else None
+    distant = far if with_distant else None
+    b = ExactBackend(epsilon=0.0123)
+    want = b.shadow_rays(P, L, normals, distant)
+    got = _RayKernel(P, L, normals, distant, b.epsilon)
+    for lo, hi in ((0, n), (17, 1234), (n - 3, n)):
+        for w, g in zip(want, got(lo, hi)):
+            same_bits(w[lo:hi], g)
+    assert (want[2] == 0).any() and (want[2] > 0).any()
+
+
+def test_occluded_answers_as_the_numpy_rays_do():
+    """occluded (compiled rays, chunked, two scenes) equals Embree run on shadow_rays's rays."""
+    rng = np.random.default_rng(3)
+    tris = random_triangles(rng, 300)
+    anim = prototype("/anim", [soup("/anim/tri", [[[0, 0, 0], [0.3, 0, 0], [0, 0, 0.3]]])],
+                     np.stack([translate(*rng.uniform(0, 1, 3)) for _ in range(50)]), animated=True)
+    snap = snapshot([soup("/tris", tris)], [anim])
+    b = backend(snap, chunk_rays=257)
+    P = rng.uniform(-0.5, 1.5, (4000, 3))
+    L = rng.uniform(-0.5, 1.5, (4000, 3))
+    N = rng.normal(size=(4000, 3)).astype(np.float32)
+    o, d, t = b.shadow_rays(P, L, N, None)
+    live = t > 0
+    want = np.zeros(4000, bool)
+    for g in b._groups():
+        want[live] |= g.scene.run(o[live], d[live], query="OCCLUDED", dists=t[live]) != -1
+    np.testing.assert_array_equal(b.occluded(P, L, normals=N), want)
+    assert 0.1 < want.mean() < 0.9 and len(b._groups()) == 2
+    b.close()

@@ -58,16 +58,20 @@ Robust segment ends (no shadow acne, no light leaking through the far end)
 Parallelism
     embreex releases the GIL inside ``run``, so batches are cut into ``chunk_rays`` rays and run on a
     persistent ``ThreadPoolExecutor`` with one worker per core (``usdml.parallel.cpu_workers``; kept
-    across calls, as a frame makes many); the epsilon arithmetic of a chunk runs in its worker too,
-    column-wise in float32 so that NumPy releases the GIL for it as well (row reductions such as
-    ``einsum`` hold it: with them, two workers ran no faster than one). Chunks
+    across calls, as a frame makes many); the epsilon arithmetic of a chunk runs in its worker too.
+    :meth:`ExactBackend.shadow_rays` states it in NumPy (the rule, and its reference); ``occluded``
+    runs the same float32 operations compiled (``usdml.kernels.shadow_rays``, one Warp CPU launch per
+    chunk, which releases the GIL): the same rays bit for bit, tested. In NumPy the rule took ~60
+    passes per chunk and cost 28 % on top of bare Embree on the city bench (7.3 M rays, 2 threads:
+    1.30 s against 1.02 s); compiled, 4-5 % (1.07 against 1.01 s, same process, medians of 3). Chunks
     write to fixed slices of the output, so results do not depend on thread timing.
     Measured: 277k-triangle city (14 × 14 boxy buildings, facades split 9 × 9, 20 thin fins and
     balconies each, on a ground slab), 1M shadow rays from random surface points (with normals) to
     random lights 5-40 units above the roofs, 85 % blocked, chunk 65536, in windows where no other
     process used the CPU: ``occluded`` 1 worker 2.6-3.4 M rays/s, 2 workers 5.3-6.3 M rays/s
     (≈ 1.9× scaling); bare ``run`` on the same rays 3.3-3.9 (1 thread) and 6.9-8.5 (2 threads)
-    M rays/s, so the epsilon arithmetic and gathers cost ~20 %. These random, incoherent rays are a
+    M rays/s, so the epsilon arithmetic and gathers cost ~20 % (in NumPy, before the compiled
+    ray set-up above). These random, incoherent rays are a
     worst case; DESIGN.md's ≈ 7 M rays/s per core was measured on another city and ray set.
     See ``ExactBackend.stats`` for per-scene triangle counts and build times.
 
@@ -237,6 +241,43 @@ def _is_dynamic(p: Prototype) -> bool:
     return bool(p.animated or p.deforming)
 
 
+class _RayKernel:
+    """:meth:`ExactBackend.shadow_rays` of chunks of one batch, by the compiled kernel: inputs as the
+    kernel reads them (float64 points, float32 normals: the casts the rule makes) wrapped once per
+    batch, rays written per chunk into fresh arrays (they stay in cache for Embree)."""
+
+    def __init__(self, origins, targets, normals, distant, epsilon: float) -> None:
+        from usdml.kernels import shadow_rays as kernels
+        from usdml.kernels import warp
+
+        wp = self.wp = warp()
+        self.kernel = kernels.shadow_rays
+        self.device = wp.get_device("cpu")
+        # compile / load here, on the caller's thread, before the pool's workers launch it together
+        wp.load_module(kernels, device=self.device)
+        # float32 -> float64 is exact, and the kernel rounds back to the same float32
+        as64 = lambda a: np.ascontiguousarray(a, np.float64)      # noqa: E731
+        wrap = lambda a, dtype: wp.array(a, dtype=dtype, device=self.device, copy=False)  # noqa: E731
+        self.inputs = [
+            wrap(as64(origins), wp.vec3d), wrap(as64(targets), wp.vec3d),
+            wrap(np.ascontiguousarray(np.zeros((1, 3), np.float32) if normals is None else normals, np.float32),
+                 wp.vec3f),
+            wrap(np.ascontiguousarray(np.zeros(1, bool) if distant is None or not distant.any() else distant),
+                 wp.bool),
+            int(normals is not None), int(distant is not None and bool(distant.any())),
+            float(np.float32(epsilon)), FLOAT_MARGIN,
+        ]
+
+    def __call__(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays of rows ``lo:hi``: ``(m, 3)`` float32 origins, unit directions, ``(m,)`` float32 ``tfar``."""
+        wp, m = self.wp, hi - lo
+        o, d, t = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
+        outs = [wp.array(ptr=a.ctypes.data, dtype=dt, shape=m, device=self.device, copy=False)
+                for a, dt in ((o, wp.vec3f), (d, wp.vec3f), (t, wp.float32))]
+        wp.launch(self.kernel, dim=1, device=self.device, inputs=self.inputs + [lo, hi] + outs)
+        return o, d, t
+
+
 class ExactBackend(VisibilityBackend):
     """Exact shadow rays and closest hits with Embree; see the module docstring for costs.
 
@@ -323,8 +364,9 @@ class ExactBackend(VisibilityBackend):
 
     # ------------------------------------------------------------------ threading
 
-    def _map_chunks(self, n: int, work) -> None:
-        """Run ``work(lo, hi)`` over ``[0, n)`` in ``chunk_rays`` slices, on the pool when it pays."""
+    def map_chunks(self, n: int, work) -> None:
+        """Run ``work(lo, hi)`` over ``[0, n)`` in ``chunk_rays`` slices, on the backend's pool when it pays
+        (``usdml bench`` times bare Embree through it, on the same chunks and threads)."""
         spans = [(lo, min(n, lo + self.chunk_rays)) for lo in range(0, n, self.chunk_rays)]
         if self.workers == 1 or len(spans) == 1:
             for lo, hi in spans:
@@ -358,6 +400,8 @@ class ExactBackend(VisibilityBackend):
 
         The arithmetic is float32 (it was half the cost of the Embree traversal in float64): the
         offsets are at least 8 float32 ulps of the coordinates they move, so rounding cannot undo them.
+        This is the rule as NumPy; :meth:`occluded` computes the same rays with the compiled
+        ``usdml.kernels.shadow_rays`` (bit for bit: keep the two in step).
         """
         f32 = np.float32
         # (3, n) views: every op below is a contiguous column-wise ufunc, which releases the GIL;
@@ -407,7 +451,10 @@ class ExactBackend(VisibilityBackend):
 
     def occluded(self, origins: np.ndarray, targets: np.ndarray, *,
                  normals: np.ndarray | None = None, distant: np.ndarray | None = None) -> np.ndarray:
-        """``(N,) bool``: is each segment ``origins[i] → targets[i]`` blocked (see :class:`VisibilityBackend`)."""
+        """``(N,) bool``: is each segment ``origins[i] → targets[i]`` blocked (see :class:`VisibilityBackend`).
+
+        The rays are :meth:`shadow_rays`'s, computed chunk by chunk by the compiled
+        ``usdml.kernels.shadow_rays`` (the same float32 operations: the same rays, bit for bit)."""
         origins = as_vectors(origins, "origins", dtype=None)
         n = origins.shape[0]
         targets = as_vectors(targets, "targets", n, dtype=None)
@@ -417,26 +464,28 @@ class ExactBackend(VisibilityBackend):
         out = np.zeros(n, bool)
         if not groups or n == 0:
             return out
+        rays = _RayKernel(origins, targets, normals, distant, self.epsilon)
 
         def work(lo: int, hi: int) -> None:
-            o, d, tfar = self.shadow_rays(origins[lo:hi], targets[lo:hi],
-                                          None if normals is None else normals[lo:hi],
-                                          None if distant is None else distant[lo:hi])
-            live = np.flatnonzero(tfar > 0)     # a zero-length ray is never blocked: do not send it
-            if live.size == hi - lo:            # usual case: no gather needed for the first scene
-                o_l, d_l, t_l = o, d, tfar
-            else:
-                o_l, d_l, t_l = o[live], d[live], tfar[live]
-            for g in groups:
-                if not live.size:
+            o, d, tfar = rays(lo, hi)
+            live = None                         # None: every ray of the chunk
+            if not (tfar > 0).all():            # a zero-length ray is never blocked: do not send it
+                live = np.flatnonzero(tfar > 0)
+                o, d, tfar = o[live], d[live], tfar[live]
+            for k, g in enumerate(groups):
+                if live is not None and not live.size:
                     break
-                hit = g.scene.run(o_l, d_l, query="OCCLUDED", dists=t_l) != -1
-                out[lo + live[hit]] = True
-                # OR over scenes: only the rays still unblocked go on to the next scene
-                live, keep = live[~hit], ~hit
-                o_l, d_l, t_l = o_l[keep], d_l[keep], t_l[keep]
+                hit = g.scene.run(o, d, query="OCCLUDED", dists=tfar) != -1
+                if live is None:
+                    out[lo:hi] = hit
+                else:
+                    out[lo + live[hit]] = True
+                if k + 1 < len(groups):         # OR over scenes: the rays still unblocked go on
+                    keep = ~hit
+                    live = np.flatnonzero(keep) if live is None else live[keep]
+                    o, d, tfar = o[keep], d[keep], tfar[keep]
 
-        self._map_chunks(n, work)
+        self.map_chunks(n, work)
         return out
 
     # ------------------------------------------------------------------ closest hits
@@ -493,7 +542,7 @@ class ExactBackend(VisibilityBackend):
                 out["v"][rows] = r["v"][hit]
                 out["ng"][rows] = r["Ng"][hit]
 
-        self._map_chunks(n, work)
+        self.map_chunks(n, work)
         return out
 
     def source(self, geom: int) -> GeometrySource:
