@@ -217,6 +217,7 @@ def format_bench(results: list[dict]) -> str:
                      f"lights, facing pairs) in {r['seconds']:.2f} s = {r['queries_per_second'] / 1e6:.2f} M/s; "
                      f"build {r['build_seconds']:.2f} s; {100 * r['blocked_fraction']:.1f} % blocked"
                      + (f"; {r['bytes'] / 2**20:.0f} MiB" if r.get("bytes") else "")
+                     + (f"; {r['cpu_kernel']} kernel" if r.get("cpu_kernel") else "")
                      + (f"; bare embreex on the same rays {r['bare_embree_seconds']:.2f} s (exact "
                         f"{r['exact_overhead_vs_bare_embree']:.2f}x)"
                         if r["backend"] == "exact" and "bare_embree_seconds" in r else "")
