@@ -127,6 +127,22 @@ def light_scaling(data: dict) -> list[str]:
     return _table(["lights"] + [f"{n:,}" for n in counts], rows)
 
 
+def frame_speed(data: dict) -> list[str]:
+    """``tools/light_scaling.py --json`` at one light count: a frame's seconds and their split per backend."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]:
+            w, h = r["exact"]["resolution"]
+            for name in ("voxel", "exact"):
+                b = r[name]
+                rows.append([f"{_stage(r['stage'])} {w}×{h}, {r['lights']:,} lights", f"`{name}`",
+                             f"{b['seconds']:.2f}", f"{b['update_seconds']:.2f}", f"{b['gbuffer_seconds']:.2f}",
+                             f"{b['shading_seconds']:.2f}",
+                             f"{r['voxel_speedup_vs_exact']:.1f}×" if name == "voxel" else "1×"])
+    return _table(["frame", "backend", "seconds", "update", "G-buffer", "shading (queries and light sums)",
+                   "vs exact"], rows)
+
+
 def gi_lgh(data: dict) -> list[str]:
     """``tools/gi_table.py --json``: one row per run, its S0 settings side by side (S1 in brackets)."""
     rows = []
@@ -173,17 +189,32 @@ def anti_aliasing(data: dict) -> list[str]:
 
 
 def bench(data: dict) -> list[str]:
-    """``usdml bench --json``: the voxel backend's queries per second beside Embree's, same queries."""
+    """``usdml bench --json``: the voxel backend's queries per second beside Embree's (through the exact
+    backend, and bare embreex where the run measured it), same queries, and the CPU kernel answering."""
     rows = []
     for run in data["runs"]:
         for r in run["output"]:
             if r["backend"] == "exact":
                 continue
-            rows.append([_stage(r["stage"]), f"`{r['backend']}`",
+            bare = r.get("speedup_vs_bare_embree")
+            rows.append([_stage(r["stage"]), f"`{r['backend']}`" + (f" ({r['cpu_kernel']})" if r.get("cpu_kernel") else ""),
                          f"{r['voxel_resolution']}³ / {r['direction_step']:g}°" if "voxel_resolution" in r else "–",
                          _span(r["queries_per_second"], lambda v: f"{v / 1e6:.1f}") + " M",
-                         _span(r["speedup_vs_exact"], lambda v: f"{v:.2f}") + "×"])
-    return _table(["stage", "backend", "grid", "queries/s", "vs exact"], rows)
+                         _span(r["speedup_vs_exact"], lambda v: f"{v:.2f}") + "×",
+                         "–" if bare is None else f"{bare:.2f}×"])
+    return _table(["stage", "backend (kernel)", "grid", "queries/s", "vs exact", "vs bare embreex"], rows)
+
+
+def voxel_kernels(data: dict) -> list[str]:
+    """``tools/voxel_kernel_bench.py --json``: each voxel query kernel on one stage's bench rays."""
+    rows = []
+    for run in data["runs"]:
+        out = run["output"]
+        for r in out["rows"]:
+            rows.append([_stage(out["stage"]), f"`{r['kernel']}`", f"{r['ns_per_query_one_thread']:.1f}",
+                         f"{r['queries_per_second'] / 1e6:.1f} M ({r['threads']})",
+                         f"{100 * r['agreement_with_warp']:.4f} % ({r['differing_answers']:,} of {r['queries']:,} differ)"])
+    return _table(["stage", "kernel", "ns / query, one thread", "queries/s (threads)", "answers as the Warp kernel"], rows)
 
 
 def dome_error(data: dict) -> list[str]:
@@ -200,7 +231,8 @@ def dome_error(data: dict) -> list[str]:
 RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
-    "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error,
+    "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
+    "frame-speed": frame_speed,
 }
 
 
