@@ -18,7 +18,7 @@ EXPECTED = {
                  animatedPrototypes=0, deforming=0, lights=1024),
     "planes": dict(meshes=866, uniqueMeshes=19, triangles=1_048_108, prototypes=6, instances=294,
                    animatedPrototypes=1, deforming=0, lights=1024),
-    "creature": dict(meshes=2, uniqueMeshes=2, triangles=7168, prototypes=0, instances=0,
+    "creature": dict(meshes=2, uniqueMeshes=2, triangles=257_152, prototypes=0, instances=0,
                      animatedPrototypes=0, deforming=1, lights=1024),
     "cornell": dict(meshes=9, uniqueMeshes=9, triangles=1034, prototypes=0, instances=0,
                     animatedPrototypes=0, deforming=0, lights=2),

@@ -267,7 +267,10 @@ def clip_to_box(points: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: n
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     tri = points[triangles]
-    tlo, thi = tri.min(axis=1), tri.max(axis=1)
+    # element-wise min / max of the corners, as core_bounds (a (T, 3, 3) reduction along its middle
+    # axis is slower; the 254 k-triangle creature, all inside: 0.126 -> 0.088 s, the same output)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    tlo, thi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
     inside = np.all((tlo >= lo) & (thi <= hi), axis=1)
     outside = np.any((thi < lo) | (tlo > hi), axis=1)
     cross = ~inside & ~outside

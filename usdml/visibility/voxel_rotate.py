@@ -15,14 +15,14 @@ The reference voxelization
     creature and the park). A surface is then about one voxel thick from every side, so the rotated
     copies are thin in every direction. (Marking every voxel a surface touches, Alg. 1's rule with
     ``core`` 1, made surfaces up to three voxels thick and over-occluded grazing rays: park ε_v /
-    ε_s 31.7 / 27.9 % against 17.8 / 7.1 % now; creature 1.82 / 1.15 % against 1.80 / 1.11 %.)
+    ε_s 31.7 / 27.9 % against 17.8 / 7.1 % now; low-poly creature 1.82 / 1.15 % against 1.80 / 1.11 %.)
 
 Cost and error (measured: README "Deforming and fully dynamic scenes")
     Alg. 1 rasterizes every triangle in every direction, a cost of about the triangles times the
     directions; Alg. 5 voxelizes once and then moves only the occupied voxels, a cost of about the
     occupied voxels times the directions, whatever the triangle count. On a low-poly mesh Alg. 1
-    is therefore only a few times slower (creature, 3,968 triangles: 2.3×), on a detailed one far
-    slower (the same creature subdivided to 254 k triangles: 22×). The rotation reads ``V0``'s
+    is therefore only a few times slower (warp's 3,968-triangle bear: 2.3×), on a detailed one far
+    slower (the creature, that bear Loop-subdivided to 254 k triangles: 20–38×). The rotation reads ``V0``'s
     voxels row by row (a row's two table entries summed once) into directions memset just before.
 
     ``point`` mapping (the paper) sets the voxel holding each rotated voxel centre: the rotated
@@ -53,8 +53,8 @@ FIX_BITS = 16
 #: how a rotated voxel marks the target grid (module doc)
 MAPPINGS = VOXEL_MAPPINGS
 #: directions one CPU launch fills: its words stay in cache from the memset to the last bit set
-#: (measured, rotation of a frame at 128³ / 2° on both cores, 4 / 8 / 16 directions: creature 0.61 /
-#: 0.61 / 0.63 s, park 0.30 / 0.28 / 0.26 s; 128: creature 0.65 s)
+#: (measured, rotation of a frame at 128³ / 2° on both cores, 4 / 8 / 16 directions: low-poly creature
+#: 0.61 / 0.61 / 0.63 s, park 0.30 / 0.28 / 0.26 s; 128: creature 0.65 s)
 CPU_DIRECTIONS_PER_LAUNCH = 8
 
 
