@@ -33,7 +33,7 @@ typedef struct {
     const int32_t *arr_base;     /* per array: first word */
     const float *arr_inv_h;      /* per array: voxels per array-space unit */
     const float *fold;           /* per array, per bin: 12 floats, rows (F00 F01 F02 f0, ...): array space -> grid */
-    const float *static_fold;    /* per bin: the same for the static array from world space */
+    const float *world_fold[2];  /* per world-space array, per bin: the same from world space */
     const int32_t *row_start;    /* per row r = i n + j: offset of its words minus its first word index */
     const int32_t *row_span;     /* per row: first word | end word << 16 */
     int32_t wpd;                 /* words per direction */
@@ -42,8 +42,9 @@ typedef struct {
     int32_t n_rings;
     const int32_t *ring_count;
     const int32_t *ring_start;
-    int32_t static_array;        /* -1: none */
-    float static_inv[12];        /* world -> static array space, 3 x 4 */
+    int32_t n_world;             /* world-space arrays queried first, in SIMD: the static one, the per-frame one */
+    int32_t world_array[2];
+    float world_inv[2][12];      /* world -> that array's space, 3 x 4 */
     int32_t n_inst;
     const float *inst_inv;       /* per instance: world -> its array's space, 3 x 4 */
     const int32_t *inst_array;
@@ -257,12 +258,12 @@ static float shadow_scalar(const VQScene *s, const VQRule *r, const float p[3], 
                            int distant, int want_t) {
     float o[3], e[3], s0, s1;
     ray_setup(r, p, tg, nm, distant, o, e, &s0, &s1);
-    if (s->static_array >= 0) {
+    for (int w = 0; w < s->n_world; w++) {
         float pa[3], pb[3], da[3];
-        affine(s->static_inv, o, pa);
-        affine(s->static_inv, e, pb);
+        affine(s->world_inv[w], o, pa);
+        affine(s->world_inv[w], e, pb);
         for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
-        float t = array_hit(s, s->static_array, s->static_fold, o, e, da, s0, s1, r->seg, want_t);
+        float t = array_hit(s, s->world_array[w], s->world_fold[w], o, e, da, s0, s1, r->seg, want_t);
         if (t >= 0.0f) return t;
     }
     return instance_hits(s, o, e, s0, s1, r->seg, want_t);
@@ -654,6 +655,34 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
             }
         }
         flush(fn, s, r, nb, &b, res, rgb_b, who, radiance, blocked);
+    }
+}
+
+/* ---------------------------------------------------------------- Alg. 5, point mapping */
+
+/* directions d0 .. d1 - 1 of an array filled from the reference voxelization's occupied voxels by the
+ * rotation tables (kernels/voxel_rotate.py's rotate_voxels with the point mapping, the same integer
+ * arithmetic): row_ij / row_start / depth the voxels grouped by row, table (directions x 3 x n, 3)
+ * 16.16 fixed-point steps, rows (n^2, 3) each row's offset minus its first word, first and end stored
+ * voxel; each direction's words (wpd from out + base + d wpd) are cleared first */
+void vq_rotate_point(const int32_t *row_ij, const int32_t *row_start, const int32_t *depth, int32_t n_rows,
+                     const int32_t *table, int32_t n, int32_t d0, int32_t d1, const int32_t *rows, int32_t wpd,
+                     int64_t base, uint32_t *out) {
+    for (int d = d0; d < d1; d++) {
+        uint32_t *dir = out + base + (int64_t)d * wpd;
+        memset(dir, 0, sizeof(uint32_t) * (size_t)wpd);
+        const int32_t *t0 = table + (size_t)d * 9 * n, *t1 = t0 + 3 * n, *t2 = t1 + 3 * n;
+        for (int r = 0; r < n_rows; r++) {
+            int ij = row_ij[r], i = ij >> 10, j = ij & 1023;
+            int rx = t0[3 * i] + t1[3 * j], ry = t0[3 * i + 1] + t1[3 * j + 1], rz = t0[3 * i + 2] + t1[3 * j + 2];
+            for (int v = row_start[r]; v < row_start[r + 1]; v++) {
+                const int32_t *t = t2 + 3 * depth[v];
+                int iu = (rx + t[0]) >> 16, iv = (ry + t[1]) >> 16, il = (rz + t[2]) >> 16;
+                if (iu < 0 || iu >= n || iv < 0 || iv >= n) continue;
+                const int32_t *rw = rows + 3 * (iu * n + iv);
+                if (il >= rw[1] && il < rw[2]) dir[rw[0] + (il >> 5)] |= 1u << (il & 31);
+            }
+        }
     }
 }
 

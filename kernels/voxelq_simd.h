@@ -73,10 +73,10 @@ TARGET static inline VI SUFFIX(piece)(const VQScene *s, const SUFFIX(Group) *g, 
 
 /* stage 1: everything up to the first piece's word, which is prefetched (a prefetch retires at once;
  * a gather here would hold up the instructions behind it until its cache lines arrive) */
-TARGET static void SUFFIX(prepare)(const VQScene *s, SUFFIX(Group) *g, M live, const V o[3], const V e[3], V skip0,
-                                   V skip1, int seg_shift) {
-    int a = s->static_array, n = s->arr_n[a];
-    const float *A = s->static_inv;
+TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3], const V e[3],
+                                   V skip0, V skip1, int seg_shift) {
+    int a = s->world_array[world], n = s->arr_n[a];
+    const float *A = s->world_inv[world];
     V inv_h = SET(s->arr_inv_h[a]), fn = SET((float)n), zf = SET(0.0f);
     g->maxp = 0;
     g->n = n;
@@ -92,7 +92,7 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, SUFFIX(Group) *g, M live, c
      * blended into its lanes (neighbouring points' rays to one light mostly share one or two);
      * more are gathered lane by lane */
     V F[12];
-    const float *tab = s->static_fold;
+    const float *tab = s->world_fold[world];
     d = SELI(active, d, ISET(0));
     int lanes[W];
     ISTORE(lanes, d);
@@ -237,41 +237,52 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
     int seg_shift = __builtin_ctz((unsigned)r->seg);
     SUFFIX(Group) grp[GROUPS];
     V o[GROUPS][3], e[GROUPS][3], skip0[GROUPS], skip1[GROUPS];
+    M live[GROUPS];
     for (int i0 = 0; i0 < n; i0 += GROUPS * W) {
         int ng = (n - i0 + W - 1) / W;
         ng = ng < GROUPS ? ng : GROUPS;
+        float res[GROUPS][W];
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
-            M live = IGT(ISET(m), IOTA);
+            live[h] = IGT(ISET(m), IOTA);
             V c[9];
             if (b->stride == 3) {
-                LOAD_XYZ(b->c[0] + 3 * j0, m, live, c);
-                LOAD_XYZ(b->c[3] + 3 * j0, m, live, c + 3);
-                LOAD_XYZ(b->c[6] + 3 * j0, m, live, c + 6);
+                LOAD_XYZ(b->c[0] + 3 * j0, m, live[h], c);
+                LOAD_XYZ(b->c[3] + 3 * j0, m, live[h], c + 3);
+                LOAD_XYZ(b->c[6] + 3 * j0, m, live[h], c + 6);
             } else {
-                for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live);
+                for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live[h]);
             }
-            M dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live));
+            M dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live[h]));
             SUFFIX(setup)(r, c, dist, o[h], e[h], &skip0[h], &skip1[h]);
-            if (s->static_array >= 0) SUFFIX(prepare)(s, &grp[h], live, o[h], e[h], skip0[h], skip1[h], seg_shift);
-            else grp[h].maxp = 0;
+            STORE(res[h], SET(-1.0f));
+        }
+        /* the world-space arrays in turn (static, then per-frame), each for the lanes still free */
+        for (int w = 0; w < s->n_world; w++) {
+            for (int h = 0; h < ng; h++) SUFFIX(prepare)(s, w, &grp[h], live[h], o[h], e[h], skip0[h], skip1[h], seg_shift);
+            for (int h = 0; h < ng; h++) {
+                float part[W];
+                SUFFIX(finish)(s, &grp[h], want_t, part);
+                V pv = LOAD(part);
+                M hit = GE(pv, SET(0.0f));
+                STORE(res[h], SEL(hit, pv, LOAD(res[h])));
+                live[h] = MANDN(hit, live[h]);
+            }
         }
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
-            float res[W];
-            SUFFIX(finish)(s, &grp[h], want_t, res);
-            if (s->n_inst > 0) {
+            if (s->n_inst > 0 && MBITS(live[h])) {
                 float ob[3][W], eb[3][W], s0b[W], s1b[W];
                 for (int k = 0; k < 3; k++) { STORE(ob[k], o[h][k]); STORE(eb[k], e[h][k]); }
                 STORE(s0b, skip0[h]);
                 STORE(s1b, skip1[h]);
-                for (int l = 0; l < m; l++) {
-                    if (res[l] >= 0.0f) continue;
+                for (unsigned lb = MBITS(live[h]); lb; lb &= lb - 1) {
+                    int l = __builtin_ctz(lb);
                     float ol[3] = {ob[0][l], ob[1][l], ob[2][l]}, el[3] = {eb[0][l], eb[1][l], eb[2][l]};
-                    res[l] = instance_hits(s, ol, el, s0b[l], s1b[l], r->seg, want_t);
+                    res[h][l] = instance_hits(s, ol, el, s0b[l], s1b[l], r->seg, want_t);
                 }
             }
-            memcpy(out + j0, res, sizeof(float) * m);
+            memcpy(out + j0, res[h], sizeof(float) * m);
         }
     }
 }

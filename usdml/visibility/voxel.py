@@ -304,7 +304,7 @@ class VoxelBackend(VisibilityBackend):
             if self.rebuild == "rotate":
                 arr = rotate_array(points, triangles, self.resolution, self.step, mapping=self.mapping,
                                    device=self.device, workers=self.workers, bounds=bounds,
-                                   out=out, base=base, progress=prog, source=source)
+                                   out=out, base=base, progress=prog, source=source, native=self.native)
             else:
                 arr = build_array(points, triangles, self.resolution, self.step, device=self.device,
                                   workers=self.workers, progress=prog, source=source, bounds=bounds,
@@ -452,8 +452,10 @@ class VoxelBackend(VisibilityBackend):
         g["static"] = world_ids[0] if world_ids else -1
         if self.native:
             from usdml.visibility.voxel_native import NativeScene
-            self._native = NativeScene(g["words_np"], arrays, self.layout, self.bins, g["static"], *table,
-                                       isa=self.native_isa)
+            # the world-space arrays go to the kernel as such, not as identity-placed instances
+            skip = max(0, len(world_ids) - 1)
+            self._native = NativeScene(g["words_np"], arrays, self.layout, self.bins, world_ids,
+                                       *(x[skip:] for x in table), isa=self.native_isa)
         g["static_inv"] = wp.mat44(*(arrays[world_ids[0]].to_array if world_ids else np.eye(4)).astype(np.float32).ravel())
         self.reference_voxel = _reference_voxel(arrays, world_ids)
         self._scene = _scene_sphere(snapshot)

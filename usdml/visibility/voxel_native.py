@@ -15,8 +15,11 @@ What a machine gets
 
 Tables (built here from the backend's arrays, what ``kernels/voxel.py``'s ``VoxelScene`` holds)
     * ``fold``: per array and direction bin, the 3 x 4 map from array space to the bin's grid in voxels
-      (``frame · n / 2R`` and the cube's corner folded in); ``static_fold`` the same from world space
-      for the static array (its world -> array map folded in as well);
+      (``frame · n / 2R`` and the cube's corner folded in); ``world_fold`` the same from world space
+      for the world-space arrays (the static one and the per-frame one: their world -> array maps
+      folded in as well), which every ray meets first, in SIMD;
+    * the moving instances (Alg. 4) are the rest: rays the world-space arrays leave free are tested
+      against them one lane at a time;
     * ``row_start`` / ``row_span``: per row, the offset of its words minus its first word index, and its
       first and end word indices packed ``w0 | w1 << 16``;
     * the instances' world -> array maps (3 x 4) and a BVH over their world boxes (built in C).
@@ -32,7 +35,7 @@ import numpy as np
 
 from usdml.errors import UsdmlError
 
-__all__ = ["NativeScene", "library", "describe", "simd_width"]
+__all__ = ["NativeScene", "library", "describe", "rotate_point", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -41,10 +44,10 @@ _u = ctypes.POINTER(ctypes.c_uint32)
 
 class _Scene(ctypes.Structure):
     _fields_ = [("words", _u), ("arr_n", _i), ("arr_base", _i), ("arr_inv_h", _f), ("fold", _f),
-                ("static_fold", _f), ("row_start", _i), ("row_span", _i), ("wpd", ctypes.c_int32),
+                ("world_fold", _f * 2), ("row_start", _i), ("row_span", _i), ("wpd", ctypes.c_int32),
                 ("n_bins", ctypes.c_int32), ("d_theta", ctypes.c_float), ("n_rings", ctypes.c_int32),
-                ("ring_count", _i), ("ring_start", _i), ("static_array", ctypes.c_int32),
-                ("static_inv", ctypes.c_float * 12), ("n_inst", ctypes.c_int32), ("inst_inv", _f),
+                ("ring_count", _i), ("ring_start", _i), ("n_world", ctypes.c_int32),
+                ("world_array", ctypes.c_int32 * 2), ("world_inv", (ctypes.c_float * 12) * 2), ("n_inst", ctypes.c_int32), ("inst_inv", _f),
                 ("inst_array", _i), ("n_nodes", ctypes.c_int32), ("node_box", _f), ("node_kids", _i),
                 ("bvh_items", _i)]
 
@@ -77,6 +80,9 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
     lib.vq_shade.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), P, P, P,
                              ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, P, P, P]
     lib.vq_shade.restype = None
+    lib.vq_rotate_point.argtypes = [P, P, P, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, P,
+                                    ctypes.c_int32, ctypes.c_int64, P]
+    lib.vq_rotate_point.restype = None
     lib.vq_build_bvh.argtypes = [ctypes.c_int32, P, P, P, P, P]
     lib.vq_build_bvh.restype = ctypes.c_int32
     return lib, ""
@@ -111,6 +117,15 @@ def describe() -> str:
     return f"compiled kernel, {WIDTH_NAMES[w]} ({w} queries at a time)"
 
 
+def rotate_point(row_ij: np.ndarray, row_start: np.ndarray, depth: np.ndarray, table: np.ndarray, n: int, d0: int,
+                 d1: int, rows: np.ndarray, wpd: int, base: int, out: np.ndarray) -> None:
+    """Alg. 5 with the point mapping for directions ``d0 .. d1 - 1`` into ``out`` (uint32 words, from
+    word ``base``), as ``kernels.voxel_rotate.rotate_voxels`` does (its int32 inputs, C-contiguous)."""
+    library().vq_rotate_point(row_ij.ctypes.data, row_start.ctypes.data, depth.ctypes.data, len(row_ij),
+                              table.ctypes.data, int(n), int(d0), int(d1), rows.ctypes.data, int(wpd), int(base),
+                              out.ctypes.data)
+
+
 def _ptr(a: np.ndarray, kind):
     return a.ctypes.data_as(kind)
 
@@ -120,12 +135,13 @@ def _c(a, dtype) -> np.ndarray:
 
 
 class NativeScene:
-    """The tables the compiled kernel reads for one assembled set of arrays (module doc), queried
+    """The tables the compiled kernel reads for one assembled set of arrays (module doc): ``world``
+    the indices of the world-space arrays (at most two), the instances the moving prototypes', queried
     with instruction set ``isa`` (:data:`ISAS`). Holds every
     NumPy buffer it points into; rebuild it whenever the backend re-assembles (cheap: per array a
     few hundred KiB of maps; the words themselves are not copied)."""
 
-    def __init__(self, words: np.ndarray, arrays, layout, bins, static: int, inst_inv: np.ndarray,
+    def __init__(self, words: np.ndarray, arrays, layout, bins, world: list[int], inst_inv: np.ndarray,
                  inst_array: np.ndarray, inst_lo: np.ndarray, inst_hi: np.ndarray, isa: str = "auto"):
         lib = library()
         if lib is None:
@@ -151,14 +167,13 @@ class NativeScene:
         for a, ih in zip(arrays, inv_h32):
             folds.append(self._fold(frames, float(ih), np.asarray(a.center, np.float64), float(a.half)))
         fold = hold(_c(np.concatenate(folds) if folds else np.zeros((1, 12)), np.float32))
-        to_static = np.asarray(arrays[static].to_array if static >= 0 else np.eye(4), np.float64)
-        if static >= 0:
-            a = arrays[static]
-            sf = self._fold(frames, float(inv_h32[static]), np.asarray(a.center, np.float64), float(a.half),
-                            to_static)
-        else:
-            sf = np.zeros((1, 12))
-        static_fold = hold(_c(sf, np.float32))
+        if len(world) > 2:
+            raise ValueError("the compiled kernel takes at most two world-space arrays")
+        world_fold = []
+        for a_id in world:
+            a = arrays[a_id]
+            world_fold.append(hold(_c(self._fold(frames, float(inv_h32[a_id]), np.asarray(a.center, np.float64),
+                                                 float(a.half), np.asarray(a.to_array, np.float64)), np.float32)))
         w0 = np.asarray(layout.w0, np.int64)
         nw = np.asarray(layout.nw, np.int64)
         if len(w0) and (w0 + nw).max() >= 1 << 15:
@@ -181,12 +196,15 @@ class NativeScene:
         s = _Scene()
         s.words = _ptr(words, _u)
         s.arr_n, s.arr_base, s.arr_inv_h = _ptr(arr_n, _i), _ptr(arr_base, _i), _ptr(arr_inv_h, _f)
-        s.fold, s.static_fold = _ptr(fold, _f), _ptr(static_fold, _f)
+        s.fold = _ptr(fold, _f)
         s.row_start, s.row_span = _ptr(row_start, _i), _ptr(row_span, _i)
         s.wpd, s.n_bins, s.d_theta, s.n_rings = int(layout.words), n_bins, float(bins.d_theta), len(bins.ring_count)
         s.ring_count, s.ring_start = _ptr(ring_count, _i), _ptr(ring_start, _i)
-        s.static_array = int(static)
-        s.static_inv[:] = [float(x) for x in to_static[:3, :].astype(np.float32).ravel()]
+        s.n_world = len(world)
+        for i, a_id in enumerate(world):
+            s.world_array[i] = int(a_id)
+            s.world_inv[i][:] = [float(x) for x in np.asarray(arrays[a_id].to_array, np.float32)[:3, :].ravel()]
+            s.world_fold[i] = _ptr(world_fold[i], _f)
         s.n_inst, s.inst_inv, s.inst_array = k, _ptr(inv, _f), _ptr(ids, _i)
         s.n_nodes, s.node_box, s.node_kids, s.bvh_items = nodes, _ptr(box, _f), _ptr(kids, _i), _ptr(items, _i)
         self.scene = s

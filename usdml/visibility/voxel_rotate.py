@@ -101,13 +101,16 @@ class RotationTables:
 def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, step: float, *,
                  mapping: str = "point", device: str = "cpu", workers: int | None = None,
                  bounds=None, out=None, base: int = 0,
-                 progress: Callable[[int, int], None] | None = None, source: str = "") -> VoxelArray:
+                 progress: Callable[[int, int], None] | None = None, source: str = "",
+                 native: bool = False) -> VoxelArray:
     """Alg. 5: the array of ``(points, triangles)`` (array space) from one voxelization, rotated.
 
     ``out``: a Warp ``uint32`` array to fill in place from word ``base`` (the backend's assembled
     words, so a per-frame rebuild allocates and copies nothing); the returned array's ``words`` is
     then a view of it on CPU (empty on a GPU). Default: a new array. ``bounds``: as
-    :func:`usdml.visibility.voxel_array.build_array`.
+    :func:`usdml.visibility.voxel_array.build_array`. ``native``: on CPU with the point mapping, rotate
+    with the compiled kernel (``usdml.visibility.voxel_native.rotate_point``, the same integer rule)
+    instead of Warp's.
     """
     if mapping not in MAPPINGS:
         raise ValueError(f"voxel mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
@@ -140,8 +143,20 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
         n_chunks = -(-n_rows // chunk)
         conservative = int(mapping == "conservative")
         host = out.numpy() if dev.is_cpu else None
+        if native and host is not None and not conservative:
+            from usdml.visibility.voxel_native import rotate_point
 
-        def launch(d0, d1):
+            tab = np.ascontiguousarray(tables.table.reshape(-1, 3), np.int32)
+            rows = np.ascontiguousarray(g["rows"].numpy())
+            groups = [np.ascontiguousarray(a.numpy()) for a in (row_ij, row_start, depth)]
+
+            def launch(d0, d1):
+                rotate_point(*groups, tab, resolution, d0, d1, rows, wpd, int(base), host)
+                return d1 - d0
+        else:
+            launch = None
+
+        def warp_launch(d0, d1):
             if host is not None:
                 # memset this thread's directions just before it fills them (they stay in cache);
                 # the bits are then set without atomics (a thread owns its directions)
@@ -155,7 +170,7 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
         # CPU: a few directions per launch, so a launch's words (8 x 180 KiB at 128³ / 2°) stay in cache
         per = CPU_DIRECTIONS_PER_LAUNCH if dev.is_cpu else \
             max(1, min(n_dirs, (1 << 22) // max(len(occupied) * (8 if conservative else 1), 1)))
-        run_direction_chunks(n_dirs, per, launch, dev, workers, progress)
+        run_direction_chunks(n_dirs, per, launch or warp_launch, dev, workers, progress)
     words_np = host_words(out, words_np, base, n_dirs * wpd, dev)
     arr = VoxelArray(words_np, center, float(half), resolution, float(step), samples,
                      time.perf_counter() - t0, sample_seconds, source=source, occupied=int(len(occupied)))
