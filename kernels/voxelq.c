@@ -32,6 +32,7 @@ typedef struct {
     const int32_t *arr_n;        /* per array: resolution */
     const int32_t *arr_base;     /* per array: first word */
     const float *arr_inv_h;      /* per array: voxels per array-space unit */
+    const float *arr_sphere;     /* per array: centre xyz and radius (array space) of a sphere holding every voxel */
     const float *fold;           /* per array, per bin: 12 floats, rows (F00 F01 F02 f0, ...): array space -> grid */
     const float *world_fold[2];  /* per world-space array, per bin: the same from world space */
     const int32_t *row_start;    /* per row r = i n + j: offset of its words minus its first word index */

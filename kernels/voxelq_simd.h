@@ -87,6 +87,26 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
     V length = MUL(SQRT(FMA(da[0], da[0], FMA(da[1], da[1], MUL(da[2], da[2])))), inv_h);
     M active = MAND(live, MAND(GT(length, ADD(skip0, skip1)), GT(length, zf)));
     if (!MBITS(active)) return;
+    {
+        /* segments passing farther from the array's centre than its sphere cannot meet a voxel: they
+         * leave before the direction bin (the per-frame array of a small deforming mesh, most rays) */
+        const float *sp = s->arr_sphere + 4 * (size_t)a;
+        V q[3], dq = zf, dd = zf;
+        for (int i = 0; i < 3; i++) {
+            V pa = FMA(SET(A[4 * i]), o[0], FMA(SET(A[4 * i + 1]), o[1], FMA(SET(A[4 * i + 2]), o[2], SET(A[4 * i + 3]))));
+            q[i] = SUB(SET(sp[i]), pa);
+            dq = FMA(q[i], da[i], dq);
+            dd = FMA(da[i], da[i], dd);
+        }
+        V t = MIN(MAX(MUL(dq, RCP(dd)), zf), SET(1.0f));
+        V d2 = zf;
+        for (int i = 0; i < 3; i++) {
+            V x = SUB(q[i], MUL(da[i], t));
+            d2 = FMA(x, x, d2);
+        }
+        active = MAND(active, LE(d2, SET(sp[3] * sp[3])));
+        if (!MBITS(active)) return;
+    }
     VI d = SUFFIX(vbin)(s, da[0], da[1], da[2]);
     /* the bins' folded maps: each of up to DISTINCT_BINS bins the active lanes hold is loaded once and
      * blended into its lanes (neighbouring points' rays to one light mostly share one or two);

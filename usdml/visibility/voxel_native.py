@@ -43,7 +43,7 @@ _u = ctypes.POINTER(ctypes.c_uint32)
 
 
 class _Scene(ctypes.Structure):
-    _fields_ = [("words", _u), ("arr_n", _i), ("arr_base", _i), ("arr_inv_h", _f), ("fold", _f),
+    _fields_ = [("words", _u), ("arr_n", _i), ("arr_base", _i), ("arr_inv_h", _f), ("arr_sphere", _f), ("fold", _f),
                 ("world_fold", _f * 2), ("row_start", _i), ("row_span", _i), ("wpd", ctypes.c_int32),
                 ("n_bins", ctypes.c_int32), ("d_theta", ctypes.c_float), ("n_rings", ctypes.c_int32),
                 ("ring_count", _i), ("ring_start", _i), ("n_world", ctypes.c_int32),
@@ -163,6 +163,10 @@ class NativeScene:
         arr_base = hold(_c(base, np.int32))
         inv_h32 = [np.float32(a.resolution) / (np.float32(2.0) * np.float32(a.half)) for a in arrays] or [1.0]
         arr_inv_h = hold(_c(inv_h32, np.float32))
+        # every voxel lies within the geometry's bounding sphere (radius half / margin) plus a voxel's
+        # diagonal; a little more for float rounding
+        arr_sphere = hold(_c([[*np.asarray(a.center, np.float64), a.half * (1.0 + 2.0 * 3 ** 0.5 / a.resolution) * 1.001]
+                              for a in arrays] or [[0, 0, 0, 0]], np.float32))
         folds = []
         for a, ih in zip(arrays, inv_h32):
             folds.append(self._fold(frames, float(ih), np.asarray(a.center, np.float64), float(a.half)))
@@ -196,6 +200,7 @@ class NativeScene:
         s = _Scene()
         s.words = _ptr(words, _u)
         s.arr_n, s.arr_base, s.arr_inv_h = _ptr(arr_n, _i), _ptr(arr_base, _i), _ptr(arr_inv_h, _f)
+        s.arr_sphere = _ptr(arr_sphere, _f)
         s.fold = _ptr(fold, _f)
         s.row_start, s.row_span = _ptr(row_start, _i), _ptr(row_span, _i)
         s.wpd, s.n_bins, s.d_theta, s.n_rings = int(layout.words), n_bins, float(bins.d_theta), len(bins.ring_count)
