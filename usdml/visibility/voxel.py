@@ -29,7 +29,7 @@ Leaving the surface (self-occlusion) and its cost
     ``max_skip`` is 2 (``MAX_SKIP``): with one-voxel-thin surfaces a grazing ray needs less room to
     leave its own, and a longer skip lets it through nearby occluders. Measured ε_v / ε_s at 128³ /
     2° (128 px), max_skip 4 -> 2 (-> 1): city 1.99 / 1.25 -> 1.86 / 1.10 (-> 1.83 / 1.02), planes
-    2.43 / 1.53 -> 2.31 / 1.39, creature 1.80 / 1.11 -> 1.81 / 1.13, park 17.8 / 7.1 -> 17.5 / 6.9
+    2.43 / 1.53 -> 2.31 / 1.39, low-poly creature (3,968 triangles) 1.80 / 1.11 -> 1.81 / 1.13, park 17.8 / 7.1 -> 17.5 / 6.9
     (-> 18.7 / 7.8: its grazing ground rays start hidden). With Alg. 5's conservative mapping the
     per-frame surfaces are about two voxels thick and 2 is too short (park 29.9 / 25.1 -> 38.1 /
     34.9 %), so it keeps 4 (``CONSERVATIVE_MAX_SKIP``).
@@ -65,7 +65,7 @@ __all__ = ["VoxelBackend", "MAX_SKIP", "CONSERVATIVE_MAX_SKIP", "SHADE_TILE", "m
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
 REBUILDS = VOXEL_REBUILDS
 #: the voxelization rule (``voxel_array.CORE``) of per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
-#: (ε_v / ε_s, rebuild): creature 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
+#: (ε_v / ε_s, rebuild): low-poly creature (3,968 triangles) 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
 #: 29.0 %, 3.0 s; 0: 19.0 / 9.6 %, 1.6 s. (Alg. 5's reference voxelization has its own rule:
 #: voxel_rotate.)
 PER_FRAME_CORE = 0.0
