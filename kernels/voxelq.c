@@ -664,8 +664,9 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
 /* directions d0 .. d1 - 1 of an array filled from the reference voxelization's occupied voxels by the
  * rotation tables (kernels/voxel_rotate.py's rotate_voxels with the point mapping, the same integer
  * arithmetic): row_ij / row_start / depth the voxels grouped by row, table (directions x 3 x n, 3)
- * 16.16 fixed-point steps, rows (n^2, 3) each row's offset minus its first word, first and end stored
- * voxel; each direction's words (wpd from out + base + d wpd) are cleared first */
+ * 16.16 fixed-point steps, rows (n^2) each row's offset << 10 | first stored word << 5 | stored words
+ * (one int: 5.55 against 8.66 ns per voxel with three, the bear at 128^3 / 2 deg, one thread); each
+ * direction's words (wpd from out + base + d wpd) are cleared first */
 void vq_rotate_point(const int32_t *row_ij, const int32_t *row_start, const int32_t *depth, int32_t n_rows,
                      const int32_t *table, int32_t n, int32_t d0, int32_t d1, const int32_t *rows, int32_t wpd,
                      int64_t base, uint32_t *out) {
@@ -680,8 +681,8 @@ void vq_rotate_point(const int32_t *row_ij, const int32_t *row_start, const int3
                 const int32_t *t = t2 + 3 * depth[v];
                 int iu = (rx + t[0]) >> 16, iv = (ry + t[1]) >> 16, il = (rz + t[2]) >> 16;
                 if (iu < 0 || iu >= n || iv < 0 || iv >= n) continue;
-                const int32_t *rw = rows + 3 * (iu * n + iv);
-                if (il >= rw[1] && il < rw[2]) dir[rw[0] + (il >> 5)] |= 1u << (il & 31);
+                int pk = rows[iu * n + iv], k = (il >> 5) - ((pk >> 5) & 31);
+                if ((unsigned)k < (unsigned)(pk & 31)) dir[(pk >> 10) + k] |= 1u << (il & 31);
             }
         }
     }

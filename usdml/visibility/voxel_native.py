@@ -35,7 +35,7 @@ import numpy as np
 
 from usdml.errors import UsdmlError
 
-__all__ = ["NativeScene", "library", "describe", "rotate_point", "simd_width"]
+__all__ = ["NativeScene", "library", "describe", "packed_rows", "rotate_point", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -117,10 +117,20 @@ def describe() -> str:
     return f"compiled kernel, {WIDTH_NAMES[w]} ({w} queries at a time)"
 
 
+def packed_rows(layout) -> np.ndarray | None:
+    """``layout``'s rows as :func:`rotate_point` reads them, ``offset << 10 | w0 << 5 | nw`` (int32), or
+    None where they do not fit (offsets from 2^21 words, rows of more than 31 words)."""
+    off, w0, nw = (np.asarray(x, np.int64) for x in (layout.offset, layout.w0, layout.nw))
+    if len(off) == 0 or off.max() >= 1 << 21 or (w0 + nw).max() > 31:
+        return None
+    return np.ascontiguousarray((off << 10) | (w0 << 5) | nw, np.int32)
+
+
 def rotate_point(row_ij: np.ndarray, row_start: np.ndarray, depth: np.ndarray, table: np.ndarray, n: int, d0: int,
                  d1: int, rows: np.ndarray, wpd: int, base: int, out: np.ndarray) -> None:
     """Alg. 5 with the point mapping for directions ``d0 .. d1 - 1`` into ``out`` (uint32 words, from
-    word ``base``), as ``kernels.voxel_rotate.rotate_voxels`` does (its int32 inputs, C-contiguous)."""
+    word ``base``), as ``kernels.voxel_rotate.rotate_voxels`` does (its int32 inputs, C-contiguous;
+    ``rows`` from :func:`packed_rows`)."""
     library().vq_rotate_point(row_ij.ctypes.data, row_start.ctypes.data, depth.ctypes.data, len(row_ij),
                               table.ctypes.data, int(n), int(d0), int(d1), rows.ctypes.data, int(wpd), int(base),
                               out.ctypes.data)

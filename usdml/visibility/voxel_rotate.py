@@ -143,11 +143,13 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
         n_chunks = -(-n_rows // chunk)
         conservative = int(mapping == "conservative")
         host = out.numpy() if dev.is_cpu else None
+        rows = None
         if native and host is not None and not conservative:
-            from usdml.visibility.voxel_native import rotate_point
+            from usdml.visibility.voxel_native import packed_rows, rotate_point
 
+            rows = packed_rows(layout)
+        if rows is not None:
             tab = np.ascontiguousarray(tables.table.reshape(-1, 3), np.int32)
-            rows = np.ascontiguousarray(g["rows"].numpy())
             groups = [np.ascontiguousarray(a.numpy()) for a in (row_ij, row_start, depth)]
 
             def launch(d0, d1):
