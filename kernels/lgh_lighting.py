@@ -325,8 +325,9 @@ def cluster_targets(
     seed: int,
     first: int,                               # global index of this launch's first sample (RNG stream)
     reweight: int,                            # 1: weigh each sample by its member's own irradiance
-    points: wp.array(dtype=wp.vec3),          # (S,) the sample's shading point (reweight only)
-    normals: wp.array(dtype=wp.vec3),         # (S,) its shading normal
+    points: wp.array(dtype=wp.vec3),          # (P,) shading points (reweight only)
+    normals: wp.array(dtype=wp.vec3),         # (P,) their shading normals
+    pixel: wp.array(dtype=int),               # (S,) the sample's point
     blend_over_f: wp.array(dtype=float),      # (S,) chosen light's blending weight / its luminance (pick)
     intensity: wp.array(dtype=wp.vec3),       # (N,) input light intensities
     emit_normal: wp.array(dtype=wp.vec3),     # (N,) input light normals (0: isotropic)
@@ -346,6 +347,9 @@ def cluster_targets(
     (members that face away from the point or lie below its horizon weigh 0 and need no ray)."""
     t = wp.tid()
     v = lights[t]
+    if v < 0:                                 # no sample was chosen (out_weight keeps its 0)
+        out[t] = fallback[t]
+        return
     if v >= grid_lights:
         out[t] = positions[v - grid_lights]
         return
@@ -373,5 +377,6 @@ def cluster_targets(
         if lum <= wp.float64(0.0):
             out_weight[t] = wp.vec3(0.0, 0.0, 0.0)
             return
-        e = vpl_term(points[t], normals[t], positions[j], intensity[j], emit_normal[j], inv_m2, clamp_d2)
+        i = pixel[t]
+        e = vpl_term(points[i], normals[i], positions[j], intensity[j], emit_normal[j], inv_m2, clamp_d2)
         out_weight[t] = e * (blend_over_f[t] * float(total / lum))

@@ -51,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--visibility", default="exact", help="backend of the LGH's shadow rays (%(default)s)")
     p.add_argument("--reference-visibility", default="exact", help="backend of brute force (%(default)s)")
     p.add_argument("--reference", help="brute-force result to read (.npz), written first if missing")
+    p.add_argument("--check-rays", type=int, default=0, metavar="N",
+                   help="with --visibility other than exact: test N of each row's LGH shadow rays with exact too")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
@@ -75,10 +77,22 @@ def main(argv: list[str] | None = None) -> int:
     points, normals, albedo = (a.reshape(-1, 3)[hit] for a in (gb.position, gb.normal, gb.albedo))
     warm = warm_up()
 
-    def run(settings, visibility):
+    checked = []      # (rays, backend visible where exact is blocked, backend blocked where exact is visible)
+
+    def checking(occluded):
+        def both(origins, targets, normals=None):
+            got = occluded(origins, targets, normals=normals)
+            pick = np.random.default_rng(0).permutation(len(got))[:args.check_rays]
+            exact = renderer.exact.occluded(origins[pick], targets[pick], normals=normals[pick])
+            checked.append((len(pick), int((~got[pick] & exact).sum()), int((got[pick] & ~exact).sum())))
+            return got
+        return both
+
+    def run(settings, visibility, check=False):
+        occluded = backends[visibility].occluded
         t0 = time.perf_counter()
-        r = indirect_lighting(snap, renderer.exact, backends[visibility].occluded, lights, points, normals, albedo,
-                              settings, image=(gb.hit, gb.position))
+        r = indirect_lighting(snap, renderer.exact, checking(occluded) if check else occluded, lights, points, normals,
+                              albedo, settings, image=(gb.hit, gb.position))
         return r, time.perf_counter() - t0
 
     key = np.array([args.stage, f"{frame:g}", str(args.vpls), str(args.imageWidth), args.reference_visibility])
@@ -104,6 +118,15 @@ def main(argv: list[str] | None = None) -> int:
                                                for i in _ints(args.filter_iterations) for t in target_choices):
                 r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
                                         shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility)
+                rays_check = {}
+                if args.check_rays > 0 and args.visibility != "exact":     # after the timed run, on its rays
+                    checked.clear()
+                    run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
+                                     shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility,
+                        check=True)
+                    n_rays, wrongly_visible, wrongly_blocked = map(sum, zip(*checked))
+                    rays_check = {"checked_rays": n_rays, "wrongly_visible": wrongly_visible / max(n_rays, 1),
+                                  "wrongly_blocked": wrongly_blocked / max(n_rays, 1)}
                 rmse = float(np.sqrt(np.mean((r.radiance.astype(np.float64) - b) ** 2)))
                 split = {key: r.stats.get(key, 0.0) for key in
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
@@ -112,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                              "rel_rmse": rmse / mean if mean > 0 else 0.0,
                              "mean_ratio": float(r.radiance.mean()) / mean if mean > 0 else 0.0, "seconds": s,
                              "speedup": ref_s / s if s > 0 else float("inf"), **split,
-                             "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays")})
+                             "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays"),
+                             **rays_check})
     for name, backend in backends.items():
         if name != "exact":
             backend.close()
@@ -133,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['filter_iterations']} | "
               f"{100 * r['rel_rmse']:.1f} % ({r['mean_ratio']:.2f}) | "
               f"{r['seconds']:.3f} | {r['speedup']:.0f}× | {r['vpl_seconds']:.3f} | {r['lgh_seconds']:.3f} | "
-              f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |")
+              f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |"
+              + (f" rays against exact: {100 * r['wrongly_visible']:.1f} % wrongly visible, "
+                 f"{100 * r['wrongly_blocked']:.1f} % wrongly blocked of {r['checked_rays']:,}" if "checked_rays" in r
+                 else ""))
     return 0
 
 

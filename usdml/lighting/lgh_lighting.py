@@ -238,13 +238,15 @@ class ClusterSampler:
 
     def targets(self, lights: np.ndarray, fallback: np.ndarray, seed: int, points: np.ndarray | None = None,
                 normals: np.ndarray | None = None, blend: np.ndarray | None = None,
-                weight: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                weight: np.ndarray | None = None, pixel: np.ndarray | None = None
+                ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """``(S, 3)`` targets for chosen grid lights ``lights`` (S,), ``fallback`` where a group is empty.
 
         An index past the grid lights is an S0 pick (input light ``index - M``): its own position.
-        With ``reweight``: ``(targets, weights (S, 3))`` from the samples' shading ``points``, ``normals``
-        (S, 3), ``blend`` (S,) and ``weight`` (S, 3) (:class:`LGHShading`'s ``sample_blend`` and
-        ``sample_weight``; an S0 pick or an empty group keeps its ``weight``).
+        With ``reweight``: ``(targets, weights (S, 3))`` from the shading ``points`` and ``normals``
+        (P, 3), each sample's point index ``pixel`` (S,) int (default: sample i is point i), ``blend``
+        (S,) and ``weight`` (S, 3) (:class:`LGHShading`'s ``sample_blend`` and ``sample_weight``; an S0
+        pick or an empty group keeps its ``weight``).
         (Choosing the member by its geometry term at the shading point instead, by resampling 4–8
         luminance-drawn candidates, was measured on cornell: 11.5 → 11.0 % relative RMSE at 16 samples
         per pixel, 15.6 → 16.0 % at 4, for up to twice the shadow time; not kept.)
@@ -259,8 +261,11 @@ class ClusterSampler:
         reweight = self.reweight and points is not None
         out_w = np.ascontiguousarray(weight, np.float32).reshape(-1, 3).copy() if reweight \
             else np.zeros((1, 3), np.float32)
-        per_sample = (np.ascontiguousarray(points, np.float32), np.ascontiguousarray(normals, np.float32),
-                      np.ascontiguousarray(blend, np.float32)) if reweight else None
+        if reweight:
+            pixel = np.arange(len(lights), dtype=np.int32) if pixel is None else np.ascontiguousarray(pixel, np.int32)
+            per_sample = (np.ascontiguousarray(blend, np.float32), pixel)
+            shared = (wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu"),
+                      wp.array(np.ascontiguousarray(normals, np.float32), dtype=wp.vec3, device="cpu"))
         if self._device is None:   # on the CPU, beside the visibility backends' shadow rays
             cpu = lambda a, dtype: wp.array(a, dtype=dtype, device="cpu")   # noqa: E731
             self._device = dict(start=cpu(self.start.astype(np.int32), int), stop=cpu(self.stop.astype(np.int32), int),
@@ -273,15 +278,16 @@ class ClusterSampler:
             got = wp.empty(hi - lo, dtype=wp.vec3, device="cpu")
             part = slice(lo, hi) if reweight else slice(0, 1)
             w = wp.array(out_w[part], dtype=wp.vec3, device="cpu")
-            pts, nrm, bl = ((wp.array(per_sample[0][lo:hi], dtype=wp.vec3, device="cpu"),
-                             wp.array(per_sample[1][lo:hi], dtype=wp.vec3, device="cpu"),
-                             wp.array(per_sample[2][lo:hi], dtype=float, device="cpu")) if reweight else
-                            (w, w, wp.zeros(1, dtype=float, device="cpu")))
+            zero = wp.zeros(1, dtype=int, device="cpu")
+            pts, nrm, bl, px = ((shared[0], shared[1], wp.array(per_sample[0][lo:hi], dtype=float, device="cpu"),
+                                 wp.array(per_sample[1][lo:hi], dtype=int, device="cpu")) if reweight else
+                                (w, w, wp.zeros(1, dtype=float, device="cpu"), zero))
             wp.launch(cluster_targets, dim=hi - lo, device="cpu", inputs=[
                 wp.array(lights[lo:hi], dtype=int, device="cpu"),
                 wp.array(fallback[lo:hi], dtype=wp.vec3, device="cpu"),
                 d["start"], d["stop"], d["cum"], d["member"], d["positions"], int(self.grid_lights), int(seed), lo,
-                int(reweight), pts, nrm, bl, d["intensity"], d["normals"], float(self.inv_m2), float(self.clamp_d2)],
+                int(reweight), pts, nrm, px, bl, d["intensity"], d["normals"], float(self.inv_m2),
+                float(self.clamp_d2)],
                 outputs=[got, w])
             out[lo:hi] = got.numpy()
             if reweight:
@@ -309,37 +315,40 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
     if k == 0 or not shading.sample_ok.any():
         return np.ones(n, np.float32), shading.irradiance.astype(np.float32, copy=True), 0
     ok = shading.sample_ok.ravel()
-    rows = None if ok.all() else np.flatnonzero(ok)     # usually every sample was chosen: no gathers
+    weight = shading.sample_weight
+    reweight = (sampler is not None and sampler.reweight and shading.sample_light is not None
+                and shading.sample_blend is not None and weight is not None)
+    # usually every sample was chosen: no gathers; reweighing gives the others weight 0 (and no ray)
+    rows = None if reweight or ok.all() else np.flatnonzero(ok)
 
     def chosen_samples(a: np.ndarray) -> np.ndarray:    # (P, k, ...) -> (chosen samples, ...)
         a = a.reshape(n * k, *a.shape[2:])
         return a if rows is None else a[rows]
 
-    def per_sample(a: np.ndarray) -> np.ndarray:        # (P, ...) -> (chosen samples, ...)
-        return np.repeat(a, k, axis=0) if rows is None else a[rows // k]
-
+    # the point of each chosen sample (gathered once for the rays cast, not repeated k times)
+    pixel = (np.arange(n * k, dtype=np.int32) // np.int32(k)) if rows is None else (rows // k).astype(np.int32)
     targets = chosen_samples(shading.sample_pos)
-    origin = per_sample(points)
-    normal = per_sample(normals)
-    weight = shading.sample_weight
-    reweight = (sampler is not None and sampler.reweight and shading.sample_light is not None
-                and shading.sample_blend is not None and weight is not None)
+    cast = slice(None)
     if reweight:
-        targets, w = sampler.targets(chosen_samples(shading.sample_light), targets, seed, origin,
-                                     normal if shading_normals is None else per_sample(shading_normals),
-                                     chosen_samples(shading.sample_blend), chosen_samples(weight))
-        weight = np.zeros((n * k, 3), np.float32)
-        weight[slice(None) if rows is None else rows] = w
-        weight = weight.reshape(n, k, 3)
+        targets, w = sampler.targets(chosen_samples(shading.sample_light), targets, seed, points,
+                                     normals if shading_normals is None else shading_normals,
+                                     chosen_samples(shading.sample_blend), chosen_samples(weight), pixel=pixel)
+        weight = w.reshape(n, k, 3)
+        cast = np.flatnonzero(w.any(axis=1))            # weight 0 (or not chosen): no ray
+        targets = targets[cast]
+        cast_pixel = pixel[cast]
     elif sampler is not None and shading.sample_light is not None:
         targets = sampler.targets(chosen_samples(shading.sample_light), targets, seed)
+    if not reweight:
+        cast_pixel = pixel
     seen = np.zeros(n * k, np.float32)                  # 1 where a chosen sample is visible
-    cast = np.flatnonzero(w.any(axis=1)) if reweight else slice(None)   # weight 0: no ray
-    got = ~occluded(origin[cast], targets[cast], normals=normal[cast])
-    if rows is None:
+    got = ~occluded(points[cast_pixel], targets, normals=normals[cast_pixel])
+    if reweight:
         seen[cast] = got
+    elif rows is None:
+        seen[:] = got
     else:
-        seen[rows[cast]] = got
+        seen[rows] = got
     seen = seen.reshape(n, k)
     chosen = shading.sample_ok.sum(axis=1)
     per = np.float32(1.0) / np.maximum(chosen, 1).astype(np.float32)
