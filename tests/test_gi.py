@@ -137,3 +137,27 @@ def test_jittered_centres_over_occlude_against_cluster_targets(capsys):
         runs[targets] = json.loads(capsys.readouterr().out)
         assert runs[targets]["shadow_targets"] == targets
     assert runs["cluster"]["rel_rmse"] < runs["jitter"]["rel_rmse"]
+
+
+def test_gi_table_keeps_and_reuses_its_brute_force_pass(tmp_path, capsys, monkeypatch):
+    """``tools/gi_table.py --reference FILE``: the first run writes the brute-force result, a second reads
+    it back (same figures, no second pass) and refuses a file made for another setting; rows carry
+    their shadow-target choice and mean ratio to the reference."""
+    from conftest import ROOT
+
+    monkeypatch.syspath_prepend(str(ROOT / "tools"))
+    import gi_table
+    ref = tmp_path / "bf.npz"
+    args = [str(STAGES / "cornell.usda"), "--vpls", "300", "--imageWidth", "16", "--alphas", "2", "--samples", "4",
+            "--start-levels", "0", "--shadow-targets", "member,cluster", "--reference", str(ref), "--json"]
+    assert gi_table.main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert ref.exists()
+    assert gi_table.main(args) == 0
+    second = json.loads(capsys.readouterr().out)
+    assert second["bruteforce_seconds"] == first["bruteforce_seconds"]
+    assert [r["shadow_targets"] for r in second["rows"]] == ["member", "cluster"]
+    assert [r["rel_rmse"] for r in second["rows"]] == [r["rel_rmse"] for r in first["rows"]]
+    assert all(0 < r["mean_ratio"] < 2 for r in second["rows"])
+    with pytest.raises(SystemExit):
+        gi_table.main(args[:2] + ["400"] + args[3:])

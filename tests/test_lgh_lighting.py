@@ -39,8 +39,9 @@ def _one_level(positions, intensities, spacing=100.0):
         variance=np.zeros(m, np.float32), vertex=np.arange(m))])
 
 
-@pytest.mark.parametrize("samples", [2, 16])
-def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samples, device):
+@pytest.mark.parametrize("samples,stratified", [(2, False), (16, False), (2, True), (16, True)])
+def test_sampler_picks_lights_in_proportion_to_their_contribution(samples, stratified, device):
+    """Appendix A's streaming picks and the stratified second sweep draw light i with probability f_i / F."""
     rng = np.random.default_rng(1)
     lights = np.array([[0, 5, 0], [3, 4, 1], [-2, 6, 2], [1, 2, -3], [4, 9, 0]], np.float32)
     inten = rng.uniform(0.2, 3.0, (5, 3)).astype(np.float32)
@@ -48,7 +49,8 @@ def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samp
     points = np.zeros((n, 3), np.float32)
     normals = np.tile(np.float32([0, 1, 0]), (n, 1))
     lgh = _one_level(lights, inten)
-    out = lgh_lighting(points, normals, lgh, device=device, alpha=1.0, samples=samples, seed=3, clamp_distance=1e-3)
+    out = lgh_lighting(points, normals, lgh, device=device, alpha=1.0, samples=samples, seed=3, clamp_distance=1e-3,
+                       stratified=stratified)
     # analytic contributions f_i = lum(I_i) cos / d²
     d2 = (lights ** 2).sum(1)
     f = (inten @ LUMA) * (lights[:, 1] / np.sqrt(d2)) / d2
@@ -62,8 +64,45 @@ def test_streaming_sampler_picks_lights_in_proportion_to_their_contribution(samp
     chi2 = ((counts - exp) ** 2 / exp).sum()
     assert chi2 < 18.5            # chi-square, 4 degrees of freedom, p = 0.001
     # deterministic for a seed
-    again = lgh_lighting(points[:100], normals[:100], lgh, device=device, samples=samples, seed=3, clamp_distance=1e-3)
+    again = lgh_lighting(points[:100], normals[:100], lgh, device=device, samples=samples, seed=3, clamp_distance=1e-3,
+                         stratified=stratified)
     assert np.array_equal(again.sample_pos, out.sample_pos[:100])
+    if stratified:    # every pixel's k samples hold light i floor(k p_i) or ceil(k p_i) times
+        per_pixel = idx.reshape(n, samples)
+        for i in range(5):
+            got = (per_pixel == i).sum(axis=1)
+            share = samples * f[i] / f.sum()
+            assert got.min() >= np.floor(share) and got.max() <= np.ceil(share)
+
+
+def test_member_weights_leave_out_vpls_that_face_away(device):
+    """Two VPLs of one grid light above a floor point, one facing it and one facing up (it sends nothing
+    down) behind an occluder: weighing by luminance alone sees half the cluster blocked; weighing each
+    sample by its own VPL's irradiance (``reweight``) sees the light unshadowed and casts no ray to the
+    VPL facing away."""
+    from usdml.lighting.lgh_lighting import ClusterSampler, shadow_fraction
+
+    vpl = np.array([[-0.5, 5, 0], [0.5, 5, 0]], np.float32)
+    inten = np.ones((2, 3), np.float32)
+    emit = np.array([[0, -1, 0], [0, 1, 0]], np.float32)
+    lgh = _one_level([[0, 5, 0]], [[2, 2, 2]])
+    n = 500
+    pts = np.zeros((n, 3), np.float32)
+    nrm = np.tile(np.float32([0, 1, 0]), (n, 1))
+    shading = lgh_lighting(pts, nrm, lgh, device=device, samples=8, seed=2, clamp_distance=1e-3, jitter=False)
+    cast = []
+
+    def occluded(origins, targets, normals=None):
+        cast.append(len(targets))
+        return np.asarray(targets)[:, 0] > 0             # the VPL facing away is behind a wall
+
+    plain = ClusterSampler(lgh, vpl, inten, emit, clamp_distance=1e-3)
+    _, shadowed, rays = shadow_fraction(pts, nrm, shading, occluded, plain, seed=1)
+    assert rays == 8 * n and 0.3 < (shadowed / shading.irradiance).mean() < 0.7
+    own = ClusterSampler(lgh, vpl, inten, emit, reweight=True, clamp_distance=1e-3)
+    _, shadowed, rays = shadow_fraction(pts, nrm, shading, occluded, own, seed=1)
+    np.testing.assert_allclose(shadowed, shading.irradiance, rtol=1e-6)
+    assert rays == cast[-1] < 0.7 * 8 * n                # about half the samples drew the other VPL
 
 
 def test_lights_behind_the_surface_are_not_sampled(device):
@@ -159,7 +198,7 @@ def test_shadowed_estimate_is_unbiased_per_colour_channel(device):
 def test_filter_iterations_follow_the_samples():
     from usdml.lighting.lgh_lighting import filter_iterations_for
 
-    assert [filter_iterations_for(k) for k in (1, 4, 8, 16, 32, 64, 1024)] == [4, 3, 3, 2, 2, 1, 1]
+    assert [filter_iterations_for(k) for k in (1, 4, 8, 16, 32, 64, 1024)] == [4, 3, 3, 2, 2, 1, 0]
 
 
 def _blend_np(level, top, d, r):

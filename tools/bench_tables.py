@@ -156,7 +156,13 @@ def gi_lgh(data: dict) -> list[str]:
             err += f" (S1: {100 * s1[s0[0]['shadow_samples']]['rel_rmse']:.1f} %)"
         speed = " / ".join(f"{r['speedup']:.0f}×" for r in s0)
         w, h = out["resolution"]
-        rows.append([_stage(out["stage"]), f"{out['vpls']:,}", f"{w}×{h}", ks, err, speed])
+        stage = _stage(out["stage"])
+        alphas = {r["alpha"] for r in s0}
+        if alphas != {2.0}:
+            stage += ", α " + " / ".join(f"{x:g}" for x in sorted(alphas))
+        if out.get("visibility", "exact") != "exact":
+            stage += f", {out['visibility']} rays"
+        rows.append([stage, f"{out['vpls']:,}", f"{w}×{h}", ks, err, speed])
     return _table(["stage", "VPLs", "image", "k", "rel. RMSE of `indirect`", "speed-up over brute force"], rows)
 
 

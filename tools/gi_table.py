@@ -4,7 +4,8 @@
 Usage::
 
     python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--alphas 1,2]
-        [--samples 1,4] [--start-levels 1,0] [--filter-iterations -1] [--frame F] [--json]
+        [--samples 1,4] [--start-levels 1,0] [--filter-iterations -1] [--frame F]
+        [--visibility exact] [--reference-visibility exact] [--reference FILE.npz] [--json]
 
 The G-buffer and the VPLs (same seed) are made once; ``vpl-bruteforce`` (every VPL, exact
 visibility) runs once and every LGH setting is timed against it, so the table costs one brute-force
@@ -13,12 +14,19 @@ vpl-bruteforce`` reports for that setting: ``rel_rmse`` of ``indirect`` radiance
 see geometry (divided by the reference mean), the seconds of the whole indirect pass (VPLs, LGH
 construction, lighting, shadow rays, filter) and their split, and the speed-up. Warp's kernels are
 loaded before anything is timed.
+
+``--visibility`` is the backend of the LGH's shadow rays (voxel arrays are built, or read from the
+cache, before anything is timed), ``--reference-visibility`` that of brute force (exact, the
+reference). ``--reference FILE.npz`` keeps the brute-force radiance and its seconds: written on the
+first run, read on later runs with the same stage, frame, VPLs, width and visibility (checked), so
+that trying LGH settings does not repeat an expensive brute-force pass.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import replace
 
@@ -38,7 +46,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", default="1,4")
     p.add_argument("--start-levels", default="1,0")
     p.add_argument("--filter-iterations", default="-1", help="à-trous iterations to try (-1: by samples)")
+    p.add_argument("--shadow-targets", default=None, help="shadow-ray targets to try (default: the stage's)")
     p.add_argument("--frame", type=float)
+    p.add_argument("--visibility", default="exact", help="backend of the LGH's shadow rays (%(default)s)")
+    p.add_argument("--reference-visibility", default="exact", help="backend of brute force (%(default)s)")
+    p.add_argument("--reference", help="brute-force result to read (.npz), written first if missing")
+    p.add_argument("--check-rays", type=int, default=0, metavar="N",
+                   help="with --visibility other than exact: test N of each row's LGH shadow rays with exact too")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
 
@@ -47,54 +61,106 @@ def main(argv: list[str] | None = None) -> int:
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
 
+    from usdml.scene import diff
+    from usdml.visibility import make_backend
+
     delegate, frame, snap, renderer, lights = open_frame(args.stage, args.frame)
     width, height = snap.camera.resolution(args.imageWidth)
     base = delegate.usdml_settings.updated(vpl_count=args.vpls)
+    backends = {"exact": renderer.exact}
+    for name in {args.visibility, args.reference_visibility} - {"exact"}:
+        backends[name] = make_backend(name, base.updated(visibility=name), "cpu")
+        backends[name].update(snap, diff(None, snap))      # builds (or reads) its arrays: not timed
     snap = replace(snap, camera=conform_camera(snap.camera, width, height))
     gb = build_gbuffer(snap, renderer.exact, width, height)
     hit = gb.hit.ravel()
     points, normals, albedo = (a.reshape(-1, 3)[hit] for a in (gb.position, gb.normal, gb.albedo))
     warm = warm_up()
 
-    def run(settings):
+    checked = []      # (rays, backend visible where exact is blocked, backend blocked where exact is visible)
+
+    def checking(occluded):
+        def both(origins, targets, normals=None):
+            got = occluded(origins, targets, normals=normals)
+            pick = np.random.default_rng(0).permutation(len(got))[:args.check_rays]
+            exact = renderer.exact.occluded(origins[pick], targets[pick], normals=normals[pick])
+            checked.append((len(pick), int((~got[pick] & exact).sum()), int((got[pick] & ~exact).sum())))
+            return got
+        return both
+
+    def run(settings, visibility, check=False):
+        occluded = backends[visibility].occluded
         t0 = time.perf_counter()
-        r = indirect_lighting(snap, renderer.exact, renderer.exact.occluded, lights, points, normals, albedo,
-                              settings, image=(gb.hit, gb.position))
+        r = indirect_lighting(snap, renderer.exact, checking(occluded) if check else occluded, lights, points, normals,
+                              albedo, settings, image=(gb.hit, gb.position))
         return r, time.perf_counter() - t0
 
-    ref, ref_s = run(base.updated(gi="vpl-bruteforce"))
-    b = ref.radiance.astype(np.float64)
+    key = np.array([args.stage, f"{frame:g}", str(args.vpls), str(args.imageWidth), args.reference_visibility])
+    if args.reference and os.path.exists(args.reference):
+        with np.load(args.reference) as f:
+            if f["key"].tolist() != key.tolist():
+                raise SystemExit(f"{args.reference} holds {f['key'].tolist()}, not {key.tolist()}")
+            b, ref_s, ref_vpls = f["radiance"].astype(np.float64), float(f["seconds"]), int(f["vpls"])
+    else:
+        ref, ref_s = run(base.updated(gi="vpl-bruteforce"), args.reference_visibility)
+        b, ref_vpls = ref.radiance.astype(np.float64), int(ref.stats.get("vpls", 0))
+        if args.reference:
+            np.savez(args.reference, key=key, radiance=ref.radiance, seconds=ref_s, vpls=ref_vpls,
+                     shadow_rays=ref.stats.get("shadow_rays", 0))
+    if len(b) != len(points):
+        raise SystemExit(f"{args.reference} has {len(b)} pixels, this frame {len(points)}")
     mean = float(b.mean())
     rows = []
+    target_choices = args.shadow_targets.split(",") if args.shadow_targets else [base.shadow_targets]
     for alpha in map(float, args.alphas.split(",")):
         for k in _ints(args.samples):
-            for start, iterations in ((s, i) for s in _ints(args.start_levels) for i in _ints(args.filter_iterations)):
+            for start, iterations, targets in ((s, i, t) for s in _ints(args.start_levels)
+                                               for i in _ints(args.filter_iterations) for t in target_choices):
                 r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
-                                        shadow_filter_iterations=iterations))
+                                        shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility)
+                rays_check = {}
+                if args.check_rays > 0 and args.visibility != "exact":     # after the timed run, on its rays
+                    checked.clear()
+                    run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
+                                     shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility,
+                        check=True)
+                    n_rays, wrongly_visible, wrongly_blocked = map(sum, zip(*checked))
+                    rays_check = {"checked_rays": n_rays, "wrongly_visible": wrongly_visible / max(n_rays, 1),
+                                  "wrongly_blocked": wrongly_blocked / max(n_rays, 1)}
                 rmse = float(np.sqrt(np.mean((r.radiance.astype(np.float64) - b) ** 2)))
                 split = {key: r.stats.get(key, 0.0) for key in
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
-                rows.append({"alpha": alpha, "shadow_samples": k, "start_level": start,
+                rows.append({"alpha": alpha, "shadow_samples": k, "start_level": start, "shadow_targets": targets,
                              "filter_iterations": r.stats.get("filter_iterations"),
-                             "rel_rmse": rmse / mean if mean > 0 else 0.0, "seconds": s,
+                             "rel_rmse": rmse / mean if mean > 0 else 0.0,
+                             "mean_ratio": float(r.radiance.mean()) / mean if mean > 0 else 0.0, "seconds": s,
                              "speedup": ref_s / s if s > 0 else float("inf"), **split,
-                             "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays")})
+                             "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays"),
+                             **rays_check})
+    for name, backend in backends.items():
+        if name != "exact":
+            backend.close()
     renderer.close()
     result = {"stage": args.stage, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
-              "vpls": ref.stats.get("vpls", 0), "bruteforce_seconds": ref_s, "warmup_seconds": warm, "rows": rows}
+              "vpls": ref_vpls, "visibility": args.visibility, "reference_visibility": args.reference_visibility,
+              "bruteforce_seconds": ref_s, "warmup_seconds": warm, "rows": rows}
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
     print(f"{args.stage} frame {frame:g}, {width}x{height} ({result['pixels']:,} pixels), {result['vpls']:,} VPLs; "
-          f"vpl-bruteforce {ref_s:.2f} s")
-    print("| α | k | start | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays "
+          f"vpl-bruteforce ({args.reference_visibility}) {ref_s:.2f} s, LGH shadow rays {args.visibility}")
+    print("| α | k | start | targets | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays "
           "| filter |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {r['filter_iterations']} | "
-              f"{100 * r['rel_rmse']:.1f} % | "
+        print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {r['shadow_targets']} | "
+              f"{r['filter_iterations']} | "
+              f"{100 * r['rel_rmse']:.1f} % ({r['mean_ratio']:.2f}) | "
               f"{r['seconds']:.3f} | {r['speedup']:.0f}× | {r['vpl_seconds']:.3f} | {r['lgh_seconds']:.3f} | "
-              f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |")
+              f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |"
+              + (f" rays against exact: {100 * r['wrongly_visible']:.1f} % wrongly visible, "
+                 f"{100 * r['wrongly_blocked']:.1f} % wrongly blocked of {r['checked_rays']:,}" if "checked_rays" in r
+                 else ""))
     return 0
 
 

@@ -305,21 +305,24 @@ _ROWS = (
           the pixel and filtered before being used as shadow ratio estimators.'''),
     Param("shadow_filter_iterations", int, -1, "usdml:shadow:filterIterations", "--shadow-filter-iterations",
           "a-trous iterations over the stochastic shadows; 0 = unfiltered, -1 = by the samples (3 at 4 per "
-          "pixel, one fewer per 4x more, at least 1)", LIGHTING_COMMANDS,
-          source="paper 004, Sec. 3.3; -1: the best measured on cornell", range=Range(-1, 10), metavar="N",
+          "pixel, one fewer per 4x more, none from 256)", LIGHTING_COMMANDS,
+          source="paper 004, Sec. 3.3; -1: the best measured on cornell and city", range=Range(-1, 10), metavar="N",
           doc='''Iterations of the edge-avoiding a-trous filter applied to the stochastic shadows before they are used as shadow ratio estimators (paper 004, Sec. 3.3); 0 leaves them unfiltered, -1 picks by the shadow samples.
 
           Each iteration doubles the filter's reach (3 iterations: +-14 pixels).
           -1: 3 iterations at 4 samples per pixel, one fewer for every 4x more
-          samples, at least 1 (the best measured on cornell).'''),
-    Param("shadow_targets", str, "cluster", "usdml:shadow:targets", "--shadow-targets",
-          "LGH shadow rays to a VPL of the chosen grid light (cluster) or to its centre jittered by its "
-          "variance (jitter, as paper 004)", LIGHTING_COMMANDS, source="measured (usdml): jitter over-occludes",
-          choices=("cluster", "jitter"),
-          doc='''Where an LGH shadow ray goes: cluster (a VPL of the chosen grid light, drawn by luminance) or jitter (the grid light's centre jittered by its stored variance, as paper 004 does).
+          samples, none from 256 (the best measured on cornell and city).'''),
+    Param("shadow_targets", str, "member", "usdml:shadow:targets", "--shadow-targets",
+          "LGH shadow rays to a VPL of the chosen grid light, weighed by its own irradiance (member) or by "
+          "the grid light's (cluster), or to the grid light's centre jittered by its variance (jitter, as "
+          "paper 004)", LIGHTING_COMMANDS,
+          source="measured (usdml): jitter over-occludes; member beats cluster on cornell and city",
+          choices=("member", "cluster", "jitter"),
+          doc='''Where an LGH shadow ray goes and how it counts: member (a VPL of the chosen grid light, drawn by luminance, the sample weighed by that VPL's own irradiance at the pixel), cluster (the same VPL, weighed by the grid light's irradiance) or jitter (the grid light's centre jittered by its stored variance, as paper 004 does).
 
           Grid-light centres average surface points and often lie inside
-          geometry, so jittered targets over-occlude; cluster avoids that.'''),
+          geometry, so jittered targets over-occlude; cluster avoids that, and
+          member also leaves out the VPLs that face away from the pixel.'''),
 
     # -- sampling
     Param("dome_samples", int, 256, "usdml:dome:samples", "--dome-samples",
