@@ -276,18 +276,21 @@ typedef struct {
     const float *c[9];
     const int32_t *distant;
     int stride;
+    const double *d[3];          /* stride 3: float64 points / targets / normals in place of c[0], c[3], c[6] (NULL: float32) */
+    const uint8_t *distant8;     /* bool flags in place of distant (NULL: int32) */
 } SoA;
 
 static void batch_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, int want_t, float *out) {
     for (int i = 0; i < n; i++) {
         float p[3], t[3], nm[3];
-        for (int k = 0; k < 3; k++) {
-            int j = b->stride == 3 ? 3 * i + k : i, c = b->stride == 3 ? 0 : k;
-            p[k] = b->c[c][j];
-            t[k] = b->c[3 + c][j];
-            nm[k] = b->c[6 + c][j];
-        }
-        out[i] = shadow_scalar(s, r, p, t, nm, b->distant[i] != 0, want_t);
+        float *dst[3] = {p, t, nm};
+        for (int a = 0; a < 3; a++)
+            for (int k = 0; k < 3; k++) {
+                int j = b->stride == 3 ? 3 * i + k : i, c = b->stride == 3 ? 3 * a : 3 * a + k;
+                dst[a][k] = b->stride == 3 && b->d[a] ? (float)b->d[a][j] : b->c[c][j];
+            }
+        int dist = b->distant8 ? b->distant8[i] != 0 : b->distant[i] != 0;
+        out[i] = shadow_scalar(s, r, p, t, nm, dist, want_t);
     }
 }
 
@@ -597,15 +600,20 @@ int vq_simd_width(int32_t kernel) {
 
 /* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
  * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free.
+ * f64_mask bit a: input a (points, targets, normals) is float64; distant_u8: the flags are bytes (bool).
  * kernel: as pick(). */
-void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const float *pts, const float *tgt,
-              const float *nrm, const int32_t *distant, int32_t want_t, int32_t kernel, float *out) {
+void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const void *pts, const void *tgt,
+              const void *nrm, const void *distant, int32_t want_t, int32_t kernel, float *out, int32_t f64_mask,
+              int32_t distant_u8) {
     BatchFn fn = pick(kernel);
-    SoA b = {{NULL}, NULL, 3};
-    b.c[0] = pts + 3 * first;
-    b.c[3] = tgt + 3 * first;
-    b.c[6] = nrm + 3 * first;
-    b.distant = distant + first;
+    SoA b = {{NULL}, NULL, 3, {NULL}, NULL};
+    const void *src[3] = {pts, tgt, nrm};
+    for (int a = 0; a < 3; a++) {
+        if (f64_mask >> a & 1) b.d[a] = (const double *)src[a] + 3 * first;
+        else b.c[3 * a] = (const float *)src[a] + 3 * first;
+    }
+    if (distant_u8) b.distant8 = (const uint8_t *)distant + first;
+    else b.distant = (const int32_t *)distant + first;
     fn(s, r, (int)count, &b, want_t, out + first);
 }
 
@@ -624,7 +632,7 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
 #endif
     float buf[9][BATCH], rgb_b[3][BATCH], res[BATCH];
     int32_t dist_b[BATCH], who[BATCH];
-    SoA b = {{NULL}, dist_b, 1};
+    SoA b = {{NULL}, dist_b, 1, {NULL}, NULL};
     for (int k = 0; k < 9; k++) b.c[k] = buf[k];
     for (int64_t t = first_tile; t < first_tile + n_tiles; t++) {
         int64_t i0 = t * tile, i1 = i0 + tile < n_points ? i0 + tile : n_points;

@@ -267,13 +267,28 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
             live[h] = IGT(ISET(m), IOTA);
             V c[9];
             if (b->stride == 3) {
-                LOAD_XYZ(b->c[0] + 3 * j0, m, live[h], c);
-                LOAD_XYZ(b->c[3] + 3 * j0, m, live[h], c + 3);
-                LOAD_XYZ(b->c[6] + 3 * j0, m, live[h], c + 6);
+                for (int a = 0; a < 3; a++) {
+                    if (b->d[a]) {
+                        /* float64 input: this group's triples converted on the way in */
+                        float tmp[3 * W];
+                        const double *src = b->d[a] + 3 * j0;
+                        for (int q = 0; q < 3 * W; q++) tmp[q] = q < 3 * m ? (float)src[q] : 0.0f;
+                        LOAD_XYZ(tmp, W, live[h], c + 3 * a);
+                    } else {
+                        LOAD_XYZ(b->c[3 * a] + 3 * j0, m, live[h], c + 3 * a);
+                    }
+                }
             } else {
                 for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live[h]);
             }
-            M dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live[h]));
+            M dist;
+            if (b->distant8) {
+                int32_t tmp[W];
+                for (int q = 0; q < W; q++) tmp[q] = q < m ? b->distant8[j0 + q] : 0;
+                dist = INZ(ILOAD(tmp));
+            } else {
+                dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live[h]));
+            }
             SUFFIX(setup)(r, c, dist, o[h], e[h], &skip0[h], &skip1[h]);
             STORE(res[h], SET(-1.0f));
         }

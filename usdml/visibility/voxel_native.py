@@ -75,7 +75,7 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
     lib.vq_simd_width.argtypes = [ctypes.c_int32]
     lib.vq_simd_width.restype = ctypes.c_int
     lib.vq_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, P, P, P,
-                             P, ctypes.c_int32, ctypes.c_int32, P]
+                             P, ctypes.c_int32, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32]
     lib.vq_query.restype = None
     lib.vq_shade.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), P, P, P,
                              ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, P, P, P]
@@ -247,10 +247,18 @@ class NativeScene:
 
     def query(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
               normals: np.ndarray, distant: np.ndarray, want_t: bool, out: np.ndarray) -> None:
-        """``out[first:first + count]``: queries ``first ..`` of the (n, 3) float32 / (n,) int32 inputs."""
+        """``out[first:first + count]``: queries ``first ..`` of the C-contiguous (n, 3) float32 or float64
+        inputs and (n,) int32 or bool flags (read as they are: no conversion pass)."""
+        arrays = (origins, targets, normals)
+        for a in arrays:
+            if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
+                raise TypeError("query inputs must be C-contiguous float32 or float64")
+        if distant.dtype not in (np.int32, np.bool_) or not distant.flags.c_contiguous:
+            raise TypeError("distant flags must be C-contiguous int32 or bool")
+        f64 = sum(1 << i for i, a in enumerate(arrays) if a.dtype == np.float64)
         self.lib.vq_query(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count), origins.ctypes.data,
                           targets.ctypes.data, normals.ctypes.data, distant.ctypes.data, int(want_t), self.kernel,
-                          out.ctypes.data)
+                          out.ctypes.data, f64, int(distant.dtype == np.bool_))
 
     def lights(self, pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float):
         """The lights as the compiled shading's table (the arrays are held by the returned object)."""
