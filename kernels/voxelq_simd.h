@@ -332,7 +332,7 @@ TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLigh
     int32_t sdist[BATCH], swho[BATCH];
     float P[9][MAX_TILE + W], acc[3][MAX_TILE + W];
     int32_t fac[MAX_TILE + W];
-    SoA b = {{NULL}, sdist, 1};
+    SoA b = {{NULL}, sdist, 1, {NULL}, NULL};
     for (int k = 0; k < 9; k++) b.c[k] = sbuf[k];
     V zf = SET(0.0f);
     for (int64_t t = first_tile; t < first_tile + n_tiles; t++) {

@@ -775,3 +775,4 @@ class VoxelBackend(VisibilityBackend):
 
     def close(self) -> None:
         self._gpu = {}
+        self._native = None
