@@ -136,43 +136,41 @@ def rotate_array(points: np.ndarray, triangles: np.ndarray, resolution: int, ste
     elif not dev.is_cpu or len(occupied) == 0:
         clear_words(out, base, n_dirs * wpd, dev)     # on CPU the launches clear their own directions
     if len(occupied):
-        g = _device_tables(tables, layout, dev)
-        row_ij, row_start, depth = (wp.array(a, dtype=wp.int32, device=dev) for a in row_groups(occupied))
-        n_rows = row_ij.shape[0]
-        chunk = n_rows if dev.is_cpu else 64
-        n_chunks = -(-n_rows // chunk)
+        groups = [np.ascontiguousarray(a, np.int32) for a in row_groups(occupied)]
         conservative = int(mapping == "conservative")
         host = out.numpy() if dev.is_cpu else None
         rows = None
         if native and host is not None and not conservative:
             from usdml.visibility.voxel_native import packed_rows, rotate_point
 
-            rows = packed_rows(layout)
+            rows = packed_rows(layout)      # None where the layout does not fit: Warp's kernel then
         if rows is not None:
             tab = np.ascontiguousarray(tables.table.reshape(-1, 3), np.int32)
-            groups = [np.ascontiguousarray(a.numpy()) for a in (row_ij, row_start, depth)]
 
             def launch(d0, d1):
                 rotate_point(*groups, tab, resolution, d0, d1, rows, wpd, int(base), host)
                 return d1 - d0
         else:
-            launch = None
+            g = _device_tables(tables, layout, dev)
+            row_ij, row_start, depth = (wp.array(a, dtype=wp.int32, device=dev) for a in groups)
+            chunk = len(groups[0]) if dev.is_cpu else 64
+            n_chunks = -(-len(groups[0]) // chunk)
 
-        def warp_launch(d0, d1):
-            if host is not None:
-                # memset this thread's directions just before it fills them (they stay in cache);
-                # the bits are then set without atomics (a thread owns its directions)
-                host[base + d0 * wpd:base + d1 * wpd] = 0
-            wp.launch(kr.rotate_voxels, dim=(d1 - d0, n_chunks), device=dev,
-                      inputs=[row_ij, row_start, depth, g["table"], g["inv_axes"], g["reach"], g["radius"],
-                              resolution, conservative, d0, chunk, g["rows"], wpd, int(base),
-                              int(host is None), out])
-            return d1 - d0
+            def launch(d0, d1):
+                if host is not None:
+                    # memset this thread's directions just before it fills them (they stay in cache);
+                    # the bits are then set without atomics (a thread owns its directions)
+                    host[base + d0 * wpd:base + d1 * wpd] = 0
+                wp.launch(kr.rotate_voxels, dim=(d1 - d0, n_chunks), device=dev,
+                          inputs=[row_ij, row_start, depth, g["table"], g["inv_axes"], g["reach"], g["radius"],
+                                  resolution, conservative, d0, chunk, g["rows"], wpd, int(base),
+                                  int(host is None), out])
+                return d1 - d0
 
         # CPU: a few directions per launch, so a launch's words (8 x 180 KiB at 128³ / 2°) stay in cache
         per = CPU_DIRECTIONS_PER_LAUNCH if dev.is_cpu else \
             max(1, min(n_dirs, (1 << 22) // max(len(occupied) * (8 if conservative else 1), 1)))
-        run_direction_chunks(n_dirs, per, launch or warp_launch, dev, workers, progress)
+        run_direction_chunks(n_dirs, per, launch, dev, workers, progress)
     words_np = host_words(out, words_np, base, n_dirs * wpd, dev)
     arr = VoxelArray(words_np, center, float(half), resolution, float(step), samples,
                      time.perf_counter() - t0, sample_seconds, source=source, occupied=int(len(occupied)))
