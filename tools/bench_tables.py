@@ -204,7 +204,8 @@ def bench(data: dict) -> list[str]:
                 continue
             bare = r.get("speedup_vs_bare_embree")
             rows.append([_stage(r["stage"]), f"`{r['backend']}`" + (f" ({r['cpu_kernel']})" if r.get("cpu_kernel") else ""),
-                         f"{r['voxel_resolution']}³ / {r['direction_step']:g}°" if "voxel_resolution" in r else "–",
+                         f"{r['voxel_resolution']}³ / {r['direction_step']:g}°" if "voxel_resolution" in r else
+                         f"{r['svo_resolution']}³ octree" if "svo_resolution" in r else "–",
                          _span(r["queries_per_second"], lambda v: f"{v / 1e6:.1f}") + " M",
                          _span(r["speedup_vs_exact"], lambda v: f"{v:.2f}") + "×",
                          "–" if bare is None else f"{bare:.2f}×"])
@@ -212,7 +213,7 @@ def bench(data: dict) -> list[str]:
 
 
 def voxel_kernels(data: dict) -> list[str]:
-    """``tools/voxel_kernel_bench.py --json``: each voxel query kernel on one stage's bench rays."""
+    """``tools/voxel_kernel_bench.py --json``: each query kernel (voxel, or SVO) on one stage's bench rays."""
     rows = []
     for run in data["runs"]:
         out = run["output"]
@@ -221,6 +222,35 @@ def voxel_kernels(data: dict) -> list[str]:
                          f"{r['queries_per_second'] / 1e6:.1f} M ({r['threads']})",
                          f"{100 * r['agreement_with_warp']:.4f} % ({r['differing_answers']:,} of {r['queries']:,} differ)"])
     return _table(["stage", "kernel", "ns / query, one thread", "queries/s (threads)", "answers as the Warp kernel"], rows)
+
+
+def svo_rows(data: dict) -> list[str]:
+    """``usdml compare --visibility svo --json``: one row per stage and resolution."""
+    rows = []
+    for run in data["runs"]:
+        r = run["output"]
+        build = r.get("tree_build_seconds") or 0.0
+        rows.append([_stage(r["stage"]), f"{r['svo_resolution']}³", _pct(r["eps_v"]), _pct(r["eps_s"]),
+                     f"{100 * r['wrongly_hidden']:.2f} ({100 * r['wrongly_hidden_near']:.2f} near) / "
+                     f"{100 * r['wrongly_visible']:.2f}",
+                     f"{r['bytes'] / 2 ** 20:.2f} MiB", f"{r['occupied_voxels']:,}",
+                     f"{build:.2f}" if build else "cached", f"{r['speedup']:.2f}×"])
+    return _table(["stage", "grid", "ε_v", "ε_s", "hidden (near) / visible, % pairs", "tree bytes", "voxels",
+                   "static build s", "queries vs exact"], rows)
+
+
+def svo_rebuild(data: dict) -> list[str]:
+    """``usdml bench --visibility exact --visibility svo --json``: the per-frame tree's rebuild."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]:
+            if r["backend"] != "svo":
+                continue
+            rows.append([_stage(r["stage"]), f"{r['svo_resolution']}³", f"{r['rebuild_triangles']:,}",
+                         f"{r['occupied_voxels']:,}", f"{r['voxelize_seconds']:.3f}", f"{r['rebuild_seconds']:.3f}",
+                         f"{r['speedup_vs_exact']:.2f}×"])
+    return _table(["stage", "grid", "triangles per frame", "voxels (per-frame tree)", "voxelize s", "rebuild s",
+                   "queries vs exact"], rows)
 
 
 def dome_error(data: dict) -> list[str]:
@@ -238,7 +268,7 @@ RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
-    "frame-speed": frame_speed,
+    "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
 }
 
 

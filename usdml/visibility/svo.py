@@ -5,10 +5,11 @@ Trees
       flattened into world space: one tree, built once (or loaded from the cache).
     * **per frame**: deforming meshes and the instances of moving prototypes, flattened into world
       space and voxelized again on frames where one of them changed (report ``dynamic_seconds``;
-      ``usdml bench`` reports ``per_frame_rebuild_seconds``). Its grid lies on the static tree's
-      lattice (same voxel size, voxel corners) when its geometry fits in ``2^depth`` of those voxels,
-      so geometry voxelizes to the same bits in either tree: a stage's instances answer as its
-      flattened copy does.
+      ``usdml bench`` reports ``per_frame_rebuild_seconds``). Its grid is ``resolution`` voxels over
+      its own geometry, or the static tree's lattice (same voxel size, voxel corners) where that is
+      as fine, so that moving geometry is voxelized no coarser than the scene (a creature on a
+      large ground gets voxels of its own size, not the ground's). Instances and their flattened
+      copies voxelize to the same bits, in the static tree or in the per-frame one.
 
     A query walks the static tree, then the per-frame one; the first occupied voxel ends it. One
     tree (grid, voxelization, octree, cache) is :mod:`usdml.visibility.svo_tree`; the kernels are
@@ -47,7 +48,7 @@ from usdml.scene import Changes, Snapshot, world_geometry
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
                                    members_changed, scene_sphere, static_members)
 from usdml.visibility.svo_tree import (MAX_DEPTH, MIN_DEPTH, SvoTree, aligned_grid, build_tree, cached_tree,
-                                       svo_bounds, svo_kernels, top_table)
+                                       grid_for, svo_bounds, svo_kernels, top_table)
 from usdml.visibility.voxel_array import warp_module
 
 log = logging.getLogger("usdml")
@@ -200,11 +201,13 @@ class SvoBackend(VisibilityBackend):
         if not len(tris):
             return None
         t0 = time.perf_counter()
-        grid, depth = None, self.depth
+        bounds = svo_bounds(pts, tris)
+        grid, depth = grid_for(pts, tris, self.depth, bounds)[:2], self.depth
         ref = self._static[1] if self._static is not None else None
-        if ref is not None:
-            got = aligned_grid(pts, tris, ref.lo, ref.h, MAX_DEPTH)
-            if got is not None and got[2] <= self.depth + 1:
+        if ref is not None and ref.h <= grid[1]:
+            # the static lattice where it is as fine as a grid of the geometry's own (module doc)
+            got = aligned_grid(pts, tris, ref.lo, ref.h, self.depth, bounds)
+            if got is not None:
                 grid, depth = got[:2], got[2]
         tree = build_tree(pts, tris, depth, device=self.device, workers=self.workers, grid=grid,
                           source="moving and deforming geometry")

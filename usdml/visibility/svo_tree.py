@@ -156,10 +156,12 @@ def svo_bounds(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     return lo, hi, outside
 
 
-def grid_for(points: np.ndarray, triangles: np.ndarray, depth: int) -> tuple[np.ndarray, float, int]:
+def grid_for(points: np.ndarray, triangles: np.ndarray, depth: int, bounds: tuple | None = None
+             ) -> tuple[np.ndarray, float, int]:
     """The cube of a tree over ``(points, triangles)`` at ``2^depth`` voxels: corner, voxel size and
-    how many triangles reach outside it (they voxelize only inside)."""
-    lo, hi, outside = svo_bounds(points, triangles)
+    how many triangles reach outside it (they voxelize only inside); ``bounds``: :func:`svo_bounds`
+    already computed."""
+    lo, hi, outside = bounds if bounds is not None else svo_bounds(points, triangles)
     n = 1 << depth
     side = float(np.max(hi - lo))
     side = max(side, 1e-6 * max(1.0, float(np.abs(lo).max(initial=0.0))))
@@ -169,12 +171,12 @@ def grid_for(points: np.ndarray, triangles: np.ndarray, depth: int) -> tuple[np.
 
 
 def aligned_grid(points: np.ndarray, triangles: np.ndarray, ref_lo: np.ndarray, ref_h: float,
-                 max_depth: int) -> tuple[np.ndarray, float, int]:
+                 max_depth: int, bounds: tuple | None = None) -> tuple[np.ndarray, float, int]:
     """A per-frame tree's grid on the static tree's lattice (corner a whole number of voxels from
     ``ref_lo``, voxel ``ref_h``): ``(lo, h, depth)`` with the smallest depth >= ``MIN_DEPTH`` whose cube
     holds the geometry's core bounds; None when even ``max_depth`` is too small (the caller then
-    sizes a grid of its own)."""
-    lo, hi, _ = svo_bounds(points, triangles)
+    sizes a grid of its own); ``bounds``: :func:`svo_bounds` already computed."""
+    lo, hi, _ = bounds if bounds is not None else svo_bounds(points, triangles)
     i0 = np.floor((lo - ref_lo) / ref_h) - 1
     i1 = np.ceil((hi - ref_lo) / ref_h) + 1
     need = float(np.max(i1 - i0))
