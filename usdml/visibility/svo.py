@@ -201,7 +201,7 @@ class SvoBackend(VisibilityBackend):
         if not len(tris):
             return None
         t0 = time.perf_counter()
-        bounds = svo_bounds(pts, tris)
+        bounds = svo_bounds(pts, tris, trim=False)
         grid, depth = grid_for(pts, tris, self.depth, bounds)[:2], self.depth
         ref = self._static[1] if self._static is not None else None
         if ref is not None and ref.h <= grid[1]:

@@ -144,9 +144,14 @@ def top_table(nodes: np.ndarray, depth: int) -> np.ndarray:
 TRIM_RATIO = 4.0
 
 
-def svo_bounds(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def svo_bounds(points: np.ndarray, triangles: np.ndarray, trim: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
     """The box a tree covers: every triangle's, or :func:`core_bounds` where those are ``TRIM_RATIO``
-    times smaller; and how many triangles reach outside it."""
+    times smaller; and how many triangles reach outside it. ``trim=False``: every point's box, no
+    quantiles (moving geometry: a ground to the horizon is static; 50 ms less on a 254 k-triangle
+    creature's per-frame rebuild)."""
+    if not trim:
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        return p.min(0), p.max(0), 0
     lo, hi, outside = core_bounds(points, triangles)
     if outside:
         used = np.asarray(points, np.float64).reshape(-1, 3)[np.unique(np.asarray(triangles).ravel())]
