@@ -34,7 +34,7 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     """Render ``frame`` with ``gi`` and with ``against``; JSON-able result (see the module doc)."""
     for name in (gi, against):
         if name == "none":
-            raise UsdmlError("--gi and --against must name a global illumination method (lgh, vpl-bruteforce)")
+            raise UsdmlError("--gi and --against must name a global illumination method (lgh, svo, vpl-bruteforce)")
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     base = delegate.usdml_settings.updated(**(overrides or {}))

@@ -256,10 +256,12 @@ _ROWS = (
 
     # -- global illumination (paper 004)
     Param("gi", str, "none", "usdml:gi", "--gi",
-          "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), or every VPL with exact "
-          "visibility (vpl-bruteforce, the reference)", LIGHTING_COMMANDS,
-          choices=("none", "lgh", "vpl-bruteforce"), label="global illumination", source="off unless asked for",
-          doc='''Global illumination: none, lgh (VPLs through a lighting grid hierarchy, paper 004) or vpl-bruteforce (every VPL with exact visibility, the reference).
+          "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "
+          "per pixel in 4x4 interleaved tiles with SVO shadow rays, filtered (svo, paper 003), or every VPL "
+          "with exact visibility (vpl-bruteforce, the reference)", LIGHTING_COMMANDS,
+          choices=("none", "lgh", "svo", "vpl-bruteforce"), label="global illumination",
+          source="off unless asked for",
+          doc='''Global illumination: none, lgh (VPLs through a lighting grid hierarchy, paper 004), svo (each pixel of a 4x4 interleaved tile gathers a sixteenth of the VPLs with sparse voxel octree shadow rays, then a geometry-aware filter, paper 003) or vpl-bruteforce (every VPL with exact visibility, the reference).
 
           Indirect light lands in the indirect AOV and is added to color.'''),
     Param("vpl_count", int, 100_000, "usdml:vpl:count", "--vpls", "virtual point lights per frame",
