@@ -1,6 +1,7 @@
 """``--gi svo`` (paper 003): interleaved VPL subsets, the clamped geometry term, the tile filter, the
 light-path VPLs as an RSM, and the pass end to end against ``vpl-bruteforce``."""
 
+import json
 import math
 from dataclasses import replace
 
@@ -247,3 +248,21 @@ def test_frame_renderer_owns_the_gi_backend(monkeypatch):
     r2 = FrameRenderer(d, replace(settings, gi="lgh"))
     assert r2.gi_backend is None
     r2.close()
+
+
+def test_svo_gi_table_tool_and_its_table(capsys):
+    import sys
+
+    from conftest import ROOT
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    import bench_tables
+    import svo_gi_table
+
+    assert svo_gi_table.main([str(STAGES / "cornell.usda"), "--vpls", "64", "--imageWidth", "16",
+                              "--stage-width", "16", "--ray-backends", "exact", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    row = out["rows"][0]
+    assert row["vpls"] == 64 and row["rays"]["exact"]["shadow_rays"] > 0 and row["stages"]["gather"] > 0
+    lines = bench_tables.gi_svo({"runs": [{"command": "c", "source": "s", "output": out}]})
+    assert any("| 64 | 16×9 | `exact` |" in line for line in lines) and any("16 / 33 / 69" in line for line in lines)
