@@ -106,6 +106,9 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
     if settings.gi == "svo":
         from usdml.lighting.interleaved import svo_indirect
 
+        if image is None:
+            raise ValueError("--gi svo gathers over the image's 4x4 tiles: pass image=(hit, positions)")
+
         radiance, s = svo_indirect(points, normals, albedo, vpls, occluded, clamp, image,
                                    meters_per_unit=snap.meters_per_unit, geometric=geometric)
         stats.update(s)
