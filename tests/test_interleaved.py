@@ -56,6 +56,34 @@ def test_each_pixel_gathers_its_tile_subset_times_sixteen():
     assert not np.allclose(got.mean(axis=0) / 16.0, full, rtol=0.5)           # without the 16x it is far off
 
 
+def test_targets_are_lifted_off_their_surface_by_the_backends_voxels():
+    """The rays go to each VPL moved target_lift along its normal; target_lift is one of the backend's
+    voxels (describe()["voxel_size"]), none for exact."""
+    rng = np.random.default_rng(5)
+    vpls = _random_vpls(rng, 32)
+    asked = []
+
+    def occluded(origins, targets, normals=None, distant=None):
+        asked.append((origins, targets, normals))
+        return np.zeros(len(origins), bool)
+
+    p, n = np.zeros((16, 3)), np.tile([0.0, 0.0, 1.0], (16, 1))
+    il.gather_interleaved(p, n, np.arange(16), vpls.position, vpls.normal, vpls.flux, occluded, 1e-4,
+                          target_lift=0.25)
+    targets = np.concatenate([t for _, t, _ in asked])
+    lifted = vpls.position + 0.25 * vpls.normal
+    assert 24 <= len(targets) <= 32           # one ray per VPL with G > 0
+    assert all(np.isclose(lifted, t).all(axis=1).any() for t in targets)
+    assert (np.concatenate([nn for _, _, nn in asked]) == [0.0, 0.0, 1.0]).all()   # the pixels' normals
+
+    class Voxels:
+        def describe(self):
+            return {"voxel_size": 0.04}
+
+    assert il.target_lift(Voxels()) == pytest.approx(0.04 * il.TARGET_LIFT_VOXELS)
+    assert il.target_lift(ExactBackend()) == 0.0
+
+
 def test_clamped_geometry_term_by_hand():
     """Eq. 2-4 at p = 0, n = +z, VPL at (1, 0, 1) facing -z: cos θ_i = cos θ_o = 1/√2, d² = 2."""
     p, n = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
@@ -130,7 +158,8 @@ def _rsm(direction_lights, snap, ex, texels: int, shaped: bool):
         omega = 2.0 * np.pi * (1.0 - math.cos(a)) / len(c)
         profile = np.ones((len(c), 3))
         if shaped:
-            profile *= smoothstep_cone(c, np.full(len(c), L.cone_angle[i]), np.full(len(c), L.cone_softness[i]))[:, None]
+            cone = smoothstep_cone(c, np.full(len(c), L.cone_angle[i]), np.full(len(c), L.cone_softness[i]))
+            profile *= cone[:, None]
             if L.focus[i] > 0:
                 tint = L.focus_tint[i].astype(np.float64)
                 profile *= tint + (1.0 - tint) * np.clip(c, 0, 1)[:, None] ** L.focus[i]

@@ -84,7 +84,7 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
 def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
                       albedo: np.ndarray, settings: UsdmlSettings, image: tuple | None = None,
                       device: str = "cpu", vpl_field: VPLField | None = None,
-                      geometric: np.ndarray | None = None) -> GIResult:
+                      geometric: np.ndarray | None = None, target_lift: float = 0.0) -> GIResult:
     """Indirect radiance at ``points`` by ``settings.gi`` ("lgh", "svo" or "vpl-bruteforce").
 
     ``exact`` traces the light paths that place the VPLs (closest hits) unless ``vpl_field``
@@ -93,7 +93,8 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
     positions)`` lets the LGH shadow ratio be filtered in screen space (``svo``: required, its tiles
     and filter are the image's);
     ``geometric`` normals, when given, decide which VPLs face a point and where shadow rays start
-    (:func:`usdml.lighting.direct.shade_direct`).
+    (:func:`usdml.lighting.direct.shade_direct`); ``target_lift`` moves ``svo``'s VPL targets off
+    their surface (:func:`usdml.lighting.interleaved.target_lift`).
     """
     if vpl_field is None:
         vpl_field = prepare_vpls(snap, exact, lights, settings, device)
@@ -110,7 +111,8 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
             raise ValueError("--gi svo gathers over the image's 4x4 tiles: pass image=(hit, positions)")
 
         radiance, s = svo_indirect(points, normals, albedo, vpls, occluded, clamp, image,
-                                   meters_per_unit=snap.meters_per_unit, geometric=geometric)
+                                   meters_per_unit=snap.meters_per_unit, geometric=geometric,
+                                   target_lift=target_lift)
         stats.update(s)
         return GIResult(radiance, stats)
     if settings.gi == "lgh":

@@ -25,6 +25,13 @@ The pipeline (paper 003, §3 and Fig. 2)
 * **Visibility**: ``occluded`` of the backend the frame renderer owns for ``--gi svo``
   (:func:`gi_visibility_backend`), origins at the pixels (rays leave along the geometric normal),
   targets at the VPLs: the SVO backend shrinks the segment at both ends (paper 003, Fig. 3, line 2).
+  A VPL lies on a surface whose voxels are one to two thick, and a ray that reaches it at a grazing
+  angle crosses more of them than the backend's end skip: the targets are lifted
+  :data:`TARGET_LIFT_VOXELS` of the backend's voxels off their surface along the VPL's normal
+  (:func:`target_lift`; 0 for a backend without voxels, exact). Measured on cornell (128 px, 1,024
+  first-bounce VPLs, the 201,592 pairs of the tiles, the svo backend at 128³): unlifted, 39.3 % of the
+  pairs wrongly hidden against exact (68.8 % blocked against 29.5 %); lifted one voxel, 3.1 % wrongly
+  hidden and 0.14 % wrongly visible (two and three voxels: 2.8 / 0.18 %, 2.9 / 0.22 %).
 * **Merge and filter**: the tiles' irradiance goes back to its pixels and through one 5×5
   cross-bilateral pass (:func:`tile_filter`) whose taps ``[½, 1, 1, 1, ½]`` per axis give each of the
   16 tiles the same weight on a flat surface (the two ends share a residue mod 4), with normal and
@@ -51,6 +58,8 @@ from usdml.parallel import cpu_workers, iter_parallel
 TILE = 4
 #: the visibility backend of ``--gi svo``'s shadow rays
 GI_VISIBILITY = "exact"
+#: VPL targets are lifted this many of the rays' backend's voxels along the VPL normal (module doc)
+TARGET_LIFT_VOXELS = 1.0
 #: the tile filter's normal edge stop, ``max(0, n_p·n_q)^SIGMA_NORMAL`` (measured, module doc)
 SIGMA_NORMAL = 16.0
 #: the tile filter's tangent-plane edge stop, in pixel footprints (measured, module doc)
@@ -65,6 +74,12 @@ def gi_visibility_backend(settings, device: str = "cpu", name: str | None = None
     from usdml.visibility import make_backend
 
     return make_backend(name or GI_VISIBILITY, settings, device)
+
+
+def target_lift(backend) -> float:
+    """Scene units to lift VPL targets off their surface for ``backend``'s rays: :data:`TARGET_LIFT_VOXELS`
+    of its voxels (``describe()["voxel_size"]``, after ``update``), 0 for a backend without them."""
+    return TARGET_LIFT_VOXELS * float(backend.describe().get("voxel_size", 0.0) or 0.0)
 
 
 def vpl_subsets(n_vpls: int, n: int = TILE) -> list[np.ndarray]:
@@ -119,12 +134,13 @@ class GatherResult:
 def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarray, vpl_position: np.ndarray,
                        vpl_normal: np.ndarray, vpl_intensity: np.ndarray,
                        occluded: Callable[..., np.ndarray] | None, clamp_d2: float, meters_per_unit: float = 1.0,
-                       geometric: np.ndarray | None = None, n: int = TILE) -> GatherResult:
+                       geometric: np.ndarray | None = None, n: int = TILE, target_lift: float = 0.0) -> GatherResult:
     """Irradiance at each point from its tile's VPL subset, × n² (paper 003 §3.2, Eq. 1).
 
     ``points``, ``normals`` (P, 3) and ``geometric`` (P, 3, or None) as :func:`clamped_geometry`;
     ``tiles`` (P,) int, each point's tile in 0 .. n²−1; ``vpl_intensity`` (V, 3) float32 radiant
-    intensity on the VPL's normal (Φ/π); ``occluded`` a backend's shadow query (None: unshadowed).
+    intensity on the VPL's normal (Φ/π); ``occluded`` a backend's shadow query (None: unshadowed),
+    whose targets are the VPLs moved ``target_lift`` scene units along their normals (:func:`target_lift`).
     Returns ``E = n² Σ_{j in subset} I_j G V`` per point and counts (``shadow_rays``,
     ``visibility_seconds``).
     """
@@ -150,8 +166,9 @@ def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarra
             pi, vi = np.nonzero(g > 0)
             if len(pi):
                 t0 = _time.perf_counter()
-                hit = occluded(points[pix[pi]], vpl_position[vsel[vi]], normals=offset[pix[pi]],
-                               distant=np.zeros(len(pi), bool))
+                vj = vsel[vi]
+                targets = vpl_position[vj] if target_lift == 0.0 else vpl_position[vj] + vpl_normal[vj] * target_lift
+                hit = occluded(points[pix[pi]], targets, normals=offset[pix[pi]], distant=np.zeros(len(pi), bool))
                 seconds = _time.perf_counter() - t0
                 rays = len(pi)
                 g[pi[hit], vi[hit]] = 0.0
@@ -248,10 +265,12 @@ def merge_and_filter(irradiance: np.ndarray, hit: np.ndarray, position: np.ndarr
 
 def svo_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, vpls, occluded,
                  clamp_distance: float, image: tuple, meters_per_unit: float = 1.0,
-                 geometric: np.ndarray | None = None, filtered: bool = True) -> tuple[np.ndarray, dict]:
+                 geometric: np.ndarray | None = None, filtered: bool = True,
+                 target_lift: float = 0.0) -> tuple[np.ndarray, dict]:
     """Indirect radiance (P, 3) float32 at the pixels ``image = (hit (H, W) bool, position (H, W, 3))``
     holds (``points`` are ``position[hit]``), from ``vpls`` (:class:`usdml.lighting.vpl.VPLs`) by the
-    pipeline of the module doc; returns it and the pass's stats (seconds of gather and filter)."""
+    pipeline of the module doc (``target_lift``: :func:`target_lift` of the rays' backend); returns it
+    and the pass's stats (seconds of gather and filter)."""
     from usdml.lighting.atrous import tile_index
 
     hit, position = image
@@ -259,8 +278,9 @@ def svo_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, vp
     intensity = (vpls.flux.astype(np.float64) / np.pi).astype(np.float32)
     t0 = _time.perf_counter()
     g = gather_interleaved(points, normals, tiles, vpls.position, vpls.normal, intensity, occluded,
-                           clamp_distance ** 2, meters_per_unit, geometric)
+                           clamp_distance ** 2, meters_per_unit, geometric, target_lift=target_lift)
     stats = dict(g.stats)
+    stats["target_lift"] = float(target_lift)
     stats["gather_seconds"] = _time.perf_counter() - t0
     t1 = _time.perf_counter()
     irr = merge_and_filter(g.irradiance, hit, position, normals) if filtered else g.irradiance

@@ -82,6 +82,7 @@ class FrameRenderer:
             name = gi_visibility or GI_VISIBILITY
             shared = [b for b in (self.backend, self.exact) if b.name == name]
             self.gi_backend = shared[0] if shared else gi_visibility_backend(settings, device, name)
+        self._target_lift = 0.0
         self._previous: Snapshot | None = None
         self._told_camera_light = False
         self._told_no_vpls = False
@@ -125,6 +126,10 @@ class FrameRenderer:
             t1 = _time.perf_counter()
             self.gi_backend.update(snap, changes)
             stats["gi_update_seconds"] = _time.perf_counter() - t1
+        if self.gi_backend is not None:
+            from usdml.lighting.interleaved import target_lift
+
+            self._target_lift = target_lift(self.gi_backend)
         self._previous = snap
         camera = conform_camera(snap.camera, width, height)
         lights = self.frame_lights(snap)
@@ -183,7 +188,8 @@ class FrameRenderer:
             gi = indirect_lighting(
                 snap, self.exact, occluded, lights, gb.position.reshape(-1, 3)[hit],
                 gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
-                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field, geometric=geometric)
+                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field, geometric=geometric,
+                target_lift=self._target_lift)
             indirect = gi.radiance
             stats["gi"] = gi.stats                  # the last pass's
             if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
