@@ -1,11 +1,15 @@
-"""The compiled CPU voxel queries (kernels/voxelq.c) as an optional extension: everything else is in
-pyproject.toml. Without a C compiler the install goes on and usdml answers voxel queries with its
-Warp kernels instead (``usdml info`` says which path a machine has)."""
+"""The compiled CPU voxel queries (kernels/voxelq.c) and SVO traversal (kernels/svoq.c) as optional
+extensions: everything else is in pyproject.toml. Without a C compiler the install goes on and usdml
+answers those queries with its Warp kernels instead (``usdml info`` says which path a machine has)."""
 
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension(
-    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h"],
+    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h"],
     # portable code: the AVX2 functions carry their own target attribute and are picked at run time
     extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing"],
-    optional=True)])
+    optional=True), Extension(
+    "usdml.kernels._svoq", sources=["kernels/svoq.c"],
+    depends=["kernels/svoq_simd.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h"],
+    # no a * b + c contracted into one rounding: the SIMD walk must round as the scalar one does
+    extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"], optional=True)])

@@ -39,6 +39,9 @@ SETTINGS = UsdmlSettings(voxel_resolution=32, direction_step=10.0)
 #: stale after the first frame 0.16 (instances) and 0.13 (deforming).
 MISMATCH = {
     "voxel": {"occluder": 0.08, "instances": 0.05, "deforming": 0.025},
+    # conservative voxels at 128^3 over a 20 m scene: occluders up to a voxel fatter (measured 0.035,
+    # 0.062, 0.023, almost all wrongly hidden far from the shading point)
+    "svo": {"occluder": 0.055, "instances": 0.095, "deforming": 0.035},
 }
 
 QUIET = {"report": lambda line: None}
@@ -155,8 +158,13 @@ def test_stats_and_description(name):
         else:
             assert stats == {} and fields == {}
         if backend.supports(MEMORY_ESTIMATE) and "bytes" in fields:
-            # what was said before building is what was built
-            assert fields["bytes"] == backend.memory_estimate(snap, SETTINGS)["totalBytes"]
+            # what was said before building is what was built, or a bound on it where the size
+            # depends on the voxelization (the estimate says which)
+            estimate = backend.memory_estimate(snap, SETTINGS)
+            if estimate.get("upperBound"):
+                assert fields["bytes"] <= estimate["treeBytes"] <= estimate["totalBytes"]
+            else:
+                assert fields["bytes"] == estimate["totalBytes"]
 
     run_scene(name, "deforming", check)
 

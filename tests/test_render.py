@@ -210,7 +210,7 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
     (["--frames", "9"], "outside the stage's range"),
     (["--frames", "1:x"], "FrameSpec"),
     (["--imageWidth", "0"], "--imageWidth 0"),
-    (["--visibility", "svo"], "unknown visibility backend 'svo'"),
+    (["--visibility", "octree"], "unknown visibility backend 'octree'"),
     (["--aovs", "beauty"], "beauty"),
     (["--gi", "lgh", "--lgh-alpha", "nan"], "LGH alpha must be finite"),
     (["--seed", "-1"], "seed must be >= 0"),

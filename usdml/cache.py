@@ -20,6 +20,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 import hashlib
 import json
+import logging
 import os
 from pathlib import Path
 import struct
@@ -125,6 +126,23 @@ class Cache:
                 pass
             raise
         return dest
+
+    def load(self, kind: str, key: str) -> tuple[np.ndarray, dict] | None:
+        """:meth:`get`, with a damaged entry reported (a warning naming it) and treated as absent, so
+        the caller builds it anew."""
+        try:
+            return self.get(kind, key)
+        except CacheCorrupt as e:
+            logging.getLogger("usdml").warning(f"{kind} cache: {e}; rebuilding")
+            return None
+
+    def store(self, kind: str, key: str, data: np.ndarray, meta: dict | None = None) -> None:
+        """:meth:`put`, with a failed write reported and the render going on without the entry."""
+        try:
+            self.put(kind, key, data, meta)
+        except OSError as e:
+            logging.getLogger("usdml").warning(f"{kind} cache: could not write {self.path(kind, key)} ({e}); "
+                                               "continuing without it")
 
     def get(self, kind: str, key: str) -> tuple[np.ndarray, dict] | None:
         """``(data, meta)`` of an entry, None when absent; ``CacheCorrupt`` (entry removed) when damaged."""

@@ -87,6 +87,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**overrides_from_args(args))
     frames = frame_spec(args.frames, delegate.start_time, delegate.end_time)
+    if args.backend == "svo":
+        return _bake_svo(args, delegate, settings, frames)
     if settings.fully_dynamic:
         print(f"{args.stage} is fully dynamic (usdml:voxel:fullyDynamic or --fully-dynamic): its voxel array is "
               "rebuilt every frame and not cached; nothing to bake (--no-fully-dynamic bakes the static and "
@@ -121,6 +123,41 @@ def _cmd_bake(args: argparse.Namespace) -> int:
                                                                         " (deforming: rebuilt per frame, not cached)"))
     print(f"{len(arrays)} array(s) at {settings.voxel_resolution}^3 / {settings.direction_step:g} deg "
           f"({backend.bins.count} directions) in {summary['seconds']:.1f} s")
+    return 0
+
+
+def _bake_svo(args: argparse.Namespace, delegate, settings, frames) -> int:
+    """``usdml bake --backend svo``: the static sparse voxel octree into the cache (per-frame trees are
+    rebuilt every frame and never cached)."""
+    from usdml.render.sequence import build_messages
+    from usdml.scene import diff
+    from usdml.stage.delegate import require_geometry
+    from usdml.visibility import make_backend
+
+    t0 = time.perf_counter()
+    backend = make_backend("svo", settings, args.device, cache=args.cache, **build_messages())
+    previous = None
+    for f in frames:
+        delegate.check_time(f)
+        snap = delegate.snapshot(f)
+        require_geometry(delegate, snap)
+        backend.update(snap, diff(previous, snap))
+        previous = snap
+    trees = [{"source": t.source, "key": t.key, "bytes": t.nbytes, "resolution": t.n, "occupied_voxels": t.occupied,
+              "build_seconds": t.build_seconds, "loaded_from_cache": t.cached,
+              "path": str(backend.cache.path("svo", t.key)) if backend.cache and t.key else None}
+             for t in backend.trees]
+    backend.close()
+    summary = {"stage": args.stage, "frames": frames, "backend": "svo", "trees": trees,
+               "built": backend.stats["builds"], "loaded": backend.stats["loaded"], "seconds": time.perf_counter() - t0}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    for t in trees:
+        how = "in cache" if t["loaded_from_cache"] else f"built in {t['build_seconds']:.1f} s"
+        print(f"{t['source']}: {t['resolution']}^3, {t['occupied_voxels']:,} voxels, {t['bytes'] / 2**20:.2f} MiB, {how}"
+              + (f" -> {t['path']}" if t["path"] else " (rebuilt per frame, not cached)"))
+    print(f"{len(trees)} tree(s) in {summary['seconds']:.1f} s")
     return 0
 
 
@@ -241,8 +278,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_cmdline_args(bench, "bench")
     bench.set_defaults(run=_cmd_bench)
 
-    bake = sub.add_parser("bake", help="build the voxel arrays of a stage into the cache (usdml:voxel settings)")
+    bake = sub.add_parser("bake", help="build the voxel arrays (or the static SVO) of a stage into the cache")
     _add_stage_args(bake)
+    bake.add_argument("--backend", choices=("voxel", "svo"), default="voxel",
+                      help="whose structures to bake: voxel arrays (usdml:voxel settings) or the static sparse "
+                           "voxel octree (usdml:svo settings) (default: %(default)s)")
     bake.add_argument("--frames", help="FrameSpec whose prototypes to bake (default: the start frame)")
     _add_device_arg(bake)
     bake.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")

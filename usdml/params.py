@@ -254,6 +254,20 @@ _ROWS = (
           "GiB the voxel arrays may take; 0 = automatic: 80 % of the available memory", VOXEL_COMMANDS,
           source="the machine", range=Range(0), metavar="GIB"),
 
+    # -- sparse voxel octree (paper 003)
+    Param("svo_resolution", int, 0, "usdml:svo:resolution", "--svo-resolution",
+          "voxels per axis of the sparse voxel octree, a power of two; 0 = automatic: 128 for a room (at most "
+          "20 m across), else 256", VOXEL_COMMANDS, source="paper 003", range=Range(0, 2048), metavar="N",
+          doc='''Voxels per axis of the sparse voxel octree (svo backend), a power of two from 16 to 2048.
+
+          0 picks the paper's: 128 for a room (a scene at most 20 m across by
+          its metersPerUnit, like the paper's Cornell box), 256 for a larger
+          scene (its Sponza).'''),
+    Param("svo_cpu_kernel", str, "auto", "usdml:svo:cpuKernel", "--svo-cpu-kernel",
+          "how SVO queries run on a CPU: auto (the compiled traversal when it was built, else Warp), native "
+          "(the compiled traversal; an error without it) or warp", VOXEL_COMMANDS,
+          source="measured (usdml): docs/svo.md", choices=("auto", "native", "warp")),
+
     # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
           "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "

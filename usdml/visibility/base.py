@@ -44,7 +44,8 @@ Optional capabilities
         (``usdml bench``). Default: an empty ``stats``, ``{}``, ``{}``.
     ``MEMORY_ESTIMATE`` ("memory_estimate")
         classmethods :meth:`~VisibilityBackend.memory_estimate` (what a snapshot would cost at some
-        settings, a JSON-able dict with ``totalBytes``, before anything is built) and
+        settings, a JSON-able dict with ``totalBytes``, before anything is built; with
+        ``upperBound: true`` where the size depends on what is built and the figure is a bound) and
         :meth:`~VisibilityBackend.memory_line` (it as the one line ``usdml info`` prints).
         Default: ``None`` and ``""``.
 
@@ -111,6 +112,16 @@ def members_changed(before, members: tuple, changes: Changes | None, mesh_change
     if any(changes.prototypes.get(path) for kind, path in members if kind == "proto"):
         return True
     return any(mesh_changed(path) for kind, path in members if kind == "mesh")
+
+
+def scene_sphere(snapshot: Snapshot) -> tuple[np.ndarray, float]:
+    """Centre and radius of the sphere around ``snapshot``'s world box: where a backend's distant
+    rays end (``(0, 0, 0), 1`` for an empty scene)."""
+    bounds = snapshot.world_bounds()
+    if bounds is None:
+        return np.zeros(3), 1.0
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 
 class VisibilityBackend(abc.ABC):

@@ -15,6 +15,7 @@ from usdml.errors import UsdmlError
 BACKENDS: dict[str, str] = {
     "exact": "usdml.visibility.exact:ExactBackend",
     "voxel": "usdml.visibility.voxel:VoxelBackend",
+    "svo": "usdml.visibility.svo:SvoBackend",
 }
 
 

@@ -51,7 +51,7 @@ from usdml.parallel import cpu_workers, run_parallel
 from usdml.scene import Changes, Lights, Snapshot, world_geometry
 from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags,
-                                   as_vectors, members_changed)
+                                   as_vectors, members_changed, scene_sphere)
 from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
                                           normalizing_transform, voxel_kernels, warp_module)
 from usdml.visibility.voxel_budget import array_roles, memory_estimate, memory_line
@@ -110,15 +110,6 @@ def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
         a = arrays[world_ids[0]]
         return a.voxel_size / float(np.max(np.abs(np.diag(a.to_array)[:3])))
     return min((a.voxel_size for a in arrays), default=0.0)
-
-
-def _scene_sphere(snapshot: Snapshot) -> tuple[np.ndarray, float]:
-    """Centre and radius of the sphere around ``snapshot``'s world box (where distant rays end)."""
-    bounds = snapshot.world_bounds()
-    if bounds is None:
-        return np.zeros(3), 1.0
-    lo, hi = (np.asarray(b, np.float64) for b in bounds)
-    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 
 def _direct_result(order: np.ndarray, rad: np.ndarray, blocked: np.ndarray, facing: np.ndarray, albedo,
@@ -458,7 +449,7 @@ class VoxelBackend(VisibilityBackend):
                                        *(x[skip:] for x in table), isa=self.native_isa)
         g["static_inv"] = wp.mat44(*(arrays[world_ids[0]].to_array if world_ids else np.eye(4)).astype(np.float32).ravel())
         self.reference_voxel = _reference_voxel(arrays, world_ids)
-        self._scene = _scene_sphere(snapshot)
+        self._scene = scene_sphere(snapshot)
         self.arrays = arrays
 
     def _array_order(self) -> tuple[list[VoxelArray], list[int], dict[str, int]]:

@@ -298,11 +298,7 @@ def cached_array(points, triangles, resolution: int, step: float, cache: Cache |
     (and stored). A damaged entry is reported and rebuilt."""
     key = array_key(points, triangles, resolution, step, bounds, core)
     if cache is not None:
-        try:
-            got = cache.get("voxel", key)
-        except CacheCorrupt as e:
-            log.warning(f"voxel cache: {e}; rebuilding")
-            got = None
+        got = cache.load("voxel", key)
         if got is not None:
             words, meta = got
             return VoxelArray(words, np.asarray(meta["center"], np.float64), float(meta["half"]),
@@ -312,10 +308,7 @@ def cached_array(points, triangles, resolution: int, step: float, cache: Cache |
                       bounds=bounds, core=core)
     arr.key = key
     if cache is not None:
-        try:
-            cache.put("voxel", key, arr.words, {"center": arr.center.tolist(), "half": arr.half,
-                                                "resolution": resolution, "step": step, "samples": arr.samples,
-                                                "format": FORMAT_VERSION, "source": source})
-        except OSError as e:
-            log.warning(f"voxel cache: could not write {cache.path('voxel', key)} ({e}); continuing without it")
+        cache.store("voxel", key, arr.words, {"center": arr.center.tolist(), "half": arr.half,
+                                              "resolution": resolution, "step": step, "samples": arr.samples,
+                                              "format": FORMAT_VERSION, "source": source})
     return arr

@@ -64,13 +64,20 @@ class _Lights(ctypes.Structure):
                 ("min_d2", ctypes.c_float)]
 
 
-@lru_cache(maxsize=1)
-def _load() -> tuple[ctypes.CDLL | None, str]:
+def open_extension(name: str) -> tuple[ctypes.CDLL | None, str]:
+    """The compiled extension ``usdml.kernels.<name>`` as a ctypes library, or None and why not."""
     try:
-        mod = importlib.import_module("usdml.kernels._voxelq")
+        mod = importlib.import_module(f"usdml.kernels.{name}")
     except ImportError as e:
         return None, f"not built ({e})"
-    lib = ctypes.CDLL(mod.__file__)
+    return ctypes.CDLL(mod.__file__), ""
+
+
+@lru_cache(maxsize=1)
+def _load() -> tuple[ctypes.CDLL | None, str]:
+    lib, why = open_extension("_voxelq")
+    if lib is None:
+        return None, why
     P = ctypes.c_void_p
     lib.vq_simd_width.argtypes = [ctypes.c_int32]
     lib.vq_simd_width.restype = ctypes.c_int
@@ -106,15 +113,20 @@ def simd_width(isa: str = "auto") -> int:
     return int(lib.vq_simd_width(ISAS[isa])) if lib is not None else 0
 
 
+def path_line(what: str, why: str, width: int, unit: str) -> str:
+    """``usdml info``'s line for a compiled CPU path ``what`` (``why``: why it is missing, "" when
+    built) running ``width`` ``unit`` at a time."""
+    if why:
+        return f"Warp kernels (the {what} is {why}; reinstall with a C compiler for the fast path)"
+    if width == 1:
+        return f"{what}, scalar (no AVX2 on this CPU)"
+    return f"{what}, {WIDTH_NAMES[width]} ({width} {unit} at a time)"
+
+
 def describe() -> str:
     """One line: which CPU path voxel queries take on this machine (``usdml info``)."""
     lib, why = _load()
-    if lib is None:
-        return f"Warp kernels (the compiled kernel is {why}; reinstall with a C compiler for the fast path)"
-    w = simd_width()
-    if w == 1:
-        return "compiled kernel, scalar (no AVX2 on this CPU)"
-    return f"compiled kernel, {WIDTH_NAMES[w]} ({w} queries at a time)"
+    return path_line("compiled kernel", why, simd_width() if lib is not None else 0, "queries")
 
 
 def packed_rows(layout) -> np.ndarray | None:

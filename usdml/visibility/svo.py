@@ -1,0 +1,388 @@
+"""The ``svo`` visibility backend: paper 003's sparse voxel octree and its restart traversal.
+
+Trees
+    * **static**: every mesh that does not deform and every prototype whose instances never move,
+      flattened into world space: one tree, built once (or loaded from the cache).
+    * **per frame**: deforming meshes and the instances of moving prototypes, flattened into world
+      space and voxelized again on frames where one of them changed (report ``dynamic_seconds``;
+      ``usdml bench`` reports ``per_frame_rebuild_seconds``). Its grid lies on the static tree's
+      lattice (same voxel size, voxel corners) when its geometry fits in ``2^depth`` of those voxels,
+      so geometry voxelizes to the same bits in either tree: a stage's instances answer as its
+      flattened copy does.
+
+    A query walks the static tree, then the per-frame one; the first occupied voxel ends it. One
+    tree (grid, voxelization, octree, cache) is :mod:`usdml.visibility.svo_tree`; the kernels are
+    :mod:`usdml.kernels.svo` (Warp: CPU fallback and CUDA) and ``kernels/svoq.c`` (the compiled CPU
+    traversal, :mod:`usdml.visibility.svo_native`).
+
+Resolution
+    ``resolution`` voxels per axis of the static tree (a power of two); 0 picks the paper's: 128³
+    for a room (its Cornell box), 256³ for a large scene (its Sponza): 128 when the scene's core
+    bounds are at most ``ROOM_METERS`` across (metres by the stage's metersPerUnit), else 256.
+
+Leaving the surface and shrinking the segment (Fig. 3, line 2) and its cost
+    Both ends of a shadow segment lie in occupied voxels (the shading point's own surface; a VPL's
+    surface, or a light's fixture). Paper 003 shrinks the segment by an epsilon; with conservative
+    voxels a surface is one to two voxels thick, so here, as for the voxel arrays: the ray starts
+    ``normal_offset`` voxels off the surface along the normal turned toward the light, ignores its
+    first ``skip`` voxels, or until it is ``slab`` voxels above the tangent plane (``slab / sin β``,
+    at most ``max_skip``), and ignores its last ``end_skip`` voxels. The cost: occluders closer than
+    about ``normal_offset + slab`` voxels to the shading point (contact shadows) or ``end_skip``
+    voxels to the light do not shadow; ``usdml compare`` splits the error into near and far field.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from usdml import params
+from usdml.cache import Cache
+from usdml.errors import UsdmlError
+from usdml.parallel import cpu_workers, run_parallel
+from usdml.scene import Changes, Snapshot, world_geometry
+from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
+                                   members_changed, scene_sphere, static_members)
+from usdml.visibility.svo_tree import (MAX_DEPTH, MIN_DEPTH, SvoTree, aligned_grid, build_tree, cached_tree,
+                                       svo_bounds, svo_kernels, top_table)
+from usdml.visibility.voxel_array import warp_module
+
+log = logging.getLogger("usdml")
+
+__all__ = ["SvoBackend", "ROOM_METERS", "auto_resolution", "tree_members"]
+
+#: a scene at most this many metres across is a room (paper 003: 128³), larger ones get 256³
+ROOM_METERS = 20.0
+#: leaving the surface, in voxels of the static tree (module doc)
+NORMAL_OFFSET, SKIP, SLAB, MAX_SKIP, END_SKIP = 1.0, 1.0, 1.0, 2.0, 1.0
+
+
+def auto_resolution(snapshot: Snapshot) -> int:
+    """The paper's resolution for ``snapshot`` (module doc, "Resolution")."""
+    bounds = snapshot.world_bounds()
+    if bounds is None:
+        return 128
+    span = float(np.max(np.asarray(bounds[1], np.float64) - np.asarray(bounds[0], np.float64)))
+    return 128 if span * snapshot.meters_per_unit <= ROOM_METERS else 256
+
+
+def tree_members(snapshot: Snapshot) -> tuple[tuple, tuple]:
+    """``(static, per-frame)`` members (``("mesh" | "proto", path)``) of ``snapshot``'s trees."""
+    static = static_members(snapshot)
+    frame = tuple([("mesh", m.path) for m in snapshot.meshes if m.deforming]
+                  + [("proto", p.path) for p in snapshot.prototypes
+                     if (p.animated or p.deforming) and p.triangle_count])
+    return static, frame
+
+
+class SvoBackend(VisibilityBackend):
+    """Shadow rays through a sparse voxel octree (paper 003; module doc).
+
+    Parameters
+    ----------
+    resolution : voxels per axis of the static tree, a power of two; 0: automatic (module doc)
+    device : Warp device, ``cpu`` or ``cuda``
+    cache : a :class:`usdml.cache.Cache`, a folder, or None for the default folder; ``False``: no cache
+    normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
+    cpu_kernel : ``auto`` (the compiled traversal when it was built, else Warp), ``native`` or ``warp``
+    report, progress : as every backend (:mod:`usdml.visibility.base`)
+
+    ``stats`` after each :meth:`update`: bytes, nodes, bricks, occupied voxels, build and per-frame
+    seconds; ``built`` names the trees it built or loaded.
+    """
+
+    name = "svo"
+    summary = "sparse voxel octree, restart traversal (paper 003)"
+    capabilities = frozenset({HIT_DISTANCES, STATS, MEMORY_ESTIMATE})
+
+    def __init__(self, *, resolution: int = 0, device: str = "cpu", cache=None, normal_offset: float = NORMAL_OFFSET,
+                 skip: float = SKIP, slab: float = SLAB, max_skip: float = MAX_SKIP, end_skip: float = END_SKIP,
+                 cpu_kernel: str = "auto", native_isa: str = "auto", workers: int | None = None,
+                 report: Callable[[str], None] | None = None,
+                 progress: Callable[[int, int, str, str], None] | None = None) -> None:
+        params.check("svo_resolution", int(resolution))
+        params.check("svo_cpu_kernel", cpu_kernel)
+        self.resolution = int(resolution)
+        self.device = device
+        self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
+        self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
+        self.max_skip, self.end_skip = float(max_skip), float(end_skip)
+        self.workers = cpu_workers(device, workers)
+        self.report = report or (lambda line: log.info(line))
+        self.progress = progress
+        self.native, self.native_isa = False, native_isa
+        if str(device).startswith("cpu") and cpu_kernel != "warp":
+            from usdml.visibility import svo_native
+            if svo_native.library() is not None:
+                self.native = True
+            elif cpu_kernel == "native":
+                raise UsdmlError(f"--svo-cpu-kernel native: {svo_native.describe()}")
+        self._static: tuple | None = None          # (members, tree or None)
+        self._frame: tuple | None = None
+        self._gpu: dict = {}
+        self._native = None
+        self.depth = 0
+        self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "trees": 0,
+                            "dynamic_rebuilds": 0, "dynamic_seconds": 0.0}
+        self.built: list[str] = []
+
+    @classmethod
+    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "SvoBackend":
+        kw: dict = {}
+        if settings is not None:
+            kw.update(resolution=settings.svo_resolution, cpu_kernel=settings.svo_cpu_kernel)
+        kw.update(options)
+        return cls(device=device, **kw)
+
+    @classmethod
+    def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:
+        """Bounds said before anything is built (``upperBound``: the size depends on the voxels): a tree
+        at ``n³`` holds at most every 4³ brick (8 bytes each) and a group of eight entries per node
+        above them (``treeBytes``, per tree, a quarter of it past the bricks); building one holds a
+        dense brick grid of ``n³ / 8`` bytes per CPU thread for a moment (``buildBytes``)."""
+        n = int(getattr(settings, "svo_resolution", 0) or 0) or auto_resolution(snapshot)
+        static, frame = tree_members(snapshot)
+        trees = int(bool(static)) + int(bool(frame))
+        bricks = (n // 4) ** 3
+        groups = sum(8 ** level for level in range(max(1, n.bit_length() - 3)))
+        tree = 8 * bricks + 32 * groups
+        build = n ** 3 // 8 * cpu_workers("cpu")
+        return {"resolution": n, "trees": trees, "treeBytes": tree * trees, "buildBytes": build,
+                "totalBytes": tree * trees + build, "upperBound": True}
+
+    @classmethod
+    def memory_line(cls, estimate: dict) -> str:
+        return (f"{estimate['trees']} tree(s) at {estimate['resolution']}^3, at most "
+                f"{estimate['treeBytes'] / 2**20:.1f} MiB (+ {estimate['buildBytes'] / 2**20:.1f} MiB while building)")
+
+    @classmethod
+    def cpu_path(cls) -> str:
+        from usdml.visibility import svo_native
+        return svo_native.describe()
+
+    @property
+    def kernel_name(self) -> str:
+        """Which kernels answer queries: ``warp``, ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
+        if not self.native:
+            return "warp"
+        from usdml.visibility.svo_native import simd_width
+        return "native-" + {16: "avx512", 8: "avx2", 1: "scalar"}[simd_width(self.native_isa)]
+
+    def describe(self) -> dict:
+        """Resolution, trees (bytes, nodes, bricks, voxels), build seconds and the CPU kernel, for
+        ``usdml bench`` / ``usdml compare`` (kept after :meth:`close`: the last trees')."""
+        if not self.trees:
+            return dict(self._described) if getattr(self, "_described", None) else self._describe()
+        self._described = self._describe()
+        return dict(self._described)
+
+    def _describe(self) -> dict:
+        trees = self.trees
+        return {"svo_resolution": self.resolution or (1 << self.depth), "svo_depth": self.depth,
+                "bytes": int(self.stats["bytes"]), "trees": len(trees),
+                "nodes": int(sum(t.nodes.size for t in trees)), "bricks": int(sum(t.bricks.size // 2 for t in trees)),
+                "occupied_voxels": int(sum(t.occupied for t in trees)),
+                "voxel_size": float(trees[0].h) if trees else 0.0,
+                "trees_loaded_from_cache": self.stats["loaded"], "tree_build_seconds": self.stats["build_seconds"],
+                "cpu_kernel": self.kernel_name}
+
+    @property
+    def trees(self) -> list[SvoTree]:
+        return [g[1] for g in (self._static, self._frame) if g is not None and g[1] is not None]
+
+    # ------------------------------------------------------------------ building
+
+    def _build_frame(self, snapshot: Snapshot, members: tuple) -> SvoTree | None:
+        pts, tris = world_geometry(snapshot, members)
+        if not len(tris):
+            return None
+        t0 = time.perf_counter()
+        grid, depth = None, self.depth
+        ref = self._static[1] if self._static is not None else None
+        if ref is not None:
+            got = aligned_grid(pts, tris, ref.lo, ref.h, MAX_DEPTH)
+            if got is not None and got[2] <= self.depth + 1:
+                grid, depth = got[:2], got[2]
+        tree = build_tree(pts, tris, depth, device=self.device, workers=self.workers, grid=grid,
+                          source="moving and deforming geometry")
+        self.stats["dynamic_rebuilds"] += 1
+        self.stats["dynamic_seconds"] = time.perf_counter() - t0
+        self.built.append(tree.source)
+        return tree
+
+    def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
+        """Build the static tree when its geometry changed (else keep it, or load it from the cache) and
+        the per-frame tree when one of its meshes or instances changed."""
+        static, frame = tree_members(snapshot)
+        self.built = []
+        if not self.depth:
+            n = self.resolution or auto_resolution(snapshot)
+            if n & (n - 1) or not (1 << MIN_DEPTH) <= n <= (1 << MAX_DEPTH):
+                raise UsdmlError(f"--svo-resolution must be a power of two from {1 << MIN_DEPTH} to {1 << MAX_DEPTH}, "
+                                 f"got {n} (usdml:svo:resolution)")
+            self.depth = n.bit_length() - 1
+        rebuilt = False
+        if not static:
+            self._static = None
+        elif members_changed(self._static and self._static[0], static, changes, lambda path: changes.static):
+            pts, tris = world_geometry(snapshot, static)
+            tree = None
+            if len(tris):
+                lo, hi, outside = svo_bounds(pts, tris)
+                if outside:
+                    self.report(f"svo of the static scene covers {np.round(lo, 2).tolist()} .. {np.round(hi, 2).tolist()}; "
+                                f"{outside} of {len(tris)} triangles reach outside it and shadow only within it")
+                tree = cached_tree(pts, tris, self.depth, self.cache, device=self.device, workers=self.workers,
+                                   source="static scene")
+                self.built.append(tree.source)
+                if tree.cached:
+                    self.stats["loaded"] += 1
+                else:
+                    self.stats["builds"] += 1
+                    self.stats["build_seconds"] += tree.build_seconds
+            self._static = (static, tree)
+            rebuilt = True
+        if not frame:
+            self._frame = None
+        elif rebuilt or members_changed(self._frame and self._frame[0], frame, changes,
+                                        lambda path: path in changes.deforming or changes.static):
+            self._frame = (frame, self._build_frame(snapshot, frame))
+            rebuilt = True
+        if rebuilt or not self._gpu:
+            self._assemble()
+        self._scene = scene_sphere(snapshot)
+
+    def per_frame_rebuild_seconds(self, snapshot: Snapshot, repeats: int = 3) -> dict:
+        """Seconds to voxelize and build the per-frame tree again (the median of ``repeats``), as a
+        render does on a frame where something moved; empty when nothing is rebuilt per frame."""
+        if self._frame is None or self._frame[1] is None:
+            return {}
+        seconds, voxelize = [], []
+        for _ in range(max(1, int(repeats))):
+            tree = self._build_frame(snapshot, self._frame[0])
+            seconds.append(self.stats["dynamic_seconds"])
+            voxelize.append(tree.voxelize_seconds)
+        self._frame = (self._frame[0], tree)
+        self._assemble()
+        return {"rebuild_seconds": float(np.median(seconds)), "voxelize_seconds": float(np.median(voxelize)),
+                "rebuild_repeats": len(seconds), "rebuild_triangles": tree.triangles,
+                "occupied_voxels": tree.occupied}
+
+    def _assemble(self) -> None:
+        """Concatenate the trees for the kernels (node and brick bases per tree)."""
+        trees = self.trees
+        node_base = np.cumsum([0] + [t.nodes.size for t in trees])[:-1]
+        brick_base = np.cumsum([0] + [t.bricks.size // 2 for t in trees])[:-1]
+        nodes = np.concatenate([t.nodes for t in trees]) if trees else np.zeros(8, np.int32)
+        bricks = np.concatenate([t.bricks for t in trees]) if trees else np.zeros(2, np.uint32)
+        tint = np.array([[t.depth, nb, bb, 0] for t, nb, bb in zip(trees, node_base, brick_base)] or [[0, 0, 0, 0]],
+                        np.int32)
+        lo = np.array([t.lo for t in trees] or [[0, 0, 0]], np.float32)
+        inv_h = np.array([1.0 / t.h for t in trees] or [1.0], np.float32)
+        self.stats["bytes"] = int(nodes.nbytes + bricks.nbytes)
+        self.stats["trees"] = len(trees)
+        self.reference_voxel = float(trees[0].h) if trees else 0.0
+        self._gpu = {"nodes": nodes, "bricks": bricks, "int": tint, "lo": lo, "inv_h": inv_h, "n_trees": len(trees)}
+        self._warp = None
+        self._native = None
+        if self.native and trees:
+            from usdml.visibility.svo_native import NativeSvo
+            tops = [top_table(t.nodes, t.depth) for t in trees]
+            tint[:, 3] = np.cumsum([0] + [x.size for x in tops])[:-1]
+            self._native = NativeSvo(nodes, bricks, tint, lo, inv_h, np.concatenate(tops), isa=self.native_isa)
+
+    def _warp_scene(self):
+        if self._warp is None:
+            wp = warp_module()
+            k = svo_kernels()
+            dev = wp.get_device(self.device)
+            g = self._gpu
+            vs = k.SvoScene()
+            vs.nodes = wp.array(g["nodes"], dtype=wp.int32, device=dev)
+            vs.bricks = wp.array(g["bricks"], dtype=wp.uint32, device=dev)
+            vs.tree_lo = wp.array(g["lo"], dtype=wp.vec3, device=dev)
+            vs.tree_inv_h = wp.array(g["inv_h"], dtype=float, device=dev)
+            vs.tree_int = wp.array(g["int"], dtype=wp.vec4i, device=dev)
+            vs.n_trees = int(g["n_trees"])
+            self._warp = vs
+        return self._warp
+
+    def _rule_values(self) -> dict:
+        h = self.reference_voxel
+        c, r = self._scene
+        return dict(offset=self.normal_offset * h, skip=self.skip * h, slab=self.slab * h, max_skip=self.max_skip * h,
+                    end_skip=self.end_skip * h, far=2.0 * r + 1.0, far_center=np.asarray(c, np.float32))
+
+    def _warp_rule(self):
+        wp = warp_module()
+        rule = svo_kernels().SvoRule()
+        for key, value in self._rule_values().items():
+            setattr(rule, key, wp.vec3(*value) if key == "far_center" else float(value))
+        return rule
+
+    # ------------------------------------------------------------------ queries
+
+    def _split(self, n: int, launch: Callable[[int, int], None], bands_per_worker: int) -> None:
+        if n == 0:
+            return
+        bands = min(n, self.workers * bands_per_worker)
+        edges = np.linspace(0, n, bands + 1).astype(np.int64)
+        jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        run_parallel(lambda j: launch(*j), jobs, self.workers, first_on_caller=self._native is None)
+
+    def hit_distances(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        """Distance in voxels (of the tree hit) from each ray's offset start to its first occupied voxel; -1: free."""
+        if not self._gpu:
+            raise RuntimeError("SvoBackend.update() must be called before queries")
+        origins = as_vectors(origins, "origins", dtype=None)
+        n = origins.shape[0]
+        targets = as_vectors(targets, "targets", n, dtype=None)
+        if n == 0 or self._gpu["n_trees"] == 0:
+            return np.full(n, -1.0, np.float32)
+        if self._native is not None:
+            normals = None if normals is None else np.ascontiguousarray(as_vectors(normals, "normals", n, dtype=None))
+            distant = None if distant is None else np.ascontiguousarray(as_flags(distant, "distant", n))
+            res = np.empty(n, np.float32)
+            rule = self._native.rule(**self._rule_values())
+            o, t = np.ascontiguousarray(origins), np.ascontiguousarray(targets)
+            self._split(n, lambda first, count: self._native.query(rule, first, count, o, t, normals, distant, res),
+                        bands_per_worker=4)
+            return res
+        wp = warp_module()
+        k = svo_kernels()
+        dev = wp.get_device(self.device)
+        f32 = dict(dtype=np.float32)
+        origins = np.ascontiguousarray(origins, **f32)
+        targets = np.ascontiguousarray(targets, **f32)
+        normals = np.zeros((n, 3), np.float32) if normals is None else \
+            np.ascontiguousarray(as_vectors(normals, "normals", n), **f32)
+        distant = np.zeros(n, np.int32) if distant is None else as_flags(distant, "distant", n).astype(np.int32)
+        wrap = dict(device=dev, copy=not dev.is_cpu)
+        o = wp.array(origins, dtype=wp.vec3, **wrap)
+        t = wp.array(targets, dtype=wp.vec3, **wrap)
+        nm = wp.array(normals, dtype=wp.vec3, **wrap)
+        di = wp.array(distant, dtype=wp.int32, **wrap)
+        out = wp.zeros(n, dtype=float, device=dev)
+        rule, vs = self._warp_rule(), self._warp_scene()
+
+        def launch(first, count):
+            wp.launch(k.query_segments, dim=count, device=dev, inputs=[o, t, nm, di, first, rule, vs, out])
+        if dev.is_cpu:
+            self._split(n, launch, bands_per_worker=8)
+        else:
+            launch(0, n)
+            wp.synchronize_device(dev)
+        return out.numpy()
+
+    def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        return self.hit_distances(origins, targets, normals=normals, distant=distant) >= 0.0
+
+    def close(self) -> None:
+        if self.trees:
+            self._described = self._describe()
+        self._gpu, self._warp, self._native = {}, None, None
+        self._static = self._frame = None
+
