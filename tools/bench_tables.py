@@ -255,7 +255,7 @@ def gi_svo(data: dict) -> list[str]:
         by = {r["vpls"]: r["stages"] for r in out["rows"]}
         counts = sorted(by)
         sw, sh = out["stage_resolution"]
-        ms = lambda key: " / ".join(f"{1000 * by[n][key]:.0f}" for n in counts)  # noqa: E731
+        ms = lambda key: " / ".join(_ms(by[n][key]) for n in counts)  # noqa: E731
         pp = lambda key: " / ".join(f"{v:g}" for v in paper[key])  # noqa: E731
         backend = by[counts[0]]["backend"]
         lines += ["", _table_title(f"stage, ms at {' / '.join(f'{n:,}' for n in counts)} VPLs",
@@ -263,16 +263,23 @@ def gi_svo(data: dict) -> list[str]:
                                    f"{paper['svo']} SVO, Titan X)", f"usdml ({sw}×{sh}, `{backend}` rays, 2 CPUs)")]
         lines += [
             f"| voxelization and SVO build | {pp('voxelization_svo_ms')} | "
-            + ("– (exact rays: the BVH the primary rays use)" if backend == "exact" else ms("backend_build")) + " |",
+            + ("– (exact rays: the BVH the primary rays use)" if backend == "exact" else
+               f"{ms('backend_build')} (from the cache: {ms('backend_update')})") + " |",
             f"| RSM + VPL generation (usdml: light paths) | {pp('rsm_ms')} + {pp('vpl_generation_ms')} | "
             f"{ms('vpl_generation')} |",
             f"| direct illumination | {pp('direct_ms')} | {ms('direct')} |",
             f"| indirect illumination | {pp('indirect_ms')} | "
-            + " / ".join(f"{1000 * (by[n]['gather'] + by[n]['filter']):.0f}" for n in counts) + " |",
+            + " / ".join(_ms(by[n]["gather"] + by[n]["filter"]) for n in counts) + " |",
             f"| of which: gather (its rays, thread-ms) + filter | – | {ms('gather')} ({ms('visibility')}) + "
             f"{ms('filter')} |",
         ]
     return lines
+
+
+def _ms(seconds: float) -> str:
+    """Seconds as milliseconds: whole ones from 10 ms, two significant digits below."""
+    v = 1000.0 * seconds
+    return f"{v:.0f}" if v >= 10 else f"{v:.2g}"
 
 
 def _table_title(*header: str) -> str:

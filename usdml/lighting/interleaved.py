@@ -57,7 +57,7 @@ from usdml.parallel import cpu_workers, iter_parallel
 #: paper 003: the G-buffer split into 4 × 4 tiles, 16 VPL subsets
 TILE = 4
 #: the visibility backend of ``--gi svo``'s shadow rays
-GI_VISIBILITY = "exact"
+GI_VISIBILITY = "svo"
 #: VPL targets are lifted this many of the rays' backend's voxels along the VPL normal (module doc)
 TARGET_LIFT_VOXELS = 1.0
 #: the tile filter's normal edge stop, ``max(0, n_p·n_q)^SIGMA_NORMAL`` (measured, module doc)
