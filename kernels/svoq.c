@@ -250,6 +250,13 @@ static void chunk_tree_scalar(const SvoScene *s, int tr, Chunk *ch, float *out) 
 
 typedef void (*TreeFn)(const SvoScene *, int, Chunk *, float *);
 
+/* lane groups the SIMD walk steps in turn (svoq_simd.h). Measured on the city's 7.35 M rays, one
+ * thread, AVX-512: 1, 2, 3, 4 groups 0.97, 1.09, 1.14, 1.00 s: the walk is not latency-bound here
+ * (nor are its gathers: emulating them with scalar loads took 1.5-1.7 s), so one group */
+#ifndef GROUPS
+#define GROUPS 1
+#endif
+
 #ifdef SQ_X86
 #include "simd_avx2.h"
 #include "svoq_simd.h"

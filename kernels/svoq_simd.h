@@ -51,119 +51,145 @@ TARGET static void SUFFIX(walks)(const SvoScene *s, int tr, const Chunk *ch, Wal
     }
 }
 
-TARGET static void SUFFIX(chunk_tree)(const SvoScene *s, int tr, Chunk *ch, float *out) {
-    const int32_t *ti = s->tree_int + 4 * tr;
-    const int depth = ti[0];
-    const int32_t *nodes = s->nodes + ti[1];
-    const uint32_t *bricks = s->bricks + 2 * (int64_t)ti[2];
-    const int n = 1 << depth;
-    const int top = depth - 3 < s->top_level ? (depth - 3 < 1 ? 1 : depth - 3) : s->top_level;
-    const int32_t *tops = s->tops + ti[3];
-    SUFFIX(Lanes) L;
-    static __thread Walks S;
-    SUFFIX(walks)(s, tr, ch, &S);
-    unsigned act = 0;
-    int next = 0, kept = 0;
-    const V zero = SET(0.0f), big = SET(BIG);
-    const VI izero = ISET(0), one = ISET(1);
-    for (;;) {
-        /* refill: every idle lane takes the next pending ray that enters the tree */
-        for (unsigned idle = ~act & ((1u << W) - 1); idle && next < ch->n_pending; idle &= idle - 1) {
-            const int l = __builtin_ctz(idle);
-            while (next < ch->n_pending) {
-                const int j = next++, k = ch->pending[j];
-                if (!S.ok[j]) {
-                    ch->pending[kept++] = k;         /* free in this tree: pending for the next */
-                    continue;
-                }
-                for (int a = 0; a < 3; a++) {
-                    L.q[a][l] = S.q[a][j]; L.dir[a][l] = S.dir[a][j]; L.inv[a][l] = S.inv[a][j]; L.c[a][l] = S.c[a][j];
-                }
-                L.t[l] = S.t[j]; L.tb[l] = S.tb[j]; L.ray[l] = k;
-                act |= 1u << l;
-                break;
-            }
-        }
-        if (!act) break;
-        const M live0 = MFROMBITS(act);
-        V q[3], dir[3], inv[3];
-        VI c[3];
-        for (int a = 0; a < 3; a++) {
-            q[a] = LOAD(L.q[a]); dir[a] = LOAD(L.dir[a]); inv[a] = LOAD(L.inv[a]); c[a] = ILOAD(L.c[a]);
-        }
-        V t = LOAD(L.t), tb = LOAD(L.tb);
-        /* descend from the root to the deepest node holding each lane's voxel: levels 1 .. top in
-         * one read of the top table, then the tree */
-        const int ts = depth - top;
-        VI cell = IADD(ISLL(IADD(ISLL(ISRL(c[2], ts), top), ISRL(c[1], ts)), top), ISRL(c[0], ts));
-        VI g = MGATHER_I(tops, cell, live0);
-        M live = MAND(live0, IGT(g, izero));
-        VI size = SELI(live, izero, ISLLV(one, ISUB(izero, g)));
-        M hit = MNONE;
-        for (int level = top + 1; level < depth - 1 && MBITS(live); level++) {
-            const int shift = depth - level;
-            VI oct = IOR(IAND(ISRL(c[0], shift), one),
-                         IOR(ISLL(IAND(ISRL(c[1], shift), one), 1), ISLL(IAND(ISRL(c[2], shift), one), 2)));
-            VI entry = MGATHER_I(nodes, IADD(ISLL(g, 3), oct), live);
-            M empty = MAND(live, IEQ(entry, izero));
-            size = SELI(empty, ISET(1 << shift), size);
-            live = MANDN(empty, live);
-            if (!MBITS(live)) break;
-            if (level < depth - 2) {
-                g = entry;
+/* what one step reads that is the same for every lane: the tree and its sizes */
+typedef struct {
+    const int32_t *nodes, *tops;
+    const uint32_t *bricks;
+    int depth, n, top;
+} SUFFIX(Tree);
+
+/* refill: every idle lane of L takes the next pending ray that enters the tree (S: their walks) */
+TARGET static inline unsigned SUFFIX(refill)(SUFFIX(Lanes) *L, unsigned act, const Walks *S, Chunk *ch, int *next,
+                                             int *kept) {
+    for (unsigned idle = ~act & ((1u << W) - 1); idle && *next < ch->n_pending; idle &= idle - 1) {
+        const int l = __builtin_ctz(idle);
+        while (*next < ch->n_pending) {
+            const int j = (*next)++, k = ch->pending[j];
+            if (!S->ok[j]) {
+                ch->pending[(*kept)++] = k;          /* free in this tree: pending for the next */
                 continue;
             }
-            /* a brick: its 2^3 octant, then the voxel */
-            VI bw = ISLL(ISUB(entry, one), 1);
-            VI sub = IOR(IAND(ISRL(c[0], 1), one),
-                         IOR(ISLL(IAND(ISRL(c[1], 1), one), 1), ISLL(IAND(ISRL(c[2], 1), one), 2)));
-            VI sh = IADD(ISLL(IAND(sub, one), 1), ISLL(IAND(ISRL(sub, 1), one), 3));
-            VI om = IOR(ISLLV(ISET(0x33), sh), ISLLV(ISET(0x33), IADD(sh, ISET(16))));
-            VI w1 = MGATHER_I(bricks, IADD(bw, ISRL(sub, 2)), live);
-            M sub_empty = MAND(live, IEQ(IAND(w1, om), izero));
-            size = SELI(sub_empty, ISET(2), size);
-            M rest = MANDN(sub_empty, live);
-            VI bit = IADD(IAND(c[0], ISET(3)), IADD(ISLL(IAND(c[1], ISET(3)), 2), ISLL(IAND(c[2], ISET(3)), 4)));
-            VI w2 = MGATHER_I(bricks, IADD(bw, ISRL(bit, 5)), rest);
-            hit = MAND(rest, INZ(IAND(ISRLV(w2, IAND(bit, ISET(31))), one)));
-            size = SELI(MANDN(hit, rest), one, size);
+            for (int a = 0; a < 3; a++) {
+                L->q[a][l] = S->q[a][j]; L->dir[a][l] = S->dir[a][j]; L->inv[a][l] = S->inv[a][j];
+                L->c[a][l] = S->c[a][j];
+            }
+            L->t[l] = S->t[j]; L->tb[l] = S->tb[j]; L->ray[l] = k;
+            act |= 1u << l;
+            break;
         }
-        /* leave the empty nodes through their far faces */
-        M go = MANDN(hit, live0);
-        VI m = ISUB(izero, size);                     /* ~(size - 1) */
-        VI c0[3], nc[3];
-        V tf[3];
-        M pos[3];
-        for (int a = 0; a < 3; a++) {
-            c0[a] = IAND(c[a], m);
-            pos[a] = GT(dir[a], zero);
-            V f = CVTF(SELI(pos[a], IADD(c0[a], size), c0[a]));
-            tf[a] = SEL(EQ(dir[a], zero), big, MUL(SUB(f, q[a]), inv[a]));
+    }
+    return act;
+}
+
+/* one step of every active lane: a descent (levels 1 .. top in one read of the top table, then the
+ * tree), then a hit or the step out of the empty node reached. Returns the lanes still walking;
+ * hits are written to out, rays that left the segment or the grid appended to pending. */
+TARGET static inline unsigned SUFFIX(step)(const SUFFIX(Tree) *T, SUFFIX(Lanes) *L, unsigned act, Chunk *ch,
+                                           int *kept, float *out) {
+    const int depth = T->depth, n = T->n, top = T->top;
+    const V zero = SET(0.0f), big = SET(BIG);
+    const VI izero = ISET(0), one = ISET(1);
+    const M live0 = MFROMBITS(act);
+    V q[3], dir[3], inv[3];
+    VI c[3];
+    for (int a = 0; a < 3; a++) {
+        q[a] = LOAD(L->q[a]); dir[a] = LOAD(L->dir[a]); inv[a] = LOAD(L->inv[a]); c[a] = ILOAD(L->c[a]);
+    }
+    V t = LOAD(L->t), tb = LOAD(L->tb);
+    const int ts = depth - top;
+    VI cell = IADD(ISLL(IADD(ISLL(ISRL(c[2], ts), top), ISRL(c[1], ts)), top), ISRL(c[0], ts));
+    VI g = MGATHER_I(T->tops, cell, live0);
+    M live = MAND(live0, IGT(g, izero));
+    VI size = SELI(live, izero, ISLLV(one, ISUB(izero, g)));
+    M hit = MNONE;
+    for (int level = top + 1; level < depth - 1 && MBITS(live); level++) {
+        const int shift = depth - level;
+        VI oct = IOR(IAND(ISRL(c[0], shift), one),
+                     IOR(ISLL(IAND(ISRL(c[1], shift), one), 1), ISLL(IAND(ISRL(c[2], shift), one), 2)));
+        VI entry = MGATHER_I(T->nodes, IADD(ISLL(g, 3), oct), live);
+        M empty = MAND(live, IEQ(entry, izero));
+        size = SELI(empty, ISET(1 << shift), size);
+        live = MANDN(empty, live);
+        if (!MBITS(live)) break;
+        if (level < depth - 2) {
+            g = entry;
+            continue;
         }
-        V t_exit = MIN(tf[0], MIN(tf[1], tf[2]));
-        M gone = MAND(go, GE(t_exit, tb));
-        t = SEL(go, MAX(t, t_exit), t);
-        for (int a = 0; a < 3; a++)
-            nc[a] = IMIN(IMAX(CVTT(FLOOR(ADD(q[a], MUL(dir[a], t_exit)))), c0[a]), IADD(c0[a], ISUB(size, one)));
-        M xs = MAND(LE(tf[0], tf[1]), LE(tf[0], tf[2]));
-        M ys = MANDN(xs, LE(tf[1], tf[2]));
-        M zs = MANDN(MOR(xs, ys), MALL);
-        M sel[3] = {xs, ys, zs};
-        M outside = MNONE;
-        for (int a = 0; a < 3; a++) {
-            VI across = SELI(pos[a], IADD(c0[a], size), ISUB(c0[a], one));
-            nc[a] = SELI(sel[a], across, nc[a]);
-            outside = MOR(outside, MOR(IGT(izero, nc[a]), IGT(nc[a], ISET(n - 1))));
-        }
-        gone = MOR(gone, MAND(go, outside));
-        M cont = MANDN(gone, go);
-        for (int a = 0; a < 3; a++) ISTORE(L.c[a], SELI(cont, nc[a], c[a]));
-        STORE(L.t, t);
-        /* lanes that end: hits written, free rays pending for the next tree */
-        const unsigned hb = MBITS(hit) & act, gb = MBITS(gone) & act;
-        for (unsigned b = hb; b; b &= b - 1) out[L.ray[__builtin_ctz(b)]] = L.t[__builtin_ctz(b)];
-        for (unsigned b = gb; b; b &= b - 1) ch->pending[kept++] = L.ray[__builtin_ctz(b)];
-        act &= ~(hb | gb);
+        /* a brick: its 2^3 octant, then the voxel */
+        VI bw = ISLL(ISUB(entry, one), 1);
+        VI sub = IOR(IAND(ISRL(c[0], 1), one),
+                     IOR(ISLL(IAND(ISRL(c[1], 1), one), 1), ISLL(IAND(ISRL(c[2], 1), one), 2)));
+        VI sh = IADD(ISLL(IAND(sub, one), 1), ISLL(IAND(ISRL(sub, 1), one), 3));
+        VI om = IOR(ISLLV(ISET(0x33), sh), ISLLV(ISET(0x33), IADD(sh, ISET(16))));
+        VI w1 = MGATHER_I(T->bricks, IADD(bw, ISRL(sub, 2)), live);
+        M sub_empty = MAND(live, IEQ(IAND(w1, om), izero));
+        size = SELI(sub_empty, ISET(2), size);
+        M rest = MANDN(sub_empty, live);
+        VI bit = IADD(IAND(c[0], ISET(3)), IADD(ISLL(IAND(c[1], ISET(3)), 2), ISLL(IAND(c[2], ISET(3)), 4)));
+        VI w2 = MGATHER_I(T->bricks, IADD(bw, ISRL(bit, 5)), rest);
+        hit = MAND(rest, INZ(IAND(ISRLV(w2, IAND(bit, ISET(31))), one)));
+        size = SELI(MANDN(hit, rest), one, size);
+    }
+    /* leave the empty nodes through their far faces */
+    M go = MANDN(hit, live0);
+    VI m = ISUB(izero, size);                     /* ~(size - 1) */
+    VI c0[3], nc[3];
+    V tf[3];
+    M pos[3];
+    for (int a = 0; a < 3; a++) {
+        c0[a] = IAND(c[a], m);
+        pos[a] = GT(dir[a], zero);
+        V f = CVTF(SELI(pos[a], IADD(c0[a], size), c0[a]));
+        tf[a] = SEL(EQ(dir[a], zero), big, MUL(SUB(f, q[a]), inv[a]));
+    }
+    V t_exit = MIN(tf[0], MIN(tf[1], tf[2]));
+    M gone = MAND(go, GE(t_exit, tb));
+    t = SEL(go, MAX(t, t_exit), t);
+    for (int a = 0; a < 3; a++)
+        nc[a] = IMIN(IMAX(CVTT(FLOOR(ADD(q[a], MUL(dir[a], t_exit)))), c0[a]), IADD(c0[a], ISUB(size, one)));
+    M xs = MAND(LE(tf[0], tf[1]), LE(tf[0], tf[2]));
+    M ys = MANDN(xs, LE(tf[1], tf[2]));
+    M zs = MANDN(MOR(xs, ys), MALL);
+    M sel[3] = {xs, ys, zs};
+    M outside = MNONE;
+    for (int a = 0; a < 3; a++) {
+        VI across = SELI(pos[a], IADD(c0[a], size), ISUB(c0[a], one));
+        nc[a] = SELI(sel[a], across, nc[a]);
+        outside = MOR(outside, MOR(IGT(izero, nc[a]), IGT(nc[a], ISET(n - 1))));
+    }
+    gone = MOR(gone, MAND(go, outside));
+    M cont = MANDN(gone, go);
+    for (int a = 0; a < 3; a++) ISTORE(L->c[a], SELI(cont, nc[a], c[a]));
+    STORE(L->t, t);
+    /* lanes that end: hits written, free rays pending for the next tree */
+    const unsigned hb = MBITS(hit) & act, gb = MBITS(gone) & act;
+    for (unsigned b = hb; b; b &= b - 1) out[L->ray[__builtin_ctz(b)]] = L->t[__builtin_ctz(b)];
+    for (unsigned b = gb; b; b &= b - 1) ch->pending[(*kept)++] = L->ray[__builtin_ctz(b)];
+    return act & ~(hb | gb);
+}
+
+/* tree tr for the chunk's pending rays: GROUPS groups of W lanes stepped in turn (their chains of
+ * gathers are independent, so the CPU overlaps them), hits written to out, the rest left pending */
+TARGET static void SUFFIX(chunk_tree)(const SvoScene *s, int tr, Chunk *ch, float *out) {
+    const int32_t *ti = s->tree_int + 4 * tr;
+    SUFFIX(Tree) T;
+    T.depth = ti[0];
+    T.nodes = s->nodes + ti[1];
+    T.bricks = s->bricks + 2 * (int64_t)ti[2];
+    T.tops = s->tops + ti[3];
+    T.n = 1 << T.depth;
+    T.top = T.depth - 3 < s->top_level ? (T.depth - 3 < 1 ? 1 : T.depth - 3) : s->top_level;
+    static __thread Walks S;
+    SUFFIX(walks)(s, tr, ch, &S);
+    SUFFIX(Lanes) L[GROUPS];
+    unsigned act[GROUPS] = {0};
+    int next = 0, kept = 0;
+    for (;;) {
+        unsigned any = 0;
+        for (int g = 0; g < GROUPS; g++) any |= act[g] = SUFFIX(refill)(&L[g], act[g], &S, ch, &next, &kept);
+        if (!any) break;
+        for (int g = 0; g < GROUPS; g++)
+            if (act[g]) act[g] = SUFFIX(step)(&T, &L[g], act[g], ch, &kept, out);
     }
     ch->n_pending = kept;
 }

@@ -1,11 +1,12 @@
 #!/usr/bin/env python
-"""The voxel query kernels on one stage's bench rays: the compiled kernel with each instruction set
-this CPU has, and the Warp kernel; one thread (CPU seconds of the calling thread) and all cores (wall
-seconds), with each kernel's agreement with the Warp kernel.
+"""The query kernels of the voxel (or, ``--backend svo``, the SVO) backend on one stage's bench rays:
+the compiled kernel with each instruction set this CPU has, and the Warp kernel; one thread (CPU
+seconds of the calling thread) and all cores (wall seconds), with each kernel's agreement with the
+Warp kernel.
 
 Usage::
 
-    python tools/voxel_kernel_bench.py stages/city.usda [--imageWidth 128] [--rounds 3] [--json]
+    python tools/voxel_kernel_bench.py stages/city.usda [--backend svo] [--imageWidth 128] [--rounds 3] [--json]
 
 The rays are ``usdml bench``'s (every facing pixel x light pair of the G-buffer, in the shading
 order); the voxel settings come from the stage and the flags (``usdml bench``'s). Kernels are run in
@@ -26,6 +27,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("stage")
+    p.add_argument("--backend", choices=("voxel", "svo"), default="voxel")
     p.add_argument("--imageWidth", type=int, default=128)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--json", action="store_true")
@@ -39,10 +41,11 @@ def main(argv: list[str] | None = None) -> int:
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
     from usdml.stage import StageDelegate
-    from usdml.visibility import ExactBackend, make_backend, voxel_native
+    from usdml.visibility import ExactBackend, make_backend, svo_native, voxel_native
 
+    native_lib = voxel_native if args.backend == "voxel" else svo_native
     delegate = StageDelegate(args.stage)
-    settings = delegate.usdml_settings.updated(visibility="voxel", **overrides_from_args(args))
+    settings = delegate.usdml_settings.updated(visibility=args.backend, **overrides_from_args(args))
     snap = delegate.snapshot(delegate.start_time)
     w, h = snap.camera.resolution(args.imageWidth)
     with ExactBackend() as exact:
@@ -52,15 +55,15 @@ def main(argv: list[str] | None = None) -> int:
     o, t, n = (np.ascontiguousarray(x, np.float32) for x in (o, t, n))
     di = np.ascontiguousarray(di, np.int32)
     kernels = [("warp", {"cpu_kernel": "warp"})]
-    if voxel_native.library() is not None:
-        isas = ["scalar"] + (["avx2"] if voxel_native.simd_width("avx2") == 8 else [])
-        if voxel_native.simd_width() > 8:
+    if native_lib.library() is not None:
+        isas = ["scalar"] + (["avx2"] if native_lib.simd_width("avx2") == 8 else [])
+        if native_lib.simd_width() > 8:
             isas.append("auto")
         kernels += [(isa, {"cpu_kernel": "native", "native_isa": isa}) for isa in isas]
     quiet = {"report": lambda line: None}
     backends = {}
     for name, kw in kernels:
-        b = make_backend("voxel", settings, "cpu", **kw, **quiet)
+        b = make_backend(args.backend, settings, "cpu", **kw, **quiet)
         b.update(snap, diff(None, snap))
         b.occluded(o[:1024], t[:1024], normals=n[:1024], distant=di[:1024])
         backends[name] = b
@@ -68,14 +71,13 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(max(1, args.rounds)):
         for name, b in backends.items():
             t0 = time.thread_time()
-            if b._native is not None:
+            if args.backend == "voxel" and b._native is not None:
                 out = np.empty(len(o), np.float32)
                 b._native.query(b._native_rule(), 0, len(o), o, t, n, di, False, out)
                 occ = out >= 0
             else:
                 b.workers = 1
                 occ = b.occluded(o, t, normals=n, distant=di)
-                b.workers = None
             one[name].append(time.thread_time() - t0)
             from usdml.parallel import cpu_workers
             b.workers = cpu_workers("cpu")

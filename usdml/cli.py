@@ -78,10 +78,22 @@ def _add_device_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default: %(default)s)")
 
 
-def _cmd_bake(args: argparse.Namespace) -> int:
-    from usdml.render.sequence import build_messages, frame_spec
+def _update_over(delegate, backend, frames) -> None:
+    """Bring ``backend`` through every frame of ``frames`` (what ``usdml bake`` builds and caches)."""
     from usdml.scene import diff
     from usdml.stage.delegate import require_geometry
+
+    previous = None
+    for f in frames:
+        delegate.check_time(f)
+        snap = delegate.snapshot(f)
+        require_geometry(delegate, snap)
+        backend.update(snap, diff(previous, snap))
+        previous = snap
+
+
+def _cmd_bake(args: argparse.Namespace) -> int:
+    from usdml.render.sequence import build_messages, frame_spec
     from usdml.visibility import make_backend
 
     delegate = _delegate(args)
@@ -98,13 +110,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
         return 0
     t0 = time.perf_counter()
     backend = make_backend("voxel", settings, args.device, cache=args.cache, **build_messages())
-    previous = None
-    for f in frames:
-        delegate.check_time(f)
-        snap = delegate.snapshot(f)
-        require_geometry(delegate, snap)
-        backend.update(snap, diff(previous, snap))
-        previous = snap
+    _update_over(delegate, backend, frames)
     arrays = [{"source": a.source, "key": a.key, "bytes": a.nbytes, "samples": a.samples,
                "build_seconds": a.build_seconds, "loaded_from_cache": a.cached,
                "path": str(backend.cache.path("voxel", a.key)) if backend.cache and a.key else None}
@@ -130,19 +136,11 @@ def _bake_svo(args: argparse.Namespace, delegate, settings, frames) -> int:
     """``usdml bake --backend svo``: the static sparse voxel octree into the cache (per-frame trees are
     rebuilt every frame and never cached)."""
     from usdml.render.sequence import build_messages
-    from usdml.scene import diff
-    from usdml.stage.delegate import require_geometry
     from usdml.visibility import make_backend
 
     t0 = time.perf_counter()
     backend = make_backend("svo", settings, args.device, cache=args.cache, **build_messages())
-    previous = None
-    for f in frames:
-        delegate.check_time(f)
-        snap = delegate.snapshot(f)
-        require_geometry(delegate, snap)
-        backend.update(snap, diff(previous, snap))
-        previous = snap
+    _update_over(delegate, backend, frames)
     trees = [{"source": t.source, "key": t.key, "bytes": t.nbytes, "resolution": t.n, "occupied_voxels": t.occupied,
               "build_seconds": t.build_seconds, "loaded_from_cache": t.cached,
               "path": str(backend.cache.path("svo", t.key)) if backend.cache and t.key else None}
