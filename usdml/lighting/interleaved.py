@@ -149,6 +149,9 @@ def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarra
     offset = normals if geometric is None else geometric
     subsets = vpl_subsets(len(vpl_position), n)
     scale = np.float32(n * n)
+    targets = np.asarray(vpl_position, np.float64)
+    if target_lift != 0.0:
+        targets = targets + np.asarray(vpl_normal, np.float64) * target_lift
     jobs = []
     for t, vsel in enumerate(subsets):
         pix = np.flatnonzero(tiles == t)
@@ -166,9 +169,8 @@ def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarra
             pi, vi = np.nonzero(g > 0)
             if len(pi):
                 t0 = _time.perf_counter()
-                vj = vsel[vi]
-                targets = vpl_position[vj] if target_lift == 0.0 else vpl_position[vj] + vpl_normal[vj] * target_lift
-                hit = occluded(points[pix[pi]], targets, normals=offset[pix[pi]], distant=np.zeros(len(pi), bool))
+                hit = occluded(points[pix[pi]], targets[vsel[vi]], normals=offset[pix[pi]],
+                               distant=np.zeros(len(pi), bool))
                 seconds = _time.perf_counter() - t0
                 rays = len(pi)
                 g[pi[hit], vi[hit]] = 0.0
