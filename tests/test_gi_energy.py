@@ -42,6 +42,9 @@ def _lum(image):
     # coarse levels, whose grid lights sit inside the sphere, carry most of the light
     ("lgh", {}, 0.82, 0.90),
     ("lgh", {"lgh_alpha": 4.0, "lgh_start_level": 0}, 0.96, 1.02),
+    # paper 003's interleaved sixteenth of the VPLs per pixel, x 16, filtered, SVO rays (measured 0.971;
+    # 0.997 with exact rays: the sphere's voxels hide some grazing rays)
+    ("svo", {}, 0.95, 1.02),
 ])
 def test_furnace_indirect_is_the_geometric_series(furnace, method, settings, low, high):
     """Every bounce adds rho times the last: indirect = direct (rho + rho^2 + rho^3); direct = rho/pi I/R^2."""
@@ -71,11 +74,11 @@ def test_mitsuba_max_depth_is_bounces_plus_two(furnace):
 
 @pytest.mark.parametrize("method,energy,blocks", [
     pytest.param("vpl-bruteforce", 0.04, 0.05, marks=pytest.mark.slow),          # 9 s: every VPL, exact rays
-    ("lgh", 0.1, 0.15)])
+    ("lgh", 0.1, 0.15), ("svo", 0.04, 0.05)])
 def test_indirect_energy_matches_path_tracing(box, mitsuba_box, method, energy, blocks):
     """Closed box, two point lights: direct within 1 %; indirect energy and median 16x16-block error within
     the targets (10 %, 15 %), tighter for brute force (measured 5000 VPLs, 32 px: brute force 0.982 / 1.3 %,
-    lgh 0.945 / 5.7 %; isotropic VPLs: 0.44, 0.55)."""
+    lgh 0.945 / 5.7 %, svo 0.982 / 2.1 % (exact rays: 0.989 / 1.1 %); isotropic VPLs: 0.44, 0.55)."""
     got = ref.render_usdml(box, method, 5000, BOUNCES, 32)
     assert abs(ref.energy_ratio(got["direct"], mitsuba_box["direct"]) - 1) < 0.01
     assert abs(ref.energy_ratio(got["indirect"], mitsuba_box["indirect"]) - 1) < energy

@@ -264,11 +264,65 @@ def dome_error(data: dict) -> list[str]:
     return _table(["dome samples K", "rel. RMSE of `direct`", "seconds per frame"], rows)
 
 
+def gi_svo(data: dict) -> list[str]:
+    """``tools/svo_gi_table.py --json``: accuracy and speed per VPL count and ray backend, then paper 003
+    Table 1's stage timings beside usdml's."""
+    rows, stages = [], []
+    for run in data["runs"]:
+        out = run["output"]
+        w, h = out["resolution"]
+        for r in out["rows"]:
+            for name, v in r["rays"].items():
+                rows.append([f"{r['vpls']:,}", f"{w}×{h}", f"`{name}`", _pct(v["rel_rmse"]),
+                             f"{v['seconds']:.2f} ({r['bruteforce_seconds']:.2f})", f"{v['speedup']:.1f}×",
+                             f"{v['shadow_rays'] / r['bruteforce_rays']:.3f}",
+                             f"{v['visibility_seconds']:.2f}"])
+        stages.append(out)
+    lines = _table(["VPLs", "image", "svo's rays", "rel. RMSE of `indirect`", "indirect pass s (brute force)",
+                    "speed-up", "rays / brute force's", "ray thread-s"], rows)
+    for out in stages:
+        paper = out["paper"]
+        by = {r["vpls"]: r["stages"] for r in out["rows"]}
+        counts = sorted(by)
+        sw, sh = out["stage_resolution"]
+        ms = lambda key: " / ".join(_ms(by[n][key]) for n in counts)  # noqa: E731
+        pp = lambda key: " / ".join(f"{v:g}" for v in paper[key])  # noqa: E731
+        backend = by[counts[0]]["backend"]
+        lines += ["", _table_title(f"stage, ms at {' / '.join(f'{n:,}' for n in counts)} VPLs",
+                                   f"paper 003 ({paper['resolution'][0]}×{paper['resolution'][1]}, "
+                                   f"{paper['svo']} SVO, Titan X)", f"usdml ({sw}×{sh}, `{backend}` rays, 2 CPUs)")]
+        lines += [
+            f"| voxelization and SVO build | {pp('voxelization_svo_ms')} | "
+            + ("– (exact rays: the BVH the primary rays use)" if backend == "exact" else
+               f"{ms('backend_build')} (from the cache: {ms('backend_update')})") + " |",
+            f"| RSM + VPL generation (usdml: light paths) | {pp('rsm_ms')} + {pp('vpl_generation_ms')} | "
+            f"{ms('vpl_generation')} |",
+            f"| direct illumination | {pp('direct_ms')} | {ms('direct')} |",
+            f"| indirect illumination | {pp('indirect_ms')} | "
+            + " / ".join(_ms(by[n]["gather"] + by[n]["filter"]) for n in counts) + " |",
+            f"| of which: gather (its rays, thread-ms) + filter | – | {ms('gather')} ({ms('visibility')}) + "
+            f"{ms('filter')} |",
+        ]
+    return lines
+
+
+def _ms(seconds: float) -> str:
+    """Seconds as milliseconds: whole ones from 10 ms, two significant digits below."""
+    v = 1000.0 * seconds
+    return f"{v:.0f}" if v >= 10 else f"{v:.2g}"
+
+
+def _table_title(*header: str) -> str:
+    """The header and rule lines of a table, as one string (a table whose rows are written by hand)."""
+    return "\n".join(_table(list(header), []))
+
+
 RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
+    "gi-svo": gi_svo,
 }
 
 

@@ -10,7 +10,7 @@
   bounce the radiance is uniform and every bounce multiplies it by ρ: ``indirect = direct · (ρ + … + ρ^B)``.
 
 ``python tools/gi_reference.py [--vpls N] [--bounces B] [--imageWidth W] [--spp S] [--json]`` prints, for
-``--gi vpl-bruteforce`` and ``--gi lgh``, the ``indirect`` energy ratio against Mitsuba on a closed
+``--gi vpl-bruteforce``, ``--gi lgh`` and ``--gi svo``, the ``indirect`` energy ratio against Mitsuba on a closed
 Cornell-style box (two point lights, camera inside), the median 16×16-block relative error, and the
 furnace ratio against the analytic series.
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
-METHODS = ("vpl-bruteforce", "lgh")
+METHODS = ("vpl-bruteforce", "lgh", "svo")
 
 #: closed box (Cornell-box proportions, scene units = metres): walls (name, corners, albedo)
 BOX = (5.56, 5.488, 5.592)

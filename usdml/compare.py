@@ -1,7 +1,8 @@
 """``usdml compare``: one frame rendered two ways on the same pixels, the error of one against the other.
 
 Global illumination: ``--gi lgh --against vpl-bruteforce`` renders the same VPLs (same seed) through
-the lighting grid hierarchy and by gathering every VPL with exact visibility, and reports the
+the lighting grid hierarchy and by gathering every VPL with exact visibility (``--gi svo``: a
+sixteenth of them per pixel, paper 003, with SVO rays), and reports the
 relative RMSE of the ``indirect`` AOV (RMSE over pixels that see geometry and over RGB, divided by
 the reference's mean) with the seconds of each indirect pass and their ratio. Warp's kernels are
 loaded before either pass is timed (``warmup_seconds``: a sequence render pays it once, not per frame).
@@ -18,8 +19,9 @@ from usdml.render.frame import FrameRenderer
 from usdml.stage import StageDelegate
 
 
-def _render(delegate: StageDelegate, settings, frame: float, width: int, height: int, device: str):
-    renderer = FrameRenderer(delegate, settings, device)
+def _render(delegate: StageDelegate, settings, frame: float, width: int, height: int, device: str,
+            gi_visibility: str | None = None):
+    renderer = FrameRenderer(delegate, settings, device, gi_visibility=gi_visibility)
     try:
         t0 = _time.perf_counter()
         result = renderer.render(frame, width, height, {"direct", "indirect", "color", "depth"})
@@ -28,13 +30,24 @@ def _render(delegate: StageDelegate, settings, frame: float, width: int, height:
         renderer.close()
 
 
+def indirect_error(test: dict, reference: dict) -> tuple[float, float]:
+    """``(RMSE, reference mean)`` of the ``indirect`` AOV over the pixels where the reference's ``depth``
+    is finite (buffers as :attr:`usdml.render.frame.FrameResult.buffers`)."""
+    hit = np.isfinite(reference["depth"])
+    a = test["indirect"][hit].astype(np.float64)
+    b = reference["indirect"][hit].astype(np.float64)
+    rmse = float(np.sqrt(np.mean((a - b) ** 2))) if a.size else 0.0
+    return rmse, float(b.mean()) if b.size else 0.0
+
+
 def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | None = None,
                image_width: int = 128, device: str = "cpu", png_prefix: str | None = None,
-               overrides: dict | None = None) -> dict:
-    """Render ``frame`` with ``gi`` and with ``against``; JSON-able result (see the module doc)."""
+               overrides: dict | None = None, gi_visibility: str | None = None) -> dict:
+    """Render ``frame`` with ``gi`` and with ``against``; JSON-able result (see the module doc).
+    ``gi_visibility`` overrides the backend of ``--gi svo``'s rays (:class:`FrameRenderer`)."""
     for name in (gi, against):
         if name == "none":
-            raise UsdmlError("--gi and --against must name a global illumination method (lgh, vpl-bruteforce)")
+            raise UsdmlError("--gi and --against must name a global illumination method (lgh, svo, vpl-bruteforce)")
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     base = delegate.usdml_settings.updated(**(overrides or {}))
@@ -43,13 +56,10 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     from usdml.lighting.gi import warm_up
 
     warm = warm_up(device)      # once per process in a sequence render; not the method's cost per frame
-    test, test_s = _render(delegate, base.updated(gi=gi), frame, width, height, device)
-    ref, ref_s = _render(delegate, base.updated(gi=against), frame, width, height, device)
+    test, test_s = _render(delegate, base.updated(gi=gi), frame, width, height, device, gi_visibility)
+    ref, ref_s = _render(delegate, base.updated(gi=against), frame, width, height, device, gi_visibility)
     hit = np.isfinite(ref.buffers["depth"])
-    a = test.buffers["indirect"][hit].astype(np.float64)
-    b = ref.buffers["indirect"][hit].astype(np.float64)
-    rmse = float(np.sqrt(np.mean((a - b) ** 2))) if a.size else 0.0
-    mean = float(b.mean()) if b.size else 0.0
+    rmse, mean = indirect_error(test.buffers, ref.buffers)
     gi_test = test.stats.get("gi_seconds", 0.0)
     gi_ref = ref.stats.get("gi_seconds", 0.0)
     if png_prefix:
@@ -68,6 +78,9 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
         "seconds": {gi: gi_test, against: gi_ref},
         "frame_seconds": {gi: test_s, against: ref_s},
         "speedup": gi_ref / gi_test if gi_test > 0 else float("inf"),
+        # svo: building its visibility backend for the frame (not in "seconds", as no method's BVH is)
+        "gi_update_seconds": {gi: test.stats.get("gi_update_seconds", 0.0),
+                              against: ref.stats.get("gi_update_seconds", 0.0)},
         "warmup_seconds": warm,
         "breakdown": {gi: test.stats.get("gi", {}), against: ref.stats.get("gi", {})},
     }

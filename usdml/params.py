@@ -268,14 +268,17 @@ _ROWS = (
           "(the compiled traversal; an error without it) or warp", VOXEL_COMMANDS,
           source="measured (usdml): docs/svo.md", choices=("auto", "native", "warp")),
 
-    # -- global illumination (paper 004)
+    # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
-          "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), or every VPL with exact "
-          "visibility (vpl-bruteforce, the reference)", LIGHTING_COMMANDS,
-          choices=("none", "lgh", "vpl-bruteforce"), label="global illumination", source="off unless asked for",
-          doc='''Global illumination: none, lgh (VPLs through a lighting grid hierarchy, paper 004) or vpl-bruteforce (every VPL with exact visibility, the reference).
+          "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "
+          "per pixel in 4x4 interleaved tiles with SVO shadow rays, filtered (svo, paper 003), or every VPL "
+          "with exact visibility (vpl-bruteforce, the reference)", LIGHTING_COMMANDS,
+          choices=("none", "lgh", "svo", "vpl-bruteforce"), label="global illumination",
+          source="off unless asked for",
+          doc='''Global illumination: none, lgh (VPLs through a lighting grid hierarchy, paper 004), svo (each pixel of a 4x4 interleaved tile gathers a sixteenth of the VPLs with sparse voxel octree shadow rays, then a geometry-aware filter, paper 003) or vpl-bruteforce (every VPL with exact visibility, the reference).
 
-          Indirect light lands in the indirect AOV and is added to color.'''),
+          Indirect light lands in the indirect AOV and is added to color. Paper 003 (svo) gathers
+          512 to 2,048 first-bounce VPLs: usdml:vpl:count 1024, usdml:vpl:bounces 1.'''),
     Param("vpl_count", int, 100_000, "usdml:vpl:count", "--vpls", "virtual point lights per frame",
           LIGHTING_COMMANDS, source="paper 004", range=Range(1), label="VPL count", metavar="N",
           doc="Virtual point lights generated per frame (paper 004 uses 100K)."),

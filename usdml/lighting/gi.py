@@ -1,10 +1,12 @@
-"""Indirect light with virtual point lights (paper 004): ``lgh`` or the ``vpl-bruteforce`` reference.
+"""Indirect light with virtual point lights: ``lgh`` (paper 004), ``svo`` (paper 003,
+:mod:`usdml.lighting.interleaved`) or the ``vpl-bruteforce`` reference.
 
-Both use the same VPLs (same seed) and the same lighting model: each VPL is a Lambertian emitter of
+All three use the same VPLs (same seed) and the same lighting model: each VPL is a Lambertian emitter of
 its flux Φ, ``Φ·cos θ / π`` about its normal (an isotropic point of Φ/4π sent half its power into its
 own surface: 0.44 of path tracing's indirect energy on a closed box, 0.49 in the furnace), a clamped
 geometry term ``1 / max(d², d_c²)`` with ``d_c`` half the S1 grid spacing, and Lambertian receivers.
-Brute force gathers them as one-sided cosine lights; the LGH aggregates their normals into each grid
+Brute force gathers them as one-sided cosine lights; ``svo`` gathers a sixteenth of them per pixel
+(interleaved 4×4 tiles, × 16) with the same emission and clamp; the LGH aggregates their normals into each grid
 light's lobe (:func:`usdml.kernels.lgh_lighting.lobe_factor`). So the difference between the two is the
 hierarchy's approximation and its stochastic, filtered shadows, which is what
 ``usdml compare --gi lgh --against vpl-bruteforce`` measures."""
@@ -17,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh import build_lgh
+from usdml.lighting.lgh import build_lgh, s1_spacing
 from usdml.lighting.lgh_lighting import lgh_indirect
 from usdml.lighting.vpl import generate_vpls
 from usdml.scene import Lights, Snapshot
@@ -48,14 +50,16 @@ class VPLField:
     """What every pass of a frame gathers indirect light from: the frame's VPLs and their LGH."""
 
     vpls: object                    #: :class:`usdml.lighting.vpl.VPLs`
-    lgh: object | None              #: the lighting grid hierarchy over them (None without VPLs)
+    lgh: object | None              #: the lighting grid hierarchy over them (None without VPLs, or for svo)
     intensity: np.ndarray | None    #: (V, 3) float32 isotropic-equivalent intensity Φ/4π
     stats: dict = field(default_factory=dict)
+    clamp: float = 0.0              #: geometry-term clamp distance d_c, scene units: half the S1 spacing
 
 
 def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings, device: str = "cpu") -> VPLField:
     """Trace the frame's light paths into VPLs (``exact``: closest hits) and build their LGH, once
-    per frame however many primary rays per pixel gather from them."""
+    per frame however many primary rays per pixel gather from them (``svo`` needs only the LGH's S1
+    spacing, for the clamp, and builds no hierarchy)."""
     stats: dict = {}
     t0 = _time.perf_counter()
     vpls = generate_vpls(snap, exact, lights, settings.vpl_count, settings.vpl_bounces, settings.seed)
@@ -67,32 +71,50 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
     # brute force gathers the same VPLs as one-sided cosine emitters (Φ/π on the normal)
     intensity = (vpls.flux / np.float32(4.0 * np.pi)).astype(np.float32)
     t1 = _time.perf_counter()
+    if settings.gi == "svo":
+        clamp = 0.5 * s1_spacing(vpls.position, intensity, levels=settings.lgh_levels, device=device)
+        stats["lgh_seconds"] = _time.perf_counter() - t1
+        return VPLField(vpls, None, intensity, stats, clamp)
     lgh = build_lgh(vpls.position, intensity, levels=settings.lgh_levels, device=device, normal=vpls.normal)
     stats["lgh_seconds"] = _time.perf_counter() - t1
     stats["lgh_levels"] = len(lgh.levels)
-    return VPLField(vpls, lgh, intensity, stats)
+    return VPLField(vpls, lgh, intensity, stats, 0.5 * float(lgh.h1))
 
 
 def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
                       albedo: np.ndarray, settings: UsdmlSettings, image: tuple | None = None,
                       device: str = "cpu", vpl_field: VPLField | None = None,
-                      geometric: np.ndarray | None = None) -> GIResult:
-    """Indirect radiance at ``points`` by ``settings.gi`` ("lgh" or "vpl-bruteforce").
+                      geometric: np.ndarray | None = None, target_lift: float = 0.0) -> GIResult:
+    """Indirect radiance at ``points`` by ``settings.gi`` ("lgh", "svo" or "vpl-bruteforce").
 
     ``exact`` traces the light paths that place the VPLs (closest hits) unless ``vpl_field``
     (:func:`prepare_vpls`) already holds them; ``occluded`` is the chosen visibility backend's
-    shadow query; ``image = (hit, positions)`` lets the LGH shadow ratio be filtered in screen space;
+    shadow query (for ``svo``: that of the backend the frame renderer owns for it); ``image = (hit,
+    positions)`` lets the LGH shadow ratio be filtered in screen space (``svo``: required, its tiles
+    and filter are the image's);
     ``geometric`` normals, when given, decide which VPLs face a point and where shadow rays start
-    (:func:`usdml.lighting.direct.shade_direct`).
+    (:func:`usdml.lighting.direct.shade_direct`); ``target_lift`` moves ``svo``'s VPL targets off
+    their surface (:func:`usdml.lighting.interleaved.target_lift`).
     """
     if vpl_field is None:
         vpl_field = prepare_vpls(snap, exact, lights, settings, device)
     stats = dict(vpl_field.stats)
     vpls, lgh, intensity = vpl_field.vpls, vpl_field.lgh, vpl_field.intensity
-    if lgh is None:
+    if len(vpls) == 0:
         return GIResult(np.zeros((len(points), 3), np.float32), stats)
     position, normal = vpls.position, vpls.normal
-    clamp = 0.5 * float(lgh.h1)
+    clamp = vpl_field.clamp
+    if settings.gi == "svo":
+        from usdml.lighting.interleaved import svo_indirect
+
+        if image is None:
+            raise ValueError("--gi svo gathers over the image's 4x4 tiles: pass image=(hit, positions)")
+
+        radiance, s = svo_indirect(points, normals, albedo, vpls, occluded, clamp, image,
+                                   meters_per_unit=snap.meters_per_unit, geometric=geometric,
+                                   target_lift=target_lift)
+        stats.update(s)
+        return GIResult(radiance, stats)
     if settings.gi == "lgh":
         r = lgh_indirect(points, normals, albedo, lgh, occluded, alpha=settings.lgh_alpha,
                          samples=settings.shadow_samples, seed=settings.seed,

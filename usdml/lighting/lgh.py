@@ -259,6 +259,19 @@ def auto_levels(n_lights: int, position: np.ndarray | None = None, intensity: np
     return _auto_levels(n, lo, hi, _upload(wp, p, i, lo, device), device)
 
 
+def s1_spacing(position: np.ndarray, intensity: np.ndarray, levels: int = 0, device: str = "cpu") -> float:
+    """h_1, the S1 spacing (scene units) of the hierarchy ``build_lgh(position, intensity, levels)``
+    builds, without building it: the VPL gathers that clamp their geometry term as the LGH does
+    (``--gi svo``) need only this. ``position`` (N, 3), ``intensity`` (N, 3) as :func:`build_lgh`."""
+    p, i = _check_inputs(position, intensity)
+    if len(p) == 0:
+        return 0.0
+    if int(levels) == 0:
+        levels = auto_levels(len(p), p, i, device)
+    lo, hi = _bounds(p)
+    return float(_grid(lo, hi, int(levels))[0])
+
+
 def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, device: str = "cpu",
               normal: np.ndarray | None = None) -> LGH:
     """Build a lighting grid hierarchy over point lights (paper 004 §3.1).

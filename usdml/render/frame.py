@@ -2,7 +2,9 @@
 
 Passes never reach back into USD: a frame reads its snapshot and the backends' state only. Primary
 rays always use the exact (Embree) backend; shadow rays use the configured visibility backend (the
-same object when it is ``exact``).
+same object when it is ``exact``). ``--gi svo`` casts its (pixel, VPL) rays with a backend of its own
+(:func:`usdml.lighting.interleaved.gi_visibility_backend`, whatever ``--visibility`` is), built,
+updated and closed with the others.
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ class FrameRenderer:
     """Renders timecodes of one stage in order, updating the backends with what changed."""
 
     def __init__(self, delegate: StageDelegate, settings: UsdmlSettings, device: str = "cpu",
-                 camera_light: bool = True, backend_options: dict | None = None):
+                 camera_light: bool = True, backend_options: dict | None = None, gi_visibility: str | None = None):
         self.delegate = delegate
         self.camera_light = camera_light
         self.settings = settings
@@ -73,6 +75,14 @@ class FrameRenderer:
         self.exact = ExactBackend()
         self.backend = self.exact if settings.visibility == self.exact.name else \
             make_backend(settings.visibility, settings, device, **(backend_options or {}))
+        self.gi_backend = None          # --gi svo's shadow rays; ``gi_visibility`` overrides its backend
+        if settings.gi == "svo":
+            from usdml.lighting.interleaved import GI_VISIBILITY, gi_visibility_backend
+
+            name = gi_visibility or GI_VISIBILITY
+            shared = [b for b in (self.backend, self.exact) if b.name == name]
+            self.gi_backend = shared[0] if shared else gi_visibility_backend(settings, device, name)
+        self._target_lift = 0.0
         self._previous: Snapshot | None = None
         self._told_camera_light = False
         self._told_no_vpls = False
@@ -88,10 +98,15 @@ class FrameRenderer:
                  for d in snap.domes]
         return Lights.concat([snap.lights] + domes)
 
+    def _own_gi_backend(self) -> bool:
+        return self.gi_backend is not None and self.gi_backend is not self.exact and self.gi_backend is not self.backend
+
     def close(self) -> None:
         self.exact.close()
         if self.backend is not self.exact:
             self.backend.close()
+        if self._own_gi_backend():
+            self.gi_backend.close()
 
     def render(self, time: float, width: int, height: int, aovs: set[str],
                progress: Callable[[int], None] | None = None) -> FrameResult:
@@ -107,6 +122,14 @@ class FrameRenderer:
         if self.backend is not self.exact:
             self.backend.update(snap, changes)
         stats["update_seconds"] = _time.perf_counter() - t1
+        if self._own_gi_backend():
+            t1 = _time.perf_counter()
+            self.gi_backend.update(snap, changes)
+            stats["gi_update_seconds"] = _time.perf_counter() - t1
+        if self.gi_backend is not None:
+            from usdml.lighting.interleaved import target_lift
+
+            self._target_lift = target_lift(self.gi_backend)
         self._previous = snap
         camera = conform_camera(snap.camera, width, height)
         lights = self.frame_lights(snap)
@@ -161,10 +184,12 @@ class FrameRenderer:
             from usdml.lighting.gi import indirect_lighting
 
             t4 = _time.perf_counter()
+            occluded = (self.gi_backend or self.backend).occluded
             gi = indirect_lighting(
-                snap, self.exact, self.backend.occluded, lights, gb.position.reshape(-1, 3)[hit],
+                snap, self.exact, occluded, lights, gb.position.reshape(-1, 3)[hit],
                 gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit], self.settings,
-                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field, geometric=geometric)
+                image=(gb.hit, gb.position), device=self.device, vpl_field=vpl_field, geometric=geometric,
+                target_lift=self._target_lift)
             indirect = gi.radiance
             stats["gi"] = gi.stats                  # the last pass's
             if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
