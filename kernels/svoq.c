@@ -34,7 +34,7 @@ typedef struct {
     const float *tree_inv_h;   /* per tree: 1 / voxel size */
     int32_t n_trees;
     const int32_t *tops;       /* per tree from top_base: the dense top table (svo_tree.top_table) */
-    int32_t top_level;         /* its level T (svo_tree.TOP_LEVEL, or depth - 3 for small trees) */
+    int32_t top_level;         /* its level T (svo_tree.TOP_LEVEL, or depth - 2 for small trees) */
 } SvoScene;
 
 typedef struct {

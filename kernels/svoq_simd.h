@@ -102,6 +102,7 @@ TARGET static inline unsigned SUFFIX(step)(const SUFFIX(Tree) *T, SUFFIX(Lanes) 
     M live = MAND(live0, IGT(g, izero));
     VI size = SELI(live, izero, ISLLV(one, ISUB(izero, g)));
     M hit = MNONE;
+    /* levels top + 1 .. depth - 2 of the tree; an entry at level depth - 2 is a brick (index + 1) */
     for (int level = top + 1; level < depth - 1 && MBITS(live); level++) {
         const int shift = depth - level;
         VI oct = IOR(IAND(ISRL(c[0], shift), one),
@@ -110,24 +111,20 @@ TARGET static inline unsigned SUFFIX(step)(const SUFFIX(Tree) *T, SUFFIX(Lanes) 
         M empty = MAND(live, IEQ(entry, izero));
         size = SELI(empty, ISET(1 << shift), size);
         live = MANDN(empty, live);
-        if (!MBITS(live)) break;
-        if (level < depth - 2) {
-            g = entry;
-            continue;
-        }
-        /* a brick: its 2^3 octant, then the voxel */
-        VI bw = ISLL(ISUB(entry, one), 1);
+        g = entry;
+    }
+    if (MBITS(live)) {
+        /* a brick: its 2^3 octant, then the voxel. Both lie in the brick's word (z & 3) >> 1: one read */
         VI sub = IOR(IAND(ISRL(c[0], 1), one),
                      IOR(ISLL(IAND(ISRL(c[1], 1), one), 1), ISLL(IAND(ISRL(c[2], 1), one), 2)));
         VI sh = IADD(ISLL(IAND(sub, one), 1), ISLL(IAND(ISRL(sub, 1), one), 3));
         VI om = IOR(ISLLV(ISET(0x33), sh), ISLLV(ISET(0x33), IADD(sh, ISET(16))));
-        VI w1 = MGATHER_I(T->bricks, IADD(bw, ISRL(sub, 2)), live);
-        M sub_empty = MAND(live, IEQ(IAND(w1, om), izero));
+        VI w = MGATHER_I(T->bricks, IADD(ISLL(ISUB(g, one), 1), ISRL(sub, 2)), live);
+        M sub_empty = MAND(live, IEQ(IAND(w, om), izero));
         size = SELI(sub_empty, ISET(2), size);
         M rest = MANDN(sub_empty, live);
         VI bit = IADD(IAND(c[0], ISET(3)), IADD(ISLL(IAND(c[1], ISET(3)), 2), ISLL(IAND(c[2], ISET(3)), 4)));
-        VI w2 = MGATHER_I(T->bricks, IADD(bw, ISRL(bit, 5)), rest);
-        hit = MAND(rest, INZ(IAND(ISRLV(w2, IAND(bit, ISET(31))), one)));
+        hit = MAND(rest, INZ(IAND(ISRLV(w, IAND(bit, ISET(31))), one)));
         size = SELI(MANDN(hit, rest), one, size);
     }
     /* leave the empty nodes through their far faces */
@@ -178,7 +175,7 @@ TARGET static void SUFFIX(chunk_tree)(const SvoScene *s, int tr, Chunk *ch, floa
     T.bricks = s->bricks + 2 * (int64_t)ti[2];
     T.tops = s->tops + ti[3];
     T.n = 1 << T.depth;
-    T.top = T.depth - 3 < s->top_level ? (T.depth - 3 < 1 ? 1 : T.depth - 3) : s->top_level;
+    T.top = T.depth - 2 < s->top_level ? T.depth - 2 : s->top_level;     /* svo_tree.top_level */
     static __thread Walks S;
     SUFFIX(walks)(s, tr, ch, &S);
     SUFFIX(Lanes) L[GROUPS];

@@ -14,7 +14,7 @@ from usdml.errors import UsdmlError
 from usdml.scene import diff
 from usdml.visibility import make_backend, svo_native
 from usdml.visibility.svo import SvoBackend, auto_resolution
-from usdml.visibility.svo_tree import build_tree, top_table, tree_from_bricks, voxelize_bricks
+from usdml.visibility.svo_tree import build_tree, top_level, top_table, tree_from_bricks, voxelize_bricks
 
 from backend_scenes import lights, queries, scene_frames, surface_points
 from plain_scenes import prototype, snapshot, soup, translate, rot_y
@@ -233,16 +233,21 @@ def test_top_table_is_the_first_levels_of_the_tree():
     tris = random_triangles(rng, n=25)
     tree = build_tree(tris.reshape(-1, 3), np.arange(75).reshape(-1, 3), 7)
     table = top_table(tree.nodes, tree.depth)
-    T = 4                          # depth 7: min(TOP_LEVEL, depth - 3)
-    assert table.size == 8 ** T
+    T = top_level(tree.depth)
+    assert T == 5 and table.size == 8 ** T          # depth 7: the bricks' level
     occ = tree.occupancy()
-    cells = occ.reshape(16, 8, 16, 8, 16, 8).any(axis=(1, 3, 5))      # [x, y, z] level-4 cells
-    z, y, x = np.unravel_index(np.arange(table.size), (16, 16, 16))
+    m, cell = 1 << T, tree.n >> T
+    cells = occ.reshape(m, cell, m, cell, m, cell).any(axis=(1, 3, 5))      # [x, y, z] level-T cells
+    z, y, x = np.unravel_index(np.arange(table.size), (m, m, m))
     assert np.array_equal(table > 0, cells[x, y, z])
+    # an occupied cell at the bricks' level holds its brick's index + 1
+    keys = tree.brick_keys()
+    full = np.flatnonzero(table > 0)
+    assert np.array_equal(np.sort(table[full] - 1), np.arange(len(keys)))
     # an empty cell says how large the empty node holding it is: no voxel inside that node
     for k in np.flatnonzero(table < 0)[:40]:
         size = 1 << int(-table[k])
-        c = np.array([x[k], y[k], z[k]]) * 8 // size * size
+        c = np.array([x[k], y[k], z[k]]) * cell // size * size
         assert not occ[c[0]:c[0] + size, c[1]:c[1] + size, c[2]:c[2] + size].any()
 
 

@@ -107,22 +107,23 @@ class SvoTree:
         return (c[:, 2] * nb + c[:, 1]) * nb + c[:, 0]
 
 
-#: deepest level of the dense top table (``top_table``) the compiled SIMD walk starts its descents from
-TOP_LEVEL = 5
+#: deepest level of the dense top table (``top_table``) the compiled SIMD walk starts its descents from:
+#: 64³ cells, 1 MiB (at 256³ the bricks' own level: a descent is one read of the table, one of a brick)
+TOP_LEVEL = 6
 
 
 def top_level(depth: int) -> int:
-    """The level of a tree's top table: ``TOP_LEVEL`` (32³ cells), shallower for small trees (the table's
-    entries must be child groups, not bricks)."""
-    return max(1, min(TOP_LEVEL, depth - 3))
+    """The level of a tree's top table: ``TOP_LEVEL``, or the bricks' level ``depth - 2`` for smaller
+    trees."""
+    return min(TOP_LEVEL, depth - 2)
 
 
 def top_table(nodes: np.ndarray, depth: int) -> np.ndarray:
     """The first ``T = top_level(depth)`` levels of the octree as one dense table over the level-T
-    cells (``(cz · 2^T + cy) · 2^T + cx``): the cell's child group when every node down to it is
-    occupied, else ``-shift`` of the shallowest empty node holding it (``size = 2^shift`` voxels). The
-    SIMD walk reads one entry where the descent from the root reads T: the same node, the same
-    answer."""
+    cells (``(cz · 2^T + cy) · 2^T + cx``): the cell's entry (its child group, or at ``T = depth - 2``
+    its brick + 1) when every node down to it is occupied, else ``-shift`` of the shallowest empty node
+    holding it (``size = 2^shift`` voxels). The SIMD walk reads one entry where the descent from the
+    root reads T: the same node, the same answer."""
     T = top_level(depth)
     groups = nodes.reshape(-1, 8)
     table = np.zeros(1, np.int64)              # level 0: the root, child group 0
