@@ -48,7 +48,7 @@ from usdml.scene import Changes, Snapshot, world_geometry
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
                                    members_changed, scene_sphere, static_members)
 from usdml.visibility.svo_tree import (MAX_DEPTH, MIN_DEPTH, SvoTree, aligned_grid, build_tree, cached_tree,
-                                       grid_for, svo_bounds, svo_kernels, top_table)
+                                       grid_for, svo_bounds, svo_kernels, top_level, top_table)
 from usdml.visibility.voxel_array import warp_module
 
 log = logging.getLogger("usdml")
@@ -141,15 +141,16 @@ class SvoBackend(VisibilityBackend):
     @classmethod
     def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:
         """Bounds said before anything is built (``upperBound``: the size depends on the voxels): a tree
-        at ``n³`` holds at most every 4³ brick (8 bytes each) and a group of eight entries per node
-        above them (``treeBytes``, per tree, a quarter of it past the bricks); building one holds a
+        at ``n³`` holds at most every 4³ brick (8 bytes each), a group of eight entries per node above
+        them and the compiled walk's top table (``treeBytes``, per tree); building one holds a
         dense brick grid of ``n³ / 8`` bytes per CPU thread for a moment (``buildBytes``)."""
         n = int(getattr(settings, "svo_resolution", 0) or 0) or auto_resolution(snapshot)
         static, frame = tree_members(snapshot)
         trees = int(bool(static)) + int(bool(frame))
         bricks = (n // 4) ** 3
         groups = sum(8 ** level for level in range(max(1, n.bit_length() - 3)))
-        tree = 8 * bricks + 32 * groups
+        depth = n.bit_length() - 1
+        tree = 8 * bricks + 32 * groups + 4 * 8 ** top_level(depth)      # + the compiled walk's top table
         build = n ** 3 // 8 * cpu_workers("cpu")
         return {"resolution": n, "trees": trees, "treeBytes": tree * trees, "buildBytes": build,
                 "totalBytes": tree * trees + build, "upperBound": True}
@@ -295,6 +296,7 @@ class SvoBackend(VisibilityBackend):
             from usdml.visibility.svo_native import NativeSvo
             tops = [top_table(t.nodes, t.depth) for t in trees]
             tint[:, 3] = np.cumsum([0] + [x.size for x in tops])[:-1]
+            self.stats["bytes"] += int(sum(x.nbytes for x in tops))      # the compiled walk's top tables
             self._native = NativeSvo(nodes, bricks, tint, lo, inv_h, np.concatenate(tops), isa=self.native_isa)
 
     def _warp_scene(self):
