@@ -173,10 +173,13 @@ static inline void load3(const void *p, int f64, int64_t i, float out[3]) {
     }
 }
 
-/* rays of a chunk, after the surface rule (shadow_segment in kernels/svo.py) */
+/* rays of a chunk: the inputs as float32 (structure of arrays), then after the surface rule
+ * (shadow_segment in kernels/svo.py) the segments each tree walks */
 #define CHUNK 1024
 typedef struct {
-    float o[CHUNK][3], e[CHUNK][3], skip0[CHUNK], skip1[CHUNK];
+    float p[3][CHUNK], tg[3][CHUNK], nr[3][CHUNK];
+    int32_t dist[CHUNK];
+    float o[3][CHUNK], e[3][CHUNK], skip0[CHUNK], skip1[CHUNK];
     int32_t inf[CHUNK];                     /* distant: no end */
     int32_t pending[CHUNK], n_pending;      /* rays no tree has hit yet, by index in the chunk */
 } Chunk;
@@ -193,22 +196,31 @@ typedef struct {
     const uint8_t *distant;
 } Inputs;
 
-/* shadow_segment's surface rule for queries i0 .. i0 + m - 1 into ch (out = -1 for all; rays with no
- * length are left out of the pending list) */
-static void chunk_setup(const SvoRule *r, const Inputs *in, int64_t i0, int m, Chunk *ch, float *out) {
+/* queries i0 .. i0 + m - 1 into the chunk as float32, out = -1 for all */
+static void chunk_load(const Inputs *in, int64_t i0, int m, Chunk *ch, float *out) {
+    for (int k = 0; k < m; k++) {
+        float a[3], b[3], c[3] = {0.0f, 0.0f, 0.0f};
+        load3(in->origins, in->o_f64, i0 + k, a);
+        load3(in->targets, in->t_f64, i0 + k, b);
+        if (in->normals) load3(in->normals, in->n_f64, i0 + k, c);
+        for (int x = 0; x < 3; x++) { ch->p[x][k] = a[x]; ch->tg[x][k] = b[x]; ch->nr[x][k] = c[x]; }
+        ch->dist[k] = in->distant ? in->distant[i0 + k] != 0 : 0;
+        out[i0 + k] = -1.0f;
+    }
+}
+
+/* shadow_segment's surface rule for the chunk's m rays, one at a time; rays with no length are left
+ * out of the pending list */
+static void chunk_rule_scalar(const SvoRule *r, int m, Chunk *ch) {
     ch->n_pending = 0;
     for (int k = 0; k < m; k++) {
-        const int64_t i = i0 + k;
-        float p[3], tg[3], nr[3] = {0.0f, 0.0f, 0.0f}, d[3];
-        load3(in->origins, in->o_f64, i, p);
-        load3(in->targets, in->t_f64, i, tg);
-        if (in->normals) load3(in->normals, in->n_f64, i, nr);
-        const int dist = in->distant ? in->distant[i] != 0 : 0;
+        float p[3], tg[3], nr[3], d[3], o[3], e[3];
+        for (int a = 0; a < 3; a++) { p[a] = ch->p[a][k]; tg[a] = ch->tg[a][k]; nr[a] = ch->nr[a][k]; }
+        const int dist = ch->dist[k];
         for (int a = 0; a < 3; a++) d[a] = dist ? tg[a] : tg[a] - p[a];
         const float ln = sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        out[i] = -1.0f;
         if (!(ln > 0.0f)) continue;
-        float skip0 = r->skip, *o = ch->o[k], *e = ch->e[k];
+        float skip0 = r->skip;
         const float nn = sqrtf(nr[0] * nr[0] + nr[1] * nr[1] + nr[2] * nr[2]);
         o[0] = p[0]; o[1] = p[1]; o[2] = p[2];
         if (nn > 0.0f) {
@@ -227,6 +239,7 @@ static void chunk_setup(const SvoRule *r, const Inputs *in, int64_t i0, int m, C
         } else {
             e[0] = tg[0]; e[1] = tg[1]; e[2] = tg[2];
         }
+        for (int a = 0; a < 3; a++) { ch->o[a][k] = o[a]; ch->e[a][k] = e[a]; }
         ch->skip0[k] = skip0;
         ch->skip1[k] = skip1;
         ch->inf[k] = dist;
@@ -241,7 +254,8 @@ static void chunk_tree_scalar(const SvoScene *s, int tr, Chunk *ch, float *out) 
         const int k = ch->pending[j];
         Walk w;
         float t = -1.0f;
-        if (walk_setup(s, tr, ch->o[k], ch->e[k], ch->skip0[k], ch->skip1[k], ch->inf[k], &w)) t = walk_scalar(s, tr, &w);
+        const float o[3] = {ch->o[0][k], ch->o[1][k], ch->o[2][k]}, e[3] = {ch->e[0][k], ch->e[1][k], ch->e[2][k]};
+        if (walk_setup(s, tr, o, e, ch->skip0[k], ch->skip1[k], ch->inf[k], &w)) t = walk_scalar(s, tr, &w);
         if (t >= 0.0f) out[k] = t;
         else ch->pending[kept++] = k;
     }
@@ -249,6 +263,8 @@ static void chunk_tree_scalar(const SvoScene *s, int tr, Chunk *ch, float *out) 
 }
 
 typedef void (*TreeFn)(const SvoScene *, int, Chunk *, float *);
+typedef void (*RuleFn)(const SvoRule *, int, Chunk *);
+typedef struct { TreeFn tree; RuleFn rule; } Kernel;
 
 /* lane groups the SIMD walk steps in turn (svoq_simd.h). Measured on the city's 7.35 M rays, one
  * thread, AVX-512: 1, 2, 3, 4 groups 0.97, 1.09, 1.14, 1.00 s: the walk is not latency-bound here
@@ -267,24 +283,25 @@ typedef void (*TreeFn)(const SvoScene *, int, Chunk *, float *);
 #endif
 
 /* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
-static TreeFn pick(int kernel) {
+static Kernel pick(int kernel) {
 #ifdef SQ_X86
     __builtin_cpu_init();
     if (kernel == 0 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
         __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw"))
-        return chunk_tree_avx512;
-    if (kernel != 1 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return chunk_tree_avx2;
+        return (Kernel){chunk_tree_avx512, chunk_rule_avx512};
+    if (kernel != 1 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+        return (Kernel){chunk_tree_avx2, chunk_rule_avx2};
 #endif
     (void)kernel;
-    return chunk_tree_scalar;
+    return (Kernel){chunk_tree_scalar, chunk_rule_scalar};
 }
 
 /* rays walked at once by ``kernel`` (as pick) on this CPU: 16 (AVX-512), 8 (AVX2) or 1 */
 int svo_simd_width(int32_t kernel) {
-    TreeFn fn = pick(kernel);
+    Kernel k = pick(kernel);
 #ifdef SQ_X86
-    if (fn == chunk_tree_avx512) return 16;
-    if (fn == chunk_tree_avx2) return 8;
+    if (k.tree == chunk_tree_avx512) return 16;
+    if (k.tree == chunk_tree_avx2) return 8;
 #endif
     return 1;
 }
@@ -295,13 +312,14 @@ int svo_simd_width(int32_t kernel) {
 void svo_query(const SvoScene *s, const SvoRule *r, int64_t first, int64_t count, const void *origins, int o_f64,
                const void *targets, int t_f64, const void *normals, int n_f64, const uint8_t *distant, int32_t kernel,
                float *out) {
-    TreeFn fn = pick(kernel);
+    Kernel fn = pick(kernel);
     Inputs in = {origins, targets, normals, o_f64, t_f64, n_f64, distant};
     static __thread Chunk ch;
     for (int64_t i0 = first; i0 < first + count; i0 += CHUNK) {
         const int m = (int)(first + count - i0 < CHUNK ? first + count - i0 : CHUNK);
-        chunk_setup(r, &in, i0, m, &ch, out);
-        for (int tr = 0; tr < s->n_trees && ch.n_pending; tr++) fn(s, tr, &ch, out + i0);
+        chunk_load(&in, i0, m, &ch, out);
+        fn.rule(r, m, &ch);
+        for (int tr = 0; tr < s->n_trees && ch.n_pending; tr++) fn.tree(s, tr, &ch, out + i0);
     }
 }
 

@@ -9,6 +9,52 @@ typedef struct {
     int32_t c[3][W], ray[W];
 } SUFFIX(Lanes);
 
+/* chunk_rule_scalar, W rays at a time (the same operations in the same order) */
+TARGET static void SUFFIX(chunk_rule)(const SvoRule *r, int m, Chunk *ch) {
+    const V zero = SET(0.0f), minus = SET(-1.0f);
+    ch->n_pending = 0;
+    for (int k0 = 0; k0 < m; k0 += W) {
+        const int w = m - k0 < W ? m - k0 : W;
+        const M lanes = MFROMBITS(w == 32 ? ~0u : (1u << w) - 1);
+        V p[3], tg[3], nr[3], d[3], o[3], e[3];
+        const M dist = MAND(lanes, INZ(MILOAD(ch->dist + k0, lanes)));
+        for (int a = 0; a < 3; a++) {
+            p[a] = MLOAD(ch->p[a] + k0, lanes); tg[a] = MLOAD(ch->tg[a] + k0, lanes); nr[a] = MLOAD(ch->nr[a] + k0, lanes);
+            d[a] = SEL(dist, tg[a], SUB(tg[a], p[a]));
+        }
+        V ln = SQRT(ADD(ADD(MUL(d[0], d[0]), MUL(d[1], d[1])), MUL(d[2], d[2])));
+        M ok = MAND(lanes, GT(ln, zero));
+        V skip0 = SET(r->skip);
+        V nn = SQRT(ADD(ADD(MUL(nr[0], nr[0]), MUL(nr[1], nr[1])), MUL(nr[2], nr[2])));
+        M has = GT(nn, zero);
+        V mm[3];
+        for (int a = 0; a < 3; a++) mm[a] = DIV(nr[a], nn);
+        V cos_b = DIV(ADD(ADD(MUL(mm[0], d[0]), MUL(mm[1], d[1])), MUL(mm[2], d[2])), ln);
+        M flip = LT(cos_b, zero);
+        cos_b = SEL(flip, MUL(cos_b, minus), cos_b);
+        for (int a = 0; a < 3; a++) {
+            mm[a] = SEL(flip, MUL(mm[a], minus), mm[a]);
+            o[a] = SEL(has, ADD(p[a], MUL(mm[a], SET(r->offset))), p[a]);
+        }
+        if (r->slab > 0.0f)
+            skip0 = SEL(has, MAX(SET(r->skip), MIN(DIV(SET(r->slab), MAX(cos_b, SET(1.0e-6f))), SET(r->max_skip))), skip0);
+        V skip1 = SEL(dist, zero, SET(r->end_skip));
+        V fc2 = zero;
+        for (int a = 0; a < 3; a++) {
+            V fc = SUB(o[a], SET(r->far_center[a]));
+            fc2 = a == 0 ? MUL(fc, fc) : ADD(fc2, MUL(fc, fc));
+        }
+        V reach = ADD(SQRT(fc2), SET(r->far));
+        for (int a = 0; a < 3; a++) {
+            e[a] = SEL(dist, ADD(o[a], MUL(DIV(d[a], ln), reach)), tg[a]);
+            STORE(ch->o[a] + k0, o[a]); STORE(ch->e[a] + k0, e[a]);
+        }
+        STORE(ch->skip0 + k0, skip0); STORE(ch->skip1 + k0, skip1);
+        ISTORE(ch->inf + k0, SELI(dist, ISET(1), ISET(0)));
+        ch->n_pending += COMPRESS_I(ch->pending + ch->n_pending, ok, IADD(IOTA, ISET(k0)));
+    }
+}
+
 /* walk_setup for every pending ray of the chunk, W at a time, into S (same operations, same order) */
 TARGET static void SUFFIX(walks)(const SvoScene *s, int tr, const Chunk *ch, Walks *S) {
     const int n = 1 << s->tree_int[4 * tr];
@@ -18,10 +64,9 @@ TARGET static void SUFFIX(walks)(const SvoScene *s, int tr, const Chunk *ch, Wal
         const int m = ch->n_pending - j0 < W ? ch->n_pending - j0 : W;
         const M lanes = MFROMBITS((1u << m) - 1);
         VI k = MILOAD(ch->pending + j0, lanes);
-        VI k3 = IMUL(k, ISET(3));
         V q[3], dv[3], dir[3], inv[3];
         for (int a = 0; a < 3; a++) {
-            V o = GATHER_F(&ch->o[0][a], k3), e = GATHER_F(&ch->e[0][a], k3);
+            V o = GATHER_F(ch->o[a], k), e = GATHER_F(ch->e[a], k);
             q[a] = MUL(SUB(o, SET(lo[a])), inv_h);
             dv[a] = SUB(MUL(SUB(e, SET(lo[a])), inv_h), q[a]);
         }

@@ -299,3 +299,40 @@ def test_svo_gi_table_tool_and_its_table(capsys):
     assert row["vpls"] == 64 and row["rays"]["exact"]["shadow_rays"] > 0 and row["stages"]["gather"] > 0
     lines = bench_tables.gi_svo({"runs": [{"command": "c", "source": "s", "output": out}]})
     assert any("| 64 | 16×9 | `exact` |" in line for line in lines) and any("16 / 33 / 69" in line for line in lines)
+
+
+def test_faint_pairs_cast_no_ray_and_are_seen_as_the_traced_light_is():
+    """Paper 003 skips the V term of faint VPLs: pairs under ``skip_below`` x the pixel's mean light
+    cast no ray; their light counts in the proportion the pixel's traced light is seen."""
+    rng = np.random.default_rng(11)
+    vpls = _random_vpls(rng, 160)
+    intensity = (vpls.flux / np.pi).astype(np.float32)
+    intensity[::3] *= 0.01                                       # a third of them faint
+    p = np.c_[rng.uniform(-1, 1, (64, 2)), np.zeros(64)]
+    n = np.tile([0.0, 0.0, 1.0], (64, 1))
+    tiles = np.arange(64) % 16
+    g = il.clamped_geometry(p[:1], n[:1], vpls.position, vpls.normal, 1e-4)
+    lum = intensity @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    test, small = il.fruitful_pairs(g, lum, 0.5)
+    assert small is not None and small.any() and test.any() and not (test & small).any()
+    assert np.array_equal(test | small, g > 0)
+    assert np.array_equal(il.fruitful_pairs(g, lum, 0.0)[0], g > 0)
+    calls = []
+
+    def record(hidden):
+        def occluded(o, t, **kw):
+            calls.append(len(o))
+            return np.full(len(o), hidden)
+        return occluded
+
+    def gather(skip, occluded):
+        return il.gather_interleaved(p, n, tiles, vpls.position, vpls.normal, intensity, occluded, 1e-4,
+                                     skip_below=skip)
+    free_all, free_skip = gather(0.0, record(False)), gather(0.5, record(False))
+    assert calls[1] < calls[0], "faint pairs cast no ray"
+    # nothing hidden: the skipped light counts whole, the same irradiance as tracing every pair
+    np.testing.assert_allclose(free_skip.irradiance, free_all.irradiance, rtol=1e-5)
+    # everything hidden: the skipped light is hidden too (seen as the traced light is: not at all)
+    dark = gather(0.5, record(True))
+    assert np.abs(dark.irradiance).max() == 0.0
+    assert free_skip.stats["shadow_rays"] < free_all.stats["shadow_rays"]

@@ -307,6 +307,14 @@ _ROWS = (
 
           S0 makes the near field exact (each pixel visits the VPLs within
           alpha h_1) at some extra lighting cost.'''),
+    Param("gi_svo_skip", float, 0.5, "usdml:gi:svoSkip", "--gi-svo-skip",
+          "--gi svo: pairs whose light is below this fraction of the pixel's mean cast no shadow ray and count "
+          "as seen as much as the pixel's traced light (0 = trace every pair with G > 0)", LIGHTING_COMMANDS,
+          source="paper 003, Sec. 3.2 (skip faint VPLs); 0.5 measured (docs/gi.md)", range=Range(0), metavar="FRACTION",
+          doc='''--gi svo: (pixel, VPL) pairs whose unshadowed light is below this fraction of the mean of the pixel's pairs cast no shadow ray (paper 003 skips the V term for faint VPLs).
+
+          Their light counts as visible in the proportion the pixel's traced
+          light is. 0 traces every pair with G > 0.'''),
     Param("interleave", int, 1, "usdml:lgh:interleave", "--interleave",
           "interleaved sampling tile size: each pixel of an n x n tile gathers 1/n^2 of the grid lights "
           "(1 = off)", LIGHTING_COMMANDS, source="paper 004, Sec. 4 (off by default)", choices=(1, 2, 4),

@@ -112,7 +112,7 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
 
         radiance, s = svo_indirect(points, normals, albedo, vpls, occluded, clamp, image,
                                    meters_per_unit=snap.meters_per_unit, geometric=geometric,
-                                   target_lift=target_lift)
+                                   target_lift=target_lift, skip_below=settings.gi_svo_skip)
         stats.update(s)
         return GIResult(radiance, stats)
     if settings.gi == "lgh":

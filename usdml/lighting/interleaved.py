@@ -131,10 +131,25 @@ class GatherResult:
     stats: dict = field(default_factory=dict)
 
 
+def fruitful_pairs(g: np.ndarray, luminance: np.ndarray, skip_below: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """Which (pixel, VPL) pairs of one block cast a ray: paper 003 skips the V term where G is 0 or
+    the VPL's light too small to matter. Here: ``G > 0`` and, with ``skip_below`` > 0, a contribution
+    ``G · luminance`` at least ``skip_below`` times the mean of the pixel's pairs with G > 0.
+    Returns ``(test, small)``: the pairs to trace and the skipped small ones (None: none skipped)."""
+    live = g > 0
+    if skip_below <= 0:
+        return live, None
+    c = g * luminance[None, :]
+    mean = c.sum(axis=1) / np.maximum(live.sum(axis=1), 1)
+    small = live & (c < np.float32(skip_below) * mean[:, None].astype(np.float32))
+    return live & ~small, small
+
+
 def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarray, vpl_position: np.ndarray,
                        vpl_normal: np.ndarray, vpl_intensity: np.ndarray,
                        occluded: Callable[..., np.ndarray] | None, clamp_d2: float, meters_per_unit: float = 1.0,
-                       geometric: np.ndarray | None = None, n: int = TILE, target_lift: float = 0.0) -> GatherResult:
+                       geometric: np.ndarray | None = None, n: int = TILE, target_lift: float = 0.0,
+                       skip_below: float = 0.0) -> GatherResult:
     """Irradiance at each point from its tile's VPL subset, × n² (paper 003 §3.2, Eq. 1).
 
     ``points``, ``normals`` (P, 3) and ``geometric`` (P, 3, or None) as :func:`clamped_geometry`;
@@ -142,7 +157,9 @@ def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarra
     intensity on the VPL's normal (Φ/π); ``occluded`` a backend's shadow query (None: unshadowed),
     whose targets are the VPLs moved ``target_lift`` scene units along their normals (:func:`target_lift`).
     Returns ``E = n² Σ_{j in subset} I_j G V`` per point and counts (``shadow_rays``,
-    ``visibility_seconds``).
+    ``visibility_seconds``). ``skip_below`` > 0: pairs whose light is below that fraction of the
+    pixel's mean cast no ray (:func:`fruitful_pairs`) and count as seen as much as the pixel's
+    traced light is.
     """
     n_p = len(points)
     irr = np.zeros((n_p, 3), np.float32)
@@ -160,21 +177,39 @@ def gather_interleaved(points: np.ndarray, normals: np.ndarray, tiles: np.ndarra
         step = max(1, PAIRS_PER_CHUNK // len(vsel))
         jobs += [(pix[lo:lo + step], vsel) for lo in range(0, len(pix), step)]
 
+    from usdml.lighting.vpl import LUMA
+
+    luminance = (np.asarray(vpl_intensity, np.float32) @ LUMA.astype(np.float32)).astype(np.float32)
+
     def block(job) -> tuple[int, float]:
         pix, vsel = job
         g = clamped_geometry(points[pix], normals[pix], vpl_position[vsel], vpl_normal[vsel], clamp_d2,
                              meters_per_unit, None if geometric is None else geometric[pix])
+        inten = vpl_intensity[vsel].astype(np.float32)
         rays, seconds = 0, 0.0
-        if occluded is not None:
-            pi, vi = np.nonzero(g > 0)
-            if len(pi):
-                t0 = _time.perf_counter()
-                hit = occluded(points[pix[pi]], targets[vsel[vi]], normals=offset[pix[pi]],
-                               distant=np.zeros(len(pi), bool))
-                seconds = _time.perf_counter() - t0
-                rays = len(pi)
-                g[pi[hit], vi[hit]] = 0.0
-        irr[pix] = (g @ vpl_intensity[vsel].astype(np.float32)) * scale
+        if occluded is None:
+            irr[pix] = (g @ inten) * scale
+            return rays, seconds
+        test, small = fruitful_pairs(g, luminance[vsel], skip_below)
+        pi, vi = np.nonzero(test)
+        unshadowed = None
+        if small is not None:
+            unshadowed = (np.where(test, g, 0.0) @ luminance[vsel], np.where(small, g, 0.0) @ inten)
+            g[small] = 0.0
+        if len(pi):
+            t0 = _time.perf_counter()
+            hit = occluded(points[pix[pi]], targets[vsel[vi]], normals=offset[pix[pi]],
+                           distant=np.zeros(len(pi), bool))
+            seconds = _time.perf_counter() - t0
+            rays = len(pi)
+            g[pi[hit], vi[hit]] = 0.0
+        e = g @ inten
+        if unshadowed is not None:
+            # the skipped pairs' light, seen as much as the pixel's tested light is (a ratio estimate)
+            tested, skipped = unshadowed
+            seen = np.where(tested > 0, (g @ luminance[vsel]) / np.maximum(tested, 1e-30), 1.0)
+            e += skipped * seen[:, None].astype(np.float32)
+        irr[pix] = e * scale
         return rays, seconds
 
     rays = 0
@@ -268,11 +303,12 @@ def merge_and_filter(irradiance: np.ndarray, hit: np.ndarray, position: np.ndarr
 def svo_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, vpls, occluded,
                  clamp_distance: float, image: tuple, meters_per_unit: float = 1.0,
                  geometric: np.ndarray | None = None, filtered: bool = True,
-                 target_lift: float = 0.0) -> tuple[np.ndarray, dict]:
+                 target_lift: float = 0.0, skip_below: float = 0.0) -> tuple[np.ndarray, dict]:
     """Indirect radiance (P, 3) float32 at the pixels ``image = (hit (H, W) bool, position (H, W, 3))``
     holds (``points`` are ``position[hit]``), from ``vpls`` (:class:`usdml.lighting.vpl.VPLs`) by the
-    pipeline of the module doc (``target_lift``: :func:`target_lift` of the rays' backend); returns it
-    and the pass's stats (seconds of gather and filter)."""
+    pipeline of the module doc (``target_lift``: :func:`target_lift` of the rays' backend;
+    ``skip_below``: :func:`fruitful_pairs`); returns it and the pass's stats (seconds of gather and
+    filter)."""
     from usdml.lighting.atrous import tile_index
 
     hit, position = image
@@ -280,7 +316,8 @@ def svo_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, vp
     intensity = (vpls.flux.astype(np.float64) / np.pi).astype(np.float32)
     t0 = _time.perf_counter()
     g = gather_interleaved(points, normals, tiles, vpls.position, vpls.normal, intensity, occluded,
-                           clamp_distance ** 2, meters_per_unit, geometric, target_lift=target_lift)
+                           clamp_distance ** 2, meters_per_unit, geometric, target_lift=target_lift,
+                           skip_below=skip_below)
     stats = dict(g.stats)
     stats["target_lift"] = float(target_lift)
     stats["gather_seconds"] = _time.perf_counter() - t0
