@@ -224,8 +224,8 @@ def test_resolution_is_picked_by_the_scene_size_and_checked():
     big = snapshot([soup("/g", box((-500, -1, -500), (500, 0, 500)))])
     big.meters_per_unit = 1.0
     assert auto_resolution(big) == 256
-    with pytest.raises(UsdmlError, match="power of two"):
-        SvoBackend(resolution=100, cache=False, **QUIET).update(room)
+    with pytest.raises(UsdmlError, match="svo-resolution"):
+        SvoBackend(resolution=100, cache=False, **QUIET)
 
 
 def test_top_table_is_the_first_levels_of_the_tree():
@@ -285,6 +285,13 @@ def test_a_machine_without_the_compiled_walk_gets_warp(monkeypatch):
     with pytest.raises(UsdmlError, match="svo-cpu-kernel"):
         SvoBackend(resolution=32, cache=False, cpu_kernel="native")
     assert not SvoBackend(resolution=32, cache=False, device="cuda:0").native
+
+
+def test_a_resolution_that_cannot_be_built_is_refused_in_one_line(monkeypatch):
+    from usdml.visibility import voxel_array
+    monkeypatch.setattr(voxel_array, "available_memory", lambda: 2**30)
+    with pytest.raises(UsdmlError, match=r"--svo-resolution 2048: building the octree needs .* lower --svo-resolution"):
+        SvoBackend(resolution=2048, cache=False, **QUIET).update(scene_frames("occluder")[0])
 
 
 def test_settings_reach_the_backend():

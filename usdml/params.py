@@ -257,7 +257,8 @@ _ROWS = (
     # -- sparse voxel octree (paper 003)
     Param("svo_resolution", int, 0, "usdml:svo:resolution", "--svo-resolution",
           "voxels per axis of the sparse voxel octree, a power of two; 0 = automatic: 128 for a room (at most "
-          "20 m across), else 256", VOXEL_COMMANDS, source="paper 003", range=Range(0, 2048), metavar="N",
+          "20 m across), else 256", VOXEL_COMMANDS, source="paper 003",
+          choices=(0, 16, 32, 64, 128, 256, 512, 1024, 2048),
           doc='''Voxels per axis of the sparse voxel octree (svo backend), a power of two from 16 to 2048.
 
           0 picks the paper's: 128 for a room (a scene at most 20 m across by

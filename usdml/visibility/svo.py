@@ -228,6 +228,7 @@ class SvoBackend(VisibilityBackend):
                 raise UsdmlError(f"--svo-resolution must be a power of two from {1 << MIN_DEPTH} to {1 << MAX_DEPTH}, "
                                  f"got {n} (usdml:svo:resolution)")
             self.depth = n.bit_length() - 1
+            self._check_memory(n)
         rebuilt = False
         if not static:
             self._static = None
@@ -258,6 +259,20 @@ class SvoBackend(VisibilityBackend):
         if rebuilt or not self._gpu:
             self._assemble()
         self._scene = scene_sphere(snapshot)
+
+    def _check_memory(self, n: int) -> None:
+        """Refuse (one line) a resolution whose build would not fit: each CPU thread voxelizes into a
+        dense brick grid of ``n³ / 8`` bytes (:meth:`memory_estimate`)."""
+        from usdml.visibility.voxel_array import available_memory
+
+        need = n ** 3 // 8 * (self.workers + 1)
+        limit = int(0.8 * available_memory())
+        if need > limit:
+            raise UsdmlError(f"--svo-resolution {n}: building the octree needs {need / 2**30:.1f} GiB "
+                             f"({self.workers} threads x {n ** 3 // 8 / 2**30:.2f} GiB of bricks, and the merge) "
+                             f"but {limit / 2**30:.1f} GiB is available; lower --svo-resolution")
+        if need > 2**28:
+            self.report(f"svo: building at {n}^3 holds {need / 2**30:.2f} GiB of dense bricks for a moment")
 
     def per_frame_rebuild_seconds(self, snapshot: Snapshot, repeats: int = 3) -> dict:
         """Seconds to voxelize and build the per-frame tree again (the median of ``repeats``), as a
