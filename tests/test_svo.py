@@ -207,6 +207,31 @@ def test_per_frame_tree_is_rebuilt_only_when_its_geometry_changes():
     assert rebuild["rebuild_seconds"] > 0 and rebuild["occupied_voxels"] > 0
 
 
+def test_only_the_per_frame_members_that_moved_are_voxelized_again():
+    """Two moving prototypes; on the second frame only one moves: it alone is voxelized again (the
+    other keeps its brick grid), and the answers are a fresh build's."""
+    from backend_scenes import GROUND, PLANE
+    wide = [soup("/wide/m", box((-6, 4, -6), (6, 4.2, 6)))]
+
+    def frame(t, x):
+        return snapshot([GROUND], [prototype("/wide", wide, [translate(0, 0, 0)], animated=True),
+                                   prototype("/plane", PLANE, [translate(x, 2, 0) @ rot_y(20 * x)], animated=True)],
+                        time=t)
+    f1, f2, f3 = frame(1.0, -1.0), frame(2.0, 1.5), frame(3.0, 0.5)
+    o, t, kw = queries(*surface_points(np.random.default_rng(2)), lights(np.random.default_rng(1)))
+    b = SvoBackend(resolution=64, cache=False, **QUIET)
+    b.update(f1, diff(None, f1))          # everything new: one launch over both, no member grids kept
+    assert b.stats["dynamic_members_voxelized"] == 2
+    b.update(f2, diff(f1, f2))            # one stood still: member by member, their grids kept
+    assert b.stats["dynamic_members_voxelized"] == 2
+    b.update(f3, diff(f2, f3))            # the same one still: it keeps its grid
+    assert b.stats["dynamic_members_voxelized"] == 1
+    with SvoBackend(resolution=64, cache=False, **QUIET) as fresh:
+        fresh.update(f3)
+        assert np.array_equal(b.hit_distances(o, t, **kw), fresh.hit_distances(o, t, **kw))
+        assert np.array_equal(b.trees[1].bricks, fresh.trees[1].bricks)
+
+
 def test_the_static_tree_is_cached_and_loads_the_same():
     snap = scene_frames("occluder")[0]
     o, t, kw = queries(*surface_points(np.random.default_rng(2)), lights(np.random.default_rng(1)))

@@ -33,7 +33,7 @@ from usdml.visibility.voxel_grid import core_bounds
 
 log = logging.getLogger("usdml")
 
-__all__ = ["SvoTree", "SLACK", "TOP_LEVEL", "top_level", "top_table", "FORMAT_VERSION", "aligned_grid", "build_tree", "cached_tree", "grid_for",
+__all__ = ["SvoTree", "SLACK", "tree_from_masks", "TOP_LEVEL", "top_level", "top_table", "FORMAT_VERSION", "aligned_grid", "build_tree", "cached_tree", "grid_for",
            "svo_kernels", "tree_from_bricks", "voxelize_bricks", "MIN_DEPTH", "MAX_DEPTH"]
 
 #: bump when the bits or nodes a tree holds for the same inputs change
@@ -275,11 +275,21 @@ def build_tree(points, triangles, depth: int, *, device: str = "cpu", workers: i
     triangles = np.asarray(triangles).reshape(-1, 3)
     lo, h = grid if grid is not None else grid_for(points, triangles, depth)[:2]
     masks = voxelize_bricks(points, triangles, lo, h, depth, device=device, workers=workers)
-    t1 = time.perf_counter()
+    tree = tree_from_masks(masks, lo, h, depth, source=source)
+    tree.voxelize_seconds = time.perf_counter() - t0 - tree.build_seconds
+    tree.build_seconds = time.perf_counter() - t0
+    tree.triangles = len(triangles)
+    return tree
+
+
+def tree_from_masks(masks: np.ndarray, lo, h: float, depth: int, source: str = "") -> SvoTree:
+    """The tree over a dense brick grid already voxelized (:func:`voxelize_bricks`; the per-frame tree
+    ORs its members' grids), ``build_seconds`` the octree's alone."""
+    t0 = time.perf_counter()
     nodes, bricks, levels = tree_from_bricks(masks, depth)
     occupied = int(np.unpackbits(bricks.view(np.uint8)).sum()) if bricks.size else 0
     return SvoTree(nodes, bricks, np.asarray(lo, np.float64), float(h), int(depth), occupied,
-                   time.perf_counter() - t0, t1 - t0, len(triangles), source=source, levels=levels)
+                   time.perf_counter() - t0, source=source, levels=levels)
 
 
 def tree_key(points, triangles, depth: int, grid: tuple | None) -> str:
