@@ -19,8 +19,8 @@ Trees
 
 Resolution
     ``resolution`` voxels per axis of the static tree (a power of two); 0 picks the paper's: 128³
-    for a room (its Cornell box), 256³ for a large scene (its Sponza): 128 when the scene's core
-    bounds are at most ``ROOM_METERS`` across (metres by the stage's metersPerUnit), else 256.
+    for a room (its Cornell box), 256³ for a large scene (its Sponza): 128 when the scene's bounds
+    are at most ``ROOM_METERS`` across (metres by the stage's metersPerUnit), else 256.
 
 Leaving the surface and shrinking the segment (Fig. 3, line 2) and its cost
     Both ends of a shadow segment lie in occupied voxels (the shading point's own surface; a VPL's

@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from usdml.cache import Cache, CacheCorrupt, cache_key
+from usdml.cache import Cache, cache_key
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import content_hash
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, surface_samples
