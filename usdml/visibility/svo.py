@@ -48,7 +48,7 @@ from usdml.parallel import cpu_workers, run_parallel
 from usdml.scene import Changes, Snapshot, world_geometry
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
                                    members_changed, scene_sphere, static_members)
-from usdml.visibility.svo_tree import (MAX_DEPTH, MIN_DEPTH, SvoTree, aligned_grid, cached_tree, grid_for,
+from usdml.visibility.svo_tree import (SvoTree, aligned_grid, cached_tree, cube_grid,
                                        svo_bounds, svo_kernels, top_level, top_table, tree_from_masks,
                                        voxelize_bricks)
 from usdml.visibility.voxel_array import warp_module
@@ -75,12 +75,15 @@ def auto_resolution(snapshot: Snapshot) -> int:
     return 128 if span * snapshot.meters_per_unit <= ROOM_METERS else 256
 
 
+def _frame_members_changed(before, members: tuple, changes: Changes | None) -> bool:
+    """:func:`members_changed` for per-frame members: a mesh changed when it deformed (or the static
+    part did)."""
+    return members_changed(before, members, changes, lambda path: path in changes.deforming or changes.static)
+
+
 def _member_changed(member: tuple, changes: Changes | None) -> bool:
-    """Whether per-frame ``member`` (``("mesh" | "proto", path)``) moved or deformed by ``changes``."""
-    if changes is None or changes.static:
-        return True
-    kind, path = member
-    return bool(changes.prototypes.get(path)) if kind == "proto" else path in changes.deforming
+    """Whether one per-frame ``member`` (``("mesh" | "proto", path)``) moved or deformed by ``changes``."""
+    return _frame_members_changed((member,), (member,), changes)
 
 
 def tree_members(snapshot: Snapshot) -> tuple[tuple, tuple]:
@@ -144,6 +147,7 @@ class SvoBackend(VisibilityBackend):
         self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "trees": 0,
                             "dynamic_rebuilds": 0, "dynamic_seconds": 0.0}
         self.built: list[str] = []
+        self._described: dict | None = None        # describe() of the last trees, kept past close()
 
     @classmethod
     def from_settings(cls, settings=None, device: str = "cpu", **options) -> "SvoBackend":
@@ -192,7 +196,7 @@ class SvoBackend(VisibilityBackend):
         """Resolution, trees (bytes, nodes, bricks, voxels), build seconds and the CPU kernel, for
         ``usdml bench`` / ``usdml compare`` (kept after :meth:`close`: the last trees')."""
         if not self.trees:
-            return dict(self._described) if getattr(self, "_described", None) else self._describe()
+            return dict(self._described) if self._described else self._describe()
         self._described = self._describe()
         return dict(self._described)
 
@@ -214,12 +218,11 @@ class SvoBackend(VisibilityBackend):
 
     def _frame_grid(self, bounds: tuple) -> tuple[tuple, int]:
         """The per-frame tree's grid ``((lo, h), depth)`` over ``bounds = (lo, hi)`` (module doc, "Trees")."""
-        box = (bounds[0], bounds[1], 0)
-        grid, depth = grid_for(None, None, self.depth, box)[:2], self.depth
+        grid, depth = cube_grid(bounds[0], bounds[1], self.depth), self.depth
         ref = self._static[1] if self._static is not None else None
         if ref is not None and ref.h <= grid[1]:
             # the static lattice where it is as fine as a grid of the geometry's own (module doc)
-            got = aligned_grid(None, None, ref.lo, ref.h, self.depth, box)
+            got = aligned_grid(bounds[0], bounds[1], ref.lo, ref.h, self.depth)
             if got is not None:
                 grid, depth = got[:2], got[2]
         return grid, depth
@@ -304,10 +307,8 @@ class SvoBackend(VisibilityBackend):
         static, frame = tree_members(snapshot)
         self.built = []
         if not self.depth:
+            # a power of two from 16 to 2048 (the parameter table's choices, checked in __init__)
             n = self.resolution or auto_resolution(snapshot)
-            if n & (n - 1) or not (1 << MIN_DEPTH) <= n <= (1 << MAX_DEPTH):
-                raise UsdmlError(f"--svo-resolution must be a power of two from {1 << MIN_DEPTH} to {1 << MAX_DEPTH}, "
-                                 f"got {n} (usdml:svo:resolution)")
             self.depth = n.bit_length() - 1
             self._check_memory(n)
         rebuilt = False
@@ -317,12 +318,13 @@ class SvoBackend(VisibilityBackend):
             pts, tris = world_geometry(snapshot, static)
             tree = None
             if len(tris):
+                # the box once: for the report and for the grid of a tree not in the cache
                 lo, hi, outside = svo_bounds(pts, tris)
                 if outside:
                     self.report(f"svo of the static scene covers {np.round(lo, 2).tolist()} .. {np.round(hi, 2).tolist()}; "
                                 f"{outside} of {len(tris)} triangles reach outside it and shadow only within it")
                 tree = cached_tree(pts, tris, self.depth, self.cache, device=self.device, workers=self.workers,
-                                   source="static scene")
+                                   grid=cube_grid(lo, hi, self.depth), source="static scene")
                 self.built.append(tree.source)
                 if tree.cached:
                     self.stats["loaded"] += 1
@@ -333,8 +335,7 @@ class SvoBackend(VisibilityBackend):
             rebuilt = True
         if not frame:
             self._frame = None
-        elif rebuilt or members_changed(self._frame and self._frame[0], frame, changes,
-                                        lambda path: path in changes.deforming or changes.static):
+        elif rebuilt or _frame_members_changed(self._frame and self._frame[0], frame, changes):
             self._frame = (frame, self._build_frame(snapshot, frame, None if rebuilt else changes))
             rebuilt = True
         if rebuilt or not self._gpu:

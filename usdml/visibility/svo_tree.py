@@ -33,7 +33,7 @@ from usdml.visibility.voxel_grid import core_bounds
 
 log = logging.getLogger("usdml")
 
-__all__ = ["SvoTree", "SLACK", "tree_from_masks", "TOP_LEVEL", "top_level", "top_table", "FORMAT_VERSION", "aligned_grid", "build_tree", "cached_tree", "grid_for",
+__all__ = ["SvoTree", "SLACK", "cube_grid", "tree_from_masks", "TOP_LEVEL", "top_level", "top_table", "FORMAT_VERSION", "aligned_grid", "build_tree", "cached_tree", "grid_for",
            "svo_kernels", "tree_from_bricks", "voxelize_bricks", "MIN_DEPTH", "MAX_DEPTH"]
 
 #: bump when the bits or nodes a tree holds for the same inputs change
@@ -145,14 +145,9 @@ def top_table(nodes: np.ndarray, depth: int) -> np.ndarray:
 TRIM_RATIO = 4.0
 
 
-def svo_bounds(points: np.ndarray, triangles: np.ndarray, trim: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
-    """The box a tree covers: every triangle's, or :func:`core_bounds` where those are ``TRIM_RATIO``
-    times smaller; and how many triangles reach outside it. ``trim=False``: every point's box, no
-    quantiles (moving geometry: a ground to the horizon is static; 50 ms less on a 254 k-triangle
-    creature's per-frame rebuild)."""
-    if not trim:
-        p = np.asarray(points, np.float64).reshape(-1, 3)
-        return p.min(0), p.max(0), 0
+def svo_bounds(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The box a static tree covers: every triangle's, or :func:`core_bounds` where those are
+    ``TRIM_RATIO`` times smaller; and how many triangles reach outside it."""
     lo, hi, outside = core_bounds(points, triangles)
     if outside:
         used = np.asarray(points, np.float64).reshape(-1, 3)[np.unique(np.asarray(triangles).ravel())]
@@ -162,27 +157,30 @@ def svo_bounds(points: np.ndarray, triangles: np.ndarray, trim: bool = True) -> 
     return lo, hi, outside
 
 
-def grid_for(points: np.ndarray, triangles: np.ndarray, depth: int, bounds: tuple | None = None
-             ) -> tuple[np.ndarray, float, int]:
-    """The cube of a tree over ``(points, triangles)`` at ``2^depth`` voxels: corner, voxel size and
-    how many triangles reach outside it (they voxelize only inside); ``bounds``: :func:`svo_bounds`
-    already computed."""
-    lo, hi, outside = bounds if bounds is not None else svo_bounds(points, triangles)
+def cube_grid(lo: np.ndarray, hi: np.ndarray, depth: int) -> tuple[np.ndarray, float]:
+    """Corner and voxel size of the ``2^depth``-voxel cube around the box ``lo .. hi`` (a voxel of
+    margin on each side)."""
     n = 1 << depth
     side = float(np.max(hi - lo))
     side = max(side, 1e-6 * max(1.0, float(np.abs(lo).max(initial=0.0))))
-    h = side * (1.0 + 2.0 / n) / n             # a voxel of margin on each side
+    h = side * (1.0 + 2.0 / n) / n
     center = 0.5 * (lo + hi)
-    return center - 0.5 * n * h, h, outside
+    return center - 0.5 * n * h, h
 
 
-def aligned_grid(points: np.ndarray, triangles: np.ndarray, ref_lo: np.ndarray, ref_h: float,
-                 max_depth: int, bounds: tuple | None = None) -> tuple[np.ndarray, float, int]:
+def grid_for(points: np.ndarray, triangles: np.ndarray, depth: int) -> tuple[np.ndarray, float, int]:
+    """The cube of a tree over ``(points, triangles)`` at ``2^depth`` voxels (:func:`svo_bounds`'s box):
+    corner, voxel size and how many triangles reach outside it (they voxelize only inside)."""
+    lo, hi, outside = svo_bounds(points, triangles)
+    return (*cube_grid(lo, hi, depth), outside)
+
+
+def aligned_grid(lo: np.ndarray, hi: np.ndarray, ref_lo: np.ndarray, ref_h: float,
+                 max_depth: int) -> tuple[np.ndarray, float, int] | None:
     """A per-frame tree's grid on the static tree's lattice (corner a whole number of voxels from
     ``ref_lo``, voxel ``ref_h``): ``(lo, h, depth)`` with the smallest depth >= ``MIN_DEPTH`` whose cube
-    holds the geometry's core bounds; None when even ``max_depth`` is too small (the caller then
-    sizes a grid of its own); ``bounds``: :func:`svo_bounds` already computed."""
-    lo, hi, _ = bounds if bounds is not None else svo_bounds(points, triangles)
+    holds the box ``lo .. hi``; None when even ``max_depth`` is too small (the caller then sizes a
+    grid of its own)."""
     i0 = np.floor((lo - ref_lo) / ref_h) - 1
     i1 = np.ceil((hi - ref_lo) / ref_h) + 1
     need = float(np.max(i1 - i0))
@@ -292,17 +290,17 @@ def tree_from_masks(masks: np.ndarray, lo, h: float, depth: int, source: str = "
                    time.perf_counter() - t0, source=source, levels=levels)
 
 
-def tree_key(points, triangles, depth: int, grid: tuple | None) -> str:
+def tree_key(points, triangles, depth: int) -> str:
+    """The cache key of the static tree of ``(points, triangles)`` (its grid follows from them)."""
     return cache_key("svo", FORMAT_VERSION, depth, content_hash(np.asarray(points, np.float32)),
-                     content_hash(np.asarray(triangles, np.int32)),
-                     None if grid is None else [np.asarray(grid[0], np.float64).tolist(), float(grid[1])])
+                     content_hash(np.asarray(triangles, np.int32)))
 
 
 def cached_tree(points, triangles, depth: int, cache: Cache | None, *, device: str = "cpu",
-                workers: int | None = None, source: str = "") -> SvoTree:
+                workers: int | None = None, grid: tuple | None = None, source: str = "") -> SvoTree:
     """:func:`build_tree` through ``cache`` (the static tree: built once, loaded next time; a damaged
-    entry is reported and rebuilt)."""
-    key = tree_key(points, triangles, depth, None)
+    entry is reported and rebuilt); ``grid``: :func:`grid_for`'s, when the caller has it already."""
+    key = tree_key(points, triangles, depth)
     if cache is not None:
         got = cache.load("svo", key)
         if got is not None:
@@ -311,7 +309,7 @@ def cached_tree(points, triangles, depth: int, cache: Cache | None, *, device: s
             return SvoTree(data[:g].view(np.int32).copy(), data[g:].copy(), np.asarray(meta["lo"], np.float64),
                            float(meta["h"]), int(meta["depth"]), int(meta["occupied"]), triangles=int(meta["triangles"]),
                            key=key, cached=True, source=source, levels=list(meta["levels"]))
-    tree = build_tree(points, triangles, depth, device=device, workers=workers, source=source)
+    tree = build_tree(points, triangles, depth, device=device, workers=workers, grid=grid, source=source)
     tree.key = key
     if cache is not None:
         data = np.concatenate([tree.nodes.view(np.uint32), tree.bricks])
