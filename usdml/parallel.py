@@ -8,7 +8,8 @@ Every module that splits work goes through here, so the thread count has one hom
   device (its launches are asynchronous and go one after another);
 * :func:`run_parallel` (a list) and :func:`iter_parallel` (results as they come, for progress) —
   ``fn`` over items on that many threads, results in order, a worker's exception raised in the caller;
-* :func:`spans` — ``[lo, hi)`` blocks of a range to hand out.
+* :func:`spans` — ``[lo, hi)`` blocks of a range to hand out; :func:`run_bands` — a launch over
+  near-equal bands of a range, on those threads.
 """
 
 from __future__ import annotations
@@ -60,6 +61,19 @@ def run_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int, *,
     return list(iter_parallel(fn, items, workers, first_on_caller=first_on_caller))
 
 
+def run_bands(n: int, launch: Callable[[int, int], None], workers: int, bands_per_worker: int, *,
+              first_on_caller: bool = False) -> None:
+    """``launch(first, count)`` over ``[0, n)`` cut into ``workers × bands_per_worker`` near-equal bands
+    (fewer when ``n`` is smaller), on ``workers`` threads (:func:`run_parallel`)."""
+    if n <= 0:
+        return
+    import numpy as np
+
+    edges = np.linspace(0, n, min(n, workers * bands_per_worker) + 1).astype(np.int64)
+    jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    run_parallel(lambda j: launch(*j), jobs, workers, first_on_caller=first_on_caller)
+
+
 def spans(n: int, parts: int, min_size: int = 1) -> list[tuple[int, int]]:
     """``[lo, hi)`` ranges covering ``[0, n)`` in at most ``parts`` pieces of at least ``min_size``
     (the last may be shorter), in order."""
@@ -67,4 +81,4 @@ def spans(n: int, parts: int, min_size: int = 1) -> list[tuple[int, int]]:
     return [(lo, min(n, lo + step)) for lo in range(0, int(n), step)]
 
 
-__all__ = ["cpu_workers", "iter_parallel", "run_parallel", "spans"]
+__all__ = ["cpu_workers", "iter_parallel", "run_bands", "run_parallel", "spans"]

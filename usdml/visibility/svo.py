@@ -44,7 +44,7 @@ import numpy as np
 from usdml import params
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
-from usdml.parallel import cpu_workers, run_parallel
+from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Snapshot, world_geometry
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
                                    members_changed, scene_sphere, static_members)
@@ -428,12 +428,8 @@ class SvoBackend(VisibilityBackend):
     # ------------------------------------------------------------------ queries
 
     def _split(self, n: int, launch: Callable[[int, int], None], bands_per_worker: int) -> None:
-        if n == 0:
-            return
-        bands = min(n, self.workers * bands_per_worker)
-        edges = np.linspace(0, n, bands + 1).astype(np.int64)
-        jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-        run_parallel(lambda j: launch(*j), jobs, self.workers, first_on_caller=self._native is None)
+        # a Warp launch's first band alone first (it loads the module); the compiled walk's all at once
+        run_bands(n, launch, self.workers, bands_per_worker, first_on_caller=self._native is None)
 
     def hit_distances(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         """Distance in voxels (of the tree hit) from each ray's offset start to its first occupied voxel; -1: free."""

@@ -47,7 +47,7 @@ import numpy as np
 from usdml import params
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
-from usdml.parallel import cpu_workers, run_parallel
+from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Lights, Snapshot, world_geometry
 from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags,
@@ -606,10 +606,7 @@ class VoxelBackend(VisibilityBackend):
             launch(0, n)
             wp.synchronize_device(dev)
             return
-        bands = min(n, self.workers * bands_per_worker)
-        edges = np.linspace(0, n, bands + 1).astype(np.int64)
-        jobs = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-        run_parallel(lambda j: launch(*j), jobs, self.workers, first_on_caller=self._native is None)
+        run_bands(n, launch, self.workers, bands_per_worker, first_on_caller=self._native is None)
 
     @property
     def words(self):
