@@ -18,6 +18,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "simd_pick.h"
+
 #if defined(__x86_64__) || defined(_M_X64)
 #define SQ_X86 1
 #include <immintrin.h>
@@ -285,26 +287,16 @@ typedef struct { TreeFn tree; RuleFn rule; } Kernel;
 /* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
 static Kernel pick(int kernel) {
 #ifdef SQ_X86
-    __builtin_cpu_init();
-    if (kernel == 0 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
-        __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw"))
-        return (Kernel){chunk_tree_avx512, chunk_rule_avx512};
-    if (kernel != 1 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
-        return (Kernel){chunk_tree_avx2, chunk_rule_avx2};
+    switch (simd_lanes(kernel)) {
+    case 16: return (Kernel){chunk_tree_avx512, chunk_rule_avx512};
+    case 8: return (Kernel){chunk_tree_avx2, chunk_rule_avx2};
+    }
 #endif
-    (void)kernel;
     return (Kernel){chunk_tree_scalar, chunk_rule_scalar};
 }
 
 /* rays walked at once by ``kernel`` (as pick) on this CPU: 16 (AVX-512), 8 (AVX2) or 1 */
-int svo_simd_width(int32_t kernel) {
-    Kernel k = pick(kernel);
-#ifdef SQ_X86
-    if (k.tree == chunk_tree_avx512) return 16;
-    if (k.tree == chunk_tree_avx2) return 8;
-#endif
-    return 1;
-}
+int svo_simd_width(int32_t kernel) { return simd_lanes(kernel); }
 
 /* shadow_segment of kernels/svo.py for queries first .. first + count - 1: out[i] the hit distance in
  * voxels of the first tree hit, -1 when free. origins / targets / normals: (N, 3) float32 or float64

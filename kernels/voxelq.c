@@ -22,6 +22,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "simd_pick.h"
+
 #if defined(__x86_64__) || defined(_M_X64)
 #define VQ_X86 1
 #include <immintrin.h>
@@ -372,27 +374,18 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 /* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
 static BatchFn pick(int kernel) {
 #ifdef VQ_X86
-    __builtin_cpu_init();
-    if (kernel == 0 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
-        __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw"))
-        return batch_avx512;
-    if (kernel != 1 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return batch_avx2;
+    switch (simd_lanes(kernel)) {
+    case 16: return batch_avx512;
+    case 8: return batch_avx2;
+    }
 #endif
-    (void)kernel;
     return batch_scalar;
 }
 
 /* ---------------------------------------------------------------- entry points */
 
 /* queries answered at once by ``kernel`` (as pick) on this CPU: 16 (AVX-512), 8 (AVX2) or 1 */
-int vq_simd_width(int32_t kernel) {
-    BatchFn fn = pick(kernel);
-#ifdef VQ_X86
-    if (fn == batch_avx512) return 16;
-    if (fn == batch_avx2) return 8;
-#endif
-    return 1;
-}
+int vq_simd_width(int32_t kernel) { return simd_lanes(kernel); }
 
 /* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
  * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free.
