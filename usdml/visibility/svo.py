@@ -190,7 +190,8 @@ class SvoBackend(VisibilityBackend):
         if not self.native:
             return "warp"
         from usdml.visibility.svo_native import simd_width
-        return "native-" + {16: "avx512", 8: "avx2", 1: "scalar"}[simd_width(self.native_isa)]
+        from usdml.visibility.voxel_native import kernel_label
+        return kernel_label(simd_width(self.native_isa))
 
     def describe(self) -> dict:
         """Resolution, trees (bytes, nodes, bricks, voxels), build seconds and the CPU kernel, for

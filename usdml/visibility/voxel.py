@@ -266,8 +266,8 @@ class VoxelBackend(VisibilityBackend):
         """Which kernels answer queries: ``warp``, ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
         if not self.native:
             return "warp"
-        from usdml.visibility.voxel_native import WIDTH_NAMES, simd_width
-        return "native-" + WIDTH_NAMES[simd_width(self.native_isa)].replace("-", "").lower()
+        from usdml.visibility.voxel_native import kernel_label, simd_width
+        return kernel_label(simd_width(self.native_isa))
 
     # ------------------------------------------------------------------ building
 

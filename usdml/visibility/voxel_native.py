@@ -113,6 +113,12 @@ def simd_width(isa: str = "auto") -> int:
     return int(lib.vq_simd_width(ISAS[isa])) if lib is not None else 0
 
 
+def kernel_label(width: int) -> str:
+    """A compiled kernel's name in ``usdml bench`` / ``compare`` results by its SIMD width:
+    ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
+    return "native-" + WIDTH_NAMES[width].replace("-", "").lower()
+
+
 def path_line(what: str, why: str, width: int, unit: str) -> str:
     """``usdml info``'s line for a compiled CPU path ``what`` (``why``: why it is missing, "" when
     built) running ``width`` ``unit`` at a time."""
