@@ -135,6 +135,11 @@ def settled(values, decimals):
     return np.round(np.asarray(values, dtype=np.float64), decimals) + 0.0
 
 
+def settled_points(points):
+    """``(n, 3)`` points or positions as the Vec3fArray a stage stores: settled to 1e-5 scene units."""
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(settled(points, 5), dtype=np.float32))
+
+
 def round_sig(x, digits=2):
     return float(f"{x:.{digits}g}")
 
@@ -265,7 +270,7 @@ def regular_polygon(sides, radius, phase=0.0):
 def define_mesh(stage, path, mb):
     """Author a UsdGeom.Mesh from a MeshBuilder (flat, no subdivision)."""
     mesh = UsdGeom.Mesh.Define(stage, path)
-    points = Vt.Vec3fArray.FromNumpy(np.array(settled(mb.points, 5), dtype=np.float32))
+    points = settled_points(mb.points)
     mesh.CreatePointsAttr(points)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray(mb.counts))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(mb.indices))
@@ -413,8 +418,7 @@ def define_light_instancer(stage, anim_layer, path, protos, radius, intensity,
     with Usd.EditContext(stage, anim_layer):
         attr = pi.CreatePositionsAttr()
         for f, pos in zip(frames, positions):
-            attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(settled(pos, 5), dtype=np.float32)),
-                     Usd.TimeCode(float(f)))
+            attr.Set(settled_points(pos), Usd.TimeCode(float(f)))
     return pi
 
 
@@ -425,7 +429,7 @@ def set_instancer_xforms(stage, anim_layer, pi, frames, positions, orientations)
         ori_attr = pi.CreateOrientationsAttr()
         for f, pos, ori in zip(frames, positions, orientations):
             t = Usd.TimeCode(float(f))
-            pos_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(settled(pos, 5), dtype=np.float32)), t)
+            pos_attr.Set(settled_points(pos), t)
             ori_attr.Set(Vt.QuathArray.FromNumpy(np.ascontiguousarray(ori, dtype=np.float16)), t)
 
 
@@ -1090,7 +1094,7 @@ def write_bear_asset(out_dir):
         translation_matrix(joints[j] - (joints[p] if p >= 0 else 0.0)) for j, p in enumerate(parents)]))
 
     mesh = UsdGeom.Mesh.Define(stage, "/bear/Body")
-    points = Vt.Vec3fArray.FromNumpy(settled(pts, 5).astype(np.float32))
+    points = settled_points(pts)
     mesh.CreatePointsAttr(points)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
