@@ -5,16 +5,23 @@ Usage::
 
     python tools/make_stages.py [--out stages]
 
-Writes five top-level ``.usda`` stages plus binary ``.usdc`` layers::
+Writes seven top-level ``.usda`` stages plus binary ``.usdc`` layers::
 
     city.usda      static instanced city, 1,024 animated point lights
     planes.usda    sublayers city.usda, adds two airplanes flying over it
     creature.usda  UsdSkel-rigged bear (warp's bear.usd, 254k triangles) walking, 1,024 lights
     cornell.usda   classic Cornell box lit by two spot lights
     park.usda      amusement park, 112 moving rigid instances, 7,088 lights
-    assets/*.usdc  heavy meshes (buildings, airplane, rigged bear)
+    boxes.usda     25 plain boxes under 16 point lights, for independent renderers
+    dragon.usda    Stanford dragon (48k triangles) on a ground, 1,024 static lights
+                   on a dome (paper 001's Dragon scene)
+    assets/*.usdc  heavy meshes (buildings, airplane, rigged bear, dragon)
     anim/*.usdc    heavy time samples (instancer positions / orientations),
                    sublayered under the .usda that defines the prims
+
+The dragon is read from ``../shared/assets/meshes/dragon_vrip_res3.ply`` beside the
+checkout; where that file is absent the dragon is skipped with a message (its
+committed files are left as they are, and ``--check`` does not compare them).
 
 Conventions shared by every stage: metersPerUnit = 1, upAxis = Y, 24 fps,
 defaultPrim </World>, camera </World/main_cam> (35 mm lens on a 36 x 20.25 mm
@@ -399,7 +406,9 @@ def define_light_instancer(stage, anim_layer, path, protos, radius, intensity,
                            proto_indices, positions, frames):
     """PointInstancer of point-like SphereLights with per-frame positions.
 
-    ``protos`` are BULBS keys; ``positions`` is (frames, lights, 3).
+    ``protos`` are BULBS keys; ``positions`` is (frames, lights, 3), time-sampled in
+    ``anim_layer``, or (lights, 3) with ``frames`` None: a static set, its one value authored
+    in the stage's root layer (``anim_layer`` unused).
     """
     pi = UsdGeom.PointInstancer.Define(stage, path)
     UsdGeom.Scope.Define(stage, f"{path}/Prototypes")
@@ -415,6 +424,9 @@ def define_light_instancer(stage, anim_layer, path, protos, radius, intensity,
     pi.CreatePrototypesRel().SetTargets(proto_paths)
     pi.CreateProtoIndicesAttr(Vt.IntArray([int(i) for i in proto_indices]))
     pi.CreateIdsAttr(Vt.Int64Array(list(range(len(proto_indices)))))
+    if frames is None:
+        pi.CreatePositionsAttr().Set(settled_points(positions))
+        return pi
     with Usd.EditContext(stage, anim_layer):
         attr = pi.CreatePositionsAttr()
         for f, pos in zip(frames, positions):
@@ -1711,6 +1723,106 @@ def make_boxes(out_dir):
     return {"boxes": 25, "lights": 16}
 
 
+# --------------------------------------------------------------------------
+# Dragon (paper 001's Dragon scene: one scanned model under 1,024 lights)
+# --------------------------------------------------------------------------
+
+#: the Stanford dragon (res3), read from the shared test data beside the checkout (not committed here)
+DRAGON_PLY = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                          "..", "shared", "assets", "meshes", "dragon_vrip_res3.ply")
+DRAGON_LENGTH = 2.0  # metres, nose to tail (the scan's 0.2 units scaled up 9.8x)
+#: what make_dragon writes, relative to the output folder (what --check skips when the PLY is absent)
+DRAGON_FILES = ("dragon.usda", os.path.join("assets", "dragon.usdc"))
+
+
+def read_ply(path):
+    """Points ``(V, 3)`` float and triangles ``(T, 3)`` int of an ASCII PLY file: a vertex element
+    (``x``, ``y``, ``z`` among any other scalar properties) then a face element whose one property is
+    a vertex-index list of 3 (the Stanford scans' layout); other properties are read past, not kept."""
+    with open(path) as f:
+        header = []
+        for line in f:
+            header.append(line.split())
+            if header[-1] == ["end_header"]:
+                break
+        tokens = f.read().split()
+    if header[:2] != [["ply"], ["format", "ascii", "1.0"]]:
+        raise ValueError(f"{path}: not an ASCII PLY file")
+    elements = []    # [name, count, property names]
+    for words in header:
+        if words[0] == "element":
+            elements.append([words[1], int(words[2]), []])
+        elif words[0] == "property":
+            elements[-1][2].append(words[-1])
+    if [e[0] for e in elements] != ["vertex", "face"] or len(elements[1][2]) != 1:
+        raise ValueError(f"{path}: expected a vertex element then a face element of one index list")
+    (_, n_verts, props), (_, n_faces, _) = elements
+    verts = np.array(tokens[:n_verts * len(props)], dtype=float).reshape(n_verts, len(props))
+    faces = np.array(tokens[n_verts * len(props):], dtype=np.int64).reshape(n_faces, -1)
+    if faces.shape[1] != 4 or np.any(faces[:, 0] != 3):
+        raise ValueError(f"{path}: faces must all be triangles")
+    return verts[:, [props.index(c) for c in "xyz"]], faces[:, 1:]
+
+
+def write_dragon_asset(out_dir):
+    """The scan as one triangle mesh, topology unmodified: scaled to ``DRAGON_LENGTH`` along X, centred
+    on the origin in X and Z, feet on y = 0.  No normals: the PLY's are not unit length (0 to 2 pi,
+    199 of them zero), and a polygonal mesh without them shades each triangle with its own normal.
+    Returns the triangle count."""
+    pts, tris = read_ply(DRAGON_PLY)
+    lo, hi = pts.min(0), pts.max(0)
+    pts = (pts - [(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2]) * (DRAGON_LENGTH / (hi[0] - lo[0]))
+    mb = MeshBuilder()
+    mb.points = [tuple(p) for p in settled(pts, 5)]
+    mb.counts = [3] * len(tris)
+    mb.indices = [int(i) for i in tris.ravel()]
+    mb.colors = [(0.72, 0.60, 0.38)] * len(tris)
+    write_asset(os.path.join(out_dir, "assets", "dragon.usdc"), "dragon", {"body": mb})
+    return mb.triangle_count
+
+
+def dome_light_positions(rng, n, center, radii, elevations):
+    """``(n, 3)`` points in a shell around ``center``: azimuth uniform, elevation between
+    ``elevations`` (radians) uniform in solid angle, distance uniform in ``radii``."""
+    az = rng.uniform(0, 2 * math.pi, n)
+    el = np.arcsin(rng.uniform(math.sin(elevations[0]), math.sin(elevations[1]), n))
+    r = rng.uniform(*radii, n)
+    return center + r[:, None] * np.stack([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)], -1)
+
+
+def make_dragon(out_dir):
+    """Paper 001's Dragon: the Stanford dragon on an 8 m ground under 1,024 static point lights
+    on a dome 3-5 m away, 10-70 degrees up, so each casts its shadow on the ground and on the dragon.
+    Skipped, with a line saying so, when the PLY is absent (returns None)."""
+    if not os.path.isfile(DRAGON_PLY):
+        print(f"dragon    skipped: {os.path.normpath(DRAGON_PLY)} not found (shared test data beside the checkout)")
+        return None
+    rng = np.random.default_rng(6006)
+    dragon_tris = write_dragon_asset(out_dir)
+    path = os.path.join(out_dir, "dragon.usda")
+    stage = new_stage(path, 1, 1)
+    stage.DefinePrim("/World/Dragon", "Xform").GetReferences().AddReference("./assets/dragon.usdc")
+    ground = ground_grid(8.0, 12, (0.5, 0.5, 0.5))
+    define_mesh(stage, "/World/Ground", ground)
+
+    n = 1024
+    positions = dome_light_positions(rng, n, np.zeros(3), (3.0, 5.0), (math.radians(10), math.radians(70)))
+    proto_idx = rng.choice(3, n, p=[0.5, 0.25, 0.25])
+    sx, sz = rng.uniform(-3, 3, 256), rng.uniform(-3, 3, 256)
+    samples = np.stack([sx, np.zeros(256), sz], -1)
+    intensity = calibrate_intensity(positions, 0.05, samples, np.tile(UP, (256, 1)), target=0.3)
+    define_light_instancer(stage, None, "/World/Lights", ["warm", "cool", "white"], 0.05, intensity,
+                           proto_idx, positions, None)
+
+    # 3/4 front view from above the head (the dragon faces -X): the coils and the soft shadows
+    # pooling around its feet, on the ground and between the coils, in frame.
+    define_camera(stage, (-1.9, 3.1, 3.7), (0.0, 0.45, 0.0), (0.1, 100.0))
+    define_render_settings(stage, "out/dragon.####.exr")
+    stage.Save()
+    return {"dragon_tris": dragon_tris, "ground_tris": ground.triangle_count, "lights": n,
+            "intensity": intensity}
+
+
 #: absolute tolerance of ``--check`` on every number of a layer: twice the finest rounding ``settled`` writes
 #: positions with (1e-5), so one last-digit flip passes and any real change fails
 CHECK_TOLERANCE = 2e-5
@@ -1763,10 +1875,12 @@ def layer_differences(path_a: str, path_b: str, tol: float = CHECK_TOLERANCE) ->
     return out
 
 
-def stage_differences(committed: str, generated: str, tol: float = CHECK_TOLERANCE) -> list[str]:
-    """Every difference between two folders of generated stages: files on one side only, then layer differences."""
+def stage_differences(committed: str, generated: str, tol: float = CHECK_TOLERANCE, skip=()) -> list[str]:
+    """Every difference between two folders of generated stages: files on one side only, then layer differences;
+    the files in ``skip`` (relative paths) are not compared."""
     def files(root):
-        return sorted(os.path.relpath(os.path.join(d, f), root) for d, _, fs in os.walk(root) for f in fs)
+        return sorted(rel for d, _, fs in os.walk(root) for f in fs
+                      if (rel := os.path.relpath(os.path.join(d, f), root)) not in skip)
     fa, fb = files(committed), files(generated)
     out = [f"{f}: only in one of them" for f in sorted(set(fa) ^ set(fb))]
     for f in sorted(set(fa) & set(fb)):
@@ -1783,8 +1897,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.check:
         with tempfile.TemporaryDirectory() as scratch:
-            generate(scratch)
-            differences = stage_differences(os.path.abspath(args.out), scratch)
+            skipped = generate(scratch)
+            differences = stage_differences(os.path.abspath(args.out), scratch, skip=skipped)
+        if skipped:
+            print(f"not compared (not generated here): {', '.join(skipped)}", file=sys.stderr)
         for line in differences[:50]:
             print(line, file=sys.stderr)
         if differences:
@@ -1794,8 +1910,9 @@ def main(argv=None):
     return 0
 
 
-def generate(out: str) -> None:
-    """Write every sample stage under ``out`` and print what each holds."""
+def generate(out: str) -> list[str]:
+    """Write every sample stage under ``out`` and print what each holds; returns the files (relative
+    to ``out``) of the stages skipped because their source data is absent."""
     for sub in ("", "assets", "anim"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
 
@@ -1804,8 +1921,11 @@ def generate(out: str) -> None:
     report["cornell"] = make_cornell(out)
     report["park"] = make_park(out)
     report["boxes"] = make_boxes(out)
+    report["dragon"] = make_dragon(out)
     for name, info in report.items():
-        print(f"{name:9s}", ", ".join(f"{k}={v}" for k, v in info.items()))
+        if info is not None:
+            print(f"{name:9s}", ", ".join(f"{k}={v}" for k, v in info.items()))
+    return [] if report["dragon"] is not None else list(DRAGON_FILES)
 
 
 if __name__ == "__main__":
