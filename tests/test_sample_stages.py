@@ -24,7 +24,11 @@ EXPECTED = {
                     animatedPrototypes=0, deforming=0, lights=2),
     "park": dict(meshes=118, uniqueMeshes=9, triangles=17_562, prototypes=5, instances=114,
                  animatedPrototypes=5, deforming=0, lights=7088),
+    "dragon": dict(meshes=2, uniqueMeshes=2, triangles=48_082, prototypes=0, instances=0,
+                   animatedPrototypes=0, deforming=0, lights=1024),
 }
+#: the stages of one frame (the others run 1-48)
+STILLS = {"cornell", "dragon"}
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
@@ -37,7 +41,7 @@ def test_sample_stage_info(capsys, name):
     assert info["renderSettings"]["path"] == "/Render/Settings"
     assert [v["name"] for v in info["renderSettings"]["products"][0]["vars"]] == [
         "color", "depth", "normal", "direct", "shadow", "primId"]
-    assert info["endTimeCode"] == (1 if name == "cornell" else 48)
+    assert info["endTimeCode"] == (1 if name in STILLS else 48)
     assert "usdml: warning" not in err
 
 
@@ -69,6 +73,19 @@ def test_planes_move_and_creature_deforms():
     creature = StageDelegate(STAGES / "creature.usda")
     changes = diff(creature.snapshot(1), creature.snapshot(5))
     assert len(changes.deforming) == 1 and not changes.static
+
+
+def test_dragon_stands_on_the_ground_under_a_dome_of_lights():
+    snap = StageDelegate(STAGES / "dragon.usda").snapshot(1)
+    dragon = next(m for m in snap.meshes if m.path == "/World/Dragon/body")
+    lo, hi = dragon.points.min(0), dragon.points.max(0)
+    assert hi[0] - lo[0] == pytest.approx(2.0, abs=1e-4) and lo[1] == pytest.approx(0.0, abs=1e-5)
+    assert np.all(dragon.normals == dragon.normals[:, :1])        # no authored normals: faceted
+    pos = snap.lights.position                                    # the dome is centred on the origin
+    distance = np.linalg.norm(pos, axis=1)
+    elevation = np.degrees(np.arcsin(pos[:, 1] / distance))
+    assert len(pos) == 1024 and 3.0 <= distance.min() and distance.max() <= 5.0
+    assert 10.0 <= elevation.min() and elevation.max() <= 70.0
 
 
 @pytest.mark.slow      # 6 s: regenerates every sample stage
