@@ -18,11 +18,12 @@ import os
 import numpy as np
 import pytest
 
-from usdml.lighting.direct import shade_direct
+from usdml.lighting.direct import facing_pairs, shade_direct
 from usdml.scene import diff
 from usdml.settings import UsdmlSettings
 from usdml.visibility import ExactBackend, backend_class, backend_names, make_backend
-from usdml.visibility.base import CAPABILITIES, HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS
+from usdml.scene import LightType
+from usdml.visibility.base import CAPABILITIES, HIT_DISTANCES, LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS
 
 from backend_scenes import lights, queries, scene_frames, surface_points
 
@@ -42,6 +43,9 @@ MISMATCH = {
     # conservative voxels at 128^3 over a 20 m scene: occluders up to a voxel fatter (measured 0.035,
     # 0.062, 0.023, almost all wrongly hidden far from the shading point)
     "svo": {"occluder": 0.055, "instances": 0.095, "deforming": 0.035},
+    # 10 depth images of 128^2 (paper 001's), maps of 512^2 per view: light leaks where the depth images
+    # miss an occluder's side and its edges erode (measured 0.027, 0.032, 0.021; mostly wrongly visible)
+    "insm": {"occluder": 0.04, "instances": 0.05, "deforming": 0.03},
 }
 
 QUIET = {"report": lambda line: None}
@@ -83,11 +87,23 @@ def test_backend_agrees_with_exact(name, scene, device):
     lit = lights(np.random.default_rng(1))
 
     def check(backend, reference, snap, rng):
-        o, t, kw = queries(*surface_points(rng), lit)
+        points, normals = surface_points(rng)
+        o, t, kw = queries(points, normals, lit)
         ref = reference.occluded(o, t, **kw)
-        got = backend.occluded(o, t, **kw)
+        if backend.supports(LIGHT_MAJOR):
+            # per-light structures answer the lights they are given (occluded sends targets that are not
+            # the frame's lights to exact): every point against every light, the facing pairs read off
+            pairs = [b[4:] for b in facing_pairs(points, normals, lit)]
+            pi, li = (np.concatenate([p[k] for p in pairs]) for k in range(2))
+            matrix = backend.occluded_matrix(points, normals, lit.position, lit.type == LightType.DISTANT, lit.axis)
+            got = matrix[pi, li]
+            again = backend.occluded_matrix(points, normals, lit.position, lit.type == LightType.DISTANT,
+                                            lit.axis)[pi, li]
+        else:
+            got = backend.occluded(o, t, **kw)
+            again = backend.occluded(o, t, **kw)
         assert 0.05 < ref.mean() < 0.95, "the scene must shadow some pairs and not others"
-        assert np.array_equal(got, backend.occluded(o, t, **kw)), "answers are deterministic"
+        assert np.array_equal(got, again), "answers are deterministic"
         return float((got != ref).mean())
 
     mismatch = max(run_scene(name, scene, check, device))

@@ -115,10 +115,10 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     from usdml.lighting.direct import facing_pairs
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
-    from usdml.scene import diff
+    from usdml.scene import LightType, diff
     from usdml.stage.delegate import require_geometry, require_lights
     from usdml.visibility import ExactBackend, backend_names, make_backend
-    from usdml.visibility.base import HIT_DISTANCES
+    from usdml.visibility.base import HIT_DISTANCES, LIGHT_MAJOR
 
     if against != ExactBackend.name:
         raise UsdmlError(f"--against {against}: visibility is measured against exact (Embree) only")
@@ -148,16 +148,25 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         counts = {k: np.zeros(n_px, np.int64) for k in ("facing", "blocked", "hidden", "visible")}
         hidden_near = 0
         ref_s = got_s = 0.0
-        for origin, target, normal, distant, pixel, _ in facing_pairs(
-                gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], snap.lights,
-                gb.geometric.reshape(-1, 3)[hit]):
+        points, geometric = gb.position.reshape(-1, 3)[hit], gb.geometric.reshape(-1, 3)[hit]
+        matrix = None
+        if approx.supports(LIGHT_MAJOR):
+            # per-light structures: every pixel against every light at once (P x L answers), the
+            # facing pairs read from it
+            t0 = _time.perf_counter()
+            lights = snap.lights
+            matrix = approx.occluded_matrix(points, geometric, lights.position, lights.type == LightType.DISTANT,
+                                            lights.axis)
+            got_s += _time.perf_counter() - t0
+        for origin, target, normal, distant, pixel, light in facing_pairs(
+                points, gb.normal.reshape(-1, 3)[hit], snap.lights, geometric):
             args = (origin, target)
             kw = dict(normals=normal, distant=distant.astype(bool))
             t0 = _time.perf_counter()
             ref = exact.occluded(*args, **kw)
             ref_s += _time.perf_counter() - t0
             t0 = _time.perf_counter()
-            got = approx.occluded(*args, **kw)
+            got = matrix[pixel, light] if matrix is not None else approx.occluded(*args, **kw)
             got_s += _time.perf_counter() - t0
             if near_far and (got & ~ref).any():
                 dist = approx.hit_distances(*args, **kw)

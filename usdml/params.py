@@ -269,6 +269,26 @@ _ROWS = (
           "(the compiled traversal; an error without it) or warp", VOXEL_COMMANDS,
           source="measured (usdml): docs/svo.md", choices=("auto", "native", "warp")),
 
+    # -- intermediate shadow maps (paper 001)
+    Param("insm_count", int, 10, "usdml:insm:count", "--insm-count",
+          "depth images (intermediate shadow maps) per frame, from viewpoints on the scene's box", VOXEL_COMMANDS,
+          source="paper 001, Table 4", range=Range(1, 26), metavar="K",
+          doc='''Depth images (intermediate shadow maps) per frame, insm backend.
+
+          10 are the paper's: the midpoints of the box's eight non-vertical
+          edges and the centres of its left and right faces; other counts
+          take a prefix of one fixed order of 26 (docs/insm.md).'''),
+    Param("insm_resolution", int, 128, "usdml:insm:resolution", "--insm-resolution",
+          "pixels per side of each depth image", VOXEL_COMMANDS, source="paper 001, Table 2",
+          range=Range(8, 4096), metavar="W"),
+    Param("insm_light_resolution", int, 512, "usdml:insm:lightResolution", "--insm-light-resolution",
+          "texels per side of each view of a light's shadow map (six views for a point light)", VOXEL_COMMANDS,
+          source="paper 001, Table 3", range=Range(16, 8192), metavar="S"),
+    Param("insm_threshold", float, 2.0, "usdml:insm:threshold", "--insm-threshold",
+          "depth-discontinuity threshold of the triangulation, in pixel footprints of the depth image",
+          VOXEL_COMMANDS, source="paper 001, Alg. 2 (scene-dependent there; measured: docs/insm.md)",
+          range=Range(0, low_open=True), metavar="PIXELS"),
+
     # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
           "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "

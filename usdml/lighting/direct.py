@@ -186,7 +186,8 @@ def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights, geomet
 def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                  occluded: Callable[..., np.ndarray] | None,
                  progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                 min_distance: float = 0.0, geometric: np.ndarray | None = None) -> DirectResult:
+                 min_distance: float = 0.0, geometric: np.ndarray | None = None,
+                 answers: np.ndarray | None = None) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -201,6 +202,9 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         uses it against the singularity of point lights on nearby surfaces (paper 004 §2).
     geometric : (P, 3) unit geometric normals on the shading normals' side, or None (the shading
         normals serve): which lights face a point, and the shadow rays' offset.
+    answers : (P, L) bool or uint8, optional
+        Every pair's answer, computed before shading (paper 001 answers light by light from a map per
+        light): read for each shadow query instead of calling ``occluded``.
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
@@ -222,10 +226,13 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         live = g > 0
         facing[lo:hi] = live.sum(axis=1)
         asked = 0
-        if occluded is not None:
+        if occluded is not None or answers is not None:
             pi, li, targets, dist = shadow_queries(live, w, table, lights)
             if len(pi):
-                hit = occluded(points[lo + pi], targets, normals=offset[lo + pi], distant=dist)
+                if answers is not None:
+                    hit = np.asarray(answers[lo + pi, li], bool)
+                else:
+                    hit = occluded(points[lo + pi], targets, normals=offset[lo + pi], distant=dist)
                 asked = len(pi)
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)

@@ -48,6 +48,12 @@ Optional capabilities
         ``upperBound: true`` where the size depends on what is built and the figure is a bound) and
         :meth:`~VisibilityBackend.memory_line` (it as the one line ``usdml info`` prints).
         Default: ``None`` and ``""``.
+    ``LIGHT_MAJOR`` ("light_major")
+        The backend's structures are per light (paper 001's shadow maps): its
+        :meth:`~VisibilityBackend.occluded_matrix` answers every point against every light far faster
+        than :meth:`~VisibilityBackend.occluded` over the same pairs cut into blocks of points, so a
+        caller holding a point set and a light set (``usdml compare``) asks it for the whole matrix.
+        Default: ``occluded_matrix`` over ``occluded``, no faster.
 
 Adding a backend
     One module with a :class:`VisibilityBackend` subclass (``name``, ``summary``, ``capabilities``, and
@@ -66,14 +72,16 @@ import numpy as np
 
 from usdml.scene import Changes, Snapshot
 
-__all__ = ["VisibilityBackend", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE"]
+__all__ = ["VisibilityBackend", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE",
+           "LIGHT_MAJOR"]
 
 #: optional capabilities (module doc, "Optional capabilities")
 SHADE_DIRECT = "shade_direct"
 HIT_DISTANCES = "hit_distances"
 STATS = "stats"
 MEMORY_ESTIMATE = "memory_estimate"
-CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE)
+LIGHT_MAJOR = "light_major"
+CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR)
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:

@@ -16,6 +16,7 @@ BACKENDS: dict[str, str] = {
     "exact": "usdml.visibility.exact:ExactBackend",
     "voxel": "usdml.visibility.voxel:VoxelBackend",
     "svo": "usdml.visibility.svo:SvoBackend",
+    "insm": "usdml.visibility.insm:InsmBackend",
 }
 
 

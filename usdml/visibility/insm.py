@@ -1,0 +1,542 @@
+"""The ``insm`` visibility backend: paper 001's intermediate shadow maps.
+
+Per frame (Alg. 1; nothing is precomputed, so a moving or deforming scene costs what a static one
+does): ``K`` depth images of the scene from viewpoints on its bounding box, each triangulated into a
+world-space mesh without triangles across depth discontinuities (:mod:`usdml.visibility.insm_mesh`).
+Per light, a shadow map is rasterized from those triangles alone (:mod:`usdml.kernels.insm`) and the
+shading points look their visibility up in it: the cost grows with the lights and the maps' sizes,
+not with the scene's triangles. The depth images are rebuilt only on frames where geometry changed.
+
+Maps per light (``S × S`` texels per view, ``S`` = ``light_resolution``)
+    * point, sphere, disk, rect and cylinder lights (points at their centre, as every backend):
+      a cube map, six 90° views;
+    * spot lights (a shaping cone of at most ``SPOT_MAX_DEG``): one perspective view of the cone;
+    * distant lights (and a dome's samples): one orthographic view over the scene's bounding sphere.
+
+Leaving the surface (what a shadow map's depth bias is; paper 001 names none, so usdml's, measured)
+    A shading point moves ``offset`` texels of the light's map (a texel's world size at its depth)
+    along its geometric normal turned toward the light, then compares its depth, less ``bias`` texels,
+    with the map's 2 × 2 nearest texels weighted bilinearly (percentage-closer filtering, blocked
+    above one half). The cost: an occluder closer than about ``offset + bias`` texels to the point
+    casts no shadow on it, and a reconstructed surface that bulges out of the real one by more (a
+    concave region sampled coarsely) shadows itself.
+
+Queries the maps cannot answer
+    :meth:`shade_direct` answers every (pixel, light) pair of the frame's lights from the maps, one
+    light at a time (a map lives while its light is answered: one per thread). :meth:`occluded`
+    answers a segment from a map when its target is one of the frame's lights (a light of the
+    snapshot, or of the last :meth:`shade_direct`: dome samples); any other target (a VPL, an LGH
+    shadow sample) goes to the exact backend the insm backend holds (it also casts the depth images'
+    rays), counted in ``stats["exact_queries"]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from dataclasses import dataclass, fields
+from typing import Callable
+
+import numpy as np
+
+from usdml import params
+from usdml.parallel import cpu_workers, run_parallel
+from usdml.scene import Changes, Lights, LightType, Snapshot
+from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags, as_vectors,
+                                   scene_sphere)
+from usdml.visibility.exact import ExactBackend
+from usdml.visibility.insm_mesh import depth_images, insm_views, triangulate
+from usdml.visibility.voxel_array import warp_module
+
+log = logging.getLogger("usdml")
+
+__all__ = ["InsmBackend", "LightViews", "light_views", "SPOT_MAX_DEG"]
+
+#: a spot light whose cone is at most this half-angle gets one map of its cone, wider ones a cube map
+SPOT_MAX_DEG = 60.0
+#: leaving the surface, in texels of the light's map (module doc)
+OFFSET_TEXELS, BIAS_TEXELS = 1.0, 1.0
+#: the near plane of a light's perspective views, as a fraction of the scene's diagonal
+NEAR_FRACTION = 1e-5
+#: most bytes of (light, point) answers held at once by :meth:`InsmBackend.shade_direct`
+ANSWER_BYTES = 1 << 27
+#: most bytes of maps one CUDA batch rasterizes at once
+CUDA_MAP_BYTES = 1 << 29
+PERSPECTIVE, ORTHOGRAPHIC = 0, 1
+
+
+def kernels():
+    """:mod:`usdml.kernels.insm` (imports Warp)."""
+    warp_module()
+    from usdml.kernels import insm
+    return insm
+
+
+@dataclass
+class LightViews:
+    """The views of a set of lights' maps (:mod:`usdml.kernels.insm`, "Views"), as kernel arrays."""
+
+    position: np.ndarray    #: (L, 3) float32 light positions (distant: unused)
+    cube: np.ndarray        #: (L,) int32 1 where the light's views are a cube (six views)
+    first: np.ndarray       #: (L + 1,) int32 light l's views are first[l] .. first[l + 1]
+    origin: np.ndarray      #: (V, 3) float32
+    rot: np.ndarray         #: (V, 3, 3) float32 rows right, up, forward
+    proj: np.ndarray        #: (V, 4) float32 ax, bx, ay, by
+    kind: np.ndarray        #: (V,) int32 PERSPECTIVE or ORTHOGRAPHIC
+    near: np.ndarray        #: (V,) float32
+
+    def __len__(self) -> int:
+        return len(self.cube)
+
+    @property
+    def views(self) -> int:
+        return len(self.kind)
+
+
+#: the six faces of a cube map: forward, up (face f's forward is the dominant axis the lookup picks)
+_CUBE = [((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 0, -1)), ((0, -1, 0), (0, 0, 1)),
+         ((0, 0, 1), (0, 1, 0)), ((0, 0, -1), (0, 1, 0))]
+
+
+def _basis(forward, up) -> np.ndarray:
+    f = np.asarray(forward, np.float64)
+    f = f / np.linalg.norm(f)
+    u = np.asarray(up, np.float64)
+    if abs(float(np.dot(f, u))) > 0.99:
+        u = np.roll(u, 1)
+    right = np.cross(u, f)
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(f, right), f])
+
+
+def light_views(position: np.ndarray, axis: np.ndarray, distant: np.ndarray, cone_deg: np.ndarray,
+                centre: np.ndarray, radius: float, size: int) -> LightViews:
+    """Views of ``L`` lights' maps at ``size`` texels (module doc, "Maps per light").
+
+    ``position`` (L, 3) world, ``axis`` (L, 3) the direction each light emits (distant: travels),
+    ``distant`` (L,) bool, ``cone_deg`` (L,) shaping half-angle (180: none); the scene's bounding sphere
+    ``centre``, ``radius`` places the distant lights' views and the near planes."""
+    n = len(position)
+    near = NEAR_FRACTION * 2.0 * radius
+    half = size / 2.0
+    cube = np.zeros(n, np.int32)
+    first = [0]
+    origin, rot, proj, kind = [], [], [], []
+    for i in range(n):
+        if distant[i]:
+            f = np.asarray(axis[i], np.float64)
+            origin.append(np.asarray(centre, np.float64) - f / np.linalg.norm(f) * (1.01 * radius))
+            rot.append(_basis(f, (0, 1, 0)))
+            a = size / (2.02 * radius)
+            proj.append((a, half, a, half))
+            kind.append(ORTHOGRAPHIC)
+        elif cone_deg[i] <= SPOT_MAX_DEG:
+            origin.append(position[i])
+            rot.append(_basis(axis[i], (0, 1, 0)))
+            a = half / np.tan(np.radians(min(float(cone_deg[i]) * 1.02 + 0.1, 89.0)))
+            proj.append((a, half, a, half))
+            kind.append(PERSPECTIVE)
+        else:
+            cube[i] = 1
+            for forward, up in _CUBE:
+                origin.append(position[i])
+                rot.append(_basis(forward, up))
+                proj.append((half, half, half, half))
+                kind.append(PERSPECTIVE)
+        first.append(len(kind))
+    v = len(kind)
+    return LightViews(np.asarray(position, np.float32).reshape(n, 3), cube, np.asarray(first, np.int32),
+                      np.asarray(origin, np.float32).reshape(v, 3), np.asarray(rot, np.float32).reshape(v, 3, 3),
+                      np.asarray(proj, np.float32).reshape(v, 4), np.asarray(kind, np.int32),
+                      np.full(v, near, np.float32))
+
+
+def take_lights(lights: Lights, index) -> Lights:
+    """The lights ``index`` selects (a slice or an index array), every field cut alike."""
+    kw = {}
+    for f in fields(lights):
+        value = getattr(lights, f.name)
+        kw[f.name] = [value[i] for i in np.arange(len(lights))[index]] if isinstance(value, list) else value[index]
+    return Lights(**kw)
+
+
+def _key(row) -> bytes:
+    return np.asarray(row, np.float32).tobytes()
+
+
+class InsmBackend(VisibilityBackend):
+    """Shadows from intermediate shadow maps (paper 001; module doc).
+
+    Parameters
+    ----------
+    count : depth images per frame (``K``, the paper's 10)
+    resolution : pixels per side of each depth image (``w``, the paper's 128)
+    light_resolution : texels per side of each view of a light's map (``S``, the paper's 512)
+    threshold : ``κ`` of the triangulation (:mod:`usdml.visibility.insm_mesh`)
+    offset, bias : leaving the surface, in texels of the light's map (module doc)
+    device : Warp device, ``cpu`` or ``cuda``
+    report, progress : as every backend (:mod:`usdml.visibility.base`)
+
+    ``stats`` after each frame: depth-image, triangulation, map and lookup seconds, reconstructed
+    triangles, lights mapped, queries answered by maps and by the exact backend.
+    """
+
+    name = "insm"
+    summary = "intermediate shadow maps: per-light maps rasterized from K triangulated depth images (paper 001)"
+    capabilities = frozenset({SHADE_DIRECT, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR})
+
+    def __init__(self, *, count: int = 10, resolution: int = 128, light_resolution: int = 512,
+                 threshold: float = 2.0, offset: float = OFFSET_TEXELS, bias: float = BIAS_TEXELS,
+                 device: str = "cpu", workers: int | None = None, report: Callable[[str], None] | None = None,
+                 progress: Callable[..., None] | None = None) -> None:
+        params.check("insm_count", int(count))
+        params.check("insm_resolution", int(resolution))
+        params.check("insm_light_resolution", int(light_resolution))
+        params.check("insm_threshold", float(threshold))
+        self.count, self.resolution = int(count), int(resolution)
+        self.light_resolution, self.threshold = int(light_resolution), float(threshold)
+        self.offset, self.bias = float(offset), float(bias)
+        self.device = device
+        self.workers = cpu_workers(device, workers)
+        self.report = report or (lambda line: log.info(line))
+        self.exact = ExactBackend(workers=workers)
+        self._tris = None              # (3T, 3) float32 reconstructed triangles of the frame
+        self._tris_wp = None
+        self._scene = (np.zeros(3), 1.0)
+        self._known: dict[bytes, tuple] = {}   # target key -> (position, axis, distant, cone)
+        self._buffers: queue.Queue | None = None
+        self.stats: dict = {}
+        self._reset_stats()
+
+    def _reset_stats(self) -> None:
+        self.stats.update(depth_seconds=0.0, triangulate_seconds=0.0, map_seconds=0.0, lookup_seconds=0.0,
+                          maps=0, map_queries=0, exact_queries=0)
+
+    @classmethod
+    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "InsmBackend":
+        kw: dict = {}
+        if settings is not None:
+            kw.update(count=settings.insm_count, resolution=settings.insm_resolution,
+                      light_resolution=settings.insm_light_resolution, threshold=settings.insm_threshold)
+        kw.update(options)
+        return cls(device=device, **kw)
+
+    @classmethod
+    def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:
+        """Bytes before anything is built: the depth images and their hit points (``K w²`` × 16 B), the
+        reconstructed triangles (at most two per sample, 36 B each), one map of six views per CPU thread
+        (``6 S²`` × 4 B) and the answers :meth:`shade_direct` holds at once (at most ``ANSWER_BYTES``);
+        the exact backend it holds costs what ``exact`` does."""
+        k = int(getattr(settings, "insm_count", 10) or 10)
+        w = int(getattr(settings, "insm_resolution", 128) or 128)
+        s = int(getattr(settings, "insm_light_resolution", 512) or 512)
+        images = k * w * w * 16
+        tris = 2 * k * w * w * 36
+        maps = 6 * s * s * 4 * cpu_workers("cpu")
+        return {"count": k, "resolution": w, "lightResolution": s, "imageBytes": images, "triangleBytes": tris,
+                "mapBytes": maps, "answerBytes": ANSWER_BYTES, "totalBytes": images + tris + maps + ANSWER_BYTES,
+                "upperBound": True}
+
+    @classmethod
+    def memory_line(cls, estimate: dict) -> str:
+        return (f"{estimate['count']} depth images at {estimate['resolution']}^2, at most "
+                f"{estimate['triangleBytes'] / 2**20:.1f} MiB of triangles; maps {estimate['lightResolution']}^2 "
+                f"per view, {estimate['mapBytes'] / 2**20:.1f} MiB for the threads; at most "
+                f"{estimate['answerBytes'] / 2**20:.0f} MiB of answers; plus the exact backend's scene")
+
+    def describe(self) -> dict:
+        return {"insm_count": self.count, "insm_resolution": self.resolution,
+                "insm_light_resolution": self.light_resolution, "insm_threshold": self.threshold,
+                "reconstructed_triangles": self.triangles,
+                **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.stats.items()}}
+
+    @property
+    def triangles(self) -> int:
+        return 0 if self._tris is None else len(self._tris) // 3
+
+    # ------------------------------------------------------------------ per frame
+
+    def update(self, snapshot: Snapshot, changes: Changes | None = None) -> None:
+        """Update the exact backend; cast the depth images again and triangulate them when geometry
+        changed (Alg. 1, lines 1-3); remember the snapshot's lights as targets the maps answer."""
+        self._reset_stats()
+        self.exact.update(snapshot, changes)
+        geometry = changes is None or self._tris is None or changes.static or bool(changes.deforming) \
+            or any(changes.prototypes.values())
+        if geometry:
+            self._build(snapshot)
+        self._known = {}
+        self._remember(snapshot.lights)
+
+    def _build(self, snapshot: Snapshot) -> None:
+        bounds = snapshot.world_bounds()
+        self._scene = scene_sphere(snapshot)
+        if bounds is None:
+            self._tris, self._tris_wp = np.zeros((0, 3), np.float32), None
+            return
+        t0 = time.perf_counter()
+        views = insm_views(bounds[0], bounds[1], self.count, self.resolution, snapshot.up_axis)
+        depth, points = depth_images(self.exact, views, self.resolution)
+        t1 = time.perf_counter()
+        self._tris = triangulate(depth, points, views, self.threshold)
+        self._tris_wp = None
+        self._depth = depth
+        t2 = time.perf_counter()
+        self.stats.update(depth_seconds=t1 - t0, triangulate_seconds=t2 - t1)
+
+    def per_frame_rebuild_seconds(self, snapshot: Snapshot, repeats: int = 3) -> dict:
+        """Seconds to cast the depth images and triangulate them again (the median of ``repeats``): what
+        every frame whose geometry moved costs before its lights' maps."""
+        depth, tri = [], []
+        for _ in range(max(1, int(repeats))):
+            self._build(snapshot)
+            depth.append(self.stats["depth_seconds"])
+            tri.append(self.stats["triangulate_seconds"])
+        return {"rebuild_seconds": float(np.median(depth) + np.median(tri)),
+                "depth_image_seconds": float(np.median(depth)), "triangulate_seconds": float(np.median(tri)),
+                "rebuild_repeats": len(depth), "reconstructed_triangles": self.triangles}
+
+    def _remember(self, lights: Lights) -> None:
+        """Targets the maps answer: lights' positions, and distant lights' directions toward them."""
+        for i in range(len(lights)):
+            distant = lights.type[i] == LightType.DISTANT
+            target = -lights.axis[i] if distant else lights.position[i]
+            self._known[_key(target)] = (lights.position[i], lights.axis[i], bool(distant),
+                                         float(lights.cone_angle[i]))
+
+    # ------------------------------------------------------------------ maps
+
+    def _triangles_wp(self):
+        if self._tris_wp is None:
+            wp = warp_module()
+            tris = self._tris if len(self._tris) else np.zeros((3, 3), np.float32)
+            self._tris_wp = wp.array(tris, dtype=wp.vec3, device=self.device)
+        return self._tris_wp
+
+    def _views(self, position, axis, distant, cone) -> LightViews:
+        c, r = self._scene
+        return light_views(position, axis, distant, cone, c, r, self.light_resolution)
+
+    def answer(self, lv: LightViews, jobs: list) -> None:
+        """Rasterize each job's lights' maps and look its points up in them.
+
+        ``jobs``: ``(l0, l1, points, normals, out)``: lights ``l0 .. l1`` of ``lv``, ``(P, 3) float32``
+        points and normals, ``out`` a ``((l1 - l0) · P,) uint8`` array written light-major (1: blocked).
+        On a CPU each job is one light and the jobs run over the threads, each on a map of its own."""
+        wp = warp_module()
+        k = kernels()
+        dev = wp.get_device(self.device)
+        size = self.light_resolution
+        tris = self._triangles_wp()
+        n_tris = self.triangles
+        arr = dict(device=dev)
+        va = dict(origin=wp.array(lv.origin, dtype=wp.vec3, **arr), rot=wp.array(lv.rot, dtype=wp.mat33, **arr),
+                  proj=wp.array(lv.proj, dtype=wp.vec4, **arr), kind=wp.array(lv.kind, dtype=wp.int32, **arr),
+                  near=wp.array(lv.near, dtype=float, **arr))
+        la = dict(pos=wp.array(lv.position, dtype=wp.vec3, **arr), cube=wp.array(lv.cube, dtype=wp.int32, **arr),
+                  first=wp.array(lv.first[:-1].copy(), dtype=wp.int32, **arr))
+        most = int(np.max(np.diff(lv.first))) if len(lv) else 1
+        pool: queue.Queue = queue.Queue()
+        timing = {"map": 0.0, "lookup": 0.0}
+
+        def run(job) -> None:
+            l0, l1, pts, nrm, out = job
+            v0, v1 = int(lv.first[l0]), int(lv.first[l1])
+            try:
+                depth = pool.get_nowait()
+                if depth.shape[0] < (v1 - v0) * size * size:
+                    depth = wp.empty((v1 - v0) * size * size, dtype=float, **arr)
+            except queue.Empty:
+                depth = wp.empty(max(v1 - v0, most) * size * size, dtype=float, **arr)
+            t0 = time.perf_counter()
+            depth.fill_(1.0e30)
+            if n_tris and dev.is_cpu and l1 - l0 == 1 and lv.cube[l0]:
+                # one cube on one thread: each triangle tested against the six faces at once
+                wp.launch(k.raster_cube, dim=n_tris, device=dev,
+                          inputs=[tris, wp.vec3(*lv.position[l0]), va["rot"], va["proj"], va["near"], v0, size, 0,
+                                  depth])
+            elif n_tris:
+                wp.launch(k.raster_views, dim=(v1 - v0, n_tris), device=dev,
+                          inputs=[tris, va["origin"], va["rot"], va["proj"], va["kind"], va["near"], v0, size,
+                                  0 if dev.is_cpu else 1, depth])
+            t1 = time.perf_counter()
+            wp.launch(k.lookup_points, dim=(l1 - l0, pts.shape[0]), device=dev,
+                      inputs=[pts, nrm, la["pos"], la["cube"], la["first"], va["origin"], va["rot"], va["proj"],
+                              va["kind"], va["near"], v0, size, depth, self.offset, self.bias, l0, out])
+            if not dev.is_cpu:
+                wp.synchronize_device(dev)
+            t2 = time.perf_counter()
+            timing["map"] += t1 - t0
+            timing["lookup"] += t2 - t1
+            pool.put(depth)
+
+        run_parallel(run, jobs, self.workers, first_on_caller=True)
+        self.stats["map_seconds"] += timing["map"]
+        self.stats["lookup_seconds"] += timing["lookup"]
+        self.stats["maps"] += len(lv) if jobs else 0
+
+    def _batches(self, lv: LightViews) -> list[tuple[int, int]]:
+        """Light ranges answered together: one light per job on a CPU, as many as ``CUDA_MAP_BYTES`` of
+        maps hold on a GPU."""
+        if str(self.device).startswith("cpu"):
+            return [(i, i + 1) for i in range(len(lv))]
+        per_view = 4 * self.light_resolution ** 2
+        out, l0 = [], 0
+        while l0 < len(lv):
+            l1 = l0 + 1
+            while l1 < len(lv) and (lv.first[l1 + 1] - lv.first[l0]) * per_view <= CUDA_MAP_BYTES:
+                l1 += 1
+            out.append((l0, l1))
+            l0 = l1
+        return out
+
+    def blocked_lights(self, lights: Lights, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """``(L, P) uint8``: 1 where light ``l`` is blocked from point ``p`` by its map (every light, also
+        those that cast no shadow: the caller skips them)."""
+        return self._blocked(self._views(lights.position, lights.axis, lights.type == LightType.DISTANT,
+                                         lights.cone_angle), points, normals)
+
+    def _blocked(self, lv: LightViews, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """``(L, P) uint8`` answers of the lights of ``lv`` for ``points`` (:meth:`answer`)."""
+        wp = warp_module()
+        dev = wp.get_device(self.device)
+        n_p = len(points)
+        out = np.zeros((len(lv), n_p), np.uint8)
+        if not len(lv) or not n_p:
+            return out
+        pts = wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device=dev)
+        nrm = wp.array(np.ascontiguousarray(normals, np.float32), dtype=wp.vec3, device=dev)
+        cpu = dev.is_cpu
+        flat = out.reshape(-1)
+        jobs, device_out = [], None
+        if not cpu:
+            device_out = wp.zeros(flat.size, dtype=wp.uint8, device=dev)
+        for l0, l1 in self._batches(lv):
+            if cpu:
+                target = wp.array(flat[l0 * n_p:l1 * n_p], dtype=wp.uint8, device=dev, copy=False)
+            else:
+                target = device_out[l0 * n_p:l1 * n_p]
+            jobs.append((l0, l1, pts, nrm, target))
+        self.answer(lv, jobs)
+        if device_out is not None:
+            out = device_out.numpy().reshape(len(lv), n_p)
+        return out
+
+    # ------------------------------------------------------------------ queries
+
+    def shade_direct(self, points, normals, albedo, lights, progress=None, meters_per_unit: float = 1.0,
+                     min_distance: float = 0.0, geometric=None):
+        """Alg. 3 with a map lookup in place of each ray (module doc): the answers of every (point,
+        light) pair, light by light, then :func:`usdml.lighting.direct.shade_direct` over them; lights
+        in chunks of at most ``ANSWER_BYTES`` of answers."""
+        from usdml.lighting.direct import DirectResult, shade_direct
+
+        self._remember(lights)
+        n_p, n_l = len(points), len(lights)
+        offset = geometric if geometric is not None else normals
+        step = max(1, ANSWER_BYTES // max(n_p, 1))
+        radiance = np.zeros((n_p, 3), np.float32)
+        blocked = np.zeros(n_p, np.float64)
+        facing = np.zeros(n_p, np.int64)
+        queries = 0
+        casts = np.asarray(lights.shadow, bool)
+        for l0 in range(0, max(n_l, 1), step):
+            sl = slice(l0, min(n_l, l0 + step))
+            part = take_lights(lights, sl) if (l0 or step < n_l) else lights
+            answers = np.zeros((len(part), n_p), np.uint8)
+            cast = np.flatnonzero(casts[sl])
+            if len(cast):
+                answers[cast] = self.blocked_lights(take_lights(part, cast), points, offset)
+            r = shade_direct(points, normals, albedo, part, None, None, meters_per_unit=meters_per_unit,
+                             min_distance=min_distance, geometric=geometric, answers=answers.T)
+            radiance += r.radiance
+            blocked += r.shadow.astype(np.float64) * r.facing
+            facing += r.facing
+            queries += r.queries
+            if progress is not None:
+                progress(int(round(n_p * (sl.stop - sl.start) / max(n_l, 1))))
+        self.stats["map_queries"] += queries
+        shadow = np.where(facing > 0, np.rint(blocked) / np.maximum(facing, 1), 0.0).astype(np.float32)
+        return DirectResult(radiance, shadow, facing.astype(np.int32), queries)
+
+    def _specs(self, targets: np.ndarray, distant: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+        """Group query ``targets`` by light: ``(inverse, known, specs)``: each row's group, whether
+        each group is a light the maps answer (module doc), and those groups' ``(position, axis,
+        distant, cone)``."""
+        bits = np.ascontiguousarray(np.asarray(targets, np.float32)).view(np.uint32).astype(np.uint64)
+        code = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) \
+            ^ (bits[:, 2] * np.uint64(0x165667B19E3779F9)) ^ distant.astype(np.uint64)
+        uniq, first, inverse = np.unique(code, return_index=True, return_inverse=True)
+        known = np.zeros(len(uniq), bool)
+        specs = []
+        for g, row in enumerate(first):
+            spec = self._known.get(_key(targets[row]))
+            if spec is not None and spec[2] == bool(distant[row]):
+                known[g] = True
+            specs.append(spec)
+        return inverse.reshape(-1), known, specs
+
+    def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        """Segments to one of the frame's lights from its map, the others by the exact backend (module doc)."""
+        origins = as_vectors(origins, "origins")
+        n = origins.shape[0]
+        targets = as_vectors(targets, "targets", n)
+        distant = np.zeros(n, bool) if distant is None else as_flags(distant, "distant", n)
+        normals = np.zeros((n, 3)) if normals is None else as_vectors(normals, "normals", n)
+        out = np.zeros(n, bool)
+        if n == 0:
+            return out
+        if self._tris is None:
+            raise RuntimeError("InsmBackend.update() must be called before queries")
+        inverse, known, specs = self._specs(targets, distant)
+        rest = np.flatnonzero(~known[inverse])
+        if len(rest):
+            out[rest] = self.exact.occluded(origins[rest], targets[rest], normals=normals[rest], distant=distant[rest])
+            self.stats["exact_queries"] += len(rest)
+        groups = np.flatnonzero(known)
+        if not len(groups):
+            return out
+        order = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[order], np.arange(len(known) + 1))
+        lv = self._views(*(np.array([specs[g][i] for g in groups]) for i in range(4)))
+        wp = warp_module()
+        dev = wp.get_device(self.device)
+        jobs, rows = [], []
+        for li, g in enumerate(groups):
+            idx = order[bounds[g]:bounds[g + 1]]
+            target = wp.zeros(len(idx), dtype=wp.uint8, device=dev)
+            jobs.append((li, li + 1, wp.array(np.ascontiguousarray(origins[idx], np.float32), dtype=wp.vec3, device=dev),
+                         wp.array(np.ascontiguousarray(normals[idx], np.float32), dtype=wp.vec3, device=dev), target))
+            rows.append(idx)
+        self.answer(lv, jobs)
+        for idx, job in zip(rows, jobs):
+            out[idx] = job[4].numpy() != 0
+        self.stats["map_queries"] += int(sum(len(r) for r in rows))
+        return out
+
+    def occluded_matrix(self, points, normals, light_positions, light_distant=None, light_directions=None):
+        """``LIGHT_MAJOR``: every point against every light, light by light (one map each); lights that
+        are not the frame's (:meth:`occluded`) are mapped as well, as plain point or distant lights."""
+        points = as_vectors(points, "points")
+        n_p = points.shape[0]
+        normals = np.zeros((n_p, 3)) if normals is None else as_vectors(normals, "normals", n_p)
+        positions = as_vectors(light_positions, "light_positions")
+        n_l = len(positions)
+        distant = np.zeros(n_l, bool) if light_distant is None else as_flags(light_distant, "light_distant", n_l)
+        axis = np.zeros((n_l, 3)) if light_directions is None else as_vectors(light_directions, "light_directions", n_l)
+        if distant.any() and light_directions is None:
+            raise ValueError("light_directions is required for distant lights")
+        cone = np.full(n_l, 180.0)
+        for i in range(n_l):
+            target = -axis[i] / np.linalg.norm(axis[i]) if distant[i] else positions[i]
+            spec = self._known.get(_key(target))
+            if spec is not None and spec[2] == bool(distant[i]):
+                axis[i], cone[i] = spec[1], spec[3]
+        blocked = self._blocked(self._views(positions, axis, distant, cone), points, normals)
+        self.stats["map_queries"] += n_p * n_l
+        return blocked.view(bool).T
+
+    def close(self) -> None:
+        self.exact.close()
+        self._tris_wp = None
