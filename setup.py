@@ -1,4 +1,5 @@
-"""The compiled CPU voxel queries (kernels/voxelq.c) and SVO traversal (kernels/svoq.c) as optional
+"""The compiled CPU voxel queries (kernels/voxelq.c), SVO traversal (kernels/svoq.c) and INSM maps
+(kernels/insmr.c) as optional
 extensions: everything else is in pyproject.toml. Without a C compiler the install goes on and usdml
 answers those queries with its Warp kernels instead (``usdml info`` says which path a machine has)."""
 
@@ -12,4 +13,8 @@ setup(ext_modules=[Extension(
     "usdml.kernels._svoq", sources=["kernels/svoq.c"],
     depends=["kernels/svoq_simd.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h", "kernels/simd_pick.h"],
     # no a * b + c contracted into one rounding: the SIMD walk must round as the scalar one does
-    extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"], optional=True)])
+    extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"], optional=True),
+    Extension("usdml.kernels._insmr", sources=["kernels/insmr.c"],
+              # no contraction: the maps round as the Warp kernels' do
+              extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"],
+              optional=True)])

@@ -34,6 +34,8 @@ import warp as wp
 wp.set_module_options({"enable_backward": False, "optimization_level": 3, "fast_math": False})
 
 BIG = wp.constant(1.0e30)
+#: texels per side of a receiver tile
+TILE = wp.constant(16)
 PERSPECTIVE = wp.constant(0)
 ORTHOGRAPHIC = wp.constant(1)
 
@@ -69,8 +71,11 @@ def span_edge(a: wp.float64, g: wp.float64, lo: wp.float64, hi: wp.float64):
 
 @wp.func
 def raster_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: int, size: int, base: int,
-                    atomic: int, depth: wp.array(dtype=float)):
-    """Rasterize one view-space triangle (perspective: every ``z >= near``) into ``depth[base:]``."""
+                    atomic: int, depth: wp.array(dtype=float), tile_base: int, tiles: int,
+                    tile_z: wp.array(dtype=float)):
+    """Rasterize one view-space triangle (perspective: every ``z >= near``) into ``depth[base:]``, in
+    the receiver tiles ``tile_z[tile_base:]`` (``tiles`` per side) whose farthest compared depth is
+    beyond the triangle's nearest corner."""
     x0 = screen(q0, proj[0], proj[1], 0, kind)
     y0 = screen(q0, proj[2], proj[3], 1, kind)
     x1 = screen(q1, proj[0], proj[1], 0, kind)
@@ -100,6 +105,17 @@ def raster_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: 
         return
     j0 = int(wp.ceil(lo_y - half))
     j1 = wp.min(int(wp.floor(hi_y - half)), size - 1)
+    zmin = wp.min(wp.min(q0[2], q1[2]), q2[2])
+    # no receiver tile under the box wants it: done before any setup
+    bx0 = wp.max(int(wp.ceil(lo_x - half)), 0) // TILE
+    bx1 = wp.max(wp.min(int(wp.floor(hi_x - half)), size - 1), 0) // TILE
+    wanted = int(0)
+    for ty in range(wp.max(j0, 0) // TILE, wp.max(j1, 0) // TILE + 1):
+        for tx in range(bx0, bx1 + 1):
+            if tile_z[tile_base + ty * tiles + tx] > zmin:
+                wanted = 1
+    if wanted == 0:
+        return
     # barycentric l_k = e_k / area is affine in the pixel: l_k = ak px + bk py + ck; per row, the span
     # where all three are >= 0 is solved for, and 1 / z (or z) steps along it
     a0 = (y1 - y2) * inv_area
@@ -127,17 +143,24 @@ def raster_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: 
         if i0 > i1:
             continue
         px = wp.float64(float(i0)) + half
-        w = (a0 * px + g0) * w0 + (a1 * px + g1) * w1 + (a2 * px + g2) * w2
+        w_start = (a0 * px + g0) * w0 + (a1 * px + g1) * w1 + (a2 * px + g2) * w2
         row = base + j * size
-        for i in range(i0, i1 + 1):
-            z = float(w)
-            if kind == PERSPECTIVE:
-                z = float(one / w)
-            if atomic != 0:
-                wp.atomic_min(depth, row + i, z)
-            elif z < depth[row + i]:
-                depth[row + i] = z
-            w = w + dw
+        tile_row = tile_base + (j // TILE) * tiles
+        for tx in range(i0 // TILE, i1 // TILE + 1):
+            if tile_z[tile_row + tx] <= zmin:
+                continue                   # no lookup there compares a depth beyond the triangle
+            s0 = wp.max(i0, tx * TILE)
+            s1 = wp.min(i1, tx * TILE + TILE - 1)
+            w = w_start + dw * wp.float64(float(s0 - i0))
+            for i in range(s0, s1 + 1):
+                key = float(w)              # 1 / z: nearer is larger
+                if kind != PERSPECTIVE:
+                    key = -key              # orthographic: -z
+                if atomic != 0:
+                    wp.atomic_max(depth, row + i, key)
+                elif key > depth[row + i]:
+                    depth[row + i] = key
+                w = w + dw
 
 
 @wp.func
@@ -167,7 +190,8 @@ def outside(q: wp.vec3, a: float, b: float, size: float, axis: int, kind: int) -
 def raster_views(tris: wp.array(dtype=wp.vec3), view_origin: wp.array(dtype=wp.vec3),
                  view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
                  view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
-                 size: int, atomic: int, depth: wp.array(dtype=float)):
+                 size: int, atomic: int, depth: wp.array(dtype=float), tiles: int,
+                 tile_z: wp.array(dtype=float), view_z: wp.array(dtype=float)):
     """Thread (v, t): triangle ``t`` (corners ``tris[3t:3t+3]``, world) into view ``first_view + v``,
     whose map is ``depth[v S² : (v + 1) S²]``. ``atomic``: threads may share a map (CUDA); 0 where
     a launch runs on one thread (Warp's CPU), which a plain compare-and-store makes faster."""
@@ -181,12 +205,16 @@ def raster_views(tris: wp.array(dtype=wp.vec3), view_origin: wp.array(dtype=wp.v
     q0 = r * (tris[3 * t] - o)
     q1 = r * (tris[3 * t + 1] - o)
     q2 = r * (tris[3 * t + 2] - o)
-    view_triangle(q0, q1, q2, proj, kind, near, size, v * size * size, atomic, depth)
+    if wp.min(wp.min(q0[2], q1[2]), q2[2]) >= view_z[v]:
+        return
+    view_triangle(q0, q1, q2, proj, kind, near, size, v * size * size, atomic, depth, v * tiles * tiles, tiles,
+                  tile_z)
 
 
 @wp.func
 def view_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: int, near: float, size: int,
-                  base: int, atomic: int, depth: wp.array(dtype=float)):
+                  base: int, atomic: int, depth: wp.array(dtype=float), tile_base: int, tiles: int,
+                  tile_z: wp.array(dtype=float)):
     """One view-space triangle into one view: side-plane cull, near clip (perspective), raster."""
     fs = float(size)
     # all three corners beyond one side plane: the triangle misses the view
@@ -197,7 +225,7 @@ def view_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: in
     if cx != 0 or cy != 0:
         return
     if kind == ORTHOGRAPHIC:
-        raster_triangle(q0, q1, q2, proj, kind, size, base, atomic, depth)
+        raster_triangle(q0, q1, q2, proj, kind, size, base, atomic, depth, tile_base, tiles, tile_z)
         return
     m = wp.matrix_from_rows(q0, q1, q2)
     front = 0
@@ -207,7 +235,7 @@ def view_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: in
             front += 1
             ahead = ahead | (1 << k)
     if front == 3:
-        raster_triangle(q0, q1, q2, proj, kind, size, base, atomic, depth)
+        raster_triangle(q0, q1, q2, proj, kind, size, base, atomic, depth, tile_base, tiles, tile_z)
     elif front == 1:
         k = 0
         if ahead == 2:
@@ -217,7 +245,7 @@ def view_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: in
         a = m[k]
         b = m[(k + 1) % 3]
         c = m[(k + 2) % 3]
-        raster_triangle(a, clip_point(a, b, near), clip_point(a, c, near), proj, kind, size, base, atomic, depth)
+        raster_triangle(a, clip_point(a, b, near), clip_point(a, c, near), proj, kind, size, base, atomic, depth, tile_base, tiles, tile_z)
     elif front == 2:
         k = 0                     # the corner behind
         if ahead == 5:
@@ -229,8 +257,8 @@ def view_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: in
         b = m[(k + 2) % 3]
         bc = clip_point(b, c, near)
         ac = clip_point(a, c, near)
-        raster_triangle(a, b, bc, proj, kind, size, base, atomic, depth)
-        raster_triangle(a, bc, ac, proj, kind, size, base, atomic, depth)
+        raster_triangle(a, b, bc, proj, kind, size, base, atomic, depth, tile_base, tiles, tile_z)
+        raster_triangle(a, bc, ac, proj, kind, size, base, atomic, depth, tile_base, tiles, tile_z)
 
 
 @wp.func
@@ -244,7 +272,8 @@ def nearest_abs(lo: float, hi: float) -> float:
 @wp.kernel
 def raster_cube(tris: wp.array(dtype=wp.vec3), light: wp.vec3, view_rot: wp.array(dtype=wp.mat33),
                 view_proj: wp.array(dtype=wp.vec4), view_near: wp.array(dtype=float), first_view: int, size: int,
-                atomic: int, depth: wp.array(dtype=float)):
+                atomic: int, depth: wp.array(dtype=float), tiles: int, tile_z: wp.array(dtype=float),
+                view_z: wp.array(dtype=float)):
     """Thread t: triangle ``t`` into the six views of the cube map at ``light`` (views ``first_view`` ..
     ``+ 5``, in the order +X -X +Y -Y +Z -Z): what :func:`raster_views` does over them, with each face
     first tested against the box of the triangle's corners (a face the box misses is never
@@ -268,37 +297,35 @@ def raster_cube(tris: wp.array(dtype=wp.vec3), light: wp.vec3, view_rot: wp.arra
         need = wp.max(nearest_abs(lo[u], hi[u]), nearest_abs(lo[v], hi[v]))
         if reach <= 0.0 or reach < need:
             continue
+        # the nearest the box comes along the face's axis, against the farthest depth a lookup compares
+        nearest = lo[axis]
+        if face % 2 == 1:
+            nearest = -hi[axis]
+        if nearest >= view_z[face]:
+            continue
         view = first_view + face
         r = view_rot[view]
         view_triangle(r * d0, r * d1, r * d2, view_proj[view], PERSPECTIVE, view_near[view], size,
-                      face * size * size, atomic, depth)
+                      face * size * size, atomic, depth, face * tiles * tiles, tiles, tile_z)
 
 
 @wp.func
-def texel_blocked(depth: wp.array(dtype=float), base: int, size: int, i: int, j: int, z: float) -> float:
+def texel_blocked(depth: wp.array(dtype=float), base: int, size: int, i: int, j: int, key: float) -> float:
     ci = wp.clamp(i, 0, size - 1)
     cj = wp.clamp(j, 0, size - 1)
-    if depth[base + cj * size + ci] < z:
+    if depth[base + cj * size + ci] > key:
         return 1.0
     return 0.0
 
 
-@wp.kernel
-def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
-                  light_pos: wp.array(dtype=wp.vec3), light_cube: wp.array(dtype=wp.int32),
-                  light_view: wp.array(dtype=wp.int32), view_origin: wp.array(dtype=wp.vec3),
-                  view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
-                  view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
-                  size: int, depth: wp.array(dtype=float), offset: float, bias: float, first_light: int,
-                  out: wp.array(dtype=wp.uint8)):
-    """Thread (b, i): whether point ``i`` is blocked from light ``l = first_light + b`` (its views from
-    ``light_view[l]``, a cube when ``light_cube[l]``; ``depth`` holds the maps of views ``first_view``
-    on), into ``out[b P + i]``."""
-    b, pi = wp.tid()
-    n_points = points.shape[0]
-    light = first_light + b
-    p = points[pi]
-    nrm = normals[pi]
+@wp.func
+def locate(p: wp.vec3, nrm: wp.vec3, light: int, light_pos: wp.array(dtype=wp.vec3),
+           light_cube: wp.array(dtype=wp.int32), light_view: wp.array(dtype=wp.int32),
+           view_origin: wp.array(dtype=wp.vec3), view_rot: wp.array(dtype=wp.mat33),
+           view_proj: wp.array(dtype=wp.vec4), view_kind: wp.array(dtype=wp.int32),
+           view_near: wp.array(dtype=float), first_view: int, size: int, offset: float, bias: float) -> wp.vec4:
+    """Where a lookup of ``p`` (normal ``nrm``) reads light ``light``'s map (module doc, "Lookup"):
+    ``(local view, x, y, depth compared)``, the view ``-1`` where no view holds it."""
     local = light_view[light] - first_view
     if light_cube[light] != 0:
         d = p - light_pos[light]
@@ -319,11 +346,10 @@ def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.ve
                 face = 5
         local = local + face
     view = first_view + local
-    o = view_origin[view]
     r = view_rot[view]
     proj = view_proj[view]
     kind = view_kind[view]
-    q = r * (p - o)
+    q = r * (p - view_origin[view])
     # the normal turned toward the light: toward -forward in view space (perspective: toward the origin)
     toward = wp.vec3(0.0, 0.0, -1.0)
     if kind == PERSPECTIVE:
@@ -339,15 +365,67 @@ def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.ve
     sy = proj[2] * q[1] + proj[3]
     if kind == PERSPECTIVE:
         if q[2] <= view_near[view]:
-            out[b * n_points + pi] = wp.uint8(0)
-            return
+            return wp.vec4(-1.0, 0.0, 0.0, 0.0)
         sx = proj[0] * q[0] / q[2] + proj[1]
         sy = proj[2] * q[1] / q[2] + proj[3]
     fs = float(size)
     if sx < 0.0 or sy < 0.0 or sx > fs or sy > fs:
+        return wp.vec4(-1.0, 0.0, 0.0, 0.0)
+    return wp.vec4(float(local), sx, sy, q[2] - bias * texel)
+
+
+@wp.kernel
+def receiver_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+                   light_pos: wp.array(dtype=wp.vec3), light_cube: wp.array(dtype=wp.int32),
+                   light_view: wp.array(dtype=wp.int32), view_origin: wp.array(dtype=wp.vec3),
+                   view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
+                   view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
+                   size: int, offset: float, bias: float, first_light: int, tiles: int,
+                   tile_z: wp.array(dtype=float), view_z: wp.array(dtype=float)):
+    """Thread (b, i): the farthest depth point ``i``'s lookup of light ``first_light + b`` compares,
+    into each tile of ``TILE²`` texels its four texels fall in (``atomic_max``): the rasterizer skips
+    a tile for a triangle no nearer than that (module doc, "Receiver tiles"); the farthest of a view's
+    into ``view_z[view]``."""
+    b, pi = wp.tid()
+    at = locate(points[pi], normals[pi], first_light + b, light_pos, light_cube, light_view, view_origin,
+                view_rot, view_proj, view_kind, view_near, first_view, size, offset, bias)
+    if at[0] < 0.0:
+        return
+    local = int(at[0])
+    wp.atomic_max(view_z, local, at[3])
+    i0 = int(wp.floor(at[1] - 0.5))
+    j0 = int(wp.floor(at[2] - 0.5))
+    for dj in range(2):
+        cj = wp.clamp(j0 + dj, 0, size - 1) // TILE
+        for di in range(2):
+            ci = wp.clamp(i0 + di, 0, size - 1) // TILE
+            wp.atomic_max(tile_z, (local * tiles + cj) * tiles + ci, at[3])
+
+
+@wp.kernel
+def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+                  light_pos: wp.array(dtype=wp.vec3), light_cube: wp.array(dtype=wp.int32),
+                  light_view: wp.array(dtype=wp.int32), view_origin: wp.array(dtype=wp.vec3),
+                  view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
+                  view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
+                  size: int, depth: wp.array(dtype=float), offset: float, bias: float, first_light: int,
+                  out: wp.array(dtype=wp.uint8)):
+    """Thread (b, i): whether point ``i`` is blocked from light ``l = first_light + b`` (its views from
+    ``light_view[l]``, a cube when ``light_cube[l]``; ``depth`` holds the maps of views ``first_view``
+    on), into ``out[b P + i]``."""
+    b, pi = wp.tid()
+    n_points = points.shape[0]
+    at = locate(points[pi], normals[pi], first_light + b, light_pos, light_cube, light_view, view_origin,
+                view_rot, view_proj, view_kind, view_near, first_view, size, offset, bias)
+    if at[0] < 0.0:
         out[b * n_points + pi] = wp.uint8(0)
         return
-    z = q[2] - bias * texel
+    local = int(at[0])
+    sx = at[1]
+    sy = at[2]
+    z = -at[3]
+    if view_kind[first_view + local] == PERSPECTIVE:
+        z = 1.0 / at[3]
     fx = sx - 0.5
     fy = sy - 0.5
     i0 = int(wp.floor(fx))

@@ -39,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from usdml.bench import next_frame, resample_lights, steady_frame
     from usdml.stage import StageDelegate
+    from usdml.visibility.base import STATS
 
     delegate = StageDelegate(args.stage)
     settings = delegate.usdml_settings.updated(
@@ -69,8 +70,11 @@ def main(argv: list[str] | None = None) -> int:
                         row[name].update(rebuilt=b.built, rebuild_seconds=b.stats["dynamic_seconds"] if b.built else 0.0,
                                          voxel_resolution=b.resolution, direction_step=b.step,
                                          fully_dynamic=b.fully_dynamic, mapping=b.mapping)
-            if "voxel" in row and "exact" in row:
-                row["voxel_speedup_vs_exact"] = row["exact"]["seconds"] / row["voxel"]["seconds"]
+                    elif r.backend.supports(STATS) and name != "exact":
+                        row[name].update(r.backend.describe())     # e.g. insm: its per-frame timings
+            for name in args.backends.split(","):
+                if name != "exact" and "exact" in row:
+                    row[f"{name}_speedup_vs_exact"] = row["exact"]["seconds"] / row[name]["seconds"]
             rows.append(row)
             if not args.json:
                 parts = [f"{n:>6} lights"]
@@ -79,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
                     extra = f", rebuild {b['rebuild_seconds']:.2f}" if name == "voxel" else ""
                     parts.append(f"{name} {b['seconds']:.2f} s (update {b['update_seconds']:.2f}{extra}, "
                                  f"shading {b['shading_seconds']:.2f})")
-                if "voxel_speedup_vs_exact" in row:
-                    parts.append(f"voxel {row['voxel_speedup_vs_exact']:.2f}x exact")
+                parts += [f"{name} {row[f'{name}_speedup_vs_exact']:.2f}x exact" for name in args.backends.split(",")
+                          if f"{name}_speedup_vs_exact" in row]
                 print("; ".join(parts), flush=True)
         finally:
             delegate.snapshot = original

@@ -289,6 +289,11 @@ _ROWS = (
           VOXEL_COMMANDS, source="paper 001, Alg. 2 (scene-dependent there; measured: docs/insm.md)",
           range=Range(0, low_open=True), metavar="PIXELS"),
 
+    Param("insm_cpu_kernel", str, "auto", "usdml:insm:cpuKernel", "--insm-cpu-kernel",
+          "how the per-light maps run on a CPU: auto (the compiled maps when they were built, else Warp), native "
+          "(the compiled maps; an error without them) or warp", VOXEL_COMMANDS,
+          source="measured (usdml): docs/insm.md", choices=("auto", "native", "warp")),
+
     # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
           "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from dataclasses import dataclass, fields
 from typing import Callable
@@ -41,12 +42,14 @@ from typing import Callable
 import numpy as np
 
 from usdml import params
+from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_parallel
-from usdml.scene import Changes, Lights, LightType, Snapshot
+from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
 from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags, as_vectors,
                                    scene_sphere)
 from usdml.visibility.exact import ExactBackend
-from usdml.visibility.insm_mesh import depth_images, insm_views, triangulate
+from usdml.visibility.insm_mesh import clusters, depth_images, insm_views, triangulate
+from usdml.visibility.svo_tree import svo_bounds
 from usdml.visibility.voxel_array import warp_module
 
 log = logging.getLogger("usdml")
@@ -64,6 +67,8 @@ ANSWER_BYTES = 1 << 27
 #: most bytes of maps one CUDA batch rasterizes at once
 CUDA_MAP_BYTES = 1 << 29
 PERSPECTIVE, ORTHOGRAPHIC = 0, 1
+#: texels per side of a receiver tile (``usdml.kernels.insm.TILE``)
+TILE = 16
 
 
 def kernels():
@@ -152,6 +157,18 @@ def light_views(position: np.ndarray, axis: np.ndarray, distant: np.ndarray, con
                       np.full(v, near, np.float32))
 
 
+def insm_box(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box the depth images' viewpoints are placed on (module doc, "The box"): the scene's, less
+    the few huge triangles of a ground reaching far past the rest (:func:`usdml.visibility.svo_tree.svo_bounds`,
+    the box the octree covers); None for an empty scene."""
+    members = tuple([("mesh", m.path) for m in snapshot.meshes] + [("proto", p.path) for p in snapshot.prototypes])
+    points, triangles = world_geometry(snapshot, members)
+    if not len(triangles):
+        return None
+    lo, hi, _ = svo_bounds(points, triangles)
+    return lo, hi
+
+
 def take_lights(lights: Lights, index) -> Lights:
     """The lights ``index`` selects (a slice or an index array), every field cut alike."""
     kw = {}
@@ -188,9 +205,10 @@ class InsmBackend(VisibilityBackend):
 
     def __init__(self, *, count: int = 10, resolution: int = 128, light_resolution: int = 512,
                  threshold: float = 2.0, offset: float = OFFSET_TEXELS, bias: float = BIAS_TEXELS,
-                 device: str = "cpu", workers: int | None = None, report: Callable[[str], None] | None = None,
-                 progress: Callable[..., None] | None = None) -> None:
+                 cpu_kernel: str = "auto", device: str = "cpu", workers: int | None = None,
+                 report: Callable[[str], None] | None = None, progress: Callable[..., None] | None = None) -> None:
         params.check("insm_count", int(count))
+        params.check("insm_cpu_kernel", cpu_kernel)
         params.check("insm_resolution", int(resolution))
         params.check("insm_light_resolution", int(light_resolution))
         params.check("insm_threshold", float(threshold))
@@ -201,8 +219,14 @@ class InsmBackend(VisibilityBackend):
         self.workers = cpu_workers(device, workers)
         self.report = report or (lambda line: log.info(line))
         self.exact = ExactBackend(workers=workers)
+        self.native = False
+        if str(device).startswith("cpu") and cpu_kernel != "warp":
+            from usdml.visibility import insm_native
+            self.native = insm_native.library() is not None
+            if not self.native and cpu_kernel == "native":
+                raise UsdmlError(f"--insm-cpu-kernel native: {insm_native.describe()}")
         self._tris = None              # (3T, 3) float32 reconstructed triangles of the frame
-        self._tris_wp = None
+        self._tris_wp = self._clusters = None
         self._scene = (np.zeros(3), 1.0)
         self._known: dict[bytes, tuple] = {}   # target key -> (position, axis, distant, cone)
         self._buffers: queue.Queue | None = None
@@ -210,7 +234,8 @@ class InsmBackend(VisibilityBackend):
         self._reset_stats()
 
     def _reset_stats(self) -> None:
-        self.stats.update(depth_seconds=0.0, triangulate_seconds=0.0, map_seconds=0.0, lookup_seconds=0.0,
+        self.stats.update(depth_seconds=0.0, triangulate_seconds=0.0, receiver_seconds=0.0, map_seconds=0.0,
+                          lookup_seconds=0.0,
                           maps=0, map_queries=0, exact_queries=0)
 
     @classmethod
@@ -218,7 +243,8 @@ class InsmBackend(VisibilityBackend):
         kw: dict = {}
         if settings is not None:
             kw.update(count=settings.insm_count, resolution=settings.insm_resolution,
-                      light_resolution=settings.insm_light_resolution, threshold=settings.insm_threshold)
+                      light_resolution=settings.insm_light_resolution, threshold=settings.insm_threshold,
+                      cpu_kernel=settings.insm_cpu_kernel)
         kw.update(options)
         return cls(device=device, **kw)
 
@@ -239,6 +265,11 @@ class InsmBackend(VisibilityBackend):
                 "upperBound": True}
 
     @classmethod
+    def cpu_path(cls) -> str:
+        from usdml.visibility import insm_native
+        return insm_native.describe()
+
+    @classmethod
     def memory_line(cls, estimate: dict) -> str:
         return (f"{estimate['count']} depth images at {estimate['resolution']}^2, at most "
                 f"{estimate['triangleBytes'] / 2**20:.1f} MiB of triangles; maps {estimate['lightResolution']}^2 "
@@ -246,7 +277,7 @@ class InsmBackend(VisibilityBackend):
                 f"{estimate['answerBytes'] / 2**20:.0f} MiB of answers; plus the exact backend's scene")
 
     def describe(self) -> dict:
-        return {"insm_count": self.count, "insm_resolution": self.resolution,
+        return {"cpu_kernel": "native" if self.native else "warp", "insm_count": self.count, "insm_resolution": self.resolution,
                 "insm_light_resolution": self.light_resolution, "insm_threshold": self.threshold,
                 "reconstructed_triangles": self.triangles,
                 **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.stats.items()}}
@@ -270,17 +301,18 @@ class InsmBackend(VisibilityBackend):
         self._remember(snapshot.lights)
 
     def _build(self, snapshot: Snapshot) -> None:
-        bounds = snapshot.world_bounds()
         self._scene = scene_sphere(snapshot)
+        t0 = time.perf_counter()
+        bounds = insm_box(snapshot)
         if bounds is None:
             self._tris, self._tris_wp = np.zeros((0, 3), np.float32), None
             return
-        t0 = time.perf_counter()
+        self.box = bounds
         views = insm_views(bounds[0], bounds[1], self.count, self.resolution, snapshot.up_axis)
-        depth, points = depth_images(self.exact, views, self.resolution)
+        depth, points, normals = depth_images(self.exact, views, self.resolution)
         t1 = time.perf_counter()
-        self._tris = triangulate(depth, points, views, self.threshold)
-        self._tris_wp = None
+        self._tris = triangulate(depth, points, views, self.threshold, normals)
+        self._tris_wp = self._clusters = None
         self._depth = depth
         t2 = time.perf_counter()
         self.stats.update(depth_seconds=t1 - t0, triangulate_seconds=t2 - t1)
@@ -322,59 +354,113 @@ class InsmBackend(VisibilityBackend):
         """Rasterize each job's lights' maps and look its points up in them.
 
         ``jobs``: ``(l0, l1, points, normals, out)``: lights ``l0 .. l1`` of ``lv``, ``(P, 3) float32``
-        points and normals, ``out`` a ``((l1 - l0) · P,) uint8`` array written light-major (1: blocked).
-        On a CPU each job is one light and the jobs run over the threads, each on a map of its own."""
+        C-contiguous points and normals, ``out`` a ``((l1 - l0) · P,) uint8`` array written light-major
+        (1: blocked). On a CPU each job is one light and the jobs run over the threads, each on maps of
+        its own (the compiled path, or Warp's kernels); on a GPU a job is a batch of lights."""
+        wp = warp_module()
+        dev = wp.get_device(self.device)
+        size = self.light_resolution
+        tiles = -(-size // TILE)
+        most = int(np.max(np.diff(lv.first))) if len(lv) else 1
+        pool: queue.Queue = queue.Queue()
+        seconds = np.zeros(3)
+        lock = threading.Lock()
+        native = self.native and dev.is_cpu
+        if native:
+            from usdml.visibility import insm_native
+            views = tuple(np.ascontiguousarray(a) for a in (lv.origin, lv.rot, lv.proj, lv.kind, lv.near))
+            tris = np.ascontiguousarray(self._tris if len(self._tris) else np.zeros((3, 3), np.float32))
+            if self._clusters is None:
+                self._clusters = clusters(self._tris)
+
+            def buffers(n_views: int) -> tuple:
+                n = max(n_views, most)
+                return (np.empty(n * size * size, np.float32), np.empty(n * tiles * tiles, np.float32),
+                        np.empty(n, np.float32))
+        else:
+            launch = self._warp_launcher(lv, size, tiles)
+
+            def buffers(n_views: int) -> tuple:
+                n = max(n_views, most)
+                return (wp.empty(n * size * size, dtype=float, device=dev),
+                        wp.empty(n * tiles * tiles, dtype=float, device=dev), wp.empty(n, dtype=float, device=dev))
+
+        def run(job) -> None:
+            l0, l1, pts, nrm, out = job
+            n_views = int(lv.first[l1] - lv.first[l0])
+            try:
+                held = pool.get_nowait()
+            except queue.Empty:
+                held = None
+            if held is None or held[2].shape[0] < n_views:
+                held = buffers(n_views)
+            mine = np.zeros(3)
+            if native:
+                insm_native.light(tris, self._clusters, views, int(lv.first[l0]), n_views, bool(lv.cube[l0]), lv.position[l0], size,
+                                  held, pts, nrm, self.offset, self.bias, out, mine)
+            else:
+                launch(l0, l1, pts, nrm, out, held, mine)
+            with lock:
+                seconds[:] += mine
+            pool.put(held)
+
+        run_parallel(run, jobs, self.workers, first_on_caller=not native)
+        self.stats["receiver_seconds"] += float(seconds[0])
+        self.stats["map_seconds"] += float(seconds[1])
+        self.stats["lookup_seconds"] += float(seconds[2])
+        self.stats["maps"] += len(lv) if jobs else 0
+
+    def _warp_launcher(self, lv: LightViews, size: int, tiles: int):
+        """``launch(l0, l1, points, normals, out, buffers, seconds)``: one job of :meth:`answer` by the
+        Warp kernels (:mod:`usdml.kernels.insm`), on the backend's device."""
         wp = warp_module()
         k = kernels()
         dev = wp.get_device(self.device)
-        size = self.light_resolution
-        tris = self._triangles_wp()
-        n_tris = self.triangles
         arr = dict(device=dev)
         va = dict(origin=wp.array(lv.origin, dtype=wp.vec3, **arr), rot=wp.array(lv.rot, dtype=wp.mat33, **arr),
                   proj=wp.array(lv.proj, dtype=wp.vec4, **arr), kind=wp.array(lv.kind, dtype=wp.int32, **arr),
                   near=wp.array(lv.near, dtype=float, **arr))
         la = dict(pos=wp.array(lv.position, dtype=wp.vec3, **arr), cube=wp.array(lv.cube, dtype=wp.int32, **arr),
                   first=wp.array(lv.first[:-1].copy(), dtype=wp.int32, **arr))
-        most = int(np.max(np.diff(lv.first))) if len(lv) else 1
-        pool: queue.Queue = queue.Queue()
-        timing = {"map": 0.0, "lookup": 0.0}
+        tris = self._triangles_wp()
+        n_tris = self.triangles
+        atomic = 0 if dev.is_cpu else 1
+        wrap = dict(device=dev, copy=not dev.is_cpu)
 
-        def run(job) -> None:
-            l0, l1, pts, nrm, out = job
-            v0, v1 = int(lv.first[l0]), int(lv.first[l1])
-            try:
-                depth = pool.get_nowait()
-                if depth.shape[0] < (v1 - v0) * size * size:
-                    depth = wp.empty((v1 - v0) * size * size, dtype=float, **arr)
-            except queue.Empty:
-                depth = wp.empty(max(v1 - v0, most) * size * size, dtype=float, **arr)
+        def launch(l0, l1, pts, nrm, out, buffers, seconds) -> None:
+            depth, tile_z, view_z = buffers
+            n_views = int(lv.first[l1] - lv.first[l0])
+            v0 = int(lv.first[l0])
+            p = wp.array(pts, dtype=wp.vec3, **wrap)
+            n = wp.array(nrm, dtype=wp.vec3, **wrap)
+            o = wp.array(out, dtype=wp.uint8, device=dev, copy=False) if dev.is_cpu else \
+                wp.zeros(out.size, dtype=wp.uint8, device=dev)
             t0 = time.perf_counter()
-            depth.fill_(1.0e30)
+            looked = (p, n, la["pos"], la["cube"], la["first"], va["origin"], va["rot"], va["proj"], va["kind"],
+                      va["near"], v0, size)
+            tile_z.fill_(-1.0e30)
+            view_z.fill_(-1.0e30)
+            wp.launch(k.receiver_tiles, dim=(l1 - l0, len(pts)), device=dev,
+                      inputs=[*looked, self.offset, self.bias, l0, tiles, tile_z, view_z])
+            t1 = time.perf_counter()
+            depth.fill_(-1.0e30)
             if n_tris and dev.is_cpu and l1 - l0 == 1 and lv.cube[l0]:
                 # one cube on one thread: each triangle tested against the six faces at once
                 wp.launch(k.raster_cube, dim=n_tris, device=dev,
-                          inputs=[tris, wp.vec3(*lv.position[l0]), va["rot"], va["proj"], va["near"], v0, size, 0,
-                                  depth])
+                          inputs=[tris, wp.vec3(*lv.position[l0]), va["rot"], va["proj"], va["near"], v0, size,
+                                  atomic, depth, tiles, tile_z, view_z])
             elif n_tris:
-                wp.launch(k.raster_views, dim=(v1 - v0, n_tris), device=dev,
+                wp.launch(k.raster_views, dim=(n_views, n_tris), device=dev,
                           inputs=[tris, va["origin"], va["rot"], va["proj"], va["kind"], va["near"], v0, size,
-                                  0 if dev.is_cpu else 1, depth])
-            t1 = time.perf_counter()
-            wp.launch(k.lookup_points, dim=(l1 - l0, pts.shape[0]), device=dev,
-                      inputs=[pts, nrm, la["pos"], la["cube"], la["first"], va["origin"], va["rot"], va["proj"],
-                              va["kind"], va["near"], v0, size, depth, self.offset, self.bias, l0, out])
-            if not dev.is_cpu:
-                wp.synchronize_device(dev)
+                                  atomic, depth, tiles, tile_z, view_z])
             t2 = time.perf_counter()
-            timing["map"] += t1 - t0
-            timing["lookup"] += t2 - t1
-            pool.put(depth)
-
-        run_parallel(run, jobs, self.workers, first_on_caller=True)
-        self.stats["map_seconds"] += timing["map"]
-        self.stats["lookup_seconds"] += timing["lookup"]
-        self.stats["maps"] += len(lv) if jobs else 0
+            wp.launch(k.lookup_points, dim=(l1 - l0, len(pts)), device=dev,
+                      inputs=[*looked, depth, self.offset, self.bias, l0, o])
+            if not dev.is_cpu:
+                out[:] = o.numpy()
+            t3 = time.perf_counter()
+            seconds += (t1 - t0, t2 - t1, t3 - t2)
+        return launch
 
     def _batches(self, lv: LightViews) -> list[tuple[int, int]]:
         """Light ranges answered together: one light per job on a CPU, as many as ``CUDA_MAP_BYTES`` of
@@ -399,28 +485,14 @@ class InsmBackend(VisibilityBackend):
 
     def _blocked(self, lv: LightViews, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """``(L, P) uint8`` answers of the lights of ``lv`` for ``points`` (:meth:`answer`)."""
-        wp = warp_module()
-        dev = wp.get_device(self.device)
         n_p = len(points)
         out = np.zeros((len(lv), n_p), np.uint8)
         if not len(lv) or not n_p:
             return out
-        pts = wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device=dev)
-        nrm = wp.array(np.ascontiguousarray(normals, np.float32), dtype=wp.vec3, device=dev)
-        cpu = dev.is_cpu
+        pts = np.ascontiguousarray(points, np.float32)
+        nrm = np.ascontiguousarray(normals, np.float32)
         flat = out.reshape(-1)
-        jobs, device_out = [], None
-        if not cpu:
-            device_out = wp.zeros(flat.size, dtype=wp.uint8, device=dev)
-        for l0, l1 in self._batches(lv):
-            if cpu:
-                target = wp.array(flat[l0 * n_p:l1 * n_p], dtype=wp.uint8, device=dev, copy=False)
-            else:
-                target = device_out[l0 * n_p:l1 * n_p]
-            jobs.append((l0, l1, pts, nrm, target))
-        self.answer(lv, jobs)
-        if device_out is not None:
-            out = device_out.numpy().reshape(len(lv), n_p)
+        self.answer(lv, [(l0, l1, pts, nrm, flat[l0 * n_p:l1 * n_p]) for l0, l1 in self._batches(lv)])
         return out
 
     # ------------------------------------------------------------------ queries
@@ -500,18 +572,15 @@ class InsmBackend(VisibilityBackend):
         order = np.argsort(inverse, kind="stable")
         bounds = np.searchsorted(inverse[order], np.arange(len(known) + 1))
         lv = self._views(*(np.array([specs[g][i] for g in groups]) for i in range(4)))
-        wp = warp_module()
-        dev = wp.get_device(self.device)
         jobs, rows = [], []
         for li, g in enumerate(groups):
             idx = order[bounds[g]:bounds[g + 1]]
-            target = wp.zeros(len(idx), dtype=wp.uint8, device=dev)
-            jobs.append((li, li + 1, wp.array(np.ascontiguousarray(origins[idx], np.float32), dtype=wp.vec3, device=dev),
-                         wp.array(np.ascontiguousarray(normals[idx], np.float32), dtype=wp.vec3, device=dev), target))
+            jobs.append((li, li + 1, np.ascontiguousarray(origins[idx], np.float32),
+                         np.ascontiguousarray(normals[idx], np.float32), np.zeros(len(idx), np.uint8)))
             rows.append(idx)
         self.answer(lv, jobs)
         for idx, job in zip(rows, jobs):
-            out[idx] = job[4].numpy() != 0
+            out[idx] = job[4] != 0
         self.stats["map_queries"] += int(sum(len(r) for r in rows))
         return out
 

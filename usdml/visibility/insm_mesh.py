@@ -48,6 +48,11 @@ ORDER = np.array(
      (1, 1, 1), (-1, -1, -1), (1, 1, -1), (-1, -1, 1), (1, -1, 1), (-1, 1, -1), (1, -1, -1), (-1, 1, 1)],
     np.float64)
 MAX_COUNT = len(ORDER)
+#: triangles are kept in clusters of this many cells squared of one depth image (module doc)
+CLUSTER = 8
+#: an edge whose two samples each lie within this many pixel footprints of the other's tangent plane is
+#: a crease, connected (module doc); 0: the paper's rule alone
+CREASE = 2.0
 
 
 @dataclass
@@ -123,16 +128,22 @@ def insm_views(lo, hi, count: int, resolution: int, up_axis: str = "Y") -> list[
     return views
 
 
-def depth_images(exact, views: list[View], resolution: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(K, w, w) float32`` view depths (``inf``: background) and ``(K, w, w, 3) float32`` world hit
-    points of every view, by Embree primary rays of ``exact`` (an updated ``ExactBackend``)."""
+def depth_images(exact, views: list[View], resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(K, w, w) float32`` view depths (``inf``: background), ``(K, w, w, 3) float32`` world hit
+    points and ``(K, w, w, 3) float32`` unit geometric normals of every view, by Embree primary rays of
+    ``exact`` (an updated ``ExactBackend``)."""
     k, w = len(views), int(resolution)
     origins = np.repeat(np.array([v.origin for v in views]), w * w, axis=0)
     dirs = np.concatenate([v.ray_directions(w) for v in views])
-    t = exact.intersect(origins, dirs)["t"].astype(np.float64)
+    got = exact.intersect(origins, dirs)
+    t = got["t"].astype(np.float64)
     hit = np.isfinite(t)
     points = np.where(hit[:, None], origins + dirs * np.where(hit, t, 0.0)[:, None], np.nan)
-    return t.astype(np.float32).reshape(k, w, w), points.astype(np.float32).reshape(k, w, w, 3)
+    ng = got["ng"].astype(np.float64)
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
+    shape = (k, w, w, 3)
+    return (t.astype(np.float32).reshape(k, w, w), points.astype(np.float32).reshape(shape),
+            ng.astype(np.float32).reshape(shape))
 
 
 def _shift(a: np.ndarray, di: int, dj: int, fill) -> np.ndarray:
@@ -144,13 +155,23 @@ def _shift(a: np.ndarray, di: int, dj: int, fill) -> np.ndarray:
     return out
 
 
-def connected_edges(z: np.ndarray, scale: float, threshold: float) -> dict:
+def _shift3(a: np.ndarray, di: int, dj: int) -> np.ndarray:
+    return np.stack([_shift(a[..., c], di, dj, np.nan) for c in range(3)], axis=-1)
+
+
+def connected_edges(z: np.ndarray, scale: float, threshold: float, points: np.ndarray | None = None,
+                    normals: np.ndarray | None = None) -> dict:
     """For one ``(h, w)`` depth image (``inf``: background) and its pixels per unit of ``x / z``: per
     edge direction ``δ`` in ``(0, 1), (1, 0), (1, 1)``, ``(h, w) bool`` whether edge ``a → a + δ`` is
-    connected (module doc, Alg. 2's IsConnected per edge)."""
+    connected (module doc, Alg. 2's IsConnected per edge; with the samples' ``(h, w, 3)`` world
+    ``points`` and unit ``normals``, also the crease rule)."""
     valid = np.isfinite(z)
     inv = np.where(valid, 1.0 / np.where(valid, z, 1.0), np.nan).astype(np.float64)
     zz = np.where(valid, z, np.nan).astype(np.float64)
+    crease = CREASE > 0 and points is not None and normals is not None
+    if crease:
+        p = np.where(valid[..., None], points, np.nan).astype(np.float64)
+        n = np.where(valid[..., None], normals, np.nan).astype(np.float64)
     out = {}
     for di, dj in ((0, 1), (1, 0), (1, 1)):
         b = _shift(inv, di, dj, np.nan)
@@ -162,28 +183,53 @@ def connected_edges(z: np.ndarray, scale: float, threshold: float) -> dict:
             at_b = np.abs(inv + after - 2 * b) * zb * scale
             # both must be small (the paper's rule); a NaN (a missing neighbour) is no evidence, passes
             ok = ~(at_a >= threshold) & ~(at_b >= threshold)
+            if crease:
+                # two surfaces meeting (a wall on the ground): each sample lies near the other's
+                # tangent plane, which a step's samples do not (module doc)
+                pb, nb = _shift3(p, di, dj), _shift3(n, di, dj)
+                gap = np.maximum(np.abs(((pb - p) * n).sum(-1)), np.abs(((p - pb) * nb).sum(-1)))
+                ok |= gap <= CREASE * np.minimum(zz, zb) / scale
         out[(di, dj)] = valid & np.isfinite(b) & ok
     return out
 
 
-def triangulate(depth: np.ndarray, points: np.ndarray, views: list[View], threshold: float) -> np.ndarray:
-    """Alg. 2 over every depth image: ``(3 T, 3) float32`` corners of the kept triangles, world space.
+def triangulate(depth: np.ndarray, points: np.ndarray, views: list[View], threshold: float,
+                normals: np.ndarray | None = None) -> np.ndarray:
+    """Alg. 2 over every depth image: ``(3 T, 3) float32`` corners of the kept triangles, world space,
+    in clusters of ``CLUSTER × CLUSTER`` cells of one image (:func:`clusters` finds them).
 
-    ``depth`` (K, w, w) and ``points`` (K, w, w, 3) from :func:`depth_images`; ``threshold`` is ``κ``
-    (module doc)."""
-    pieces = []
-    for z, p, view in zip(depth, points, views):
-        c = connected_edges(z, float(min(view.proj[0], view.proj[2])), threshold)
+    ``depth`` (K, w, w), ``points`` and ``normals`` (K, w, w, 3) from :func:`depth_images`;
+    ``threshold`` is ``κ`` (module doc)."""
+    pieces, keys = [], []
+    for k, (z, p, view) in enumerate(zip(depth, points, views)):
+        c = connected_edges(z, float(min(view.proj[0], view.proj[2])), threshold, p,
+                            None if normals is None else normals[k])
         right, down, diag = c[(0, 1)], c[(1, 0)], c[(1, 1)]
         # cell (i, j) with corners a = (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1)
         t1 = right[:-1, :-1] & down[:-1, 1:] & diag[:-1, :-1]       # a, a + (0, 1), a + (1, 1)
         t2 = down[:-1, :-1] & right[1:, :-1] & diag[:-1, :-1]       # a + (1, 1), a + (1, 0), a
-        i, j = np.nonzero(t1)
-        if len(i):
-            pieces.append(np.stack([p[i, j], p[i, j + 1], p[i + 1, j + 1]], axis=1))
-        i, j = np.nonzero(t2)
-        if len(i):
-            pieces.append(np.stack([p[i + 1, j + 1], p[i + 1, j], p[i, j]], axis=1))
+        blocks = -(-z.shape[1] // CLUSTER)
+        for mask, corners in ((t1, ((0, 0), (0, 1), (1, 1))), (t2, ((1, 1), (1, 0), (0, 0)))):
+            i, j = np.nonzero(mask)
+            if len(i):
+                pieces.append(np.stack([p[i + di, j + dj] for di, dj in corners], axis=1))
+                keys.append((k * blocks + i // CLUSTER) * blocks + j // CLUSTER)
     if not pieces:
         return np.zeros((0, 3), np.float32)
-    return np.ascontiguousarray(np.concatenate(pieces).reshape(-1, 3), np.float32)
+    order = np.argsort(np.concatenate(keys), kind="stable")
+    return np.ascontiguousarray(np.concatenate(pieces)[order].reshape(-1, 3), np.float32)
+
+
+def clusters(tris: np.ndarray, size: int = CLUSTER * CLUSTER * 2) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of at most ``size`` consecutive triangles of ``tris`` ((3 T, 3), :func:`triangulate`'s order,
+    where neighbours in a run are neighbours in an image) and their world boxes: ``(C + 1,) int64``
+    first triangle of each run and ``(C, 6) float32`` ``lo, hi``; the compiled maps test a run's box
+    before its triangles."""
+    t = np.asarray(tris, np.float32).reshape(-1, 3, 3)
+    n = len(t)
+    starts = np.arange(0, n, size, dtype=np.int64)
+    if not n:
+        return np.zeros(1, np.int64), np.zeros((0, 6), np.float32)
+    lo = np.minimum.reduceat(t.min(axis=1), starts)
+    hi = np.maximum.reduceat(t.max(axis=1), starts)
+    return np.append(starts, n), np.ascontiguousarray(np.concatenate([lo, hi], axis=1), np.float32)

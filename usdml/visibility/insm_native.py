@@ -1,0 +1,66 @@
+"""The compiled CPU path of the insm backend's per-light maps: ``kernels/insmr.c`` through ctypes.
+
+Why compiled: Warp runs a CPU launch on one thread and its code spent 26 ns per triangle only to
+reject it against a cube's six faces and 160 ns to rasterize one (docs/insm.md); ``insmr.c`` does one
+light's receiver tiles, rasterization and lookups with the rules of :mod:`usdml.kernels.insm`, called
+from the thread pool of :mod:`usdml.parallel` (ctypes releases the GIL during a call).
+
+What a machine gets: ``pip install`` builds it as the optional extension ``usdml.kernels._insmr``
+(setup.py). Without a C compiler :func:`library` returns None and the backend runs the Warp kernels
+(``--insm-cpu-kernel warp`` does the same); ``usdml info`` names the path (:func:`describe`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import lru_cache
+
+import numpy as np
+
+from usdml.visibility.voxel_native import open_extension
+
+__all__ = ["library", "describe", "light"]
+
+
+@lru_cache(maxsize=1)
+def _load() -> tuple[ctypes.CDLL | None, str]:
+    lib, why = open_extension("_insmr")
+    if lib is None:
+        return None, why
+    P, i32, i64, f32 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64, ctypes.c_float
+    lib.insm_light.argtypes = [P, i64, P, P, i64, P, P, P, P, P, i32, i32, i32, P, i32, P, i32, P, P, P, P, i64, f32, f32, P, P]
+    lib.insm_light.restype = None
+    return lib, ""
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled maps, or None where they were not built (no C compiler at install)."""
+    return _load()[0]
+
+
+def describe() -> str:
+    """One line: which CPU path the insm backend's maps take on this machine (``usdml info``)."""
+    lib, why = _load()
+    return "compiled maps (kernels/insmr.c), one light per thread" if lib is not None else \
+        f"Warp kernels, one light per thread (compiled maps {why})"
+
+
+def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_views: int, cube: bool, position: np.ndarray,
+          size: int, buffers: tuple, points: np.ndarray, normals: np.ndarray, offset: float, bias: float,
+          out: np.ndarray, seconds: np.ndarray) -> None:
+    """One light's maps and lookups (``insm_light``): ``tris`` (3T, 3) float32 and their
+    :func:`usdml.visibility.insm_mesh.clusters` (first triangles, boxes), ``views`` the
+    C-contiguous (origin, rot, proj, kind, near) arrays of every view, ``buffers`` (depth, tile_z,
+    view_z) float32 of at least ``n_views`` views, ``points`` / ``normals`` (P, 3) float32, ``out``
+    (P,) uint8, ``seconds`` (3,) float64 accumulating receivers, rasterization, lookups."""
+    origin, rot, proj, kind, near = views
+    depth, tile_z, view_z = buffers
+    pos = np.ascontiguousarray(position, np.float32)
+    tiles = int(round((tile_z.size // max(view_z.size, 1)) ** 0.5))
+    first, boxes = clusters
+    library().insm_light(tris.ctypes.data, len(tris) // 3, first.ctypes.data, boxes.ctypes.data, len(boxes),
+                         origin.ctypes.data, rot.ctypes.data, proj.ctypes.data,
+                         kind.ctypes.data, near.ctypes.data, int(first_view), int(n_views), int(bool(cube)),
+                         pos.ctypes.data, int(size), depth.ctypes.data, tiles, tile_z.ctypes.data, view_z.ctypes.data,
+                         points.ctypes.data, normals.ctypes.data, len(points), float(offset), float(bias),
+                         out.ctypes.data, seconds.ctypes.data)
