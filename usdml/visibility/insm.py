@@ -521,7 +521,8 @@ class InsmBackend(VisibilityBackend):
             if len(cast):
                 answers[cast] = self.blocked_lights(take_lights(part, cast), points, offset)
             r = shade_direct(points, normals, albedo, part, None, None, meters_per_unit=meters_per_unit,
-                             min_distance=min_distance, geometric=geometric, answers=answers.T)
+                             min_distance=min_distance, geometric=geometric,
+                             answers=np.ascontiguousarray(answers.T))     # (P, L): each block reads its rows
             radiance += r.radiance
             blocked += r.shadow.astype(np.float64) * r.facing
             facing += r.facing
