@@ -133,12 +133,12 @@ def frame_speed(data: dict) -> list[str]:
     for run in data["runs"]:
         for r in run["output"]:
             w, h = r["exact"]["resolution"]
-            for name in ("voxel", "exact"):
+            for name in [n for n in ("voxel", "svo", "insm") if n in r] + ["exact"]:
                 b = r[name]
                 rows.append([f"{_stage(r['stage'])} {w}×{h}, {r['lights']:,} lights", f"`{name}`",
                              f"{b['seconds']:.2f}", f"{b['update_seconds']:.2f}", f"{b['gbuffer_seconds']:.2f}",
                              f"{b['shading_seconds']:.2f}",
-                             f"{r['voxel_speedup_vs_exact']:.1f}×" if name == "voxel" else "1×"])
+                             f"{r[name + '_speedup_vs_exact']:.1f}×" if name != "exact" else "1×"])
     return _table(["frame", "backend", "seconds", "update", "G-buffer", "shading (queries and light sums)",
                    "vs exact"], rows)
 
@@ -253,6 +253,35 @@ def svo_rebuild(data: dict) -> list[str]:
                    "queries vs exact"], rows)
 
 
+def insm_rows(data: dict) -> list[str]:
+    """``tools/insm_table.py --json``: paper 001's Tables 2-4, one row per setting of each sweep."""
+    rows = []
+    names = {"insm_resolution": "w", "insm_light_resolution": "S", "insm_count": "K"}
+    for run in data["runs"]:
+        for r in run["output"]["rows"]:
+            cells = [f"**{r[f]}**" if f == r["sweep"] else str(r[f]) for f in names]
+            rows.append([_stage(r["stage"]), names[r["sweep"]], *cells, _pct(r["eps_v"]), _pct(r["eps_s"]),
+                         f"{_pct(r['wrongly_visible'])} / {_pct(r['wrongly_hidden'])}", f"{r['triangles']:,}",
+                         f"{r['frame_seconds']:.1f}", f"{r['exact_seconds']:.2f}"])
+    return _table(["stage", "swept", "w (depth images)", "S (light maps)", "K", "ε_v", "ε_s",
+                   "wrongly visible / hidden (of pairs)", "reconstructed triangles", "insm s per frame",
+                   "exact queries s"], rows)
+
+
+def insm_dynamic(data: dict) -> list[str]:
+    """``tools/insm_table.py --dynamic --json``: a frame whose geometry moved against the same frame again."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]["dynamic"]:
+            w, h = r["resolution"]
+            moving = min(r["moving"], key=lambda x: x["seconds"])
+            rows.append([f"{_stage(r['stage'])} {w}×{h}, {moving['lights']:,} lights", f"{r['triangles']:,}",
+                         f"{r['moving_seconds']:.2f}", f"{r['still_seconds']:.2f}", f"{r['moving_over_still']:.2f}",
+                         f"{moving['depth_seconds'] + moving['triangulate_seconds']:.2f}"])
+    return _table(["frame", "reconstructed triangles", "geometry moved: s", "nothing moved: s", "ratio",
+                   "depth images + triangulation s"], rows)
+
+
 def dome_error(data: dict) -> list[str]:
     """``tools/dome_error.py --json``: ``direct`` with K dome samples against K = ``reference_samples``."""
     rows = []
@@ -322,7 +351,7 @@ RENDERERS = {
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
-    "gi-svo": gi_svo,
+    "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
 }
 
 
