@@ -258,3 +258,26 @@ def test_dragon_stage_within_its_bound_of_exact():
     r = compare_visibility(StageDelegate(str(STAGES / "dragon.usda")), "insm", image_width=64)
     assert r["eps_s"] < 0.04 and r["eps_v"] < 0.06, r
     assert r["reconstructed_triangles"] > 10_000 and r["exact_queries"] == 0
+
+
+def test_a_frame_builds_each_lights_map_once_whatever_the_pixel_samples(new_stage):
+    """Every pass's points are shaded in one call (FrameRenderer, LIGHT_MAJOR), so four primary rays per
+    pixel cost one set of maps, and the image equals exact's where nothing is in the way."""
+    from conftest import ground_stage
+    from pxr import UsdLux
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    path = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/bulb").AddTranslateOp().Set((1, 4, 0)))
+    images = {}
+    for name in ("insm", "exact"):
+        d = StageDelegate(path)
+        r = FrameRenderer(d, UsdmlSettings(pixel_samples=4, visibility=name))
+        try:
+            images[name] = r.render(d.start_time, 16, 16, {"direct"}).buffers["direct"]
+            if name == "insm":
+                assert r.backend.stats["maps"] == 1 and r.backend.stats["exact_queries"] == 0
+        finally:
+            r.close()
+    np.testing.assert_allclose(images["insm"], images["exact"], rtol=1e-5, atol=1e-7)

@@ -258,7 +258,7 @@ def insm_rows(data: dict) -> list[str]:
     rows = []
     names = {"insm_resolution": "w", "insm_light_resolution": "S", "insm_count": "K"}
     for run in data["runs"]:
-        for r in run["output"]["rows"]:
+        for r in (run["output"] or {}).get("rows", []):          # not yet measured: no rows
             cells = [f"**{r[f]}**" if f == r["sweep"] else str(r[f]) for f in names]
             rows.append([_stage(r["stage"]), names[r["sweep"]], *cells, _pct(r["eps_v"]), _pct(r["eps_s"]),
                          f"{_pct(r['wrongly_visible'])} / {_pct(r['wrongly_hidden'])}", f"{r['triangles']:,}",
@@ -272,7 +272,7 @@ def insm_dynamic(data: dict) -> list[str]:
     """``tools/insm_table.py --dynamic --json``: a frame whose geometry moved against the same frame again."""
     rows = []
     for run in data["runs"]:
-        for r in run["output"]["dynamic"]:
+        for r in (run["output"] or {}).get("dynamic", []):
             w, h = r["resolution"]
             moving = min(r["moving"], key=lambda x: x["seconds"])
             rows.append([f"{_stage(r['stage'])} {w}×{h}, {moving['lights']:,} lights", f"{r['triangles']:,}",

@@ -23,6 +23,7 @@ from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
 from usdml.visibility import ExactBackend, make_backend
+from usdml.visibility.base import LIGHT_MAJOR
 
 #: AOVs written when neither --aovs nor RenderSettings choose
 DEFAULT_AOVS = ("color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
@@ -145,9 +146,13 @@ class FrameRenderer:
             vpl_field = prepare_vpls(snap, self.exact, lights, self.settings, device=self.device)
             stats["gi_seconds"] = vpl_field.stats["vpl_seconds"] + vpl_field.stats.get("lgh_seconds", 0.0)
         image = _PixelFilter(width, height)
-        for offsets in pixel_offsets(width, height, samples, self.settings.seed):
+        passes = list(pixel_offsets(width, height, samples, self.settings.seed))
+        shaded = [None] * len(passes)
+        if len(passes) > 1 and self.backend.supports(LIGHT_MAJOR):
+            shaded = self._shade_passes(snap, lights, camera, width, height, passes, stats, pixel_progress)
+        for offsets, pre in zip(passes, shaded):
             gb, direct, indirect = self._trace(snap, lights, camera, width, height, offsets, stats, pixel_progress,
-                                               vpl_field)
+                                               vpl_field, pre)
             image.add(self._buffers(gb, gb.hit.ravel(), direct, indirect, camera, aovs), offsets)
         stats["lights"] = len(lights)
         stats["pixels"] = width * height
@@ -155,21 +160,49 @@ class FrameRenderer:
         stats["seconds"] = _time.perf_counter() - t0
         return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
 
-    def _trace(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
-               offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None, vpl_field=None):
-        """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light
-        (gathered from ``vpl_field``, :func:`usdml.lighting.gi.prepare_vpls`)."""
+    def _shade_passes(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
+                      passes: list, stats: dict, progress: Callable[[float], None] | None) -> list:
+        """``(G-buffer, direct light)`` of every pass, shaded by one call: a ``LIGHT_MAJOR`` backend builds
+        its per-light structures (paper 001's maps) once per call, so once per frame, not once per pass."""
+        from usdml.lighting.direct import DirectResult
+
         t2 = _time.perf_counter()
-        gb = build_gbuffer(snap, self.exact, width, height, offsets)
+        gbs = [build_gbuffer(snap, self.exact, width, height, offsets) for offsets in passes]
+        stats["gbuffer_seconds"] += _time.perf_counter() - t2
+        t3 = _time.perf_counter()
+        hits = [gb.hit.ravel() for gb in gbs]
+
+        def stacked(field: str) -> np.ndarray:
+            return np.concatenate([getattr(gb, field).reshape(-1, 3)[hit] for gb, hit in zip(gbs, hits)])
+        direct = self.backend.shade_direct(stacked("position"), stacked("normal"), stacked("albedo"), lights, progress,
+                                           meters_per_unit=snap.meters_per_unit, geometric=stacked("geometric"))
+        stats["shading_seconds"] += _time.perf_counter() - t3
+        out, lo = [], 0
+        for i, (gb, hit) in enumerate(zip(gbs, hits)):
+            hi = lo + int(hit.sum())
+            out.append((gb, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
+                                         direct.queries if i == 0 else 0)))
+            lo = hi
+        return out
+
+    def _trace(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
+               offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None, vpl_field=None,
+               shaded: tuple | None = None):
+        """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light
+        (gathered from ``vpl_field``, :func:`usdml.lighting.gi.prepare_vpls`); ``shaded``: the pass's
+        G-buffer and direct light already made (:meth:`_shade_passes`)."""
+        t2 = _time.perf_counter()
+        gb = build_gbuffer(snap, self.exact, width, height, offsets) if shaded is None else shaded[0]
         stats["gbuffer_seconds"] += _time.perf_counter() - t2
         t3 = _time.perf_counter()
         hit = gb.hit.ravel()
         # a SHADE_DIRECT backend shades in one kernel; the others through lighting.direct over their
         # shadow rays (VisibilityBackend.shade_direct)
         geometric = gb.geometric.reshape(-1, 3)[hit]
-        direct = self.backend.shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                                           gb.albedo.reshape(-1, 3)[hit], lights, progress,
-                                           meters_per_unit=snap.meters_per_unit, geometric=geometric)
+        direct = shaded[1] if shaded is not None else \
+            self.backend.shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                      gb.albedo.reshape(-1, 3)[hit], lights, progress,
+                                      meters_per_unit=snap.meters_per_unit, geometric=geometric)
         if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)
