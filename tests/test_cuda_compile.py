@@ -25,7 +25,7 @@ def _kernel_modules() -> list[str]:
 
 
 def test_every_kernel_module_is_checked():
-    assert {"voxel", "voxel_rotate", "direct_shading", "lgh", "lgh_lighting", "atrous", "svo"} <= set(_kernel_modules())
+    assert {"voxel", "voxel_rotate", "direct_shading", "lgh", "lgh_lighting", "atrous", "svo", "insm"} <= set(_kernel_modules())
 
 
 @pytest.mark.parametrize("name", _kernel_modules())
