@@ -281,3 +281,26 @@ def test_a_frame_builds_each_lights_map_once_whatever_the_pixel_samples(new_stag
         finally:
             r.close()
     np.testing.assert_allclose(images["insm"], images["exact"], rtol=1e-5, atol=1e-7)
+
+
+def test_usdml_bench_times_the_insm_frame_phases(new_stage, capsys):
+    """``usdml bench --visibility insm``: the per-frame build (depth images, triangulation) and the last
+    pass's receiver tiles, maps and lookups, in the JSON and on the line."""
+    import json
+
+    from conftest import ground_stage
+    from pxr import UsdGeom, UsdLux
+    from usdml.bench import format_bench
+    from usdml.cli import main
+
+    def scene(stage):
+        UsdGeom.Cube.Define(stage, "/World/box").AddTranslateOp().Set((0, 1, 0))
+        UsdLux.SphereLight.Define(stage, "/World/bulb").AddTranslateOp().Set((2, 5, 1))
+    path = ground_stage(new_stage, scene)
+    assert main(["bench", path, "--visibility", "insm", "--insm-light-resolution", "64", "--imageWidth", "16",
+                 "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)[0]
+    assert row["backend"] == "insm" and 0 < row["blocked_fraction"] < 1
+    assert row["depth_image_seconds"] > 0 and row["reconstructed_triangles"] > 100 and row["last_maps"] == 1
+    assert row["exact_queries"] == 0 and row["disagreement_vs_exact"] < 0.05
+    assert "per frame: depth images" in format_bench([row])

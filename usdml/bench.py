@@ -254,7 +254,14 @@ def format_bench(results: list[dict]) -> str:
                      + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact"
                         + (f", {r['speedup_vs_bare_embree']:.1f}x bare embreex" if "speedup_vs_bare_embree" in r else ""))
                      + (f"\n          per-frame array: Alg. 5 ({r['mapping']}) {r['rebuild_seconds']:.2f} s, Alg. 1 "
-                        f"{r['full_rebuild_seconds']:.2f} s = {r['rebuild_speedup']:.1f}x" if "rebuild_seconds" in r else ""))
+                        f"{r['full_rebuild_seconds']:.2f} s = {r['rebuild_speedup']:.1f}x"
+                        if "rebuild_seconds" in r and "mapping" in r else "")
+                     + (f"\n          per frame: depth images {r['depth_image_seconds']:.2f} s, triangulation "
+                        f"{r['triangulate_seconds']:.2f} s ({r['reconstructed_triangles']:,} triangles); the last pass's "
+                        f"{r['last_maps']:,} lights, summed over threads: receiver tiles {r['last_receiver_seconds']:.2f} s, "
+                        f"maps {r['last_map_seconds']:.2f} s, lookups {r['last_lookup_seconds']:.2f} s; "
+                        f"{r['exact_queries']:,} queries sent to exact"
+                        if "depth_image_seconds" in r else ""))
     return "\n".join(lines)
 
 

@@ -235,7 +235,8 @@ class InsmBackend(VisibilityBackend):
 
     def _reset_stats(self) -> None:
         self.stats.update(depth_seconds=0.0, triangulate_seconds=0.0, receiver_seconds=0.0, map_seconds=0.0,
-                          lookup_seconds=0.0,
+                          lookup_seconds=0.0, last_maps=0, last_receiver_seconds=0.0, last_map_seconds=0.0,
+                          last_lookup_seconds=0.0,
                           maps=0, map_queries=0, exact_queries=0)
 
     @classmethod
@@ -409,6 +410,9 @@ class InsmBackend(VisibilityBackend):
         self.stats["map_seconds"] += float(seconds[1])
         self.stats["lookup_seconds"] += float(seconds[2])
         self.stats["maps"] += len(lv) if jobs else 0
+        # the last call's alone (usdml bench calls occluded several times per frame)
+        self.stats.update(last_maps=len(lv), last_receiver_seconds=float(seconds[0]),
+                          last_map_seconds=float(seconds[1]), last_lookup_seconds=float(seconds[2]))
 
     def _warp_launcher(self, lv: LightViews, size: int, tiles: int):
         """``launch(l0, l1, points, normals, out, buffers, seconds)``: one job of :meth:`answer` by the
