@@ -11,6 +11,8 @@
 #include <string.h>
 #include <time.h>
 
+#include "light_term.h"
+
 #define BIG 1.0e30f
 #define TILE 16
 #define PERSPECTIVE 0
@@ -297,19 +299,30 @@ static int locate(const float *p, const float *nrm, int cube, const float *light
 }
 
 /* One light: receiver tiles, its views rasterized from the triangles, every point looked up.
- * seconds[0..2] += receivers, rasterization, lookups. */
+ * seconds[0..2] += receivers, rasterization, lookups. Without L: each point's answer into out (1:
+ * blocked). With L (light l of the table; shading normals, two scratch arrays of P): Alg. 3 for this
+ * light, fused: a point it faces (light_term) counts in facing; casting, it is looked up (queries)
+ * and counts in blocked or adds its light to radiance (3 per point); only those points are receivers. */
 void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, const float *cl_box, int64_t n_clusters,
                 const float *origin, const float *rot, const float *proj,
                 const int32_t *kind, const float *near, int32_t first_view, int32_t n_views, int32_t cube,
                 const float *light, int32_t size, float *depth, int32_t tiles, float *tile_z, float *view_z,
                 const float *points, const float *normals, int64_t n_points, float offset, float bias,
-                uint8_t *out, double *seconds) {
+                uint8_t *out, double *seconds, const VQLights *L, int32_t l, const float *shading,
+                float *scratch_rgb, uint8_t *scratch_code, float *radiance, int32_t *blocked, int32_t *facing,
+                int64_t *queries) {
     Views v = {origin, rot, proj, kind, near};
     const int64_t plane = (int64_t)size * size, tplane = (int64_t)tiles * tiles;
     double t0 = now();
     for (int64_t i = 0; i < n_views * tplane; i++) tile_z[i] = -BIG;
     for (int i = 0; i < n_views; i++) view_z[i] = -BIG;
     for (int64_t i = 0; i < n_points; i++) {
+        if (L) {
+            float tg[3];
+            int code = light_term(L, l, points + 3 * i, shading + 3 * i, normals + 3 * i, scratch_rgb + 3 * i, tg);
+            scratch_code[i] = (uint8_t)code;
+            if (code != 2) continue;
+        }
         float sx, sy, z;
         int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z);
         if (local < 0) continue;
@@ -389,11 +402,27 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
         }
     }
     double t2 = now();
+    int64_t asked = 0;
     for (int64_t i = 0; i < n_points; i++) {
+        if (L) {
+            int code = scratch_code[i];
+            if (!code) continue;
+            facing[i]++;
+            if (code == 1) {
+                for (int k = 0; k < 3; k++) radiance[3 * i + k] += scratch_rgb[3 * i + k];
+                continue;
+            }
+            asked++;
+        }
         float sx, sy, z;
+        int hidden = 0;
         int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z);
         if (local < 0) {
-            out[i] = 0;
+            if (L) {
+                for (int k = 0; k < 3; k++) radiance[3 * i + k] += scratch_rgb[3 * i + k];
+            } else {
+                out[i] = 0;
+            }
             continue;
         }
         float fx = sx - 0.5f, fy = sy - 0.5f;
@@ -407,8 +436,16 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                   tx * (1.0f - ty) * (m[ja * size + ib] > z ? 1.0f : 0.0f) +
                   (1.0f - tx) * ty * (m[jb * size + ia] > z ? 1.0f : 0.0f) +
                   tx * ty * (m[jb * size + ib] > z ? 1.0f : 0.0f);
-        out[i] = f > 0.5f;
+        hidden = f > 0.5f;
+        if (!L) {
+            out[i] = (uint8_t)hidden;
+        } else if (hidden) {
+            blocked[i]++;
+        } else {
+            for (int k = 0; k < 3; k++) radiance[3 * i + k] += scratch_rgb[3 * i + k];
+        }
     }
+    if (queries) *queries += asked;
     double t3 = now();
     seconds[0] += t1 - t0;
     seconds[1] += t2 - t1;

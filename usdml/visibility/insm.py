@@ -510,6 +510,11 @@ class InsmBackend(VisibilityBackend):
 
         self._remember(lights)
         n_p, n_l = len(points), len(lights)
+        if self.native and n_p and n_l:
+            result = self._shade_native(points, normals, albedo, lights, meters_per_unit, min_distance, geometric)
+            if progress is not None:
+                progress(n_p)
+            return result
         offset = geometric if geometric is not None else normals
         step = max(1, ANSWER_BYTES // max(n_p, 1))
         radiance = np.zeros((n_p, 3), np.float32)
@@ -553,6 +558,71 @@ class InsmBackend(VisibilityBackend):
                 known[g] = True
             specs.append(spec)
         return inverse.reshape(-1), known, specs
+
+    def _shade_native(self, points, normals, albedo, lights: Lights, meters_per_unit: float, min_distance: float,
+                      geometric):
+        """:meth:`shade_direct` in the compiled maps: each light's map, lookups and share of Alg. 3 in one
+        call (``kernels/light_term.h``'s UsdLux rules, the voxel kernel's), per-thread sums added at the
+        end; nothing of (points x lights) is held."""
+        from usdml.lighting.direct import DirectResult
+        from usdml.visibility import insm_native
+        from usdml.visibility.voxel_native import compiled_lights
+
+        n_p = len(points)
+        lv = self._views(lights.position, lights.axis, lights.type == LightType.DISTANT, lights.cone_angle)
+        table = compiled_lights(lights, meters_per_unit, min_distance)
+        f32 = dict(dtype=np.float32)
+        pts = np.ascontiguousarray(points, **f32)
+        shading = np.ascontiguousarray(normals, **f32)
+        geo = np.ascontiguousarray(geometric if geometric is not None else normals, **f32)
+        views = tuple(np.ascontiguousarray(a) for a in (lv.origin, lv.rot, lv.proj, lv.kind, lv.near))
+        tris = np.ascontiguousarray(self._tris if len(self._tris) else np.zeros((3, 3), np.float32))
+        if self._clusters is None:
+            self._clusters = clusters(self._tris)
+        size = self.light_resolution
+        tiles = -(-size // TILE)
+        most = int(np.max(np.diff(lv.first)))
+        pool: queue.Queue = queue.Queue()
+        held_all: list = []
+        lock = threading.Lock()
+
+        def run(li: int) -> None:
+            try:
+                held = pool.get_nowait()
+            except queue.Empty:
+                held = ((np.empty(most * size * size, np.float32), np.empty(most * tiles * tiles, np.float32),
+                         np.empty(most, np.float32)),
+                        (np.empty((n_p, 3), np.float32), np.empty(n_p, np.uint8), np.zeros((n_p, 3), np.float32),
+                         np.zeros(n_p, np.int32), np.zeros(n_p, np.int32), np.zeros(1, np.int64)), np.zeros(3))
+                with lock:
+                    held_all.append(held)
+            buffers, acc, seconds = held
+            insm_native.light(tris, self._clusters, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
+                              bool(lv.cube[li]), lv.position[li], size, buffers, pts, geo, self.offset, self.bias,
+                              None, seconds, (table, li, shading, *acc))
+            pool.put(held)
+
+        run_parallel(run, range(len(lights)), self.workers)
+        radiance = np.zeros((n_p, 3), np.float32)
+        blocked = np.zeros(n_p, np.int64)
+        facing = np.zeros(n_p, np.int64)
+        queries, seconds = 0, np.zeros(3)
+        for _, (_, _, rad, blk, fac, q), sec in held_all:
+            radiance += rad
+            blocked += blk
+            facing += fac
+            queries += int(q[0])
+            seconds += sec
+        radiance *= np.asarray(albedo, np.float32) / np.float32(np.pi)
+        shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0).astype(np.float32)
+        self.stats["receiver_seconds"] += float(seconds[0])
+        self.stats["map_seconds"] += float(seconds[1])
+        self.stats["lookup_seconds"] += float(seconds[2])
+        self.stats["maps"] += len(lights)
+        self.stats["map_queries"] += queries
+        self.stats.update(last_maps=len(lights), last_receiver_seconds=float(seconds[0]),
+                          last_map_seconds=float(seconds[1]), last_lookup_seconds=float(seconds[2]))
+        return DirectResult(radiance, shadow, facing.astype(np.int32), queries)
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         """Segments to one of the frame's lights from its map, the others by the exact backend (module doc)."""

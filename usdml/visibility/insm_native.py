@@ -28,7 +28,8 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
     if lib is None:
         return None, why
     P, i32, i64, f32 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64, ctypes.c_float
-    lib.insm_light.argtypes = [P, i64, P, P, i64, P, P, P, P, P, i32, i32, i32, P, i32, P, i32, P, P, P, P, i64, f32, f32, P, P]
+    lib.insm_light.argtypes = [P, i64, P, P, i64, P, P, P, P, P, i32, i32, i32, P, i32, P, i32, P, P, P, P, i64, f32, f32, P, P,
+                               P, i32, P, P, P, P, P, P, P]
     lib.insm_light.restype = None
     return lib, ""
 
@@ -45,22 +46,31 @@ def describe() -> str:
         f"Warp kernels, one light per thread (compiled maps {why})"
 
 
-def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_views: int, cube: bool, position: np.ndarray,
-          size: int, buffers: tuple, points: np.ndarray, normals: np.ndarray, offset: float, bias: float,
-          out: np.ndarray, seconds: np.ndarray) -> None:
+def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_views: int, cube: bool,
+          position: np.ndarray, size: int, buffers: tuple, points: np.ndarray, normals: np.ndarray, offset: float,
+          bias: float, out: np.ndarray | None, seconds: np.ndarray, shade: tuple | None = None) -> None:
     """One light's maps and lookups (``insm_light``): ``tris`` (3T, 3) float32 and their
-    :func:`usdml.visibility.insm_mesh.clusters` (first triangles, boxes), ``views`` the
-    C-contiguous (origin, rot, proj, kind, near) arrays of every view, ``buffers`` (depth, tile_z,
-    view_z) float32 of at least ``n_views`` views, ``points`` / ``normals`` (P, 3) float32, ``out``
-    (P,) uint8, ``seconds`` (3,) float64 accumulating receivers, rasterization, lookups."""
+    :func:`usdml.visibility.insm_mesh.clusters` (first triangles, boxes), ``views`` the C-contiguous
+    (origin, rot, proj, kind, near) arrays of every view, ``buffers`` (depth, tile_z, view_z) float32 of
+    at least ``n_views`` views, ``points`` / ``normals`` (geometric) (P, 3) float32, ``seconds`` (3,)
+    float64 accumulating receivers, rasterization, lookups. Either ``out`` (P,) uint8 answers, or
+    ``shade`` = (light table (:func:`usdml.visibility.voxel_native.compiled_lights`), this light's row,
+    (P, 3) float32 shading normals, (P, 3) float32 and (P,) uint8 scratch, (P, 3) float32 radiance,
+    (P,) int32 blocked and facing, (1,) int64 queries) accumulated: the light's share of Alg. 3."""
     origin, rot, proj, kind, near = views
     depth, tile_z, view_z = buffers
     pos = np.ascontiguousarray(position, np.float32)
     tiles = int(round((tile_z.size // max(view_z.size, 1)) ** 0.5))
     first, boxes = clusters
+    if shade is None:
+        extra = [None, 0, None, None, None, None, None, None, None]
+    else:
+        table, row, shading, rgb, code, radiance, blocked, facing, queries = shade
+        extra = [ctypes.byref(table), int(row), shading.ctypes.data, rgb.ctypes.data, code.ctypes.data,
+                 radiance.ctypes.data, blocked.ctypes.data, facing.ctypes.data, queries.ctypes.data]
     library().insm_light(tris.ctypes.data, len(tris) // 3, first.ctypes.data, boxes.ctypes.data, len(boxes),
-                         origin.ctypes.data, rot.ctypes.data, proj.ctypes.data,
-                         kind.ctypes.data, near.ctypes.data, int(first_view), int(n_views), int(bool(cube)),
-                         pos.ctypes.data, int(size), depth.ctypes.data, tiles, tile_z.ctypes.data, view_z.ctypes.data,
-                         points.ctypes.data, normals.ctypes.data, len(points), float(offset), float(bias),
-                         out.ctypes.data, seconds.ctypes.data)
+                         origin.ctypes.data, rot.ctypes.data, proj.ctypes.data, kind.ctypes.data, near.ctypes.data,
+                         int(first_view), int(n_views), int(bool(cube)), pos.ctypes.data, int(size),
+                         depth.ctypes.data, tiles, tile_z.ctypes.data, view_z.ctypes.data, points.ctypes.data,
+                         normals.ctypes.data, len(points), float(offset), float(bias),
+                         None if out is None else out.ctypes.data, seconds.ctypes.data, *extra)

@@ -681,13 +681,13 @@ class VoxelBackend(VisibilityBackend):
         whether every light casts shadows."""
         from usdml.lighting.direct import LightTable, cone_edges
 
+        if self._native is not None:
+            from usdml.visibility.voxel_native import compiled_lights
+            return compiled_lights(lights, meters_per_unit, min_distance), bool(np.asarray(lights.shadow).all())
         t = LightTable(lights, meters_per_unit, min_distance)
         flags = t.flags        # LightFlag bits, which the kernels name as the same constants
         outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
         cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
-        if self._native is not None:
-            return self._native.lights(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), cone,
-                                       t.base, t.focus_rgb, flags, t.inv_m2, t.min_d2), bool(t.casts.all())
         wp, ks = warp_module(), _shading_kernels()
         dev = wp.get_device(self.device)
         lt = ks.LightTable()

@@ -64,6 +64,32 @@ class _Lights(ctypes.Structure):
                 ("min_d2", ctypes.c_float)]
 
 
+def light_struct(pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float) -> _Lights:
+    """The lights as the compiled kernels' table (``kernels/light_term.h``; the arrays are held by the
+    returned object)."""
+    arrs = [_c(x, np.float32).reshape(-1, 3) for x in (pos, axis, cylinder_axis, cone, base, focus_rgb)]
+    fl = _c(flags, np.int32)
+    lt = _Lights()
+    lt.n = len(fl)
+    lt.pos, lt.axis, lt.cylinder_axis, lt.cone, lt.base, lt.focus_rgb = (_ptr(a, _f) for a in arrs)
+    lt.flags = _ptr(fl, _i)
+    lt.inv_m2, lt.min_d2 = float(inv_m2), float(min_d2)
+    lt._hold = (arrs, fl)
+    return lt
+
+
+def compiled_lights(lights, meters_per_unit: float = 1.0, min_distance: float = 0.0) -> _Lights:
+    """``lights`` (:class:`usdml.scene.Lights`) as the compiled kernels' table: the constants of
+    :class:`usdml.lighting.direct.LightTable`, the cone as (cos outer, soft width, focus)."""
+    from usdml.lighting.direct import LightTable, cone_edges
+
+    t = LightTable(lights, meters_per_unit, min_distance)
+    outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
+    cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
+    return light_struct(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), cone, t.base,
+                        t.focus_rgb, t.flags, t.inv_m2, t.min_d2)
+
+
 def open_extension(name: str) -> tuple[ctypes.CDLL | None, str]:
     """The compiled extension ``usdml.kernels.<name>`` as a ctypes library, or None and why not."""
     try:
@@ -277,18 +303,6 @@ class NativeScene:
         self.lib.vq_query(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count), origins.ctypes.data,
                           targets.ctypes.data, normals.ctypes.data, distant.ctypes.data, int(want_t), self.kernel,
                           out.ctypes.data, f64, int(distant.dtype == np.bool_))
-
-    def lights(self, pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float):
-        """The lights as the compiled shading's table (the arrays are held by the returned object)."""
-        arrs = [_c(x, np.float32).reshape(-1, 3) for x in (pos, axis, cylinder_axis, cone, base, focus_rgb)]
-        fl = _c(flags, np.int32)
-        lt = _Lights()
-        lt.n = len(fl)
-        lt.pos, lt.axis, lt.cylinder_axis, lt.cone, lt.base, lt.focus_rgb = (_ptr(a, _f) for a in arrs)
-        lt.flags = _ptr(fl, _i)
-        lt.inv_m2, lt.min_d2 = float(inv_m2), float(min_d2)
-        lt._hold = (arrs, fl)
-        return lt
 
     def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
               first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
