@@ -151,16 +151,15 @@ def raster_triangle(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, proj: wp.vec4, kind: 
                 continue                   # no lookup there compares a depth beyond the triangle
             s0 = wp.max(i0, tx * TILE)
             s1 = wp.min(i1, tx * TILE + TILE - 1)
-            w = w_start + dw * wp.float64(float(s0 - i0))
             for i in range(s0, s1 + 1):
-                key = float(w)              # 1 / z: nearer is larger
+                # each texel's value from the span's start, as kernels/insmr.c computes it
+                key = float(w_start + dw * wp.float64(float(i - i0)))     # 1 / z: nearer is larger
                 if kind != PERSPECTIVE:
                     key = -key              # orthographic: -z
                 if atomic != 0:
                     wp.atomic_max(depth, row + i, key)
                 elif key > depth[row + i]:
                     depth[row + i] = key
-                w = w + dw
 
 
 @wp.func

@@ -110,6 +110,7 @@ static void raster_triangle(const float *q0, const float *q1, const float *q2, c
     double a1 = (y2 - y0) * inv_area, b1 = (x0 - x2) * inv_area, c1 = (x2 * y0 - x0 * y2) * inv_area;
     double a2 = (y0 - y1) * inv_area, b2 = (x1 - x0) * inv_area, c2 = (x0 * y1 - x1 * y0) * inv_area;
     double dw = a0 * w0 + a1 * w1 + a2 * w2;
+    const float sign = kind == PERSPECTIVE ? 1.0f : -1.0f;   /* perspective 1 / z, orthographic -z */
     for (int j = j0; j <= j1; j++) {
         double py = (double)j + 0.5;
         double g0 = b0 * py + c0, g1 = b1 * py + c1, g2 = b2 * py + c2;
@@ -126,11 +127,10 @@ static void raster_triangle(const float *q0, const float *q1, const float *q2, c
         for (int tx = i0 / TILE; tx <= i1 / TILE; tx++) {
             if (tile_row[tx] <= zmin) continue;
             int s0 = imax(i0, tx * TILE), s1 = imin(i1, tx * TILE + TILE - 1);
-            double w = w_start + dw * (double)(s0 - i0);
+            /* each texel's value from the span's start (no chain of adds: the loop vectorizes) */
             for (int i = s0; i <= s1; i++) {
-                float key = kind == PERSPECTIVE ? (float)w : -(float)w;   /* nearer is larger */
-                if (key > row[i]) row[i] = key;
-                w += dw;
+                float key = sign * (float)(w_start + dw * (double)(i - i0));   /* nearer is larger */
+                row[i] = key > row[i] ? key : row[i];
             }
         }
     }
