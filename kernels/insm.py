@@ -4,21 +4,31 @@ themselves (Embree primary rays) and their triangulation (Alg. 2) are
 :mod:`usdml.visibility.insm_mesh` (NumPy); which maps a light gets is :mod:`usdml.visibility.insm`.
 
 Views
-    A map is ``S × S`` depths seen from one *view*: an origin ``o``, a rotation ``R`` whose rows are the
+    A map is ``S × S`` values seen from one *view*: an origin ``o``, a rotation ``R`` whose rows are the
     view's right, up and forward axes (view space ``q = R (p - o)``, ``q.z`` the depth along forward)
     and a projection ``proj = (ax, bx, ay, by)`` to pixel coordinates: perspective ``(ax q.x / q.z + bx,
     ay q.y / q.z + by)``, orthographic ``(ax q.x + bx, ay q.y + by)``. Pixel ``(i, j)`` covers
-    ``[i, i + 1) × [j, j + 1)``; a map holds at pixel ``(i, j)`` (``j · S + i`` of its block of ``S²``) the
-    nearest depth of a triangle covering the pixel's centre, ``BIG`` where none does. A point light's
-    cube map is six perspective views (``+X -X +Y -Y +Z -Z``, 90° each), a spot light's one view of its
-    cone, a distant light's one orthographic view over the scene.
+    ``[i, i + 1) × [j, j + 1)``; a map holds at pixel ``(i, j)`` (``j · S + i`` of its block of ``S²``)
+    the *nearness* of the nearest triangle covering the pixel's centre: ``1 / z`` in perspective,
+    ``-z`` orthographic (nearer is larger), ``-BIG`` where none does. A point light's cube map is six
+    perspective views (``+X -X +Y -Y +Z -Z``, 90° each), a spot light's one view of its cone, a distant
+    light's one orthographic view over the scene.
+
+Receiver tiles
+    Before a light's map is rasterized, every shading point finds where its lookup will read it
+    (:func:`locate`) and raises, in each ``TILE × TILE`` tile its four texels fall in, the farthest depth
+    compared there (``tile_z``), and its view's farthest (``view_z``). A triangle (or a view) no nearer
+    than that is not rasterized there: it could only make a texel nearer than points that are nearer
+    still, so no answer changes.
 
 Rasterization
-    One thread per (view, triangle): the triangle is culled against the view's four side planes,
-    clipped to ``z >= near`` (perspective), and every pixel centre inside it (edges included, so
-    neighbouring triangles leave no crack) takes ``atomic_min`` of its depth, interpolated
-    perspective-correctly (``1 / z`` is affine in screen space). Deterministic: the minimum does not
-    depend on the order.
+    One thread per (view, triangle), or per triangle over a cube's six faces (``raster_cube``, each face
+    first tested against the triangle's box): the triangle is culled against the view's four side
+    planes, clipped to ``z >= near`` (perspective), and every pixel centre inside it (edges included, so
+    neighbouring triangles leave no crack) takes the larger of its nearness and the texel's. The setup
+    is float64 (a corner clipped to a near plane close to the light projects far outside the map);
+    the rows are filled over the span where the three barycentrics are >= 0, ``1 / z`` (or ``z``)
+    interpolated from the span's start. Deterministic: the maximum does not depend on the order.
 
 Lookup (Alg. 3 with a map in place of the ray)
     A shading point moves ``offset`` map texels along its normal turned toward the light (a texel's

@@ -7,6 +7,12 @@ Per light, a shadow map is rasterized from those triangles alone (:mod:`usdml.ke
 shading points look their visibility up in it: the cost grows with the lights and the maps' sizes,
 not with the scene's triangles. The depth images are rebuilt only on frames where geometry changed.
 
+The box
+    The viewpoints sit on the box of the scene's detail, the one the octree covers
+    (:func:`usdml.visibility.svo_tree.svo_bounds`): a ground of a few huge triangles reaching far past
+    the rest does not stretch it (the city: 1,400 m across with its ground, 348 m without), so the
+    depth images' pixels land on geometry that casts shadows.
+
 Maps per light (``S × S`` texels per view, ``S`` = ``light_resolution``)
     * point, sphere, disk, rect and cylinder lights (points at their centre, as every backend):
       a cube map, six 90° views;
@@ -158,9 +164,8 @@ def light_views(position: np.ndarray, axis: np.ndarray, distant: np.ndarray, con
 
 
 def insm_box(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray] | None:
-    """The box the depth images' viewpoints are placed on (module doc, "The box"): the scene's, less
-    the few huge triangles of a ground reaching far past the rest (:func:`usdml.visibility.svo_tree.svo_bounds`,
-    the box the octree covers); None for an empty scene."""
+    """The box the depth images' viewpoints are placed on (module doc, "The box"); None for an empty
+    scene."""
     members = tuple([("mesh", m.path) for m in snapshot.meshes] + [("proto", p.path) for p in snapshot.prototypes])
     points, triangles = world_geometry(snapshot, members)
     if not len(triangles):
@@ -314,7 +319,6 @@ class InsmBackend(VisibilityBackend):
         t1 = time.perf_counter()
         self._tris = triangulate(depth, points, views, self.threshold, normals)
         self._tris_wp = self._clusters = None
-        self._depth = depth
         t2 = time.perf_counter()
         self.stats.update(depth_seconds=t1 - t0, triangulate_seconds=t2 - t1)
 

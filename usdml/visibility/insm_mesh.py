@@ -25,6 +25,17 @@ Triangulation (Alg. 2)
     the threshold is scale-free: ``|Δ²(1/z)| · z · a < κ`` with ``a`` the view's pixels per unit of
     ``x / z``: a step of more than about ``κ`` pixel footprints disconnects (``κ`` =
     ``threshold``). A neighbour outside the image or on the background gives no evidence and passes.
+
+    The crease rule (usdml's, beside the paper's): an edge is also connected when each of its two
+    samples lies within ``CREASE`` pixel footprints of the other's tangent plane (Embree's geometric
+    normal at the hit). A wall standing on the ground is a crease, whose second differences are as
+    large as a step's: the paper's rule alone cut every wall from the ground and left a gap of a
+    pixel at its foot (city ε_s 19.7 %, with it 4.1 %; docs/insm.md). A step's samples lie far from
+    each other's planes, so the rule never bridges one.
+
+    The kept triangles come in the order of ``CLUSTER × CLUSTER``-cell blocks of each image, so a run of
+    consecutive triangles is a patch of one image (:func:`clusters`: the compiled maps test a run's box
+    first).
 """
 
 from __future__ import annotations
