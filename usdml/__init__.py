@@ -16,4 +16,12 @@ try:
 except ImportError:  # the schema package is optional for plain-NumPy users of usdml.scene
     pass
 
-__all__ = ["UsdmlError", "__version__"]
+__all__ = ["Recorder", "RecordResult", "UsdmlError", "__version__"]
+
+
+def __getattr__(name: str):
+    # the pipeline API, imported on first use (it brings the renderer: Embree, Warp)
+    if name in ("Recorder", "RecordResult"):
+        from usdml import recorder
+        return getattr(recorder, name)
+    raise AttributeError(f"module 'usdml' has no attribute {name!r}")

@@ -49,9 +49,8 @@ def _purposes(args: argparse.Namespace) -> list[str] | None:
 
 
 def _check_width(width: int | None) -> None:
-    if width is not None and not 1 <= width <= 16384:
-        from usdml.errors import UsdmlError
-        raise UsdmlError(f"--imageWidth {width}: use 1 to 16384 pixels")
+    from usdml.recorder import check_width
+    check_width(width)
 
 
 def _delegate(args: argparse.Namespace):
@@ -160,17 +159,15 @@ def _bake_svo(args: argparse.Namespace, delegate, settings, frames) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from usdml.render.sequence import RenderJob, render_sequence
+    from usdml.recorder import Recorder
 
-    job = RenderJob(stage=args.stage, output=args.output, frames=args.frames, camera=args.camera,
-                    image_width=args.imageWidth, render_settings=args.render_settings,
-                    purposes=_purposes(args),
-                    implicit_detail=args.implicit_detail, camera_light=args.cameraLightEnabled,
-                    aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
-                    device=args.device, resume=args.resume, preview=args.preview,
-                    overrides=overrides_from_args(args))
-    _check_width(job.image_width)
-    summary = render_sequence(job)
+    # the command is the pipeline API (usdml.Recorder): one code path
+    recorder = Recorder(image_width=args.imageWidth, camera=args.camera, render_settings=args.render_settings,
+                        purposes=_purposes(args), implicit_detail=args.implicit_detail,
+                        camera_light=args.cameraLightEnabled,
+                        aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
+                        device=args.device, preview=args.preview, **overrides_from_args(args))
+    summary = recorder.record_sequence(args.stage, args.frames, args.output, resume=args.resume).summary
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0

@@ -38,7 +38,7 @@ class Product:
 
 @dataclass
 class RenderJob:
-    stage: str
+    stage: object                       #: a path, or an open ``Usd.Stage``
     output: str | None = None
     frames: str | None = None
     camera: str | None = None
@@ -52,6 +52,8 @@ class RenderJob:
     implicit_detail: int = 10
     camera_light: bool = True
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
+    #: one frame (``frames``) written to ``output`` as it is: no frame placeholder needed (the API's record)
+    single_file: bool = False
 
 
 def _resolution(snap, job: RenderJob) -> tuple[int, int]:
@@ -68,7 +70,8 @@ def _resolution(snap, job: RenderJob) -> tuple[int, int]:
 
 def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) -> list[Product]:
     """Where each frame's AOVs go, checked before any rendering starts."""
-    frames_given = job.frames is not None
+    frames_given = job.frames is not None and not (job.single_file and frame_placeholder(job.output or "") is None
+                                                   and "#" not in (job.output or ""))
     precision = frame_spec_precision(job.frames)
     if job.output:
         names = job.aovs or list(DEFAULT_AOVS)
@@ -82,7 +85,7 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
         return [Product(dict(zip(frames, paths)), {find_aov(n).name: find_aov(n).name for n in names})]
     first = delegate.render_settings(frames[0])
     if first is None:
-        raise UsdmlError(f"{job.stage}: give an OUTPUT path (e.g. out/beauty.####.exr) or author "
+        raise UsdmlError(f"{delegate.path}: give an OUTPUT path (e.g. out/beauty.####.exr) or author "
                          "RenderSettings with a RenderProduct (renderSettingsPrimPath)")
     products: list[Product] = []
     wanted = {find_aov(a).name for a in job.aovs or [] if find_aov(a)}
@@ -195,6 +198,7 @@ def render_sequence(job: RenderJob) -> dict:
         make_output_folder(folder)       # before the first frame renders, not after it
     renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light,
                              backend_options=build_messages())
+    stage_file = os.path.abspath(delegate.path) if os.path.exists(delegate.path) else delegate.path
     written, skipped, seconds = [], [], []
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
@@ -212,7 +216,7 @@ def render_sequence(job: RenderJob) -> dict:
                     path = product.paths[f]
                     aovs = {layer: result.buffers[aov] for layer, aov in product.layers.items()}
                     write_exr(path, aovs, layers=product.layers, world_to_camera=w2c, world_to_ndc=w2n,
-                              timecode=f, stage=os.path.abspath(job.stage), settings=settings.as_dict(),
+                              timecode=f, stage=stage_file, settings=settings.as_dict(),
                               metadata={"usdml:renderProduct": product.source,
                                         "usdml:camera": result.camera.path or "(framing)"})
                     if job.preview and "color" in result.buffers:
@@ -225,7 +229,7 @@ def render_sequence(job: RenderJob) -> dict:
         renderer.close()
     total = _time.perf_counter() - started
     return {
-        "stage": job.stage, "frames": written, "skipped": skipped,
+        "stage": delegate.path, "frames": written, "skipped": skipped,
         "resolution": [width, height],
         "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
         "seconds": total, "visibility": settings.visibility,

@@ -59,6 +59,13 @@ def open_stage(path: str | os.PathLike) -> Usd.Stage:
     return stage
 
 
+def stage_name(stage: Usd.Stage) -> str:
+    """How messages and files name an open stage: its root layer's file, else its identifier (an
+    in-memory stage's ``anon:...``)."""
+    layer = stage.GetRootLayer()
+    return layer.realPath or layer.identifier
+
+
 def require_geometry(delegate: "StageDelegate", snap: Snapshot) -> None:
     """Raise the one-line error for a snapshot with nothing to render."""
     if not snap.meshes and not snap.prototypes:
@@ -120,10 +127,12 @@ class StageDelegate:
     render_settings_path : ``--renderSettingsPrimPath``, else the stage's ``renderSettingsPrimPath``.
     """
 
-    def __init__(self, path: str | os.PathLike, camera: str | None = None,
+    def __init__(self, path: "str | os.PathLike | Usd.Stage", camera: str | None = None,
                  render_settings_path: str | None = None, warn: Warnings | None = None,
                  purposes: list[str] | None = None, implicit_detail: int = DEFAULT_IMPLICIT_DETAIL):
-        self.path = str(path)
+        # an open stage (a pipeline script's, with its session layer or in memory) is read as it is
+        opened = path if isinstance(path, Usd.Stage) else None
+        self.path = stage_name(opened) if opened is not None else str(path)
         if not 3 <= implicit_detail <= MAX_IMPLICIT_DETAIL:
             raise UsdmlError(f"implicit detail {implicit_detail}: use 3 to {MAX_IMPLICIT_DETAIL} segments")
         self.warn = warn or Warnings()
@@ -132,7 +141,7 @@ class StageDelegate:
         self._unsupported_seen: set[str] = set()
         self.unsupported: dict[str, int] = {}
         with usd_diagnostics(self.warn, self.path):     # USD's warnings while opening and composing
-            self.stage = open_stage(path)
+            self.stage = opened if opened is not None else open_stage(path)
             for err in self.stage.GetCompositionErrors():
                 self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
             self.settings_prim = settings_prim(self.stage, render_settings_path)

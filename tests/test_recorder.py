@@ -1,0 +1,111 @@
+"""The Python API (``usdml.Recorder``, shaped like usdrecord's FrameRecorder): the same pixels as the
+command line, open stages with session-layer edits and in-memory stages, the command line's
+validation and messages, sequences with resume, warnings collected, the example script."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import usdml
+from conftest import ROOT, add_cube_mesh, add_quad, ground_stage
+from pxr import Usd, UsdGeom, UsdLux
+from usdml.aov.exr import read_exr
+from usdml.cli import main
+
+pytest.importorskip("embreex")
+
+
+def _shot(new_stage) -> str:
+    def scene(stage):
+        cube = add_cube_mesh(stage, "/World/cube", size=4)
+        cube.AddTranslateOp().Set((0, 2, 0))
+        light = UsdLux.SphereLight.Define(stage, "/World/bulb")
+        light.CreateIntensityAttr(100.0)
+        light.AddTranslateOp().Set((3, 8, 1))
+    return ground_stage(new_stage, scene)
+
+
+def test_record_writes_what_the_command_line_writes(new_stage, tmp_path):
+    path = _shot(new_stage)
+    assert main(["render", path, str(tmp_path / "cli.exr"), "--imageWidth", "24", "--aovs", "color,shadow",
+                 "--pixel-samples", "1"]) == 0
+    result = usdml.Recorder(image_width=24, aovs=["color", "shadow"], pixel_samples=1).record(
+        path, 1, str(tmp_path / "api.exr"))
+    assert result.files == [str(tmp_path / "api.exr")] and result.frames == [1.0] and result.resolution == [24, 24]
+    cli, api = read_exr(tmp_path / "cli.exr")[0], read_exr(tmp_path / "api.exr")[0]
+    for aov in ("color", "shadow"):
+        np.testing.assert_array_equal(cli[aov], api[aov])
+    assert api["shadow"].max() > 0          # the cube shadows the ground
+
+
+def test_an_open_stage_renders_with_its_session_layer_edits(new_stage, tmp_path):
+    path = _shot(new_stage)
+    rec = usdml.Recorder(image_width=16, aovs=["direct"], pixel_samples=1)
+    base = read_exr(rec.record(path, 1, str(tmp_path / "a.exr")).files[0])[0]["direct"]
+    stage = Usd.Stage.Open(path)
+    with Usd.EditContext(stage, stage.GetSessionLayer()):
+        UsdLux.SphereLight(stage.GetPrimAtPath("/World/bulb")).GetIntensityAttr().Set(400.0)
+    brighter = read_exr(rec.record(stage, 1, str(tmp_path / "b.exr")).files[0])[0]["direct"]
+    lit = base > 1e-3
+    np.testing.assert_allclose(brighter[lit], 4 * base[lit], rtol=2e-3)     # half floats in the EXR
+    # the file on disk is untouched
+    assert Usd.Stage.Open(path).GetPrimAtPath("/World/bulb").GetAttribute("inputs:intensity").Get() == 100.0
+
+
+def test_an_in_memory_stage_renders(tmp_path):
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    add_quad(stage, "/World/ground", size=20)
+    light = UsdLux.SphereLight.Define(stage, "/World/bulb")
+    light.CreateIntensityAttr(50.0)
+    light.AddTranslateOp().Set((0, 5, 0))
+    result = usdml.Recorder(image_width=12, aovs=["direct"]).record(stage, 0, str(tmp_path / "mem.exr"))
+    img, meta = read_exr(result.files[0])
+    assert img["direct"].max() > 0
+    assert result.summary["stage"].startswith("anon:")
+
+
+def test_settings_are_checked_as_the_command_line_checks_them(new_stage, capsys):
+    path = _shot(new_stage)
+    with pytest.raises(usdml.UsdmlError) as api:
+        usdml.Recorder(voxel_resolution=2)
+    assert main(["render", path, "/tmp/x.exr", "--voxel-resolution", "2"]) != 0
+    assert str(api.value) in capsys.readouterr().err
+    with pytest.raises(usdml.UsdmlError, match="unknown setting.*colour"):
+        usdml.Recorder(colour="red")
+    with pytest.raises(usdml.UsdmlError, match="imageWidth 0"):
+        usdml.Recorder(image_width=0)
+    with pytest.raises(usdml.UsdmlError, match="no such file"):
+        usdml.Recorder().record("/nope/shot.usda", 1, "/tmp/x.exr")
+
+
+def test_a_sequence_resumes_and_warnings_come_back(new_stage, tmp_path):
+    stage = new_stage(start=1, end=3)
+    add_quad(stage, "/World/ground", size=20)
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    rec = usdml.Recorder(image_width=8, aovs=["color"], pixel_samples=1)
+    out = str(tmp_path / "seq.####.exr")
+    first = rec.record_sequence(path, "1:2", out)
+    assert first.frames == [1.0, 2.0] and len(first.files) == 2
+    assert any("no lights" in w for w in first.warnings)          # lit by a camera light, said once
+    again = rec.record_sequence(path, [1, 2, 3], out, resume=True)
+    assert again.skipped == [1.0, 2.0] and again.frames == [3.0] and again.files == [str(tmp_path / "seq.0003.exr")]
+    # one frame: to the path as it is, or with a placeholder the frame's
+    assert rec.record(path, 2, str(tmp_path / "one.####.exr")).files == [str(tmp_path / "one.0002.exr")]
+    assert rec.record(path, 2, str(tmp_path / "plain.exr")).files == [str(tmp_path / "plain.exr")]
+
+
+def test_the_example_script_relights_a_shot(new_stage, tmp_path):
+    path = _shot(new_stage)
+    out = tmp_path / "shot.####.exr"
+    done = subprocess.run([sys.executable, str(ROOT / "tools" / "record_shot.py"), path, str(out), "--light-scale", "2",
+                           "--imageWidth", "12", "--frames", "1"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert str(tmp_path / "shot.0001.exr") in done.stdout
+    assert read_exr(tmp_path / "shot.0001.exr")[0]["direct"].max() > 0

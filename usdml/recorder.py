@@ -1,0 +1,139 @@
+"""The Python API for pipeline scripts, shaped like OpenUSD's ``UsdAppUtils.FrameRecorder``.
+
+::
+
+    import usdml
+
+    rec = usdml.Recorder(image_width=512, visibility="voxel", aovs=["color", "shadow"])
+    result = rec.record("shot.usda", 101, "out/beauty.####.exr")       # a path or an open Usd.Stage
+    print(result.files, result.seconds, result.warnings)
+    rec.record_sequence(stage, "101:148", "out/beauty.####.exr", resume=True)
+
+``usdrecord``'s ``FrameRecorder.Record(stage, usdCamera, timeCode, outputImagePath)`` takes the camera
+per call; here the camera is a setting (``camera=``, a prim path or name, as ``--camera``), because
+usdml's renderer keeps its visibility structures from frame to frame. ``usd-core`` has no
+``UsdAppUtils``, so nothing of it is imported.
+
+Settings are the command line's, as keyword arguments: the render options (``image_width``, ``camera``,
+``purposes``, ``aovs``, ``render_settings``, ``device``, ``implicit_detail``, ``camera_light``,
+``preview``) and every field of the parameter table (:data:`usdml.params.PARAMS`: ``visibility``,
+``gi``, ``pixel_samples``, ``seed``, the voxel, svo, insm and LGH parameters ...). They are checked
+when the recorder is made, by the validation the command line uses (:func:`usdml.params.check`),
+with the same one-line :class:`usdml.UsdmlError` messages. The ``usdml render`` command is this
+class (:func:`usdml.cli.main` makes one), so a script and the command line render alike.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from numbers import Number
+
+from usdml import params
+from usdml.errors import UsdmlError
+
+__all__ = ["Recorder", "RecordResult", "RENDER_OPTIONS"]
+
+#: the options of a render beside the parameter table's fields, with their defaults
+RENDER_OPTIONS = {"image_width": None, "camera": None, "purposes": None, "aovs": None, "render_settings": None,
+                  "device": "cpu", "implicit_detail": 10, "camera_light": True, "preview": False}
+#: widest image a render takes
+MAX_WIDTH = 16384
+
+
+@dataclass
+class RecordResult:
+    """What one :meth:`Recorder.record` or :meth:`Recorder.record_sequence` did."""
+
+    files: list[str]                 #: every file written, in frame order
+    frames: list[float]              #: the timecodes rendered
+    skipped: list[float]             #: timecodes already complete (``resume``)
+    seconds: float                   #: the whole call
+    seconds_per_frame: float
+    resolution: list[int]
+    warnings: list[str] = field(default_factory=list)   #: what the stage and the render warned about
+    summary: dict = field(default_factory=dict)         #: ``usdml render --json``'s summary
+
+
+def check_width(width: int | None) -> None:
+    """A one-line error for an image width outside ``1 .. MAX_WIDTH``."""
+    if width is not None and not 1 <= width <= MAX_WIDTH:
+        raise UsdmlError(f"--imageWidth {width}: use 1 to {MAX_WIDTH} pixels")
+
+
+def frames_text(frames) -> str | None:
+    """A FrameSpec string from ``frames``: a FrameSpec (``"101:148"``, ``"1:10x2"``), one timecode, a list of
+    them, or None (the stage's start frame)."""
+    if frames is None or isinstance(frames, str):
+        return frames
+    if isinstance(frames, Number):
+        return f"{float(frames):g}"
+    items = list(frames)
+    if not items or not all(isinstance(f, Number) for f in items):
+        raise UsdmlError(f"frames {frames!r}: give a FrameSpec ('101:148'), a timecode or a list of timecodes")
+    return ",".join(f"{float(f):g}" for f in items)
+
+
+class _Collect(logging.Handler):
+    """The ``usdml`` logger's warnings during one call."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+class Recorder:
+    """Renders frames of a stage to EXR (module doc). Keyword arguments: :data:`RENDER_OPTIONS` and the
+    parameter table's fields; a stage's own ``usdml:*`` attributes apply where a keyword is not given,
+    as on the command line."""
+
+    def __init__(self, **settings) -> None:
+        unknown = sorted(k for k in settings if k not in RENDER_OPTIONS and k not in params.PARAMS)
+        if unknown:
+            raise UsdmlError(f"Recorder: unknown setting(s) {', '.join(unknown)}; it takes "
+                             f"{', '.join(list(RENDER_OPTIONS) + list(params.PARAMS))}")
+        self.options = {k: settings.get(k, v) for k, v in RENDER_OPTIONS.items()}
+        self.overrides = {k: v for k, v in settings.items() if k in params.PARAMS and v is not None}
+        for name, value in self.overrides.items():
+            params.check(name, value)
+        check_width(self.options["image_width"])
+        aovs = self.options["aovs"]
+        if isinstance(aovs, str):
+            self.options["aovs"] = [a for a in aovs.split(",") if a]
+        if self.options["purposes"] is not None:
+            self.options["purposes"] = list(self.options["purposes"])
+
+    def record(self, stage, time_code: float, output_path: str | None) -> RecordResult:
+        """Render ``time_code`` of ``stage`` (a path or an open ``Usd.Stage``) to ``output_path``: that
+        file, or with ``#`` placeholders the frame's (None: the stage's RenderSettings products)."""
+        return self.record_sequence(stage, [time_code], output_path, single_file=True)
+
+    def record_sequence(self, stage, frames=None, output_path: str | None = None, resume: bool = False,
+                        single_file: bool = False) -> RecordResult:
+        """Render ``frames`` (a FrameSpec such as ``"101:148"`` or ``"1:10x2"``, timecodes, or None: the
+        start frame) of ``stage`` to ``output_path``, whose frame placeholders follow usdrecord's rule
+        (one is needed when frames are given); ``resume`` skips frames whose files are complete;
+        ``single_file``: one frame to ``output_path`` as it is (:meth:`record`)."""
+        from usdml.render.sequence import RenderJob, render_sequence
+
+        o = self.options
+        job = RenderJob(stage=stage, output=output_path, frames=frames_text(frames), camera=o["camera"],
+                        image_width=o["image_width"], render_settings=o["render_settings"], aovs=o["aovs"],
+                        device=o["device"], resume=resume, preview=o["preview"], purposes=o["purposes"],
+                        implicit_detail=o["implicit_detail"], camera_light=o["camera_light"],
+                        overrides=dict(self.overrides), single_file=single_file)
+        collect = _Collect()
+        logger = logging.getLogger("usdml")
+        logger.addHandler(collect)
+        try:
+            summary = render_sequence(job)
+        finally:
+            logger.removeHandler(collect)
+        return RecordResult(files=list(summary["outputs"]), frames=list(summary["frames"]),
+                            skipped=list(summary["skipped"]), seconds=summary["seconds"],
+                            seconds_per_frame=summary["secondsPerFrame"], resolution=list(summary["resolution"]),
+                            warnings=collect.messages, summary=summary)
+
