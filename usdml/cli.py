@@ -166,8 +166,17 @@ def _cmd_render(args: argparse.Namespace) -> int:
                         purposes=_purposes(args), implicit_detail=args.implicit_detail,
                         camera_light=args.cameraLightEnabled,
                         aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
-                        device=args.device, preview=args.preview, **overrides_from_args(args))
+                        device=args.device, preview=args.preview, workers=args.workers, scheduler=args.scheduler,
+                        chunk_size=args.chunk_size, retries=args.retries, nthreads=args.nthreads,
+                        **overrides_from_args(args))
     summary = recorder.record_sequence(args.stage, args.frames, args.output, resume=args.resume).summary
+    if summary.get("failed"):
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        print(f"usdml: error: {len(summary['failed'])} frame(s) failed ({summary['rerun']}): "
+              f"{next(iter(summary['errors'].values()))}; render them again with --frames {summary['rerun']}",
+              file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -247,6 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",
                         help="no camera light for stages without lights (usdrecord's flag)")
     render.add_argument("--json", action="store_true", help="print the summary as JSON")
+    farm = render.add_argument_group("frames on Dask (docs/rendering.md, \"Render farms\")")
+    farm.add_argument("--workers", type=int, metavar="N", help="render frames on a local Dask cluster of N process workers")
+    farm.add_argument("--scheduler", metavar="ADDRESS", help="render frames on a running Dask cluster (tcp://HOST:PORT)")
+    farm.add_argument("--chunk-size", type=int, default=1, metavar="K", help="frames per task (default: %(default)s)")
+    farm.add_argument("--retries", type=int, default=2, metavar="R",
+                      help="attempts per chunk beyond the first (default: %(default)s)")
+    farm.add_argument("--nthreads", type=int, metavar="T",
+                      help="threads each worker renders with (default: the machine's cores / --workers)")
     render.set_defaults(run=_cmd_render)
 
     compare = sub.add_parser("compare", help="one frame two ways: error of a method against its reference")

@@ -3,9 +3,10 @@ while they work, so independent launches or calls from a thread pool run on all 
 
 Every module that splits work goes through here, so the thread count has one home:
 
-* :func:`cpu_workers` — how many threads: the cores this *process* may use (its CPU affinity, which a
-  container or ``taskset`` narrows; ``os.cpu_count()`` would count the whole machine), 1 for a GPU
-  device (its launches are asynchronous and go one after another);
+* :func:`cpu_workers` — how many threads: ``USDML_THREADS`` where set (a render-farm worker's share),
+  else the cores this *process* may use (its CPU affinity, which a container or ``taskset`` narrows;
+  ``os.cpu_count()`` would count the whole machine), 1 for a GPU device (its launches are asynchronous
+  and go one after another);
 * :func:`run_parallel` (a list) and :func:`iter_parallel` (results as they come, for progress) —
   ``fn`` over items on that many threads, results in order, a worker's exception raised in the caller;
 * :func:`spans` — ``[lo, hi)`` blocks of a range to hand out; :func:`run_bands` — a launch over
@@ -18,6 +19,9 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable, Iterator, TypeVar
 
+#: environment variable a process's thread count is taken from when set (a Dask worker's ``--nthreads``)
+THREADS_ENV = "USDML_THREADS"
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -29,6 +33,9 @@ def cpu_workers(device: object = "cpu", requested: int | None = None) -> int:
         return 1
     if requested:
         return max(1, int(requested))
+    given = os.environ.get(THREADS_ENV, "")
+    if given.strip().isdigit() and int(given) > 0:
+        return int(given)          # a farm worker's share of the machine (usdml.render.farm)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):      # no affinity on macOS / Windows

@@ -26,6 +26,7 @@ class (:func:`usdml.cli.main` makes one), so a script and the command line rende
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 from numbers import Number
 
@@ -36,7 +37,9 @@ __all__ = ["Recorder", "RecordResult", "RENDER_OPTIONS"]
 
 #: the options of a render beside the parameter table's fields, with their defaults
 RENDER_OPTIONS = {"image_width": None, "camera": None, "purposes": None, "aovs": None, "render_settings": None,
-                  "device": "cpu", "implicit_detail": 10, "camera_light": True, "preview": False}
+                  "device": "cpu", "implicit_detail": 10, "camera_light": True, "preview": False,
+                  # frames on Dask (usdml.render.farm): a local cluster of ``workers``, or a ``scheduler``
+                  "workers": None, "scheduler": None, "chunk_size": 1, "retries": 2, "nthreads": None}
 #: widest image a render takes
 MAX_WIDTH = 16384
 
@@ -52,6 +55,8 @@ class RecordResult:
     seconds_per_frame: float
     resolution: list[int]
     warnings: list[str] = field(default_factory=list)   #: what the stage and the render warned about
+    failed: list[float] = field(default_factory=list)   #: on Dask: timecodes whose chunk failed every attempt
+    rerun: str | None = None                            #: a FrameSpec of ``failed``
     summary: dict = field(default_factory=dict)         #: ``usdml render --json``'s summary
 
 
@@ -129,11 +134,32 @@ class Recorder:
         logger = logging.getLogger("usdml")
         logger.addHandler(collect)
         try:
-            summary = render_sequence(job)
+            if o["workers"] is not None or o["scheduler"] is not None:
+                summary = self._on_dask(job)
+            else:
+                summary = render_sequence(job)
         finally:
             logger.removeHandler(collect)
         return RecordResult(files=list(summary["outputs"]), frames=list(summary["frames"]),
                             skipped=list(summary["skipped"]), seconds=summary["seconds"],
                             seconds_per_frame=summary["secondsPerFrame"], resolution=list(summary["resolution"]),
-                            warnings=collect.messages, summary=summary)
+                            warnings=collect.messages, failed=list(summary.get("failed", [])),
+                            rerun=summary.get("rerun"), summary=summary)
+
+    def _on_dask(self, job) -> dict:
+        """The job's frames as chunks on Dask (:mod:`usdml.render.farm`)."""
+        from usdml.aov.naming import frame_spec
+        from usdml.render.farm import render_on_dask
+        from usdml.stage import StageDelegate
+
+        if not isinstance(job.stage, (str, os.PathLike)):
+            raise UsdmlError("a render on Dask needs the stage as a file every worker can open, not an open Usd.Stage")
+        delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
+                                 purposes=job.purposes, implicit_detail=job.implicit_detail)
+        frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
+        for f in frames:
+            delegate.check_time(f)
+        o = self.options
+        return render_on_dask(job, frames, workers=o["workers"], scheduler=o["scheduler"], chunk_size=o["chunk_size"],
+                              retries=o["retries"], nthreads=o["nthreads"])
 

@@ -54,6 +54,9 @@ class RenderJob:
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
     #: one frame (``frames``) written to ``output`` as it is: no frame placeholder needed (the API's record)
     single_file: bool = False
+    #: skip frames whose files are complete and written since this time (``time.time()``): a farm chunk's
+    #: retry skips what its killed attempt finished, and nothing older
+    resume_since: float | None = None
 
 
 def _resolution(snap, job: RenderJob) -> tuple[int, int]:
@@ -133,8 +136,10 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
     return products
 
 
-def _frame_done(products: list[Product], frame: float) -> bool:
-    return all(is_complete_exr(p.paths[frame]) for p in products)
+def _frame_done(products: list[Product], frame: float, since: float | None = None) -> bool:
+    """Every file of ``frame`` is a complete EXR (and, with ``since``, written at or after that time)."""
+    return all(is_complete_exr(p.paths[frame]) and (since is None or os.path.getmtime(p.paths[frame]) >= since)
+               for p in products)
 
 
 def check_device(device: str) -> None:
@@ -203,7 +208,8 @@ def render_sequence(job: RenderJob) -> dict:
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
             for f in frames:
-                if job.resume and _frame_done(products, f):
+                if (job.resume and _frame_done(products, f)) or \
+                        (job.resume_since is not None and _frame_done(products, f, job.resume_since)):
                     skipped.append(f)
                     bar.update(1)
                     continue

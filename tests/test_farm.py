@@ -1,0 +1,133 @@
+"""Frames on Dask (usdml.render.farm): a LocalCluster render equals a one-process render pixel for pixel,
+a worker killed with SIGKILL mid-sequence costs a retry and never a frame, a frame that fails every
+attempt is reported with a FrameSpec to render it again and a non-zero exit."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import usdml
+from conftest import STAGES, add_quad
+from pxr import Sdf, UsdLux, UsdRender
+from usdml.aov.exr import is_complete_exr, read_exr
+from usdml.cli import main
+from usdml.render.farm import chunks, rerun_spec
+
+pytest.importorskip("distributed")
+pytest.importorskip("embreex")
+
+PARK = str(STAGES / "park.usda")
+
+
+def test_chunks_and_the_rerun_framespec():
+    assert chunks([1.0, 2.0, 3.0, 4.0, 5.0], 2) == [[1.0, 2.0], [3.0, 4.0], [5.0]]
+    assert chunks([1.0], 4) == [[1.0]]
+    assert rerun_spec([7.0, 2.0, 2.5]) == "2,2.5,7"
+
+
+def test_frames_on_a_local_cluster_equal_one_process(tmp_path, capsys):
+    args = ["--frames", "1:3", "--imageWidth", "16", "--pixel-samples", "1", "--aovs", "color,shadow,depth"]
+    assert main(["render", PARK, str(tmp_path / "one" / "p.####.exr"), *args]) == 0
+    capsys.readouterr()
+    assert main(["render", PARK, str(tmp_path / "farm" / "p.####.exr"), *args, "--workers", "2", "--chunk-size", "2",
+                 "--nthreads", "1", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == [1.0, 2.0, 3.0] and summary["failed"] == [] and summary["rerun"] is None
+    assert summary["threadsPerWorker"] == 1 and summary["startupSeconds"] > 0
+    for f in (1, 2, 3):
+        one = read_exr(tmp_path / "one" / f"p.{f:04d}.exr")[0]
+        farm = read_exr(tmp_path / "farm" / f"p.{f:04d}.exr")[0]
+        for aov in one:
+            np.testing.assert_array_equal(one[aov], farm[aov])
+
+
+def _is_worker(proc) -> bool:
+    """A Dask worker process (multiprocessing's spawned child), not its resource tracker."""
+    try:
+        cmd = " ".join(proc.cmdline())
+    except Exception:
+        return False
+    return "spawn_main" in cmd and "resource_tracker" not in cmd
+
+
+def test_frames_on_a_running_scheduler_equal_one_process(tmp_path, capsys):
+    from distributed import LocalCluster
+
+    args = ["--frames", "1:2", "--imageWidth", "12", "--pixel-samples", "1", "--aovs", "color"]
+    assert main(["render", PARK, str(tmp_path / "one" / "p.####.exr"), *args]) == 0
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        assert main(["render", PARK, str(tmp_path / "sch" / "p.####.exr"), *args, "--scheduler",
+                     cluster.scheduler_address]) == 0
+    for f in (1, 2):
+        np.testing.assert_array_equal(read_exr(tmp_path / "one" / f"p.{f:04d}.exr")[0]["color"],
+                                      read_exr(tmp_path / "sch" / f"p.{f:04d}.exr")[0]["color"])
+    assert "frame 2 done" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_killed_worker_costs_a_retry_never_a_frame(tmp_path):
+    """Every worker process is killed (SIGKILL) once the first frame is on disk; the nannies start new
+    ones, the lost chunks run again, and every frame ends complete (about 40 s)."""
+    import psutil
+
+    out = tmp_path / "k" / "p.####.exr"
+    frames = "1:8"
+    box = {}
+
+    def render():
+        rec = usdml.Recorder(image_width=48, aovs=["color"], pixel_samples=4, workers=2, retries=3)
+        box["result"] = rec.record_sequence(PARK, frames, str(out))
+
+    t = threading.Thread(target=render)
+    t.start()
+    me = psutil.Process(os.getpid())
+    killed = []
+    deadline = time.time() + 120
+    while time.time() < deadline and not killed and t.is_alive():
+        written = list((tmp_path / "k").glob("p.*.exr")) if (tmp_path / "k").exists() else []
+        workers = [p for p in me.children(recursive=True) if _is_worker(p)]
+        if written and workers:
+            for p in workers:                  # every worker process, mid-sequence
+                os.kill(p.pid, signal.SIGKILL)
+                killed.append(p.pid)
+        time.sleep(0.05)
+    t.join(300)
+    assert killed, "no worker was running to be killed"
+    result = box["result"]
+    assert result.failed == [] and sorted(result.frames) == [float(f) for f in range(1, 9)]
+    for f in range(1, 9):
+        path = tmp_path / "k" / f"p.{f:04d}.exr"
+        assert path.exists() and is_complete_exr(str(path))
+    assert not [p for p in (tmp_path / "k").iterdir() if not p.name.endswith(".exr")]   # no partial file left
+
+
+def test_a_frame_that_fails_every_attempt_is_reported_with_a_rerun_framespec(new_stage, tmp_path, capsys):
+    stage = new_stage(start=1, end=3)
+    add_quad(stage, "/World/ground", size=20)
+    UsdLux.SphereLight.Define(stage, "/World/bulb").AddTranslateOp().Set((0, 4, 0))
+    (tmp_path / "blocker").write_text("a file where frame 2's folder must go")
+    product = UsdRender.Product.Define(stage, "/Render/Product")
+    name = product.CreateProductNameAttr()
+    for f, path in ((1, tmp_path / "ok" / "a.0001.exr"), (2, tmp_path / "blocker" / "b.exr"),
+                    (3, tmp_path / "ok" / "a.0003.exr")):
+        name.Set(str(path), f)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateProductsRel().SetTargets([Sdf.Path("/Render/Product")])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    code = main(["render", path, "--frames", "1:3", "--imageWidth", "8", "--workers", "2", "--retries", "1", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 1
+    summary = json.loads(out)
+    assert summary["frames"] == [1.0, 3.0] and summary["failed"] == [2.0] and summary["rerun"] == "2"
+    assert "cannot create the output folder" in summary["errors"]["2"]
+    assert "--frames 2" in err and "Traceback" not in err
+    assert (tmp_path / "ok" / "a.0001.exr").exists() and (tmp_path / "ok" / "a.0003.exr").exists()
