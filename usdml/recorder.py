@@ -16,7 +16,8 @@ usdml's renderer keeps its visibility structures from frame to frame. ``usd-core
 
 Settings are the command line's, as keyword arguments: the render options (``image_width``, ``camera``,
 ``purposes``, ``aovs``, ``render_settings``, ``device``, ``implicit_detail``, ``camera_light``,
-``preview``) and every field of the parameter table (:data:`usdml.params.PARAMS`: ``visibility``,
+``preview``; ``workers``, ``scheduler``, ``chunk_size``, ``retries``, ``nthreads`` for frames on Dask,
+:mod:`usdml.render.farm`) and every field of the parameter table (:data:`usdml.params.PARAMS`: ``visibility``,
 ``gi``, ``pixel_samples``, ``seed``, the voxel, svo, insm and LGH parameters ...). They are checked
 when the recorder is made, by the validation the command line uses (:func:`usdml.params.check`),
 with the same one-line :class:`usdml.UsdmlError` messages. The ``usdml render`` command is this
