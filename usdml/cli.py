@@ -158,6 +158,22 @@ def _bake_svo(args: argparse.Namespace, delegate, settings, frames) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from usdml.errors import UsdmlError
+    from usdml.view import view
+
+    try:
+        w, h = (int(x) for x in args.window_size.split(","))
+    except ValueError:
+        raise UsdmlError(f"--window-size {args.window_size!r}: give W,H in pixels, e.g. 1280,720") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise UsdmlError(f"--window-size {w},{h}: use 16 to 8192 pixels a side")
+    drawn = view(args.stage, args.png, frame=args.frame, camera=args.camera,
+                 show=tuple(s for s in args.show.split(",") if s), window_size=(w, h), interactive=args.interactive)
+    print(", ".join(f"{k} {v}" for k, v in drawn.items() if k not in ("stage", "png")) + (f" -> {args.png}" if args.png else ""))
+    return 0
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from usdml.recorder import Recorder
 
@@ -265,6 +281,17 @@ def build_parser() -> argparse.ArgumentParser:
     farm.add_argument("--nthreads", type=int, metavar="T",
                       help="threads each worker renders with (default: the machine's cores / --workers)")
     render.set_defaults(run=_cmd_render)
+
+    view = sub.add_parser("view", help="a frame in 3-D (pyvista): geometry, instances, cameras, lights, to a PNG")
+    view.add_argument("stage", help="USD stage to read (.usd, .usda, .usdc, .usdz)")
+    view.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
+    view.add_argument("--camera", help="the render camera to highlight (prim path or name)")
+    view.add_argument("--show", default="geometry,cameras,lights",
+                      help="comma-separated: geometry, instances, cameras, lights (default: %(default)s)")
+    view.add_argument("--png", help="write the picture here (off-screen)")
+    view.add_argument("--interactive", action="store_true", help="open a window instead (needs a display)")
+    view.add_argument("--window-size", default="1280,720", metavar="W,H", help="pixels (default: %(default)s)")
+    view.set_defaults(run=_cmd_view)
 
     compare = sub.add_parser("compare", help="one frame two ways: error of a method against its reference")
     _add_stage_args(compare)

@@ -1,0 +1,65 @@
+"""``usdml view``: off-screen pictures of a stage that are not blank (coverage and colours checked), the
+render camera highlighted, bad flags one line; skipped cleanly where VTK cannot render off-screen."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import STAGES
+from usdml.cli import main
+
+pytest.importorskip("pyvista")
+
+
+@pytest.fixture(scope="module")
+def offscreen():
+    from usdml.view import probe
+    why = probe()
+    if why:
+        pytest.skip(why)
+
+
+def _read(path):
+    import OpenImageIO as oiio
+    img = oiio.ImageInput.open(str(path))
+    data = img.read_image("uint8")
+    img.close()
+    return np.asarray(data)[..., :3]
+
+
+def test_view_draws_geometry_cameras_and_lights(offscreen, tmp_path, capsys):
+    png = tmp_path / "cornell.png"
+    assert main(["view", str(STAGES / "cornell.usda"), "--png", str(png), "--window-size", "320,200"]) == 0
+    assert "lights 2" in capsys.readouterr().out
+    img = _read(png)
+    assert img.shape == (200, 320, 3)
+    background = img[0, 0]
+    covered = np.any(np.abs(img.astype(int) - background) > 8, axis=2).mean()
+    assert 0.05 < covered < 0.95, covered                     # something drawn, not a filled frame
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50     # shaded, not flat
+    # the render camera's frustum in its highlight colour (#ffd84a)
+    assert (np.abs(img.astype(int) - [255, 216, 74]).max(axis=2) < 40).sum() > 20
+    # the red and green walls by their albedo
+    r, g, b = (img[..., k].astype(int) for k in range(3))
+    assert ((r > 60) & (r > 2.5 * g) & (r > 2.5 * b)).sum() > 50
+    assert ((g > 40) & (g > 2 * r) & (g > 2 * b)).sum() > 50
+
+
+def test_instances_are_told_apart(offscreen, tmp_path):
+    plain, inst = tmp_path / "a.png", tmp_path / "b.png"
+    park = str(STAGES / "park.usda")
+    assert main(["view", park, "--png", str(plain), "--show", "geometry", "--window-size", "240,160"]) == 0
+    assert main(["view", park, "--png", str(inst), "--show", "geometry,instances", "--window-size", "240,160"]) == 0
+    a, b = _read(plain), _read(inst)
+    assert (np.abs(a.astype(int) - b).max(axis=2) > 30).mean() > 0.01     # the prototypes' colours show
+
+
+def test_bad_view_flags_are_one_line(tmp_path, capsys):
+    stage = str(STAGES / "cornell.usda")
+    assert main(["view", stage, "--show", "voxels", "--png", str(tmp_path / "x.png")]) != 0
+    assert "--show voxels" in capsys.readouterr().err
+    assert main(["view", stage, "--window-size", "huge", "--png", str(tmp_path / "x.png")]) != 0
+    assert "--window-size" in capsys.readouterr().err
+    assert main(["view", stage]) != 0
+    assert "--png" in capsys.readouterr().err
