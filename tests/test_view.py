@@ -57,9 +57,27 @@ def test_instances_are_told_apart(offscreen, tmp_path):
 
 def test_bad_view_flags_are_one_line(tmp_path, capsys):
     stage = str(STAGES / "cornell.usda")
-    assert main(["view", stage, "--show", "voxels", "--png", str(tmp_path / "x.png")]) != 0
-    assert "--show voxels" in capsys.readouterr().err
+    assert main(["view", stage, "--show", "teapots", "--png", str(tmp_path / "x.png")]) != 0
+    assert "--show teapots" in capsys.readouterr().err
     assert main(["view", stage, "--window-size", "huge", "--png", str(tmp_path / "x.png")]) != 0
     assert "--window-size" in capsys.readouterr().err
     assert main(["view", stage]) != 0
     assert "--png" in capsys.readouterr().err
+
+
+def test_voxels_vpls_and_lgh_layers(offscreen, tmp_path, capsys):
+    stage = str(STAGES / "cornell.usda")
+    png = tmp_path / "vox.png"
+    assert main(["view", stage, "--show", "voxels", "--voxel-resolution", "16", "--png", str(png),
+                 "--window-size", "200,160"]) == 0
+    out = capsys.readouterr().out
+    voxels = int(out.split("voxels ")[1].split()[0])
+    assert 500 < voxels < 16 ** 3           # the box's walls and blocks, not the whole cube
+    img = _read(png)
+    assert np.any(np.abs(img.astype(int) - img[0, 0]) > 8, axis=2).mean() > 0.05
+    assert main(["view", stage, "--show", "geometry,vpls,lgh", "--lgh-level", "2", "--png", str(tmp_path / "v.png"),
+                 "--window-size", "200,160"]) == 0
+    out = capsys.readouterr().out
+    assert "vpls " in out and "lgh_level 2" in out
+    assert main(["view", stage, "--show", "lgh", "--lgh-level", "99", "--png", str(tmp_path / "w.png")]) != 0
+    assert "--lgh-level 99" in capsys.readouterr().err

@@ -169,7 +169,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
         raise UsdmlError(f"--window-size {w},{h}: use 16 to 8192 pixels a side")
     drawn = view(args.stage, args.png, frame=args.frame, camera=args.camera,
-                 show=tuple(s for s in args.show.split(",") if s), window_size=(w, h), interactive=args.interactive)
+                 show=tuple(s for s in args.show.split(",") if s), window_size=(w, h), interactive=args.interactive,
+                 voxel_resolution=args.voxel_resolution, lgh_level=args.lgh_level)
     print(", ".join(f"{k} {v}" for k, v in drawn.items() if k not in ("stage", "png")) + (f" -> {args.png}" if args.png else ""))
     return 0
 
@@ -287,7 +288,12 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
     view.add_argument("--camera", help="the render camera to highlight (prim path or name)")
     view.add_argument("--show", default="geometry,cameras,lights",
-                      help="comma-separated: geometry, instances, cameras, lights (default: %(default)s)")
+                      help="comma-separated: geometry, instances, cameras, lights, voxels, vpls, lgh "
+                      "(default: %(default)s)")
+    view.add_argument("--voxel-resolution", type=int, default=64, metavar="N",
+                      help="voxels: the octree's occupied voxels at N^3, a power of two (default: %(default)s)")
+    view.add_argument("--lgh-level", type=int, default=1, metavar="L",
+                      help="lgh: the grid lights of level L, 1 = S1 (default: %(default)s)")
     view.add_argument("--png", help="write the picture here (off-screen)")
     view.add_argument("--interactive", action="store_true", help="open a window instead (needs a display)")
     view.add_argument("--window-size", default="1280,720", metavar="W,H", help="pixels (default: %(default)s)")

@@ -21,8 +21,8 @@ from usdml.errors import UsdmlError
 
 __all__ = ["LAYERS", "probe", "view"]
 
-#: what ``--show`` can draw (voxels, VPLs and LGH levels are not drawn yet)
-LAYERS = ("geometry", "cameras", "lights", "instances")
+#: what ``--show`` can draw
+LAYERS = ("geometry", "cameras", "lights", "instances", "voxels", "vpls", "lgh")
 #: an instance's colour: the golden-angle hue of its prototype, its lightness by instance
 _GOLDEN = 0.381966
 
@@ -76,11 +76,38 @@ def _frustum(cam, length: float):
     return pv.PolyData(np.array([apex, *corners]), lines=np.array(lines))
 
 
+def occupied_voxels(snap, resolution: int) -> tuple[np.ndarray, float]:
+    """``(K, 3)`` world centres of the voxels the sparse voxel octree (paper 003) sets for the frame's
+    geometry at ``resolution``³ over the scene's detail box, and the voxel size."""
+    from usdml.scene import world_geometry
+    from usdml.visibility.svo_tree import cube_grid, svo_bounds, voxelize_bricks
+
+    members = tuple([("mesh", m.path) for m in snap.meshes] + [("proto", p.path) for p in snap.prototypes])
+    pts, tris = world_geometry(snap, members)
+    if not len(tris):
+        return np.zeros((0, 3)), 1.0
+    depth = int(resolution).bit_length() - 1
+    lo, hi, _ = svo_bounds(pts, tris)
+    corner, h = cube_grid(lo, hi, depth)
+    bricks = voxelize_bricks(pts, tris, corner, h, depth).view(np.uint64)
+    nb = (1 << depth) // 4
+    idx = np.flatnonzero(bricks)
+    bz, by, bx = np.unravel_index(idx, (nb, nb, nb))
+    bits = (bricks[idx, None] >> np.arange(64, dtype=np.uint64)[None, :]) & np.uint64(1)
+    b, k = np.nonzero(bits)
+    x, y, z = 4 * bx[b] + (k & 3), 4 * by[b] + ((k >> 2) & 3), 4 * bz[b] + (k >> 4)
+    return corner + (np.stack([x, y, z], axis=1) + 0.5) * h, float(h)
+
+
 def view(stage: str, png: str | None, *, frame: float | None = None, camera: str | None = None,
          show: tuple[str, ...] = ("geometry", "cameras", "lights"), window_size: tuple[int, int] = (1280, 720),
-         interactive: bool = False) -> dict:
+         interactive: bool = False, voxel_resolution: int = 64, lgh_level: int = 1, settings=None) -> dict:
     """Draw ``show`` (:data:`LAYERS`) of ``stage`` at ``frame`` (default: its start) to ``png``, or in a
-    window; returns what was drawn (counts) and where."""
+    window; returns what was drawn (counts) and where.
+
+    ``voxels``: the octree's occupied voxels at ``voxel_resolution``³ (a power of two); ``vpls``: the
+    frame's VPLs (``settings``' VPL count, bounces and seed; the stage's when None) coloured by flux;
+    ``lgh``: the grid lights of LGH level ``lgh_level`` (1 = S1) built over them."""
     unknown = [s for s in show if s not in LAYERS]
     if unknown:
         raise UsdmlError(f"--show {','.join(unknown)}: usdml view draws {', '.join(LAYERS)}")
@@ -175,6 +202,42 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
             start = centre + d / np.linalg.norm(d) * 0.6 * size
             plotter.add_mesh(pv.Arrow(start, -d / np.linalg.norm(d), scale=0.25 * size), color=colour[i])
         drawn["lights"] = int(len(L))
+    if "voxels" in show:
+        if voxel_resolution < 8 or voxel_resolution & (voxel_resolution - 1):
+            raise UsdmlError(f"--voxel-resolution {voxel_resolution}: give a power of two from 8 up")
+        centres, h = occupied_voxels(snap, voxel_resolution)
+        if len(centres):
+            cubes = pv.PolyData(centres).glyph(geom=pv.Cube(x_length=h, y_length=h, z_length=h), scale=False,
+                                               orient=False)
+            plotter.add_mesh(cubes, color="#5ec8f2", opacity=0.55, show_edges=False)
+        drawn["voxels"] = int(len(centres))
+    if "vpls" in show or "lgh" in show:
+        from usdml.lighting.gi import prepare_vpls
+        from usdml.visibility import ExactBackend
+
+        base = delegate.usdml_settings if settings is None else settings
+        with ExactBackend() as exact:
+            exact.update(snap)
+            field = prepare_vpls(snap, exact, snap.lights, base.updated(gi="lgh"))
+        vpls = field.vpls
+        if "vpls" in show and len(vpls):
+            flux = np.asarray(vpls.flux, np.float64).mean(axis=1)
+            cloud = pv.PolyData(np.asarray(vpls.position, np.float64))
+            cloud["log10 flux"] = np.log10(np.maximum(flux, 1e-12))
+            plotter.add_mesh(cloud, scalars="log10 flux", cmap="inferno", point_size=5, render_points_as_spheres=True,
+                             scalar_bar_args={"title": "VPL flux (log10)", "position_y": 0.04})
+        drawn["vpls"] = int(len(vpls))
+        if "lgh" in show and field.lgh is not None:
+            levels = field.lgh.levels
+            if not 1 <= lgh_level <= len(levels):
+                raise UsdmlError(f"--lgh-level {lgh_level}: this frame's LGH has levels 1 to {len(levels)}")
+            level = levels[lgh_level - 1]
+            grid = pv.PolyData(np.asarray(level.position, np.float64))
+            grid["log10 intensity"] = np.log10(np.maximum(np.asarray(level.intensity, np.float64).mean(axis=1), 1e-12))
+            plotter.add_mesh(grid, scalars="log10 intensity", cmap="viridis", point_size=10,
+                             render_points_as_spheres=True,
+                             scalar_bar_args={"title": f"LGH level {lgh_level} intensity (log10)", "position_y": 0.86})
+            drawn["lgh_level"], drawn["lgh_lights"] = lgh_level, int(len(level.position))
     plotter.add_axes()
     # a three-quarter view from above, the stage's up axis up (pyvista's own "iso" assumes Z up)
     up = np.array([0.0, 0.0, 1.0]) if str(snap.up_axis).upper() == "Z" else np.array([0.0, 1.0, 0.0])
