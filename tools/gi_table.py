@@ -37,6 +37,19 @@ def _ints(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x]
 
 
+def chart(rows: list, path: str) -> None:
+    """The table as charts at ``path`` (``--plot``): error and speed-up against shadow samples per setting."""
+    from usdml.plots import panels, series
+
+    group = lambda r: f"α {r['alpha']:g}, S{r['start_level']}, {r['shadow_targets']}"
+    panels(path, [
+        dict(title="LGH against VPL brute force", xlabel="stochastic shadow samples per pixel",
+             ylabel="rel. RMSE of indirect (%)", series=series(rows, "shadow_samples", lambda r: 100 * r["rel_rmse"],
+                                                                group)),
+        dict(title="speed", xlabel="stochastic shadow samples per pixel", ylabel="speed-up over brute force (×)",
+             series=series(rows, "shadow_samples", "speedup", group))])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("stage")
@@ -54,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--check-rays", type=int, default=0, metavar="N",
                    help="with --visibility other than exact: test N of each row's LGH shadow rays with exact too")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = p.parse_args(argv)
 
     from gi_frame import open_frame
@@ -144,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     result = {"stage": args.stage, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
               "vpls": ref_vpls, "visibility": args.visibility, "reference_visibility": args.reference_visibility,
               "bruteforce_seconds": ref_s, "warmup_seconds": warm, "rows": rows}
+    if args.plot:
+        chart(rows, args.plot)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0

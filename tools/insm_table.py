@@ -86,17 +86,33 @@ def dynamic(stage: str, width: int) -> dict:
     return out
 
 
+def chart(rows: list, path: str) -> None:
+    """The sweeps as charts at ``path`` (``--plot``): ε_s against w, S and K (paper 001 Tables 2-4)."""
+    from usdml.plots import panels, series
+
+    stage = lambda r: r["stage"].rsplit("/", 1)[-1].removesuffix(".usda")
+    panels(path, [dict(title=f"paper 001 Table {t}", xlabel=label, ylabel="ε_s against exact (%)",
+                       logx=field != "insm_count",
+                       series=series([r for r in rows if r["sweep"] == field], field, lambda r: 100 * r["eps_s"], stage))
+                  for t, field, label in ((2, "insm_resolution", "depth-image resolution w (pixels)"),
+                                          (3, "insm_light_resolution", "light-map resolution S (texels)"),
+                                          (4, "insm_count", "depth images K"))])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("stages", nargs="+")
     p.add_argument("--imageWidth", type=int, default=128)
     p.add_argument("--dynamic", action="store_true", help="a moving frame against a still one (module doc)")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = p.parse_args(argv)
     if args.dynamic:
         result = {"dynamic": [dynamic(s, args.imageWidth) for s in args.stages]}
     else:
         result = {"rows": [row for s in args.stages for row in sweep(s, args.imageWidth)]}
+    if args.plot and "rows" in result:
+        chart(result["rows"], args.plot)
     print(json.dumps(result, indent=2) if args.json else result)
     return 0
 

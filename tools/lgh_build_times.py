@@ -23,6 +23,16 @@ import numpy as np
 STEPS = ("bounds", "auto_levels", "s1", "gather", "compaction", "merge")
 
 
+def chart(rows: list, path: str) -> None:
+    """The table as a chart at ``path`` (``--plot``): build seconds, and each step's, against VPLs."""
+    from usdml.plots import panels
+
+    xs = [r["vpls"] for r in rows]
+    panels(path, [dict(title="LGH build (paper 004 Table 1)", xlabel="VPLs", ylabel="seconds", logx=True, logy=True,
+                       series=[("build", xs, [r["seconds"] for r in rows])]
+                       + [(k, xs, [max(r[f"{k}_seconds"], 1e-6) for r in rows]) for k in STEPS])])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("stage")
@@ -31,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frame", type=float)
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = p.parse_args(argv)
 
     from gi_frame import open_frame
@@ -57,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
                      "levels": stats["levels"], "lights_per_level": stats["lights_per_level"],
                      **{f"{k}_seconds": stats[k] for k in STEPS}})
     renderer.close()
+    if args.plot:
+        chart(rows, args.plot)
     if args.json:
         print(json.dumps({"stage": args.stage, "frame": frame, "device": args.device, "rows": rows}, indent=2))
         return 0

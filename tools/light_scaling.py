@@ -23,6 +23,16 @@ import json
 import sys
 
 
+def chart(rows: list, path: str) -> None:
+    """The table as a chart at ``path`` (``--plot``): seconds per frame against lights, per backend."""
+    from usdml.plots import panels
+
+    names = [k for k in rows[0] if isinstance(rows[0][k], dict)] if rows else []
+    stage = rows[0]["stage"].rsplit("/", 1)[-1] if rows else ""
+    panels(path, [dict(title=f"seconds per frame ({stage})", xlabel="lights", ylabel="frame (s)", logx=True, logy=True,
+                       series=[(n, [r["lights"] for r in rows], [r[n]["seconds"] for r in rows]) for n in names])])
+
+
 def main(argv: list[str] | None = None) -> int:
     from usdml.params import add_cmdline_args, overrides_from_args
 
@@ -34,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backends", default="voxel,exact")
     p.add_argument("--seed", type=int, default=0, help="seed of the resampled lights (default: %(default)s)")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     add_cmdline_args(p, "bench")      # the voxel settings, as usdml bench takes them
     args = p.parse_args(argv)
 
@@ -88,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
                 print("; ".join(parts), flush=True)
         finally:
             delegate.snapshot = original
+    if args.plot:
+        chart(rows, args.plot)
     if args.json:
         print(json.dumps(rows, indent=2))
     return 0

@@ -118,6 +118,19 @@ def measure(stage: str, vpls: list[int], image_width: int, stage_width: int, ray
             "device": device, "rows": rows, "paper": PAPER}
 
 
+def chart(rows: list, path: str) -> None:
+    """The table as charts at ``path`` (``--plot``): error and speed-up against VPLs per ray backend."""
+    from usdml.plots import panels
+
+    xs = [row["vpls"] for row in rows]
+    names = list(rows[0]["rays"]) if rows else []
+    panels(path, [
+        dict(title="--gi svo against brute force", xlabel="VPLs", ylabel="rel. RMSE of indirect (%)", logx=True,
+             series=[(n, xs, [100 * row["rays"][n]["rel_rmse"] for row in rows]) for n in names]),
+        dict(title="speed", xlabel="VPLs", ylabel="speed-up over brute force (×)", logx=True,
+             series=[(n, xs, [row["rays"][n]["speedup"] for row in rows]) for n in names])])
+
+
 def main(argv=None) -> int:
     from usdml.visibility import backend_names
 
@@ -131,9 +144,12 @@ def main(argv=None) -> int:
                     help="backends of svo's (pixel, VPL) rays, in turn (default: %(default)s)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = ap.parse_args(argv)
     r = measure(args.stage, [int(v) for v in args.vpls.split(",")], args.imageWidth, args.stage_width,
                 args.ray_backends.split(","), args.device)
+    if args.plot:
+        chart(r["rows"], args.plot)
     print(json.dumps(r, indent=2) if args.json else json.dumps(r["rows"], indent=1))
     return 0
 

@@ -33,6 +33,21 @@ def _frame_seconds(delegate, settings, width: int, height: int) -> float:
         return seconds
 
 
+def chart(rows: list, path: str) -> None:
+    """The table as charts at ``path`` (``--plot``): ε_s, speed-up over exact and memory per resolution."""
+    from usdml.plots import panels, series
+
+    group = lambda r: f"{r['stage'].rsplit('/', 1)[-1].removesuffix('.usda')} {r['direction_step']:g}°"
+    panels(path, [
+        dict(title="shadow error against exact", xlabel="voxel resolution (voxels per axis)", ylabel="ε_s (%)",
+             series=series(rows, "voxel_resolution", lambda r: 100 * r["eps_s"], group), logx=True),
+        dict(title="queries against exact", xlabel="voxel resolution (voxels per axis)",
+             ylabel="speed-up over exact (×)", series=series(rows, "voxel_resolution", "speedup_vs_exact", group),
+             logx=True),
+        dict(title="memory", xlabel="voxel resolution (voxels per axis)", ylabel="voxel arrays (MiB)",
+             series=series(rows, "voxel_resolution", lambda r: r["bytes"] / 2**20, group), logx=True, logy=True)])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("stages", nargs="+")
@@ -43,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frameHeight", type=int, default=512)
     p.add_argument("--no-frames", action="store_true", help="skip the whole-frame timings")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = p.parse_args(argv)
 
     from usdml.bench import bench_visibility
@@ -88,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"| {row['build_seconds']:.1f} | {row['bytes'] / 2 ** 20:.0f} MiB "
                           f"| {row['queries_per_second'] / 1e6:.1f} M | {row['speedup_vs_exact']:.2f}× | {frame} |",
                           flush=True)
+    if args.plot:
+        chart(rows, args.plot)
     if args.json:
         print(json.dumps(rows, indent=2))
     return 0

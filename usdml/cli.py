@@ -235,7 +235,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise UsdmlError("compare one thing at a time: --visibility or --gi")
         overrides = {k: v for k, v in overrides_from_args(args).items() if k != "visibility"}
         r = compare_visibility(_delegate(args), args.visibility, args.against or "exact", args.frame,
-                               args.imageWidth, args.device, args.heatmap, overrides, build_messages())
+                               args.imageWidth, args.device, args.heatmap, overrides, build_messages(),
+                               plot=args.plot)
         print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
         return 0
     if not args.gi:
@@ -306,6 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi)")
     compare.add_argument("--heatmap", metavar="PNG", help="with --visibility: write the shadow error heat map "
                          "(paper 000 Fig. 6: blue darker, red brighter, error x 10)")
+    compare.add_argument("--plot", metavar="PREFIX", help="with --visibility: write PREFIX.heatmap.png (the heat map) "
+                         "and PREFIX.hist.png (histograms of the per-pixel errors)")
     compare.add_argument("--imageWidth", type=int, default=128, help="image width (default: %(default)s)")
     _add_device_arg(compare)
     compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")

@@ -102,7 +102,8 @@ def error_heatmap(signed: np.ndarray, base: np.ndarray, hit: np.ndarray, scale: 
 
 def compare_visibility(delegate: StageDelegate, backend: str, against: str = "exact", frame: float | None = None,
                        image_width: int = 128, device: str = "cpu", heatmap: str | None = None,
-                       overrides: dict | None = None, backend_options: dict | None = None) -> dict:
+                       overrides: dict | None = None, backend_options: dict | None = None,
+                       plot: str | None = None) -> dict:
     """Paper 000 §6.1 on one frame: both backends answer the same shadow queries (every pixel that
     sees geometry against every light facing it); per pixel, ``ε_v`` = (wrongly visible + wrongly
     hidden) / lights and ``ε_s`` = |wrongly hidden - wrongly visible| / lights, averaged over pixels.
@@ -182,6 +183,14 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
     eps_s = np.abs(wrong_hidden - wrong_visible) / max(n_l, 1)
     n_queries = int(counts["facing"].sum())
+    if plot:
+        from usdml.plots import histogram
+
+        heatmap = heatmap or f"{plot}.heatmap.png"
+        signed_s = (wrong_hidden - wrong_visible) / max(n_l, 1)
+        histogram(f"{plot}.hist.png", {"ε_v (wrongly answered / lights)": 100 * eps_v,
+                                       "signed ε_s (hidden − visible) / lights": 100 * signed_s},
+                  "per-pixel error (%)", f"{backend} against {against}, {n_px:,} pixels")
     if heatmap:
         import OpenImageIO as oiio
 
@@ -206,7 +215,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         "wrongly_hidden_far": float((wrong_hidden.sum() - hidden_near) / nq),
         "near_voxels": NEAR_VOXELS,
         "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
-        "build_seconds": build, "heatmap": heatmap,
+        "build_seconds": build, "heatmap": heatmap, "plot": None if not plot else [f"{plot}.heatmap.png", f"{plot}.hist.png"],
     }
     result.update(approx.describe())    # the backend's own fields (voxel: resolution, step, bytes, ...)
     return result

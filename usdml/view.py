@@ -1,6 +1,7 @@
 """``usdml view``: a stage's frame in 3-D with pyvista: geometry shaded by its albedo, instances of each
 prototype told apart, cameras as frusta (the render camera highlighted), lights as glyphs coloured by
-their emitted colour and sized by their intensity, distant lights as arrows.
+their emitted colour and sized by their intensity, distant lights as arrows, a dome light as the sky;
+on request the sparse voxel octree's occupied voxels, the frame's VPLs and an LGH level's grid lights.
 
 Off-screen to a PNG by default; an interactive window with ``--interactive`` where a display exists.
 With no display, VTK renders through EGL (``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``, set here
@@ -139,6 +140,13 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     size = float(np.linalg.norm(hi - lo)) or 1.0
     plotter = pv.Plotter(off_screen=not interactive, window_size=list(window_size))
     plotter.set_background("#20242a")
+    if "lights" in show and snap.domes:
+        # a dome light as the sky: its mean colour over a dark ground colour (a texture's mean, else its own)
+        dome = snap.domes[0]
+        rgb = np.asarray(dome.texture, np.float64).reshape(-1, 3).mean(0) if dome.texture is not None \
+            else np.asarray(dome.radiance, np.float64)
+        sky = np.clip(0.15 + 0.6 * rgb / max(float(rgb.max()), 1e-12), 0, 1)
+        plotter.set_background(tuple(sky), top=tuple(np.clip(sky * 1.2, 0, 1)))
     drawn = {"stage": delegate.path, "frame": t, "png": png}
     if "geometry" in show:
         for m in snap.meshes:

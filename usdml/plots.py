@@ -1,0 +1,94 @@
+"""Charts of usdml's figures as PNG (matplotlib, which pyvista brings; the Agg backend: no display).
+
+One function draws every chart (:func:`panels`): side-by-side axes, each with its title, labelled
+axes (units in the labels) and named series; :func:`histogram` draws distributions. The tools in
+``tools/`` and ``usdml compare --plot`` call them; the figures are the ones their tables print.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+__all__ = ["panels", "histogram", "series"]
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, path: str) -> str:
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.tmp.png")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    os.replace(tmp, path)       # never a half-written picture
+    return path
+
+
+def panels(path: str, charts: Sequence[dict], title: str | None = None) -> str:
+    """Write side-by-side line charts to ``path``. Each chart: ``title``, ``xlabel``, ``ylabel`` (with units),
+    ``series`` (``[(label, xs, ys)]``), optional ``logx`` / ``logy``."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(charts), figsize=(4.6 * len(charts), 3.6), squeeze=False)
+    for ax, c in zip(axes[0], charts):
+        for label, xs, ys in c["series"]:
+            ax.plot(list(xs), list(ys), marker="o", label=str(label))
+        ax.set_title(c.get("title", ""))
+        ax.set_xlabel(c["xlabel"])
+        ax.set_ylabel(c["ylabel"])
+        if c.get("logx"):
+            from matplotlib.ticker import NullFormatter, ScalarFormatter
+            ax.set_xscale("log")
+            ticks = sorted({float(x) for _, xs, _ in c["series"] for x in xs})
+            if len(ticks) <= 12:            # the measured values as the ticks, in plain numbers
+                ax.set_xticks(ticks)
+                ax.xaxis.set_major_formatter(ScalarFormatter())
+                ax.xaxis.set_minor_formatter(NullFormatter())
+        if c.get("logy"):
+            ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+        if len(c["series"]) > 1:
+            ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    path = _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def histogram(path: str, data: dict, xlabel: str, title: str | None = None, bins: int = 50) -> str:
+    """Write histograms of each ``label -> values`` of ``data`` (overlaid, counts on a log axis) to ``path``."""
+    import numpy as np
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    values = [np.asarray(v, float) for v in data.values()]
+    lo = min((v.min() for v in values if v.size), default=0.0)
+    hi = max((v.max() for v in values if v.size), default=1.0)
+    edges = np.linspace(lo, hi if hi > lo else lo + 1e-9, bins + 1)
+    for label, v in zip(data, values):
+        ax.hist(v, bins=edges, histtype="step", linewidth=1.5, label=str(label))
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("pixels")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
+    path = _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def series(rows: Sequence[dict], x, y, group=None) -> list[tuple]:
+    """Line series from table rows: ``x`` and ``y`` a key or a function of a row, ``group`` (a key or a
+    function, None: one series) names the series; points sorted by x."""
+    def get(f, r):
+        return f(r) if callable(f) else r[f]
+    out: dict = {}
+    for r in rows:
+        out.setdefault("" if group is None else get(group, r), []).append((get(x, r), get(y, r)))
+    return [(label, [p[0] for p in sorted(pts)], [p[1] for p in sorted(pts)]) for label, pts in out.items()]
