@@ -134,7 +134,8 @@ def test_the_rasterizer_matches_embree_on_small_maps(kind):
     with ExactBackend() as ex:
         ex.update(snap)
         from usdml.scene import world_geometry
-        members = tuple([("mesh", m.path) for m in snap.meshes] + [("proto", p.path) for p in snap.prototypes])
+        from usdml.visibility.base import all_members
+        members = all_members(snap)
         pts, tri = world_geometry(snap, members)
         tris = np.ascontiguousarray(pts[tri].reshape(-1, 3), np.float32)
         size = 48

@@ -21,6 +21,7 @@ from usdml.scene import diff, world_geometry
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry, require_lights
 from usdml.visibility import ExactBackend, make_backend
+from usdml.visibility.base import all_members
 from usdml.visibility.voxel import SHADE_TILE, morton_order
 
 
@@ -120,7 +121,7 @@ class BareEmbree:
         from embreex import rtcore_scene as rtcs
         from embreex.mesh_construction import TriangleMesh
 
-        members = tuple([("mesh", m.path) for m in snap.meshes] + [("proto", p.path) for p in snap.prototypes])
+        members = all_members(snap)
         points, triangles = world_geometry(snap, members)
         self.exact, self.n = exact, len(origins)
         o, d, tfar = (np.empty((self.n, 3), np.float32), np.empty((self.n, 3), np.float32),

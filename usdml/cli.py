@@ -14,6 +14,7 @@ import sys
 import time
 
 from usdml.params import add_cmdline_args, overrides_from_args
+from usdml.recorder import check_width
 
 
 def _add_stage_args(p: argparse.ArgumentParser) -> None:
@@ -46,11 +47,6 @@ def _purposes(args: argparse.Namespace) -> list[str] | None:
         raise UsdmlError(f"--purposes: unknown purpose(s) {', '.join(unknown)}; use render, proxy or guide "
                          "('default' is always drawn)")
     return names
-
-
-def _check_width(width: int | None) -> None:
-    from usdml.recorder import check_width
-    check_width(width)
 
 
 def _delegate(args: argparse.Namespace):
@@ -212,7 +208,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     from usdml.render.sequence import build_messages
 
-    _check_width(args.imageWidth)
+    check_width(args.imageWidth)
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**overrides_from_args(args))
     results = bench_visibility(delegate, backends=args.visibility or ["exact"],
@@ -226,7 +222,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from usdml.compare import compare_gi, format_gi_comparison
     from usdml.errors import UsdmlError
 
-    _check_width(args.imageWidth)
+    check_width(args.imageWidth)
     if args.visibility:
         from usdml.compare import compare_visibility, format_visibility_comparison
         from usdml.render.sequence import build_messages

@@ -20,6 +20,23 @@ def _pyplot():
     return plt
 
 
+def _axes(ax, title: str, xlabel: str, ylabel: str, legend: bool) -> None:
+    """Title, labelled axes, a light grid and (for several series) a legend."""
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    if legend:
+        ax.legend(fontsize=8)
+
+
+def _write(plt, fig, path: str) -> str:
+    """``fig`` to ``path`` (:func:`_save`), then closed."""
+    path = _save(fig, path)
+    plt.close(fig)
+    return path
+
+
 def _save(fig, path: str) -> str:
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
@@ -37,9 +54,6 @@ def panels(path: str, charts: Sequence[dict], title: str | None = None) -> str:
     for ax, c in zip(axes[0], charts):
         for label, xs, ys in c["series"]:
             ax.plot(list(xs), list(ys), marker="o", label=str(label))
-        ax.set_title(c.get("title", ""))
-        ax.set_xlabel(c["xlabel"])
-        ax.set_ylabel(c["ylabel"])
         if c.get("logx"):
             from matplotlib.ticker import NullFormatter, ScalarFormatter
             ax.set_xscale("log")
@@ -50,14 +64,10 @@ def panels(path: str, charts: Sequence[dict], title: str | None = None) -> str:
                 ax.xaxis.set_minor_formatter(NullFormatter())
         if c.get("logy"):
             ax.set_yscale("log")
-        ax.grid(True, alpha=0.3)
-        if len(c["series"]) > 1:
-            ax.legend(fontsize=8)
+        _axes(ax, c.get("title", ""), c["xlabel"], c["ylabel"], legend=len(c["series"]) > 1)
     if title:
         fig.suptitle(title)
-    path = _save(fig, path)
-    plt.close(fig)
-    return path
+    return _write(plt, fig, path)
 
 
 def histogram(path: str, data: dict, xlabel: str, title: str | None = None, bins: int = 50) -> str:
@@ -72,15 +82,8 @@ def histogram(path: str, data: dict, xlabel: str, title: str | None = None, bins
     for label, v in zip(data, values):
         ax.hist(v, bins=edges, histtype="step", linewidth=1.5, label=str(label))
     ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("pixels")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    if title:
-        ax.set_title(title)
-    path = _save(fig, path)
-    plt.close(fig)
-    return path
+    _axes(ax, title or "", xlabel, "pixels", legend=True)
+    return _write(plt, fig, path)
 
 
 def series(rows: Sequence[dict], x, y, group=None) -> list[tuple]:

@@ -27,7 +27,6 @@ class (:func:`usdml.cli.main` makes one), so a script and the command line rende
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
 from numbers import Number
 
@@ -153,8 +152,6 @@ class Recorder:
         from usdml.render.farm import render_on_dask
         from usdml.stage import StageDelegate
 
-        if not isinstance(job.stage, (str, os.PathLike)):
-            raise UsdmlError("a render on Dask needs the stage as a file every worker can open, not an open Usd.Stage")
         delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                                  purposes=job.purposes, implicit_detail=job.implicit_detail)
         frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)

@@ -77,19 +77,21 @@ def _frustum(cam, length: float):
     return pv.PolyData(np.array([apex, *corners]), lines=np.array(lines))
 
 
-def occupied_voxels(snap, resolution: int) -> tuple[np.ndarray, float]:
+def occupied_voxels(snap, resolution: int, bounds: tuple | None = None) -> tuple[np.ndarray, float]:
     """``(K, 3)`` world centres of the voxels the sparse voxel octree (paper 003) sets for the frame's
-    geometry at ``resolution``³ over the scene's detail box, and the voxel size."""
+    geometry at ``resolution``³ over the scene's detail box (``bounds``, when the caller has it), and
+    the voxel size."""
     from usdml.scene import world_geometry
+    from usdml.visibility.base import all_members
     from usdml.visibility.svo_tree import cube_grid, svo_bounds, voxelize_bricks
 
-    members = tuple([("mesh", m.path) for m in snap.meshes] + [("proto", p.path) for p in snap.prototypes])
+    members = all_members(snap)
     pts, tris = world_geometry(snap, members)
     if not len(tris):
         return np.zeros((0, 3)), 1.0
     depth = int(resolution).bit_length() - 1
-    lo, hi, _ = svo_bounds(pts, tris)
-    corner, h = cube_grid(lo, hi, depth)
+    lo, hi = bounds if bounds is not None else svo_bounds(pts, tris)[:2]
+    corner, h = cube_grid(np.asarray(lo), np.asarray(hi), depth)
     bricks = voxelize_bricks(pts, tris, corner, h, depth).view(np.uint64)
     nb = (1 << depth) // 4
     idx = np.flatnonzero(bricks)
@@ -213,7 +215,7 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     if "voxels" in show:
         if voxel_resolution < 8 or voxel_resolution & (voxel_resolution - 1):
             raise UsdmlError(f"--voxel-resolution {voxel_resolution}: give a power of two from 8 up")
-        centres, h = occupied_voxels(snap, voxel_resolution)
+        centres, h = occupied_voxels(snap, voxel_resolution, bounds)
         if len(centres):
             cubes = pv.PolyData(centres).glyph(geom=pv.Cube(x_length=h, y_length=h, z_length=h), scale=False,
                                                orient=False)

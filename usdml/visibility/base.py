@@ -111,6 +111,12 @@ def static_members(snapshot: Snapshot) -> tuple:
                  + [("proto", p.path) for p in snapshot.prototypes if not (p.animated or p.deforming)])
 
 
+def all_members(snapshot: Snapshot) -> tuple:
+    """``("mesh" | "proto", path)`` of every mesh and prototype of ``snapshot``, for
+    :func:`usdml.scene.world_geometry`: the whole scene flattened."""
+    return tuple([("mesh", m.path) for m in snapshot.meshes] + [("proto", p.path) for p in snapshot.prototypes])
+
+
 def members_changed(before, members: tuple, changes: Changes | None, mesh_changed) -> bool:
     """Whether a structure built from ``before`` (``("mesh" | "proto", path)`` members, None: not
     built) must be rebuilt for ``members``: no ``changes`` given, other members, a member prototype

@@ -51,8 +51,8 @@ from usdml import params
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_parallel
 from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
-from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags, as_vectors,
-                                   scene_sphere)
+from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, all_members,
+                                   as_flags, as_vectors, scene_sphere)
 from usdml.visibility.exact import ExactBackend
 from usdml.visibility.insm_mesh import clusters, depth_images, insm_views, triangulate
 from usdml.visibility.svo_tree import svo_bounds
@@ -166,7 +166,7 @@ def light_views(position: np.ndarray, axis: np.ndarray, distant: np.ndarray, con
 def insm_box(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray] | None:
     """The box the depth images' viewpoints are placed on (module doc, "The box"); None for an empty
     scene."""
-    members = tuple([("mesh", m.path) for m in snapshot.meshes] + [("proto", p.path) for p in snapshot.prototypes])
+    members = all_members(snapshot)
     points, triangles = world_geometry(snapshot, members)
     if not len(triangles):
         return None
@@ -344,16 +344,51 @@ class InsmBackend(VisibilityBackend):
 
     # ------------------------------------------------------------------ maps
 
+    def _corners(self) -> np.ndarray:
+        """The reconstructed triangles' corners, C-contiguous; one degenerate triangle for none (the
+        kernels take no empty array)."""
+        return np.ascontiguousarray(self._tris if len(self._tris) else np.zeros((3, 3), np.float32))
+
     def _triangles_wp(self):
         if self._tris_wp is None:
             wp = warp_module()
-            tris = self._tris if len(self._tris) else np.zeros((3, 3), np.float32)
-            self._tris_wp = wp.array(tris, dtype=wp.vec3, device=self.device)
+            self._tris_wp = wp.array(self._corners(), dtype=wp.vec3, device=self.device)
         return self._tris_wp
 
     def _views(self, position, axis, distant, cone) -> LightViews:
         c, r = self._scene
         return light_views(position, axis, distant, cone, c, r, self.light_resolution)
+
+    def _light_views(self, lights: Lights) -> LightViews:
+        """The views of ``lights``' maps (:func:`light_views`)."""
+        return self._views(lights.position, lights.axis, lights.type == LightType.DISTANT, lights.cone_angle)
+
+    def _native_inputs(self, lv: LightViews) -> tuple[np.ndarray, tuple, tuple]:
+        """What the compiled maps read for ``lv``: the triangles, their clusters (made once per set of
+        triangles) and the views' arrays."""
+        if self._clusters is None:
+            self._clusters = clusters(self._tris)
+        views = tuple(np.ascontiguousarray(a) for a in (lv.origin, lv.rot, lv.proj, lv.kind, lv.near))
+        return self._corners(), self._clusters, views
+
+    def _native_buffers(self, n_views: int) -> tuple:
+        """One thread's maps for the compiled path: depths, receiver tiles and per-view depths of
+        ``n_views`` views."""
+        size = self.light_resolution
+        tiles = -(-size // TILE)
+        return (np.empty(n_views * size * size, np.float32), np.empty(n_views * tiles * tiles, np.float32),
+                np.empty(n_views, np.float32))
+
+    def _count_maps(self, n_lights: int, seconds: np.ndarray) -> None:
+        """Add a call's maps and its receiver / map / lookup seconds (summed over threads) to ``stats``, and
+        keep the call's own (``usdml bench`` calls :meth:`occluded` several times per frame)."""
+        receivers, maps, lookups = (float(x) for x in seconds)
+        self.stats["receiver_seconds"] += receivers
+        self.stats["map_seconds"] += maps
+        self.stats["lookup_seconds"] += lookups
+        self.stats["maps"] += n_lights
+        self.stats.update(last_maps=n_lights, last_receiver_seconds=receivers, last_map_seconds=maps,
+                          last_lookup_seconds=lookups)
 
     def answer(self, lv: LightViews, jobs: list) -> None:
         """Rasterize each job's lights' maps and look its points up in them.
@@ -373,15 +408,10 @@ class InsmBackend(VisibilityBackend):
         native = self.native and dev.is_cpu
         if native:
             from usdml.visibility import insm_native
-            views = tuple(np.ascontiguousarray(a) for a in (lv.origin, lv.rot, lv.proj, lv.kind, lv.near))
-            tris = np.ascontiguousarray(self._tris if len(self._tris) else np.zeros((3, 3), np.float32))
-            if self._clusters is None:
-                self._clusters = clusters(self._tris)
+            tris, cl, views = self._native_inputs(lv)
 
             def buffers(n_views: int) -> tuple:
-                n = max(n_views, most)
-                return (np.empty(n * size * size, np.float32), np.empty(n * tiles * tiles, np.float32),
-                        np.empty(n, np.float32))
+                return self._native_buffers(max(n_views, most))
         else:
             launch = self._warp_launcher(lv, size, tiles)
 
@@ -401,8 +431,8 @@ class InsmBackend(VisibilityBackend):
                 held = buffers(n_views)
             mine = np.zeros(3)
             if native:
-                insm_native.light(tris, self._clusters, views, int(lv.first[l0]), n_views, bool(lv.cube[l0]), lv.position[l0], size,
-                                  held, pts, nrm, self.offset, self.bias, out, mine)
+                insm_native.light(tris, cl, views, int(lv.first[l0]), n_views, bool(lv.cube[l0]), lv.position[l0],
+                                  size, held, pts, nrm, self.offset, self.bias, out, mine)
             else:
                 launch(l0, l1, pts, nrm, out, held, mine)
             with lock:
@@ -410,13 +440,7 @@ class InsmBackend(VisibilityBackend):
             pool.put(held)
 
         run_parallel(run, jobs, self.workers, first_on_caller=not native)
-        self.stats["receiver_seconds"] += float(seconds[0])
-        self.stats["map_seconds"] += float(seconds[1])
-        self.stats["lookup_seconds"] += float(seconds[2])
-        self.stats["maps"] += len(lv) if jobs else 0
-        # the last call's alone (usdml bench calls occluded several times per frame)
-        self.stats.update(last_maps=len(lv), last_receiver_seconds=float(seconds[0]),
-                          last_map_seconds=float(seconds[1]), last_lookup_seconds=float(seconds[2]))
+        self._count_maps(len(lv) if jobs else 0, seconds)
 
     def _warp_launcher(self, lv: LightViews, size: int, tiles: int):
         """``launch(l0, l1, points, normals, out, buffers, seconds)``: one job of :meth:`answer` by the
@@ -488,8 +512,7 @@ class InsmBackend(VisibilityBackend):
     def blocked_lights(self, lights: Lights, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """``(L, P) uint8``: 1 where light ``l`` is blocked from point ``p`` by its map (every light, also
         those that cast no shadow: the caller skips them)."""
-        return self._blocked(self._views(lights.position, lights.axis, lights.type == LightType.DISTANT,
-                                         lights.cone_angle), points, normals)
+        return self._blocked(self._light_views(lights), points, normals)
 
     def _blocked(self, lv: LightViews, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """``(L, P) uint8`` answers of the lights of ``lv`` for ``points`` (:meth:`answer`)."""
@@ -573,18 +596,14 @@ class InsmBackend(VisibilityBackend):
         from usdml.visibility.voxel_native import compiled_lights
 
         n_p = len(points)
-        lv = self._views(lights.position, lights.axis, lights.type == LightType.DISTANT, lights.cone_angle)
+        lv = self._light_views(lights)
         table = compiled_lights(lights, meters_per_unit, min_distance)
         f32 = dict(dtype=np.float32)
         pts = np.ascontiguousarray(points, **f32)
         shading = np.ascontiguousarray(normals, **f32)
         geo = np.ascontiguousarray(geometric if geometric is not None else normals, **f32)
-        views = tuple(np.ascontiguousarray(a) for a in (lv.origin, lv.rot, lv.proj, lv.kind, lv.near))
-        tris = np.ascontiguousarray(self._tris if len(self._tris) else np.zeros((3, 3), np.float32))
-        if self._clusters is None:
-            self._clusters = clusters(self._tris)
+        tris, cl, views = self._native_inputs(lv)
         size = self.light_resolution
-        tiles = -(-size // TILE)
         most = int(np.max(np.diff(lv.first)))
         pool: queue.Queue = queue.Queue()
         held_all: list = []
@@ -594,14 +613,13 @@ class InsmBackend(VisibilityBackend):
             try:
                 held = pool.get_nowait()
             except queue.Empty:
-                held = ((np.empty(most * size * size, np.float32), np.empty(most * tiles * tiles, np.float32),
-                         np.empty(most, np.float32)),
+                held = (self._native_buffers(most),
                         (np.empty((n_p, 3), np.float32), np.empty(n_p, np.uint8), np.zeros((n_p, 3), np.float32),
                          np.zeros(n_p, np.int32), np.zeros(n_p, np.int32), np.zeros(1, np.int64)), np.zeros(3))
                 with lock:
                     held_all.append(held)
             buffers, acc, seconds = held
-            insm_native.light(tris, self._clusters, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
+            insm_native.light(tris, cl, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
                               bool(lv.cube[li]), lv.position[li], size, buffers, pts, geo, self.offset, self.bias,
                               None, seconds, (table, li, shading, *acc))
             pool.put(held)
@@ -619,13 +637,8 @@ class InsmBackend(VisibilityBackend):
             seconds += sec
         radiance *= np.asarray(albedo, np.float32) / np.float32(np.pi)
         shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0).astype(np.float32)
-        self.stats["receiver_seconds"] += float(seconds[0])
-        self.stats["map_seconds"] += float(seconds[1])
-        self.stats["lookup_seconds"] += float(seconds[2])
-        self.stats["maps"] += len(lights)
+        self._count_maps(len(lights), seconds)
         self.stats["map_queries"] += queries
-        self.stats.update(last_maps=len(lights), last_receiver_seconds=float(seconds[0]),
-                          last_map_seconds=float(seconds[1]), last_lookup_seconds=float(seconds[2]))
         return DirectResult(radiance, shadow, facing.astype(np.int32), queries)
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
