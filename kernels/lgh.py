@@ -93,7 +93,7 @@ def scatter_s1(
     h: float,                            # S1 spacing h_1
     dims: wp.vec3i,                      # S1 vertices per axis
     acc: wp.array(dtype=acc8),           # (V,) out, accumulated
-    lobe: wp.array(dtype=wp.vec3),       # (V,) out, accumulated Σ w lum n
+    lobe: wp.array(dtype=wp.vec4),       # (V,) out, accumulated (Σ w lum n, Σ w): lobe moment, light count
 ):
     t = wp.tid()
     I = intensity[t]
@@ -112,8 +112,10 @@ def scatter_s1(
             wl = w * lum
             idx = flat_index(v[0], v[1], v[2], dims)
             wp.atomic_add(acc, idx, pack(w * I, wl, wl * e, wl * wp.dot(e, e)))
+            nl = wp.vec3(0.0, 0.0, 0.0)
             if has_normal != 0:
-                wp.atomic_add(lobe, idx, wl * normal[t])
+                nl = wl * normal[t]
+            wp.atomic_add(lobe, idx, wp.vec4(nl[0], nl[1], nl[2], w))
 
 
 @wp.kernel
@@ -191,9 +193,9 @@ def gather_level(
     h: float,                            # level spacing h_l
     dims: wp.vec3i,                      # level-l vertices per axis
     first: int,                          # first flat level-l vertex of this launch
-    s1_lobe: wp.array(dtype=wp.vec3),    # (V1,) S1 lobe moments Σ w lum n
+    s1_lobe: wp.array(dtype=wp.vec4),    # (V1,) S1 lobe moments Σ w lum n and light counts Σ w
     out: wp.array(dtype=acc8),           # (V_l,) level-l accumulators, moments about each level-l vertex
-    out_lobe: wp.array(dtype=wp.vec3),   # (V_l,) level-l lobe moments
+    out_lobe: wp.array(dtype=wp.vec4),   # (V_l,) level-l lobe moments and light counts
 ):
     """Level l by gather from S1 (paper 004 §3.1): each S1 grid light, a point at its illumination
     centre c_u, is distributed over the level-l grid with level-l trilinear weights; this thread sums
@@ -215,7 +217,7 @@ def gather_level(
     m0 = float(0.0)
     m1 = wp.vec3(0.0, 0.0, 0.0)
     m2 = float(0.0)
-    nl = wp.vec3(0.0, 0.0, 0.0)
+    nl = wp.vec4(0.0, 0.0, 0.0, 0.0)
     a0 = wp.max(ci - stride, 0)
     a1 = wp.min(ci + stride, s1_dims[0] - 1)
     b0 = wp.max(cj - stride, 0)
@@ -265,12 +267,13 @@ def compact_level(
     origin: wp.vec3,                     # grid origin, scene units
     h: float,                            # level spacing
     dims: wp.vec3i,
-    lobe: wp.array(dtype=wp.vec3),           # (V,) lobe moments of the level
+    lobe: wp.array(dtype=wp.vec4),           # (V,) lobe moments and light counts of the level
     out_position: wp.array(dtype=wp.vec3),   # (M,) illumination-weighted centre, scene units
     out_intensity: wp.array(dtype=wp.vec3),  # (M,) RGB intensity
     out_variance: wp.array(dtype=float),     # (M,) E|p − centre|², scene units²
     out_vertex: wp.array(dtype=wp.int64),    # (M,) flat vertex index
     out_lobe: wp.array(dtype=wp.vec3),       # (M,) mean emission normal ν (|ν| <= 1; 0: isotropic)
+    out_count: wp.array(dtype=float),        # (M,) lights it stands for: Σ of their trilinear weights
 ):
     """Stream compaction and finalization: one grid light per non-empty vertex, in vertex order."""
     v = wp.tid()
@@ -287,4 +290,6 @@ def compact_level(
     out_intensity[s] = wp.vec3(a[0], a[1], a[2])
     out_variance[s] = wp.max(a[7] / w0 - wp.dot(mean, mean), 0.0)
     out_vertex[s] = wp.int64(v)
-    out_lobe[s] = lobe[v] / w0
+    nl = lobe[v]
+    out_lobe[s] = wp.vec3(nl[0], nl[1], nl[2]) / w0
+    out_count[s] = nl[3]

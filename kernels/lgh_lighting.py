@@ -91,7 +91,8 @@ def vpl_term(p: wp.vec3, n: wp.vec3, q: wp.vec3, intensity: wp.vec3, nq: wp.vec3
 def take(rng: wp.uint32, e: wp.vec3, f: float, b: float, s: int, tid: int, q: wp.vec3, sd: float, v: int,
          out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
          out_sample_light: wp.array2d(dtype=int), out_sample_weight: wp.array2d(dtype=wp.vec3),
-         out_sample_blend: wp.array2d(dtype=float)) -> wp.uint32:
+         out_sample_blend: wp.array2d(dtype=float),
+         out_sample_lum: wp.array2d(dtype=float)) -> wp.uint32:
     """Sample ``s`` takes light ``v`` (as :func:`pick` writes it); its position jittered by ``sd``."""
     state = rng
     jitter = wp.vec3(0.0, 0.0, 0.0)
@@ -102,6 +103,7 @@ def take(rng: wp.uint32, e: wp.vec3, f: float, b: float, s: int, tid: int, q: wp
     out_sample_light[tid, s] = v
     out_sample_weight[tid, s] = e / f
     out_sample_blend[tid, s] = b / f
+    out_sample_lum[tid, s] = f
     return state
 
 
@@ -109,7 +111,8 @@ def take(rng: wp.uint32, e: wp.vec3, f: float, b: float, s: int, tid: int, q: wp
 def pick(rng: wp.uint32, e: wp.vec3, f: float, b: float, total: float, samples: int, tid: int, q: wp.vec3,
          sd: float, v: int, out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
          out_sample_light: wp.array2d(dtype=int), out_sample_weight: wp.array2d(dtype=wp.vec3),
-         out_sample_blend: wp.array2d(dtype=float)) -> wp.uint32:
+         out_sample_blend: wp.array2d(dtype=float),
+         out_sample_lum: wp.array2d(dtype=float)) -> wp.uint32:
     """Appendix A: each of the k samples keeps its light or takes light ``v`` with probability p = f / F.
 
     The k independent coin flips are drawn as geometric gaps between the samples that take the light
@@ -139,7 +142,7 @@ def pick(rng: wp.uint32, e: wp.vec3, f: float, b: float, total: float, samples: 
         if s >= samples:
             break
         state = take(state, e, f, b, s, tid, q, sd, v, out_sample_pos, out_sample_ok, out_sample_light,
-                     out_sample_weight, out_sample_blend)
+                     out_sample_weight, out_sample_blend, out_sample_lum)
     return state
 
 
@@ -149,6 +152,7 @@ class Sweep:
 
     rng: wp.uint32
     acc: wp.vec3      # unshadowed irradiance so far
+    count: float      # Σ B · (lights it stands for) over the lights that reach the point
     total: float      # F, the luminance sum of the first sweep
     run: float        # the second sweep's running luminance sum
     s: int            # the next sample to give out in the second sweep
@@ -158,13 +162,14 @@ class Sweep:
 
 
 @wp.func
-def visit(st: Sweep, sweep: int, stratified: int, e4: wp.vec4, scale: float, samples: int, tid: int, q: wp.vec3,
-          sd: float, v: int, out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
+def visit(st: Sweep, sweep: int, stratified: int, e4: wp.vec4, scale: float, count: float, samples: int, tid: int,
+          q: wp.vec3, sd: float, v: int, out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
           out_sample_light: wp.array2d(dtype=int), out_sample_weight: wp.array2d(dtype=wp.vec3),
-          out_sample_blend: wp.array2d(dtype=float)) -> Sweep:
+          out_sample_blend: wp.array2d(dtype=float),
+         out_sample_lum: wp.array2d(dtype=float)) -> Sweep:
     """One light (``light_term``'s ``e4``) of a point: summed in the first sweep (and picked there by
     Appendix A's streaming when not ``stratified``); in the second, it takes the samples whose
-    positions fall in its share of the running sum."""
+    positions fall in its share of the running sum. ``count``: the input lights it stands for."""
     out = st
     e = wp.vec3(e4[0], e4[1], e4[2])
     f = wp.dot(e, LUMA)
@@ -173,15 +178,16 @@ def visit(st: Sweep, sweep: int, stratified: int, e4: wp.vec4, scale: float, sam
     b = e4[3] * scale
     if sweep == 0:
         out.acc = st.acc + e
+        out.count = st.count + b * count
         out.total = st.total + f
         if stratified == 0:
             out.rng = pick(st.rng, e, f, b, out.total, samples, tid, q, sd, v, out_sample_pos, out_sample_ok,
-                           out_sample_light, out_sample_weight, out_sample_blend)
+                           out_sample_light, out_sample_weight, out_sample_blend, out_sample_lum)
         return out
     out.run = st.run + f
     while out.s < samples and out.u < out.run:
         out.rng = take(out.rng, e, f, b, out.s, tid, q, sd, v, out_sample_pos, out_sample_ok, out_sample_light,
-                       out_sample_weight, out_sample_blend)
+                       out_sample_weight, out_sample_blend, out_sample_lum)
         out.s = out.s + 1
         out.u = (float(out.s) + out.xi) * out.step
     return out
@@ -200,6 +206,7 @@ def lgh_gather(
     light_int: wp.array(dtype=wp.vec3),       # (M,) RGB isotropic-equivalent intensity (nit·m²): power 4π·I
     light_lobe: wp.array(dtype=wp.vec3),      # (M,) mean emission normal ν (0: isotropic)
     light_std: wp.array(dtype=float),         # (M,) per-axis positional std. dev. for jittered samples
+    light_count: wp.array(dtype=float),       # (M,) input lights each grid light stands for
     n_levels: int,
     s0: int,                                  # 1: the input lights are level S0 (below S1), 0: start from S1
     s0_cells: wp.vec3i,                       # S0 lookup grid: cells per axis (the S1 cells of the first level)
@@ -219,11 +226,13 @@ def lgh_gather(
     tiles: int,                               # n² tiles: a point gathers lights with index % n² == its tile, × n²
     stratified: int,                          # 1: stratified picks in a second sweep, 0: Appendix A's streaming
     out_irradiance: wp.array(dtype=wp.vec3),  # (P,) unshadowed irradiance
+    out_count: wp.array(dtype=float),         # (P,) Σ B · count over the lights that reach the point
     out_sample_pos: wp.array2d(dtype=wp.vec3),  # (P, k) chosen shadow-sample positions
     out_sample_ok: wp.array2d(dtype=int),     # (P, k) 1 when a sample was chosen
     out_sample_light: wp.array2d(dtype=int),  # (P, k) chosen light: grid light index, or M + input light index
     out_sample_weight: wp.array2d(dtype=wp.vec3),  # (P, k) chosen light's RGB irradiance / its luminance
     out_sample_blend: wp.array2d(dtype=float),  # (P, k) its blending weight (× interleave scale) / its luminance
+    out_sample_lum: wp.array2d(dtype=float),  # (P, k) its luminance contribution f (F = Σ f: the irradiance's)
 ):
     tid = wp.tid()
     p = points[tid]
@@ -231,6 +240,7 @@ def lgh_gather(
     st = Sweep()
     st.rng = wp.rand_init(seed, first + tid)   # a stream per point, whatever the launch blocking
     st.acc = wp.vec3(0.0, 0.0, 0.0)
+    st.count = float(0.0)
     st.total = float(0.0)
     st.run = float(0.0)
     st.s = int(0)
@@ -274,8 +284,9 @@ def lgh_gather(
                                 continue
                             q = s0_pos[v]
                             e4 = light_term(p, n, q, s0_int[v], s0_lobe[v], 0, top, r0, inv_m2, clamp_d2, scale)
-                            st = visit(st, sweep, stratified, e4, scale, samples, tid, q, 0.0, m + v, out_sample_pos,
-                                       out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend)
+                            st = visit(st, sweep, stratified, e4, scale, 1.0, samples, tid, q, 0.0, m + v, out_sample_pos,
+                                       out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend,
+                                       out_sample_lum)
         for l in range(n_levels):
             h = level_spacing[l]
             r = alpha * h
@@ -307,9 +318,12 @@ def lgh_gather(
                             continue
                         q = light_pos[v]
                         e4 = light_term(p, n, q, light_int[v], light_lobe[v], l + s0, top, r, inv_m2, clamp_d2, scale)
-                        st = visit(st, sweep, stratified, e4, scale, samples, tid, q, light_std[v] * float(jitter), v,
-                                   out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend)
+                        st = visit(st, sweep, stratified, e4, scale, light_count[v], samples, tid, q,
+                                   light_std[v] * float(jitter), v,
+                                   out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend,
+                                   out_sample_lum)
     out_irradiance[tid] = st.acc
+    out_count[tid] = st.count
 
 
 @wp.kernel

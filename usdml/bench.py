@@ -79,10 +79,6 @@ def resample_lights(lights, n: int, seed: int = 0):
     ``n`` when there are enough, else all of them plus copies of randomly drawn ones, each moved by
     a random offset of up to half the lights' mean spacing (so copies do not coincide). Radiometry is
     kept per light: images get brighter with more lights; only the timing is meant."""
-    from dataclasses import fields, replace as _replace
-
-    from usdml.scene import Lights
-
     count = len(lights)
     if n <= count or count == 0:
         idx = np.arange(min(n, count))
@@ -96,11 +92,7 @@ def resample_lights(lights, n: int, seed: int = 0):
         spacing = float(np.prod(ext) / count) ** (1.0 / 3.0)
         offset = np.zeros((n, 3))
         offset[count:] = rng.uniform(-0.5, 0.5, (n - count, 3)) * spacing
-    kw = {}
-    for f in fields(Lights):
-        v = getattr(lights, f.name)
-        kw[f.name] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
-    out = _replace(lights, **kw)
+    out = lights.subset(idx)
     out.position = out.position + offset
     out.xform = out.xform.copy()
     out.xform[:, :3, 3] += offset

@@ -62,6 +62,9 @@ class LGHLevel:
     variance: np.ndarray       #: (M,) float32 E|p − position|², scene units², of the illumination around position
     vertex: np.ndarray         #: (M,) int64 flat grid-vertex index of each light, increasing
     lobe: np.ndarray = field(default=None, repr=False)  #: (M, 3) float32 mean emission normal ν, |ν| <= 1
+    #: (M,) float32 the input lights each grid light stands for: the sum of their trilinear weights
+    #: (fractional; every level's counts sum to the number of lights of non-zero luminance)
+    count: np.ndarray = field(default=None, repr=False)
 
 
 @dataclass
@@ -77,6 +80,7 @@ class LGH:
     variance: np.ndarray = field(default=None, repr=False)    #: (ΣM,) float32
     offsets: np.ndarray = field(default=None, repr=False)     #: (L+1,) int64
     lobe: np.ndarray = field(default=None, repr=False)        #: (ΣM, 3) float32
+    count: np.ndarray = field(default=None, repr=False)       #: (ΣM,) float32
 
 
 def _warp():
@@ -319,7 +323,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     v1 = int(dims1.prod())
     wdims1 = wp.vec3i(*map(int, dims1))
     s1 = wp.zeros(v1, dtype=K.acc8, device=device)
-    s1_lobe = wp.zeros(v1, dtype=wp.vec3, device=device)
+    s1_lobe = wp.zeros(v1, dtype=wp.vec4, device=device)
     parts = _slabs(p, lo, h1, int(cells1[0]), len(_slices(n, workers)))
     no_normal = wp.zeros(1, dtype=wp.vec3, device=device)
 
@@ -352,7 +356,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
         dims = _level_dims(cells1, level)
         count = int(dims.prod())
         acc = wp.empty(count, dtype=K.acc8, device=device)
-        acc_lobe = wp.empty(count, dtype=wp.vec3, device=device)
+        acc_lobe = wp.empty(count, dtype=wp.vec4, device=device)
         grid_of[level] = (dims, acc, acc_lobe)
         wdims = wp.vec3i(*map(int, dims))
         # a level-l vertex visits (2·2^(l-1) + 1)³ S1 vertices: split by that work, not by vertex count
@@ -394,6 +398,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     out_var = wp.empty(total, dtype=float, device=device)
     out_vtx = wp.empty(total, dtype=wp.int64, device=device)
     out_lobe = wp.empty(total, dtype=wp.vec3, device=device)
+    out_count = wp.empty(total, dtype=float, device=device)
     origin = wp.vec3(*map(float, lo))
 
     def compact(level):
@@ -402,7 +407,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
         wp.launch(K.compact_level, dim=int(dims.prod()), device=device,
                   inputs=[acc, slot, int(offsets[level - 1]), origin, float(h1 * (1 << (level - 1))),
                           wp.vec3i(*map(int, dims)), acc_lobe],
-                  outputs=[out_pos, out_int, out_var, out_vtx, out_lobe])
+                  outputs=[out_pos, out_int, out_var, out_vtx, out_lobe, out_count])
 
     run_parallel(compact, range(1, levels + 1), compact_workers)
     sync()
@@ -415,14 +420,16 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     var_np = np.array(out_var.numpy(), np.float32).reshape(-1)
     vtx_np = np.array(out_vtx.numpy(), np.int64).reshape(-1)
     lobe_np = np.array(out_lobe.numpy(), np.float32).reshape(-1, 3)
+    count_np = np.array(out_count.numpy(), np.float32).reshape(-1)
     out = []
     for level in range(1, levels + 1):
         a, b = offsets[level - 1], offsets[level]
         out.append(LGHLevel(level=level, spacing=float(h1 * (1 << (level - 1))), origin=lo.copy(),
                             dims=grid_of[level][0].astype(np.int64), position=pos_np[a:b],
-                            intensity=int_np[a:b], variance=var_np[a:b], vertex=vtx_np[a:b], lobe=lobe_np[a:b]))
+                            intensity=int_np[a:b], variance=var_np[a:b], vertex=vtx_np[a:b], lobe=lobe_np[a:b],
+                            count=count_np[a:b]))
     stats["merge"] = _time.perf_counter() - t0
     stats["lights_per_level"] = counts
     stats["total"] = _time.perf_counter() - t_start
     return LGH(levels=out, h1=float(h1), bounds=(lo, hi), stats=stats, position=pos_np, intensity=int_np,
-               variance=var_np, offsets=offsets, lobe=lobe_np)
+               variance=var_np, offsets=offsets, lobe=lobe_np, count=count_np)

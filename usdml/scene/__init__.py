@@ -167,6 +167,17 @@ class Lights:
         kw["paths"] = [s for p in parts for s in p.paths]
         return Lights(**kw)
 
+    def subset(self, index: np.ndarray) -> "Lights":
+        """The lights at ``index`` (an integer array or a boolean mask), in that order."""
+        from dataclasses import fields, replace
+
+        idx = np.flatnonzero(index) if np.asarray(index).dtype == bool else np.asarray(index, np.int64)
+        kw = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            kw[f.name] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
+        return replace(self, **kw)
+
     def cylinder_axis(self) -> np.ndarray:
         """(N, 3) float64 unit world direction of each light's local X (a cylinder light's axis)."""
         x = np.asarray(self.xform, np.float64)[:, :3, 0]
