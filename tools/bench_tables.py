@@ -335,6 +335,41 @@ def gi_svo(data: dict) -> list[str]:
     return lines
 
 
+def _times(x: float) -> str:
+    """A speed-up: one decimal under 10×."""
+    return f"{x:.1f}×" if x < 10 else f"{x:.0f}×"
+
+
+def direct_lgh(data: dict) -> list[str]:
+    """``tools/direct_lgh_scaling.py --json``: --direct lgh against --direct all per light count."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"] or []:
+            w, h = r["resolution"]
+            growth = f"{r['growth_per_10x']:.2f}×" if r.get("growth_per_10x") else "–"
+            rows.append([f"{r['lights']:,}", f"{w}×{h}", f"{r['lgh_seconds']:.2f}", f"{r['all_seconds']:.1f}",
+                         r["reference"], _times(r["speedup"]), _pct(r["rel_rmse"]), growth, str(r["lgh_levels"])])
+    return _table(["lamps", "pixels", "lgh s per frame", "all s per frame", "reference", "speed-up",
+                   "rel. RMSE of direct", "lgh time per 10× lamps", "LGH levels"], rows)
+
+
+def direct_compare(data: dict) -> list[str]:
+    """``usdml compare --direct lgh --against all --json``, one row per run."""
+    rows = []
+    for run in data["runs"]:
+        r = run["output"]
+        if not r:
+            continue
+        w, h = r["resolution"]
+        s = r["seconds"]
+        ref = "every pixel" if not r["reference_extrapolated"] else f"{r['compared_pixels']:,} pixels, extrapolated"
+        rows.append([_stage(r["stage"]), f"{r['lights']:,}", f"{w}×{h}", r["visibility"],
+                     str(r["direct_shadow_samples"]), f"{r['direct_alpha']:g}", _pct(r["rel_rmse"]),
+                     f"{s['lgh']:.2f}", f"{s['all']:.1f}", ref, _times(r["speedup"])])
+    return _table(["stage", "lights", "pixels", "visibility", "shadow samples", "alpha", "rel. RMSE of direct",
+                   "lgh s", "all s", "reference", "speed-up"], rows)
+
+
 def _ms(seconds: float) -> str:
     """Seconds as milliseconds: whole ones from 10 ms, two significant digits below."""
     v = 1000.0 * seconds
@@ -352,6 +387,7 @@ RENDERERS = {
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
+    "direct-lgh": direct_lgh, "direct-compare": direct_compare,
 }
 
 

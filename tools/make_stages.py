@@ -5,7 +5,7 @@ Usage::
 
     python tools/make_stages.py [--out stages]
 
-Writes seven top-level ``.usda`` stages plus binary ``.usdc`` layers::
+Writes eight top-level ``.usda`` stages plus binary ``.usdc`` layers::
 
     city.usda      static instanced city, 1,024 animated point lights
     planes.usda    sublayers city.usda, adds two airplanes flying over it
@@ -15,6 +15,8 @@ Writes seven top-level ``.usda`` stages plus binary ``.usdc`` layers::
     boxes.usda     25 plain boxes under 16 point lights, for independent renderers
     dragon.usda    Stanford dragon (48k triangles) on a ground, 1,024 static lights
                    on a dome (paper 001's Dragon scene)
+    city_night.usda  sublayers city.usda, its bulbs off and 100,000 static street
+                   lamps instead (paper 004's many lights)
     assets/*.usdc  heavy meshes (buildings, airplane, rigged bear, dragon)
     anim/*.usdc    heavy time samples (instancer positions / orientations),
                    sublayered under the .usda that defines the prims
@@ -855,6 +857,37 @@ def make_city(out_dir):
     define_render_settings(stage, "out/city.####.exr")
     stage.Save()
     return {"buildings": n_bldg, "expanded_tris": total, "intensity": intensity}
+
+
+CITY_NIGHT_LIGHTS = 100_000
+
+
+def make_city_night(out_dir, n=CITY_NIGHT_LIGHTS, name="city_night", city="./city.usda", seed=1002):
+    """The city at night: its 1,024 drifting bulbs switched off (``active = false``) and ``n`` static
+    street lamps in their place, a PointInstancer of point-like SphereLights (paper 004's case: far
+    more lights than any pixel can afford to test). The lamps stand along the 14 streets at 2.5-7.5 m;
+    together they give the street the light the 1,024 bulbs do (intensity x 1024/n), so images at
+    any ``n`` are alike. ``city`` is the path of city.usda as the new layer sublayers it; the lamps'
+    positions go in ``anim/<name>_lights.usdc`` (binary: 1.2 MB for 100k lamps)."""
+    rng = np.random.default_rng(seed)
+    path = os.path.join(out_dir, f"{name}.usda")
+    stage = new_stage(path, 1, 1)
+    lamps = add_anim_layer(stage, out_dir, f"{name}_lights")
+    stage.GetRootLayer().subLayerPaths.append(city)
+    stage.OverridePrim("/World/Lights").SetActive(False)
+    positions = city_light_positions(rng, n, np.zeros(1))[0]
+    proto_idx = rng.choice(3, n, p=[0.5, 0.25, 0.25])
+    samples, normals = street_samples(rng)
+    intensity = calibrate_intensity(city_light_positions(np.random.default_rng(1001), 1024, np.zeros(1))[0],
+                                    0.1, samples, normals, target=0.85)
+    intensity = round_sig(intensity * 1024.0 / n)
+    with Usd.EditContext(stage, lamps):
+        define_light_instancer(stage, None, "/World/StreetLamps", ["warm", "cool", "white"], 0.1, intensity,
+                               proto_idx, positions, None)
+    define_render_settings(stage, f"out/{name}.####.exr")
+    lamps.Save()
+    stage.Save()
+    return {"lights": n, "intensity": intensity}
 
 
 # --------------------------------------------------------------------------
@@ -1922,6 +1955,7 @@ def generate(out: str) -> list[str]:
     report["park"] = make_park(out)
     report["boxes"] = make_boxes(out)
     report["dragon"] = make_dragon(out)
+    report["city_night"] = make_city_night(out)
     for name, info in report.items():
         if info is not None:
             print(f"{name:9s}", ", ".join(f"{k}={v}" for k, v in info.items()))

@@ -235,8 +235,18 @@ def _cmd_compare(args: argparse.Namespace) -> int:
                                plot=args.plot)
         print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
         return 0
+    if args.direct is not None and not args.gi:       # with --gi, --direct is a setting of both renders
+        from usdml.compare import compare_direct, format_direct_comparison
+
+        overrides = {k: v for k, v in overrides_from_args(args).items() if k != "direct"}
+        against = args.against or ("all" if args.direct == "lgh" else "lgh")
+        r = compare_direct(_delegate(args), args.direct, against, args.frame, args.imageWidth, args.device,
+                           args.png, overrides, reference_pixels=args.reference_pixels or 0)
+        print(json.dumps(r, indent=2) if args.json else format_direct_comparison(r))
+        return 0
     if not args.gi:
-        raise UsdmlError("give --gi METHOD (and --against METHOD) to compare")
+        raise UsdmlError("give --gi METHOD (and --against METHOD), --visibility BACKEND or --direct lgh --against all "
+                         "to compare")
     overrides = {k: v for k, v in overrides_from_args(args).items() if k != "gi"}
     result = compare_gi(_delegate(args), args.gi, args.against or "vpl-bruteforce", args.frame,
                         args.imageWidth, args.device, args.png, overrides)
@@ -300,12 +310,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stage_args(compare)
     compare.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
     compare.add_argument("--visibility", help="approximate visibility backend to compare against exact (voxel)")
-    compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi)")
+    compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi; all for --direct)")
     compare.add_argument("--heatmap", metavar="PNG", help="with --visibility: write the shadow error heat map "
                          "(paper 000 Fig. 6: blue darker, red brighter, error x 10)")
     compare.add_argument("--plot", metavar="PREFIX", help="with --visibility: write PREFIX.heatmap.png (the heat map) "
                          "and PREFIX.hist.png (histograms of the per-pixel errors)")
     compare.add_argument("--imageWidth", type=int, default=128, help="image width (default: %(default)s)")
+    compare.add_argument("--reference-pixels", type=int, metavar="N",
+                         help="with --direct lgh --against all: shade the every-light reference on N random pixels "
+                              "only and extrapolate its time (for 100,000 lights and more)")
     _add_device_arg(compare)
     compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")
     compare.add_argument("--json", action="store_true", help="print JSON")

@@ -294,6 +294,36 @@ _ROWS = (
           "(the compiled maps; an error without them) or warp", VOXEL_COMMANDS,
           source="measured (usdml): docs/insm.md", choices=("auto", "native", "warp")),
 
+    # -- direct light from many lights (paper 004 over the stage's own lights)
+    Param("direct", str, "all", "usdml:direct", "--direct",
+          "direct light: every pixel against every light (all), or the stage's point, sphere, disk and rect "
+          "lights through a lighting grid hierarchy with stochastic, filtered shadows (lgh, paper 004; the "
+          "other lights every-light)", LIGHTING_COMMANDS, choices=("all", "lgh"), label="direct lighting",
+          source="all: exact; lgh is for tens of thousands of lights and more (measured: docs/lgh-direct.md)",
+          doc='''Direct lighting: all shades every pixel against every light; lgh puts the stage's point, sphere, disk and rect lights in a lighting grid hierarchy (paper 004) and shades it with importance-sampled, filtered shadow rays through the visibility backend.
+
+          Distant and dome lights, cylinder lights, lights with a shaping cone or
+          focus and lights with shadows off stay every-light under lgh. lgh pays
+          from about ten thousand lights (docs/lgh-direct.md); it uses the
+          usdml:lgh:alpha, usdml:lgh:levels and usdml:shadow:filterIterations
+          settings, and usdml:direct:shadowSamples.'''),
+    Param("direct_alpha", float, 4.0, "usdml:direct:alpha", "--direct-alpha",
+          "--direct lgh: blending radius factor alpha, r_l = alpha h_l (the lights themselves within alpha h_1)",
+          LIGHTING_COMMANDS, source="measured (usdml): docs/lgh-direct.md (paper 004 uses 1 for VPLs)",
+          range=Range(0, low_open=True), metavar="ALPHA",
+          doc='''--direct lgh: blending radius factor alpha of the hierarchy over the stage's lights, r_l = alpha h_l; the lights within alpha h_1 of a point light it themselves.
+
+          Larger alpha: more lights exact and finer grid lights farther out (less
+          error in the light and in its shadows), more lights visited per pixel.'''),
+    Param("direct_shadow_samples", int, 64, "usdml:direct:shadowSamples", "--direct-shadow-samples",
+          "--direct lgh: shadow rays per pixel, importance-sampled from the lights that reach it",
+          LIGHTING_COMMANDS, source="measured (usdml): docs/lgh-direct.md", range=Range(1), metavar="N",
+          doc='''--direct lgh: stochastic shadow rays per pixel (per primary ray), importance-sampled from the lights and grid lights that reach it (paper 004, Appendix A).
+
+          More samples, less shadow noise. The shadows are not filtered unless
+          usdml:shadow:filterIterations is set: on the city at night the filter
+          blurred more shadow than it removed noise (docs/lgh-direct.md).'''),
+
     # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
           "indirect light: VPLs through a lighting grid hierarchy (lgh, paper 004), a sixteenth of the VPLs "

@@ -145,14 +145,20 @@ class FrameRenderer:
 
             vpl_field = prepare_vpls(snap, self.exact, lights, self.settings, device=self.device)
             stats["gi_seconds"] = vpl_field.stats["vpl_seconds"] + vpl_field.stats.get("lgh_seconds", 0.0)
+        direct_field = None
+        if self.settings.direct == "lgh":    # one hierarchy over the stage's lights for every pass of the frame
+            from usdml.lighting.lgh_direct import prepare_direct
+
+            direct_field = prepare_direct(lights, self.settings.lgh_levels, device=self.device)
+            stats["direct_lgh"] = dict(direct_field.stats)
         image = _PixelFilter(width, height)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
         shaded = [None] * len(passes)
-        if len(passes) > 1 and self.backend.supports(LIGHT_MAJOR):
+        if len(passes) > 1 and self.backend.supports(LIGHT_MAJOR) and direct_field is None:
             shaded = self._shade_passes(snap, lights, camera, width, height, passes, stats, pixel_progress)
         for offsets, pre in zip(passes, shaded):
             gb, direct, indirect = self._trace(snap, lights, camera, width, height, offsets, stats, pixel_progress,
-                                               vpl_field, pre)
+                                               vpl_field, pre, direct_field)
             image.add(self._buffers(gb, gb.hit.ravel(), direct, indirect, camera, aovs), offsets)
         stats["lights"] = len(lights)
         stats["pixels"] = width * height
@@ -187,10 +193,11 @@ class FrameRenderer:
 
     def _trace(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
                offsets: np.ndarray, stats: dict, progress: Callable[[float], None] | None, vpl_field=None,
-               shaded: tuple | None = None):
+               shaded: tuple | None = None, direct_field=None):
         """One primary ray per pixel through ``offsets``: its G-buffer, direct and indirect light
         (gathered from ``vpl_field``, :func:`usdml.lighting.gi.prepare_vpls`); ``shaded``: the pass's
-        G-buffer and direct light already made (:meth:`_shade_passes`)."""
+        G-buffer and direct light already made (:meth:`_shade_passes`); ``direct_field``: the frame's
+        lights for ``--direct lgh`` (:func:`usdml.lighting.lgh_direct.prepare_direct`)."""
         t2 = _time.perf_counter()
         gb = build_gbuffer(snap, self.exact, width, height, offsets) if shaded is None else shaded[0]
         stats["gbuffer_seconds"] += _time.perf_counter() - t2
@@ -199,10 +206,26 @@ class FrameRenderer:
         # a SHADE_DIRECT backend shades in one kernel; the others through lighting.direct over their
         # shadow rays (VisibilityBackend.shade_direct)
         geometric = gb.geometric.reshape(-1, 3)[hit]
-        direct = shaded[1] if shaded is not None else \
-            self.backend.shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
-                                      gb.albedo.reshape(-1, 3)[hit], lights, progress,
-                                      meters_per_unit=snap.meters_per_unit, geometric=geometric)
+        if direct_field is not None:
+            from usdml.lighting.lgh_direct import shade_lgh_direct
+
+            def shade_rest(p, n, a, rest, geometric=None):
+                return self.backend.shade_direct(p, n, a, rest, None, meters_per_unit=snap.meters_per_unit,
+                                                 geometric=geometric)
+
+            direct, s = shade_lgh_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                         gb.albedo.reshape(-1, 3)[hit], direct_field, self.backend.occluded,
+                                         shade_rest, self.settings, meters_per_unit=snap.meters_per_unit,
+                                         image=(gb.hit, gb.position), geometric=geometric, device=self.device)
+            for k, v in s.items():
+                stats["direct_lgh"][k] = stats["direct_lgh"].get(k, 0) + v if isinstance(v, (int, float)) else v
+            if progress is not None:
+                progress(int(hit.sum()))
+        else:
+            direct = shaded[1] if shaded is not None else \
+                self.backend.shade_direct(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                          gb.albedo.reshape(-1, 3)[hit], lights, progress,
+                                          meters_per_unit=snap.meters_per_unit, geometric=geometric)
         if self.camera_light and len(lights) == 0:
             direct.radiance[:] = camera_light(gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
                                               gb.albedo.reshape(-1, 3)[hit], camera)

@@ -1,0 +1,115 @@
+#!/usr/bin/env python
+"""Frame time and error against the number of lights: ``--direct all`` against ``--direct lgh`` on the city.
+
+For each light count N the city at night is written as a real stage (``tools/make_stages.py``'s
+``make_city_night``: the city's bulbs off, N static street lamps, a PointInstancer of point-like
+SphereLights, their total power the same at every N) into ``--stages`` (kept between runs), and
+``usdml compare --direct lgh --against all`` measures it (:func:`usdml.compare.compare_direct`: one
+primary ray per pixel, the same G-buffer both ways): the frame's seconds each way, the speed-up, and
+the relative RMSE of ``direct``. Above ``--full-reference`` lights the every-light reference shades
+``--reference-pixels`` random pixels only and its seconds are extrapolated to the whole frame (at
+100,000 lights and 256 px it would take minutes; the error of the subset is an estimate of the
+frame's). The LGH frame's growth per 10x lights is reported beside.
+
+Usage::
+
+    python tools/direct_lgh_scaling.py --lights 1000,10000,100000,1000000 --imageWidth 256 --json
+    python tools/direct_lgh_scaling.py --lights 1024 --imageWidth 256 --full-reference 2000
+    python tools/direct_lgh_scaling.py --json > rows.json; python tools/direct_lgh_scaling.py --rows rows.json --plot p.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def night_stage(n: int, folder: str) -> str:
+    """The city with ``n`` street lamps (written once into ``folder``)."""
+    path = os.path.join(folder, f"city_lights_{n}.usda")
+    if not os.path.exists(path):
+        sys.path.insert(0, HERE)
+        from make_stages import make_city_night
+
+        os.makedirs(os.path.join(folder, "anim"), exist_ok=True)
+        make_city_night(folder, n, f"city_lights_{n}", city=os.path.join(ROOT, "stages", "city.usda"))
+    return path
+
+
+def measure(n: int, args) -> dict:
+    from usdml.compare import compare_direct
+    from usdml.stage import StageDelegate
+
+    path = night_stage(n, args.stages)
+    overrides = {"visibility": args.visibility}
+    if args.samples:
+        overrides["direct_shadow_samples"] = args.samples
+    subset = 0 if n <= args.full_reference else args.reference_pixels
+    r = compare_direct(StageDelegate(path), "lgh", "all", image_width=args.imageWidth, overrides=overrides,
+                       reference_pixels=subset)
+    return {"lights": n, "stage": os.path.basename(path), "resolution": r["resolution"], "pixels": r["pixels"],
+            "visibility": args.visibility, "direct_shadow_samples": r["direct_shadow_samples"],
+            "alpha": r["direct_alpha"], "rel_rmse": r["rel_rmse"], "lgh_seconds": r["seconds"]["lgh"],
+            "all_seconds": r["seconds"]["all"], "speedup": r["speedup"],
+            "reference": f"{r['compared_pixels']} pixels, extrapolated" if r["reference_extrapolated"] else "full frame",
+            "lgh_levels": r["breakdown"]["lgh"].get("lgh_levels"), "lgh_build_seconds": r["breakdown"]["lgh"].get(
+                "lgh_seconds")}
+
+
+def chart(rows: list, path: str) -> None:
+    """``--plot``: seconds per frame and relative RMSE against lights."""
+    from usdml.plots import panels
+
+    n = [r["lights"] for r in rows]
+    panels(path, [
+        dict(title="seconds per frame (city at night)", xlabel="lights", ylabel="frame (s)", logx=True, logy=True,
+             series=[("--direct all (exact)", n, [r["all_seconds"] for r in rows]),
+                     ("--direct lgh", n, [r["lgh_seconds"] for r in rows])]),
+        dict(title="direct: rel. RMSE of lgh against all", xlabel="lights", ylabel="rel. RMSE (%)", logx=True,
+             series=[("--direct lgh", n, [100 * r["rel_rmse"] for r in rows])]),
+    ])
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--lights", default="1000,10000,100000,1000000", help="comma-separated light counts")
+    p.add_argument("--imageWidth", type=int, default=256)
+    p.add_argument("--visibility", default="exact", help="shadow rays of both (default: %(default)s)")
+    p.add_argument("--samples", type=int, help="--direct-shadow-samples (default: the table's)")
+    p.add_argument("--full-reference", type=int, default=10_000, metavar="N",
+                   help="up to N lights the reference shades the whole frame (default: %(default)s)")
+    p.add_argument("--reference-pixels", type=int, default=4096, help="above that, the pixels it shades")
+    p.add_argument("--stages", default=os.path.join(tempfile.gettempdir(), "usdml-city-lights"),
+                   help="where the stages are written (default: %(default)s)")
+    p.add_argument("--rows", help="chart rows from an earlier --json run instead of measuring")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--plot", metavar="PNG", help="also write the chart as a PNG")
+    args = p.parse_args(argv)
+    if args.rows:
+        rows = json.load(open(args.rows))
+    else:
+        rows = []
+        for n in [int(x) for x in args.lights.split(",")]:
+            rows.append(measure(n, args))
+            if not args.json:
+                r = rows[-1]
+                print(f"{n:>9,} lights: lgh {r['lgh_seconds']:7.2f} s, all {r['all_seconds']:8.1f} s "
+                      f"({r['speedup']:.1f}x, {r['reference']}), rel. RMSE {100 * r['rel_rmse']:.2f} %", flush=True)
+        for a, b in zip(rows, rows[1:]):
+            b["growth_per_10x"] = (b["lgh_seconds"] / a["lgh_seconds"]) ** (1.0 / max(
+                __import__("math").log10(b["lights"] / a["lights"]), 1e-9))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+    if args.plot:
+        chart(rows, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Direct light from the stage's own lights through a lighting grid hierarchy (``--direct lgh``, paper 004).
+
+Paper 004 built its hierarchy for explosions authored as up to a million point lights (§1, Fig. 1);
+usdml builds the same hierarchy (:func:`usdml.lighting.lgh.build_lgh`) over the frame's UsdLux lights
+and shades it with the code ``--gi lgh`` uses for VPLs (:func:`usdml.lighting.lgh_lighting.lgh_indirect`):
+one LGH, two light sources. Per frame:
+
+1. **Split** (:func:`grid_mask`). Lights the grid represents faithfully become grid lights:
+
+   * sphere and point lights, isotropic: radiant intensity ``I`` in every direction;
+   * disk and rect lights, one-sided cosine emitters ``I · max(0, cos θ_l)`` about their axis: an
+     isotropic-equivalent intensity ``I / 4`` with the axis as emission normal, the LGH's cosine lobe
+     (:func:`usdml.kernels.lgh_lighting.lobe_factor`: ``4 · max(0, cos)``), which is exact for one
+     light and for grid lights over lights that face the same way, and tends to isotropic where they
+     do not; mixed with isotropic lights the lobe is exact too (the factor is linear in the mean normal).
+
+   Everything else is shaded every-light through the visibility backend, exactly as ``--direct all``
+   does: distant lights (and the distant lights a dome is sampled into), cylinder lights, lights with
+   a shaping cone or focus (their profile is not a cosine lobe), lights with ``shadow:enable`` off,
+   and lights of zero luminance (they light nothing and would only stand in the grid's counts).
+2. **Build** the hierarchy over the grid lights, levels by the paper's rule (``usdml:lgh:levels``
+   0) unless set.
+3. **Shade**: every pixel gathers the lights themselves within ``alpha h_1`` (level S0: the near field
+   is exact, so one light, or two, is reproduced exactly) and the grid lights of S1 and up beyond,
+   blended (§3.2); ``usdml:direct:shadowSamples`` shadow rays per pixel are importance-sampled while
+   gathering (Appendix A, stratified), each to a light the chosen grid light stands for and weighed
+   by the grid light's irradiance (:data:`SHADOW_TARGETS`); each light the samples chose counts once,
+   by its inclusion probability (:func:`usdml.lighting.lgh_lighting.shadow_fraction`'s ``inclusion``),
+   and the shadow ratio scales the unshadowed LGH irradiance. The ratio is filtered (à-trous, §3.3)
+   only when ``usdml:shadow:filterIterations`` asks (> 0): on the city at night, 100,000 lamps at
+   256 px, alpha 3, 32 samples, one iteration took the relative RMSE of ``direct`` from 13.0 to
+   25.7 % and the automatic two to 32.9 % (shadows of buildings on streets a few pixels wide).
+
+AOVs: ``direct`` is the sum of both parts; ``shadow`` is the estimated blocked fraction, the
+every-light part counting its blocked lights and the LGH part ``1 −`` its filtered shadow ratio (a
+fraction of the light, as its samples are drawn by light), weighed by the lights each part stands
+for; ``lightCount`` is the lights that face the pixel: the every-light part's count plus the LGH's
+``Σ B_l · (lights each grid light stands for)`` over the grid lights that reach it (fractional).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from usdml.lighting.direct import DirectResult
+from usdml.scene import Lights, LightType
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+#: where a grid light's shadow ray goes and how it counts (``usdml:shadow:targets``'s values): a light it
+#: stands for, drawn by luminance, the sample weighed by the grid light's irradiance. City at night, 100,000 lamps,
+#: 64 px, alpha 2, unfiltered, relative RMSE of direct at 32 / 128 samples: cluster 15.5 / 8.9 %, member
+#: (weighed by the light's own irradiance, the VPLs' default) 17.4 / 11.3 %, jitter 22.9 / 18.0 %
+SHADOW_TARGETS = "cluster"
+
+#: isotropic-equivalent intensity of a one-sided cosine emitter: I cos = (I / 4) · 4 cos (the LGH lobe)
+COSINE_SHARE = 0.25
+
+
+def grid_mask(lights: Lights) -> np.ndarray:
+    """``(N,) bool``: the lights a grid light represents faithfully (see the module doc)."""
+    t = np.asarray(lights.type)
+    kind = np.isin(t, (LightType.POINT, LightType.SPHERE, LightType.DISK, LightType.RECT))
+    plain = (np.asarray(lights.cone_angle) >= 180.0) & (np.asarray(lights.focus) <= 0.0)
+    lum = np.asarray(lights.intensity, np.float64).reshape(-1, 3) @ LUMA
+    return kind & plain & np.asarray(lights.shadow, bool) & (lum > 0.0)
+
+
+def grid_sources(lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(positions (N, 3), isotropic-equivalent intensities (N, 3), emission normals (N, 3) or None)``
+    of grid lights: ``I`` for isotropic lights, ``I / 4`` about the axis for disk and rect lights."""
+    one_sided = np.isin(np.asarray(lights.type), (LightType.DISK, LightType.RECT))
+    intensity = np.asarray(lights.intensity, np.float32).reshape(-1, 3).copy()
+    if not one_sided.any():
+        return np.asarray(lights.position, np.float64), intensity, None
+    intensity[one_sided] *= np.float32(COSINE_SHARE)
+    normals = np.zeros_like(intensity)
+    normals[one_sided] = np.asarray(lights.axis, np.float32)[one_sided]
+    return np.asarray(lights.position, np.float64), intensity, normals
+
+
+@dataclass
+class DirectField:
+    """One frame's lights as ``--direct lgh`` shades them: the hierarchy and the every-light rest."""
+
+    grid: Lights                    #: the lights in the hierarchy
+    rest: Lights                    #: the lights shaded every-light
+    lgh: object | None              #: :class:`usdml.lighting.lgh.LGH` over ``grid`` (None without grid lights)
+    sources: tuple | None           #: ``grid_sources(grid)``: S0 and the shadow rays' targets
+    stats: dict = field(default_factory=dict)
+    sampler: object | None = None   #: the shadow rays' :class:`ClusterSampler`, made by the frame's first pass
+
+
+def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> DirectField:
+    """Split the frame's ``lights`` and build the hierarchy over the grid lights (once per frame,
+    however many primary rays per pixel gather from it); ``levels`` as ``usdml:lgh:levels``."""
+    from usdml.lighting.lgh import build_lgh
+
+    t0 = _time.perf_counter()
+    mask = grid_mask(lights)
+    grid, rest = lights.subset(mask), lights.subset(~mask)
+    stats = {"grid_lights": len(grid), "every_light": len(rest)}
+    if len(grid) == 0:
+        stats["lgh_seconds"] = _time.perf_counter() - t0
+        return DirectField(grid, rest, None, None, stats)
+    sources = grid_sources(grid)
+    lgh = build_lgh(sources[0], sources[1], levels=levels, device=device, normal=sources[2])
+    stats["lgh_seconds"] = _time.perf_counter() - t0
+    stats["lgh_levels"] = len(lgh.levels)
+    stats["lgh_h1"] = float(lgh.h1)
+    stats["grid_light_count"] = int(len(lgh.position))
+    return DirectField(grid, rest, lgh, sources, stats)
+
+
+def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, direct: DirectField,
+                     occluded, shade_rest, settings, *, meters_per_unit: float = 1.0,
+                     image: tuple | None = None, geometric: np.ndarray | None = None,
+                     device: str = "cpu") -> tuple[DirectResult, dict]:
+    """Direct light at ``P`` points from ``direct`` (:func:`prepare_direct`): ``(DirectResult, stats)``.
+
+    ``occluded`` is the visibility backend's shadow query; ``shade_rest(points, normals, albedo,
+    lights, geometric=)`` shades the every-light rest (the backend's ``shade_direct``). ``settings``:
+    ``direct_shadow_samples``, ``direct_alpha``, ``shadow_filter_iterations``, ``seed``. ``image =
+    (hit, positions)`` lets the shadow ratio be filtered; ``geometric`` normals, when given, are where
+    shadow rays leave from (and, for the rest, which lights face a point).
+    """
+    from usdml.lighting.lgh_lighting import ClusterSampler, lgh_indirect
+
+    n = len(points)
+    stats: dict = {}
+    t0 = _time.perf_counter()
+    rest = shade_rest(points, normals, albedo, direct.rest, geometric=geometric) if len(direct.rest) else \
+        DirectResult(np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.int32), 0)
+    stats["every_light_seconds"] = _time.perf_counter() - t0
+    if direct.lgh is None or n == 0:
+        return rest, stats
+    t1 = _time.perf_counter()
+    clamp = 1e-6 * float(direct.lgh.h1)
+    if direct.sampler is None:
+        direct.sampler = ClusterSampler(direct.lgh, *direct.sources, reweight=SHADOW_TARGETS == "member",
+                                        meters_per_unit=meters_per_unit, clamp_distance=clamp)
+        stats["sampler_seconds"] = _time.perf_counter() - t1
+    r = lgh_indirect(points, normals, albedo, direct.lgh, occluded, alpha=settings.direct_alpha,
+                     samples=settings.direct_shadow_samples, seed=settings.seed, meters_per_unit=meters_per_unit,
+                     clamp_distance=clamp, image=image,
+                     filter_iterations=max(settings.shadow_filter_iterations, 0), device=device,
+                     sources=direct.sources,
+                     start_level=0, shadow_targets=SHADOW_TARGETS, geometric=geometric, sampler=direct.sampler,
+                     inclusion=True)
+    stats.update({f"lgh_{k}": v for k, v in r.stats.items()})
+    stats["lgh_shading_seconds"] = _time.perf_counter() - t1
+    count = np.asarray(r.count if r.count is not None else np.zeros(n), np.float32)
+    lum_shadowed = r.radiance.astype(np.float64) @ LUMA
+    lum_open = r.unshadowed.astype(np.float64) @ LUMA
+    # (a black surface reflects nothing to take a ratio of: its samples' raw blocked fraction)
+    blocked = np.where(lum_open > 0, 1.0 - np.clip(lum_shadowed / np.maximum(lum_open, 1e-30), 0.0, 1.0),
+                       1.0 - r.visible)
+    facing = rest.facing.astype(np.float64) + count
+    blocked_lights = rest.shadow.astype(np.float64) * rest.facing + blocked * count
+    shadow = np.where(facing > 0, blocked_lights / np.maximum(facing, 1e-30), 0.0)
+    radiance = (rest.radiance + r.radiance).astype(np.float32)
+    queries = rest.queries + int(r.stats.get("shadow_rays", 0))
+    return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.float32), queries), stats
