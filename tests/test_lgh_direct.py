@@ -168,9 +168,7 @@ def test_one_light_and_a_pair_reproduced_exactly(count):
     one_level = ((d < r0) | (d > 2 * r0)).all(1) & (share >= 1.0 / k).all(1)
     assert one_level.sum() > 100
     np.testing.assert_allclose(got.radiance[one_level], want.radiance[one_level], rtol=2e-5, atol=1e-9)
-    # the shadow AOV: the blocked fraction of the light (of the lights' count with --direct all)
-    blocked = 1.0 - (want.radiance @ luma) / np.maximum(open_.radiance @ luma, 1e-30)
-    np.testing.assert_allclose(got.shadow[one_level & lit], blocked[one_level & lit], atol=1e-5)
+    np.testing.assert_allclose(got.shadow[one_level], want.shadow[one_level], atol=1e-5)
     np.testing.assert_allclose(got.facing, want.facing, atol=1e-5)
 
 
@@ -222,8 +220,8 @@ def test_grid_lights_keep_a_disk_lights_profile():
 
 def test_lgh_frame_against_every_light(new_stage):
     """2,000 lamps over a ground with a box: ``--direct lgh`` within 6 % relative RMSE of every-light
-    exact shading (measured 3.7 %), its shadow AOV within 0.05 of the blocked fraction on average and
-    lightCount within 5 % of the facing lights."""
+    exact shading, its shadow AOV's mean within 0.03 of every-light's (per pixel within 0.15 on average:
+    an estimate from 64 rays) and lightCount within 5 % of the facing lights."""
     path = lamp_stage(new_stage, lamps(2000))
     lgh = render(path, direct="lgh")
     ref = render(path, direct="all")
@@ -233,6 +231,10 @@ def test_lgh_frame_against_every_light(new_stage):
     assert lgh.stats["direct_lgh"]["grid_lights"] == 2000
     count = lgh.buffers["lightCount"][hit].sum() / ref.buffers["lightCount"][hit].sum()
     assert count == pytest.approx(1.0, abs=0.05)
+    # the shadow AOV: blocked lights over facing lights, as every-light's, estimated (noisy per pixel)
+    shadow = np.abs(lgh.buffers["shadow"][hit] - ref.buffers["shadow"][hit]).mean()
+    assert ref.buffers["shadow"][hit].mean() > 0.05 and shadow < 0.15, shadow
+    assert abs(lgh.buffers["shadow"][hit].mean() - ref.buffers["shadow"][hit].mean()) < 0.03
     # the same seed, the same pixels
     again = render(path, direct="lgh")
     np.testing.assert_array_equal(again.buffers["direct"], lgh.buffers["direct"])
@@ -345,10 +347,11 @@ def box_occluded(lo, hi):
     return occluded
 
 
-def test_shadow_aov_is_the_blocked_fraction_of_the_light():
-    """The LGH part's ``shadow`` estimates the fraction of the light that is blocked, 1 − E_shadowed /
-    E_unshadowed in luminance (its samples are drawn by light): within 0.05 on average of that
-    fraction computed every-light, around a box among 3,000 lamps."""
+def test_shadow_aov_is_the_blocked_fraction_of_the_lights():
+    """The ``shadow`` AOV keeps its meaning under lgh: the fraction of the lights facing a point that are
+    blocked (each chosen light counting the lights it stands for, over its inclusion probability):
+    around a box among 3,000 lamps, its mean within 0.03 of every-light shading's, per point within
+    0.15 on average at 64 rays (measured 0.117) and 0.08 at 256 (0.055); lightCount within 5 %."""
     rng = np.random.default_rng(11)
     lights = _lights(rng.uniform([-15, 1, -15], [15, 6, 15], (3000, 3)), np.full((3000, 3), 0.3, np.float32))
     pts = rng.uniform(-10, 10, (2000, 3)) * [1, 0, 1]
@@ -356,11 +359,11 @@ def test_shadow_aov_is_the_blocked_fraction_of_the_light():
     nrm = np.tile([0.0, 1.0, 0.0], (len(pts), 1))
     alb = np.full((len(pts), 3), 0.5, np.float32)
     occluded = box_occluded([-2, 0, -2], [2, 2, 2])
-    luma = np.array([0.2126, 0.7152, 0.0722])
-    shadowed = shade_direct(pts, nrm, alb, lights, occluded)
-    want = 1.0 - (shadowed.radiance @ luma) / (shade_direct(pts, nrm, alb, lights, None).radiance @ luma)
+    want = shade_direct(pts, nrm, alb, lights, occluded)
     field = prepare_direct(lights)
-    got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, UsdmlSettings(direct_shadow_samples=64))
-    assert want.mean() > 0.03
-    assert np.abs(got.shadow - want).mean() < 0.05, np.abs(got.shadow - want).mean()
-    assert got.facing.sum() / shadowed.facing.sum() == pytest.approx(1.0, abs=0.05)
+    assert want.shadow.mean() > 0.1
+    for k, bound in ((64, 0.15), (256, 0.08)):
+        got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, UsdmlSettings(direct_shadow_samples=k))
+        assert np.abs(got.shadow - want.shadow).mean() < bound, (k, np.abs(got.shadow - want.shadow).mean())
+        assert abs(got.shadow.mean() - want.shadow.mean()) < 0.03
+        assert got.facing.sum() / want.facing.sum() == pytest.approx(1.0, abs=0.05)

@@ -25,6 +25,7 @@ CHARTS = {
     "gi_table": ("gi-lgh", lambda out: out["rows"]),
     "svo_gi_table": ("gi-svo", lambda out: out["rows"]),
     "insm_table": ("insm", lambda out: out["rows"]),
+    "direct_lgh_scaling": ("direct-lgh", lambda out: out),
 }
 
 

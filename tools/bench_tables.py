@@ -361,13 +361,14 @@ def direct_compare(data: dict) -> list[str]:
         if not r:
             continue
         w, h = r["resolution"]
-        s = r["seconds"]
+        s, d = r["seconds"], r["direct_seconds"]
         ref = "every pixel" if not r["reference_extrapolated"] else f"{r['compared_pixels']:,} pixels, extrapolated"
         rows.append([_stage(r["stage"]), f"{r['lights']:,}", f"{w}×{h}", r["visibility"],
-                     str(r["direct_shadow_samples"]), f"{r['direct_alpha']:g}", _pct(r["rel_rmse"]),
-                     f"{s['lgh']:.2f}", f"{s['all']:.1f}", ref, _times(r["speedup"])])
-    return _table(["stage", "lights", "pixels", "visibility", "shadow samples", "alpha", "rel. RMSE of direct",
-                   "lgh s", "all s", "reference", "speed-up"], rows)
+                     str(r["direct_shadow_samples"]), _pct(r["rel_rmse"]), f"{d['lgh']:.2f} / {d['all']:.1f}",
+                     _times(r["direct_speedup"]), f"{s['lgh']:.2f} / {s['all']:.1f}", _times(r["speedup"]), ref])
+    return _table(["stage", "lights", "pixels", "visibility", "shadow samples", "rel. RMSE of direct",
+                   "direct light s (lgh / all)", "speed-up", "frame s (lgh / all)", "frame speed-up", "reference"],
+                  rows)
 
 
 def _ms(seconds: float) -> str:

@@ -16,6 +16,11 @@ Usage::
     python tools/direct_lgh_scaling.py --lights 1000,10000,100000,1000000 --imageWidth 256 --json
     python tools/direct_lgh_scaling.py --lights 1024 --imageWidth 256 --full-reference 2000
     python tools/direct_lgh_scaling.py --json > rows.json; python tools/direct_lgh_scaling.py --rows rows.json --plot p.png
+    python tools/direct_lgh_scaling.py --lights 1000000 --frame 512   # usdml render of a 512 x 512 frame
+
+``--frame SIZE`` times instead what a user waits for: ``usdml render`` (:class:`usdml.Recorder`) of one
+SIZE x SIZE frame with ``--direct lgh`` (a layer over the stage sets its RenderSettings resolution),
+the stage's default pixel samples and AOVs, stage load and EXR included.
 """
 
 from __future__ import annotations
@@ -40,6 +45,48 @@ def night_stage(n: int, folder: str) -> str:
         os.makedirs(os.path.join(folder, "anim"), exist_ok=True)
         make_city_night(folder, n, f"city_lights_{n}", city=os.path.join(ROOT, "stages", "city.usda"))
     return path
+
+
+def square_stage(n: int, size: int, folder: str) -> str:
+    """``night_stage(n)`` with its RenderSettings resolution ``size`` × ``size`` (a layer over it)."""
+    base = night_stage(n, folder)
+    path = os.path.join(folder, f"city_lights_{n}_{size}sq.usda")
+    if not os.path.exists(path):
+        from pxr import Gf, Sdf, Usd
+
+        stage = Usd.Stage.CreateNew(path)
+        stage.GetRootLayer().subLayerPaths.append(os.path.basename(base))
+        for key in ("startTimeCode", "endTimeCode", "metersPerUnit", "upAxis", "renderSettingsPrimPath",
+                    "defaultPrim", "timeCodesPerSecond", "framesPerSecond"):
+            value = Usd.Stage.Open(base).GetMetadata(key)
+            if value is not None:
+                stage.SetMetadata(key, value)
+        settings = stage.OverridePrim("/Render/Settings")
+        settings.CreateAttribute("resolution", Sdf.ValueTypeNames.Int2, variability=Sdf.VariabilityUniform).Set(
+            Gf.Vec2i(size, size))
+        stage.Save()
+    return path
+
+
+def time_frame(n: int, size: int, args) -> dict:
+    """What a user waits for: ``usdml render`` (through :class:`usdml.Recorder`) of one ``size`` ×
+    ``size`` frame of ``n`` lamps with ``--direct lgh``, the default pixel samples, every AOV of the
+    stage's product: stage load, BVH, hierarchy, shading and the EXR, in one fresh process's time."""
+    import usdml
+
+    path = square_stage(n, size, args.stages)
+    out = os.path.join(args.stages, f"frame_{n}_{size}.exr")
+    rec = usdml.Recorder(direct="lgh", visibility=args.visibility,
+                         **({"direct_shadow_samples": args.samples} if args.samples else {}))
+    import time
+
+    t0 = time.perf_counter()
+    r = rec.record(path, 1, out)
+    from usdml.stage import StageDelegate
+
+    return {"lights": n, "resolution": r.resolution, "seconds": time.perf_counter() - t0,
+            "seconds_per_frame": r.seconds_per_frame,
+            "pixel_samples": StageDelegate(path).usdml_settings.pixel_samples, "visibility": args.visibility}
 
 
 def measure(n: int, args) -> dict:
@@ -87,10 +134,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference-pixels", type=int, default=4096, help="above that, the pixels it shades")
     p.add_argument("--stages", default=os.path.join(tempfile.gettempdir(), "usdml-city-lights"),
                    help="where the stages are written (default: %(default)s)")
+    p.add_argument("--frame", type=int, metavar="SIZE",
+                   help="instead: time usdml render of one SIZE x SIZE frame with --direct lgh per light count")
     p.add_argument("--rows", help="chart rows from an earlier --json run instead of measuring")
     p.add_argument("--json", action="store_true")
     p.add_argument("--plot", metavar="PNG", help="also write the chart as a PNG")
     args = p.parse_args(argv)
+    if args.frame:
+        rows = [time_frame(int(x), args.frame, args) for x in args.lights.split(",")]
+        print(json.dumps(rows, indent=2) if args.json else "\n".join(
+            f"{r['lights']:>9,} lamps, {r['resolution'][0]}x{r['resolution'][1]}: {r['seconds']:.1f} s" for r in rows))
+        return 0
     if args.rows:
         rows = json.load(open(args.rows))
     else:

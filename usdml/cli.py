@@ -223,6 +223,17 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from usdml.errors import UsdmlError
 
     check_width(args.imageWidth)
+    if args.direct is not None and not args.gi:       # --visibility: both renders' shadow rays
+        from usdml.compare import compare_direct, format_direct_comparison
+
+        overrides = {k: v for k, v in overrides_from_args(args).items() if k != "direct"}
+        if args.visibility:
+            overrides["visibility"] = args.visibility
+        against = args.against or ("all" if args.direct == "lgh" else "lgh")
+        r = compare_direct(_delegate(args), args.direct, against, args.frame, args.imageWidth, args.device,
+                           args.png, overrides, reference_pixels=args.reference_pixels or 0)
+        print(json.dumps(r, indent=2) if args.json else format_direct_comparison(r))
+        return 0
     if args.visibility:
         from usdml.compare import compare_visibility, format_visibility_comparison
         from usdml.render.sequence import build_messages
@@ -234,15 +245,6 @@ def _cmd_compare(args: argparse.Namespace) -> int:
                                args.imageWidth, args.device, args.heatmap, overrides, build_messages(),
                                plot=args.plot)
         print(json.dumps(r, indent=2) if args.json else format_visibility_comparison(r))
-        return 0
-    if args.direct is not None and not args.gi:       # with --gi, --direct is a setting of both renders
-        from usdml.compare import compare_direct, format_direct_comparison
-
-        overrides = {k: v for k, v in overrides_from_args(args).items() if k != "direct"}
-        against = args.against or ("all" if args.direct == "lgh" else "lgh")
-        r = compare_direct(_delegate(args), args.direct, against, args.frame, args.imageWidth, args.device,
-                           args.png, overrides, reference_pixels=args.reference_pixels or 0)
-        print(json.dumps(r, indent=2) if args.json else format_direct_comparison(r))
         return 0
     if not args.gi:
         raise UsdmlError("give --gi METHOD (and --against METHOD), --visibility BACKEND or --direct lgh --against all "

@@ -179,6 +179,7 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
         "seconds": {direct: test_s, against: ref_s},
         "direct_seconds": {direct: test_shading, against: ref_shading},
         "speedup": ref_s / test_s if test_s > 0 else float("inf"),
+        "direct_speedup": ref_shading / test_shading if test_shading > 0 else float("inf"),
         "warmup_seconds": warm,
         "breakdown": {direct: test.stats.get("direct_lgh", {})},
     }

@@ -55,12 +55,12 @@ def panels(path: str, charts: Sequence[dict], title: str | None = None) -> str:
         for label, xs, ys in c["series"]:
             ax.plot(list(xs), list(ys), marker="o", label=str(label))
         if c.get("logx"):
-            from matplotlib.ticker import NullFormatter, ScalarFormatter
+            from matplotlib.ticker import FuncFormatter, NullFormatter
             ax.set_xscale("log")
             ticks = sorted({float(x) for _, xs, _ in c["series"] for x in xs})
-            if len(ticks) <= 12:            # the measured values as the ticks, in plain numbers
+            if len(ticks) <= 12:            # the measured values as the ticks, in plain numbers (1,000,000)
                 ax.set_xticks(ticks)
-                ax.xaxis.set_major_formatter(ScalarFormatter())
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:,.0f}" if x >= 1 else f"{x:g}"))
                 ax.xaxis.set_minor_formatter(NullFormatter())
         if c.get("logy"):
             ax.set_yscale("log")

@@ -31,11 +31,15 @@ one LGH, two light sources. Per frame:
    256 px, alpha 3, 32 samples, one iteration took the relative RMSE of ``direct`` from 13.0 to
    25.7 % and the automatic two to 32.9 % (shadows of buildings on streets a few pixels wide).
 
-AOVs: ``direct`` is the sum of both parts; ``shadow`` is the estimated blocked fraction, the
-every-light part counting its blocked lights and the LGH part ``1 −`` its filtered shadow ratio (a
-fraction of the light, as its samples are drawn by light), weighed by the lights each part stands
-for; ``lightCount`` is the lights that face the pixel: the every-light part's count plus the LGH's
-``Σ B_l · (lights each grid light stands for)`` over the grid lights that reach it (fractional).
+AOVs: ``direct`` is the sum of both parts; ``lightCount`` is the lights that face the pixel: the
+every-light part's count plus the LGH's ``Σ B_l · (lights each grid light stands for)`` over the grid
+lights that reach it (fractional); ``shadow`` is the fraction of those lights that are blocked, as
+with ``--direct all``: the every-light part counts its blocked lights, the LGH part estimates its
+blocked lights from the samples (each chosen light's count over its inclusion probability, as a
+fraction of the chosen lights' counts), the two weighed by the lights each stands for. The estimate
+is noisy per pixel (the far lights, most of a pixel's lights by number, are rarely chosen, as they
+bring little light): city at night, 100,000 lamps, 256 px, mean 0.756 against 0.775, 0.063 off per
+pixel on average.
 """
 
 from __future__ import annotations
@@ -153,11 +157,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
     stats.update({f"lgh_{k}": v for k, v in r.stats.items()})
     stats["lgh_shading_seconds"] = _time.perf_counter() - t1
     count = np.asarray(r.count if r.count is not None else np.zeros(n), np.float32)
-    lum_shadowed = r.radiance.astype(np.float64) @ LUMA
-    lum_open = r.unshadowed.astype(np.float64) @ LUMA
-    # (a black surface reflects nothing to take a ratio of: its samples' raw blocked fraction)
-    blocked = np.where(lum_open > 0, 1.0 - np.clip(lum_shadowed / np.maximum(lum_open, 1e-30), 0.0, 1.0),
-                       1.0 - r.visible)
+    blocked = 1.0 - r.visible.astype(np.float64)       # of the lights the samples stand for
     facing = rest.facing.astype(np.float64) + count
     blocked_lights = rest.shadow.astype(np.float64) * rest.facing + blocked * count
     shadow = np.where(facing > 0, blocked_lights / np.maximum(facing, 1e-30), 0.0)
