@@ -152,7 +152,7 @@ def test_one_light_and_a_pair_reproduced_exactly(count):
     field = prepare_direct(lights)
     assert field.lgh is not None and len(field.lgh.levels) == 1
     k = 8
-    settings = UsdmlSettings(direct_shadow_samples=k, shadow_filter_iterations=0)
+    settings = UsdmlSettings(direct_shadow_samples=k, shadow_filter_iterations=0, pixel_samples=1)
     open_, _ = shade_lgh_direct(pts, nrm, alb, field, None, None, settings)
     np.testing.assert_allclose(open_.radiance, shade_direct(pts, nrm, alb, lights, None).radiance, rtol=2e-5)
     got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, settings)
@@ -363,7 +363,18 @@ def test_shadow_aov_is_the_blocked_fraction_of_the_lights():
     field = prepare_direct(lights)
     assert want.shadow.mean() > 0.1
     for k, bound in ((64, 0.15), (256, 0.08)):
-        got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, UsdmlSettings(direct_shadow_samples=k))
+        got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, UsdmlSettings(direct_shadow_samples=k, pixel_samples=1))
         assert np.abs(got.shadow - want.shadow).mean() < bound, (k, np.abs(got.shadow - want.shadow).mean())
         assert abs(got.shadow.mean() - want.shadow.mean()) < 0.03
         assert got.facing.sum() / want.facing.sum() == pytest.approx(1.0, abs=0.05)
+
+
+def test_shadow_rays_are_per_pixel():
+    """``usdml:direct:shadowSamples`` rays per pixel, shared by its primary rays: 64 at 4 pixel samples
+    is 16 per primary ray, 64 at 1; at least one."""
+    from usdml.lighting.lgh_direct import rays_per_pass
+
+    assert rays_per_pass(UsdmlSettings(direct_shadow_samples=64, pixel_samples=4)) == 16
+    assert rays_per_pass(UsdmlSettings(direct_shadow_samples=64, pixel_samples=1)) == 64
+    assert rays_per_pass(UsdmlSettings(direct_shadow_samples=10, pixel_samples=4)) == 3
+    assert rays_per_pass(UsdmlSettings(direct_shadow_samples=2, pixel_samples=16)) == 1

@@ -371,6 +371,13 @@ def direct_compare(data: dict) -> list[str]:
                   rows)
 
 
+def direct_frame(data: dict) -> list[str]:
+    """``tools/direct_lgh_scaling.py --frame SIZE --json``: a user's render of one frame with --direct lgh."""
+    rows = [[f"{r['lights']:,}", f"{r['resolution'][0]}×{r['resolution'][1]}", str(r["pixel_samples"]),
+             r["visibility"], f"{r['seconds']:.1f}"] for run in data["runs"] for r in run["output"] or []]
+    return _table(["lamps", "pixels", "pixel samples", "visibility", "usdml render s (all of it)"], rows)
+
+
 def _ms(seconds: float) -> str:
     """Seconds as milliseconds: whole ones from 10 ms, two significant digits below."""
     v = 1000.0 * seconds
@@ -388,7 +395,7 @@ RENDERERS = {
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
-    "direct-lgh": direct_lgh, "direct-compare": direct_compare,
+    "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame,
 }
 
 

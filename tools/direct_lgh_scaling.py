@@ -75,13 +75,17 @@ def time_frame(n: int, size: int, args) -> dict:
     import usdml
 
     path = square_stage(n, size, args.stages)
-    out = os.path.join(args.stages, f"frame_{n}_{size}.exr")
     rec = usdml.Recorder(direct="lgh", visibility=args.visibility,
                          **({"direct_shadow_samples": args.samples} if args.samples else {}))
     import time
 
-    t0 = time.perf_counter()
-    r = rec.record(path, 1, out)
+    here = os.getcwd()
+    os.chdir(args.stages)          # the stage's product (out/...exr, at its RenderSettings resolution) lands here
+    try:
+        t0 = time.perf_counter()
+        r = rec.record(path, 1, None)
+    finally:
+        os.chdir(here)
     from usdml.stage import StageDelegate
 
     return {"lights": n, "resolution": r.resolution, "seconds": time.perf_counter() - t0,

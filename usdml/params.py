@@ -316,9 +316,10 @@ _ROWS = (
           Larger alpha: more lights exact and finer grid lights farther out (less
           error in the light and in its shadows), more lights visited per pixel.'''),
     Param("direct_shadow_samples", int, 64, "usdml:direct:shadowSamples", "--direct-shadow-samples",
-          "--direct lgh: shadow rays per pixel, importance-sampled from the lights that reach it",
+          "--direct lgh: shadow rays per pixel (shared by its primary rays), importance-sampled from the lights "
+          "that reach it",
           LIGHTING_COMMANDS, source="measured (usdml): docs/lgh-direct.md", range=Range(1), metavar="N",
-          doc='''--direct lgh: stochastic shadow rays per pixel (per primary ray), importance-sampled from the lights and grid lights that reach it (paper 004, Appendix A).
+          doc='''--direct lgh: stochastic shadow rays per pixel, shared by its primary rays (usdml:pixelSamples 4: a quarter each), importance-sampled from the lights and grid lights that reach them (paper 004, Appendix A).
 
           More samples, less shadow noise. The shadows are not filtered unless
           usdml:shadow:filterIterations is set: on the city at night the filter

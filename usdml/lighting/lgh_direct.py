@@ -119,6 +119,12 @@ def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> Dire
     return DirectField(grid, rest, lgh, sources, stats)
 
 
+def rays_per_pass(settings) -> int:
+    """Shadow rays per primary ray: ``usdml:direct:shadowSamples`` is per pixel, shared by its
+    ``usdml:pixelSamples`` primary rays (whose results the pixel filter averages)."""
+    return max(1, -(-int(settings.direct_shadow_samples) // max(int(settings.pixel_samples), 1)))
+
+
 def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, direct: DirectField,
                      occluded, shade_rest, settings, *, meters_per_unit: float = 1.0,
                      image: tuple | None = None, geometric: np.ndarray | None = None,
@@ -148,7 +154,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
                                         meters_per_unit=meters_per_unit, clamp_distance=clamp)
         stats["sampler_seconds"] = _time.perf_counter() - t1
     r = lgh_indirect(points, normals, albedo, direct.lgh, occluded, alpha=settings.direct_alpha,
-                     samples=settings.direct_shadow_samples, seed=settings.seed, meters_per_unit=meters_per_unit,
+                     samples=rays_per_pass(settings), seed=settings.seed, meters_per_unit=meters_per_unit,
                      clamp_distance=clamp, image=image,
                      filter_iterations=max(settings.shadow_filter_iterations, 0), device=device,
                      sources=direct.sources,
