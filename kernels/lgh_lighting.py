@@ -163,10 +163,10 @@ class Sweep:
 
 @wp.func
 def visit(st: Sweep, sweep: int, stratified: int, e4: wp.vec4, scale: float, count: float, samples: int, tid: int,
-          q: wp.vec3, sd: float, v: int, out_sample_pos: wp.array2d(dtype=wp.vec3), out_sample_ok: wp.array2d(dtype=int),
-          out_sample_light: wp.array2d(dtype=int), out_sample_weight: wp.array2d(dtype=wp.vec3),
-          out_sample_blend: wp.array2d(dtype=float),
-         out_sample_lum: wp.array2d(dtype=float)) -> Sweep:
+          q: wp.vec3, sd: float, v: int, out_sample_pos: wp.array2d(dtype=wp.vec3),
+          out_sample_ok: wp.array2d(dtype=int), out_sample_light: wp.array2d(dtype=int),
+          out_sample_weight: wp.array2d(dtype=wp.vec3), out_sample_blend: wp.array2d(dtype=float),
+          out_sample_lum: wp.array2d(dtype=float)) -> Sweep:
     """One light (``light_term``'s ``e4``) of a point: summed in the first sweep (and picked there by
     Appendix A's streaming when not ``stratified``); in the second, it takes the samples whose
     positions fall in its share of the running sum. ``count``: the input lights it stands for."""
@@ -284,9 +284,9 @@ def lgh_gather(
                                 continue
                             q = s0_pos[v]
                             e4 = light_term(p, n, q, s0_int[v], s0_lobe[v], 0, top, r0, inv_m2, clamp_d2, scale)
-                            st = visit(st, sweep, stratified, e4, scale, 1.0, samples, tid, q, 0.0, m + v, out_sample_pos,
-                                       out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend,
-                                       out_sample_lum)
+                            st = visit(st, sweep, stratified, e4, scale, 1.0, samples, tid, q, 0.0, m + v,
+                                       out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight,
+                                       out_sample_blend, out_sample_lum)
         for l in range(n_levels):
             h = level_spacing[l]
             r = alpha * h

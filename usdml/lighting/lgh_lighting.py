@@ -38,9 +38,9 @@ class LGHShading:
     #: B_l(d) times the lights each stands for (1 for an S0 light)
     count: np.ndarray | None = None
     sample_lum: np.ndarray | None = None     #: (P, k) float32 chosen light's luminance contribution f (F = Σ f)
-    #: (P, k) float32 the input lights the chosen light stands for at the point: B_l(d) times its count
-    #: (its share of :attr:`count`)
-    sample_count: np.ndarray | None = None
+    #: (M [+ N],) float32 the input lights each light a sample can choose stands for, indexed as
+    #: ``sample_light`` (the grid lights' counts, then 1 for each S0 light)
+    light_count: np.ndarray | None = None
 
 
 @dataclass
@@ -200,13 +200,9 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
         slum[lo:hi] = out_lum.numpy()
 
     _in_blocks(run, n, device, blocks_per_worker=4)
-    # B · count of each chosen light: B / f (sblend, × the interleave scale) times f times its count (1 for S0)
-    per_light = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
-    scount = sblend[:, :k] * slum[:, :k] * per_light[np.clip(slight[:, :k], 0, max(len(per_light) - 1, 0))] \
-        if len(per_light) else np.zeros((n, k), np.float32)
-    scount = np.where(sok[:, :k] > 0, scount, 0.0).astype(np.float32)
+    light_count = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
     return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k], cnt,
-                      slum[:, :k], scount)
+                      slum[:, :k], light_count)
 
 
 class ClusterSampler:
@@ -417,8 +413,8 @@ def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarra
                         visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(shadowed (P, 3), visible (P,))`` by :func:`shadow_fraction`'s ``inclusion`` rule, in blocks of
     points. ``visible`` becomes the visible fraction of the *lights* the samples stand for (each chosen
-    light's ``sample_count`` over its inclusion probability, self-normalised), where ``sample_count`` is
-    known; else it stays the fraction of the samples given."""
+    light's B · count over its inclusion probability, self-normalised), where ``light_count`` is known;
+    else it stays the fraction of the samples given."""
     n, k = seen.shape
     out = np.empty((n, 3), np.float32)
     visible = visible.copy()
@@ -438,8 +434,10 @@ def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarra
         den = w.sum(axis=1)
         ratio = np.where(den > 0, num / np.maximum(den, 1e-30), 1.0)
         out[lo:hi] = shading.irradiance[lo:hi] * np.clip(ratio, 0.0, 1.0)
-        if shading.sample_count is not None:
-            c = np.where(ok, shading.sample_count[lo:hi] / (runs * np.maximum(incl, 1e-30)), 0.0)
+        if shading.light_count is not None and len(shading.light_count):
+            # B · count of each chosen light: B / f (sample_blend, × the interleave scale) times f times its count
+            count = shading.sample_blend[lo:hi] * shading.sample_lum[lo:hi] * shading.light_count[np.maximum(light, 0)]
+            c = np.where(ok, count / (runs * np.maximum(incl, 1e-30)), 0.0)
             total_c = c.sum(axis=1)
             visible[lo:hi] = np.where(total_c > 0, (seen[lo:hi] * c).sum(axis=1) / np.maximum(total_c, 1e-30),
                                       visible[lo:hi])
