@@ -92,22 +92,13 @@ def _reference_subset(delegate: StageDelegate, settings, frame: float, width: in
                       pixels: int, seed: int) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Every-light direct light of ``pixels`` hit pixels drawn at random (``seed``) from the frame's
     G-buffer (pixel centres, as the test's one primary ray per pixel): ``(flat pixel indices, (S, 3)
-    radiance, seconds of the shading, hit pixels)``. The frame set-up is :meth:`FrameRenderer.render`'s."""
-    from dataclasses import replace
-
-    from usdml.render.frame import conform_camera
+    radiance, seconds of the shading, hit pixels)``; the frame set up as a render does
+    (:meth:`FrameRenderer.advance`)."""
     from usdml.render.gbuffer import build_gbuffer
-    from usdml.scene import diff
 
     renderer = FrameRenderer(delegate, settings, device)
     try:
-        snap = delegate.snapshot(frame)
-        changes = diff(None, snap)
-        renderer.exact.update(snap, changes)
-        if renderer.backend is not renderer.exact:
-            renderer.backend.update(snap, changes)
-        lights = renderer.frame_lights(snap)
-        snap = replace(snap, camera=conform_camera(snap.camera, width, height))
+        snap, lights, _ = renderer.advance(frame, width, height)
         gb = build_gbuffer(snap, renderer.exact, width, height)
         hit = np.flatnonzero(gb.hit.ravel())
         pick = np.sort(np.random.default_rng(seed).choice(hit, min(pixels, len(hit)), replace=False))

@@ -114,28 +114,7 @@ class FrameRenderer:
         """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels."""
         stats: dict = {}
         t0 = _time.perf_counter()
-        snap = self.delegate.snapshot(time)
-        require_geometry(self.delegate, snap)
-        stats["snapshot_seconds"] = _time.perf_counter() - t0
-        changes = diff(self._previous, snap)
-        t1 = _time.perf_counter()
-        self.exact.update(snap, changes)
-        if self.backend is not self.exact:
-            self.backend.update(snap, changes)
-        stats["update_seconds"] = _time.perf_counter() - t1
-        if self._own_gi_backend():
-            t1 = _time.perf_counter()
-            self.gi_backend.update(snap, changes)
-            stats["gi_update_seconds"] = _time.perf_counter() - t1
-        if self.gi_backend is not None:
-            from usdml.lighting.interleaved import target_lift
-
-            self._target_lift = target_lift(self.gi_backend)
-        self._previous = snap
-        camera = conform_camera(snap.camera, width, height)
-        lights = self.frame_lights(snap)
-        snap = replace(snap, camera=camera)
-
+        snap, lights, camera = self.advance(time, width, height, stats)
         stats.update(gbuffer_seconds=0.0, shading_seconds=0.0, shadow_queries=0)
         samples = self.settings.pixel_samples
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
@@ -165,6 +144,34 @@ class FrameRenderer:
         stats["pixel_samples"] = samples
         stats["seconds"] = _time.perf_counter() - t0
         return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
+
+    def advance(self, time: float, width: int, height: int,
+                stats: dict | None = None) -> tuple[Snapshot, Lights, Camera]:
+        """Move to timecode ``time``: its snapshot, the backends updated with what changed since the last
+        frame, ``(snapshot with the camera conformed to width × height, the frame's lights, that camera)``;
+        seconds of each step into ``stats``."""
+        stats = {} if stats is None else stats
+        t0 = _time.perf_counter()
+        snap = self.delegate.snapshot(time)
+        require_geometry(self.delegate, snap)
+        stats["snapshot_seconds"] = _time.perf_counter() - t0
+        changes = diff(self._previous, snap)
+        t1 = _time.perf_counter()
+        self.exact.update(snap, changes)
+        if self.backend is not self.exact:
+            self.backend.update(snap, changes)
+        stats["update_seconds"] = _time.perf_counter() - t1
+        if self._own_gi_backend():
+            t1 = _time.perf_counter()
+            self.gi_backend.update(snap, changes)
+            stats["gi_update_seconds"] = _time.perf_counter() - t1
+        if self.gi_backend is not None:
+            from usdml.lighting.interleaved import target_lift
+
+            self._target_lift = target_lift(self.gi_backend)
+        self._previous = snap
+        camera = conform_camera(snap.camera, width, height)
+        return replace(snap, camera=camera), self.frame_lights(snap), camera
 
     def _shade_passes(self, snap: Snapshot, lights: Lights, camera: Camera, width: int, height: int,
                       passes: list, stats: dict, progress: Callable[[float], None] | None) -> list:
