@@ -27,9 +27,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -54,11 +56,12 @@ def square_stage(n: int, size: int, folder: str) -> str:
     if not os.path.exists(path):
         from pxr import Gf, Sdf, Usd
 
+        below = Usd.Stage.Open(base)
         stage = Usd.Stage.CreateNew(path)
         stage.GetRootLayer().subLayerPaths.append(os.path.basename(base))
         for key in ("startTimeCode", "endTimeCode", "metersPerUnit", "upAxis", "renderSettingsPrimPath",
                     "defaultPrim", "timeCodesPerSecond", "framesPerSecond"):
-            value = Usd.Stage.Open(base).GetMetadata(key)
+            value = below.GetMetadata(key)
             if value is not None:
                 stage.SetMetadata(key, value)
         settings = stage.OverridePrim("/Render/Settings")
@@ -73,22 +76,20 @@ def time_frame(n: int, size: int, args) -> dict:
     ``size`` frame of ``n`` lamps with ``--direct lgh``, the default pixel samples, every AOV of the
     stage's product: stage load, BVH, hierarchy, shading and the EXR, in one fresh process's time."""
     import usdml
+    from usdml.stage import StageDelegate
 
     path = square_stage(n, size, args.stages)
     rec = usdml.Recorder(direct="lgh", visibility=args.visibility,
                          **({"direct_shadow_samples": args.samples} if args.samples else {}))
-    import time
-
     here = os.getcwd()
     os.chdir(args.stages)          # the stage's product (out/...exr, at its RenderSettings resolution) lands here
     try:
         t0 = time.perf_counter()
         r = rec.record(path, 1, None)
+        seconds = time.perf_counter() - t0
     finally:
         os.chdir(here)
-    from usdml.stage import StageDelegate
-
-    return {"lights": n, "resolution": r.resolution, "seconds": time.perf_counter() - t0,
+    return {"lights": n, "resolution": r.resolution, "seconds": seconds,
             "seconds_per_frame": r.seconds_per_frame,
             "pixel_samples": StageDelegate(path).usdml_settings.pixel_samples, "visibility": args.visibility}
 
@@ -161,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"({r['speedup']:.1f}x, {r['reference']}), rel. RMSE {100 * r['rel_rmse']:.2f} %", flush=True)
         for a, b in zip(rows, rows[1:]):
             b["growth_per_10x"] = (b["lgh_seconds"] / a["lgh_seconds"]) ** (1.0 / max(
-                __import__("math").log10(b["lights"] / a["lights"]), 1e-9))
+                math.log10(b["lights"] / a["lights"]), 1e-9))
     if args.json:
         print(json.dumps(rows, indent=2))
     if args.plot:
