@@ -333,6 +333,7 @@ def cluster_targets(
     start: wp.array(dtype=int),               # (M,) first member row of each grid light
     stop: wp.array(dtype=int),                # (M,) one past its last member row
     cum: wp.array(dtype=wp.float64),          # (rows + 1,) running sum of the members' luminance
+    guide: wp.array(dtype=int),               # (rows,) cut points (usdml.lighting.lgh_lighting._guide_table)
     member: wp.array(dtype=int),              # (rows,) input light of each member row
     positions: wp.array(dtype=wp.vec3),       # (N,) input light positions
     grid_lights: int,                         # M
@@ -376,14 +377,24 @@ def cluster_targets(
         return
     rng = wp.rand_init(seed, first + t)
     x = c0 + wp.float64(wp.randf(rng)) * total
-    a = lo                                    # the last row whose running sum is <= x
-    b = hi - 1
-    while a < b:
-        m = (a + b + 1) / 2
-        if cum[m] <= x:
-            a = m
-        else:
-            b = m - 1
+    # the last row whose running sum is <= x: from the cut point of x's share, stepping forward (the
+    # row a binary search over lo .. hi - 1 finds; a cut point past x, which rounding could give, falls
+    # back to that search)
+    m_rows = hi - lo
+    share = int((x - c0) / total * wp.float64(m_rows))
+    share = wp.min(wp.max(share, 0), m_rows - 1)
+    a = guide[lo + share]
+    if cum[a] > x:
+        a = lo
+        b = hi - 1
+        while a < b:
+            m = (a + b + 1) / 2
+            if cum[m] <= x:
+                a = m
+            else:
+                b = m - 1
+    while a + 1 < hi and cum[a + 1] <= x:
+        a = a + 1
     j = member[a]
     out[t] = positions[j]
     if reweight == 1:

@@ -313,7 +313,7 @@ def same_bits(a: np.ndarray, b: np.ndarray) -> None:
 
 @pytest.mark.parametrize("with_normals", [True, False])
 @pytest.mark.parametrize("with_distant", [True, False])
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, "mixed"])
 def test_compiled_rays_are_the_numpy_rule_bit_for_bit(with_normals, with_distant, dtype):
     """occluded's compiled ray set-up (usdml.kernels.shadow_rays) gives exactly ExactBackend.shadow_rays's
     float32 rays, edge cases included: zero and non-unit normals, distant rows, segments of no length or
@@ -328,12 +328,17 @@ def test_compiled_rays_are_the_numpy_rule_bit_for_bit(with_normals, with_distant
     far = rng.random(n) < 0.2
     L[far] = rng.normal(size=(far.sum(), 3))
     L[far] /= np.linalg.norm(L[far], axis=1, keepdims=True)
-    P, L = P.astype(dtype), L.astype(dtype)
+    # "mixed": float64 points, float32 targets (the LGH's shadow rays: G-buffer points, light targets)
+    P, L = (P, L.astype(np.float32)) if dtype == "mixed" else (P.astype(dtype), L.astype(dtype))
     normals = N.astype(np.float32) if with_normals else None
     distant = far if with_distant else None
     b = ExactBackend(epsilon=0.0123)
     want = b.shadow_rays(P, L, normals, distant)
     got = _RayKernel(P, L, normals, distant, b.epsilon)
+    from usdml.kernels import shadow_rays as kernels
+
+    # float32 targets are read as float32 (no float64 copy of the batch), float64 as float64
+    assert got.kernel is (kernels.shadow_rays if dtype == np.float64 else kernels.shadow_rays_df)
     for lo, hi in ((0, n), (17, 1234), (n - 3, n)):
         for w, g in zip(want, got(lo, hi)):
             same_bits(w[lo:hi], g)

@@ -79,6 +79,13 @@ def _flatten(lgh):
             np.concatenate(count))
 
 
+#: chosen samples :func:`shadow_fraction` handles at once (targets, rays, sums): its arrays stay a few
+#: MiB, which the allocator reuses, where whole-frame ones (13 M rows on the city at 256 px, k = 512)
+#: were paid for in first-touch page faults (with row gathers by np.take, float32 targets read as they
+#: are and the targets' kernel writing in place: the city's shadow stage 8.2-9.0 -> 4.2 s, same pixels)
+SHADOW_BLOCK = 1 << 19
+
+
 def _in_blocks(run: Callable[[int, int], None], n: int, device: str, blocks_per_worker: int = 1,
                min_block: int = 1) -> None:
     """``run(lo, hi)`` over blocks of ``[0, n)``, the blocks over every core on ``cpu``."""
@@ -136,7 +143,7 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     cnt = np.zeros(n, np.float32)
     spos = np.zeros((n, max(k, 1), 3), np.float32)
     sok = np.zeros((n, max(k, 1)), np.int32)
-    slight = np.full((n, max(k, 1)), -1, np.int32)
+    slight = np.zeros((n, max(k, 1)), np.int32)       # 0 where no sample was taken, as sample_ok says
     sweight = np.zeros((n, max(k, 1), 3), np.float32)
     sblend = np.zeros((n, max(k, 1)), np.float32)
     slum = np.zeros((n, max(k, 1)), np.float32)
@@ -172,17 +179,18 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     nrm = np.ascontiguousarray(normals, np.float32)
     tile_ids = np.zeros(n, np.int32) if tile is None or tiles <= 1 else np.ascontiguousarray(tile, np.int32)
 
+    outputs = ((irr, wp.vec3), (cnt, float), (spos, wp.vec3), (sok, int), (slight, int), (sweight, wp.vec3),
+               (sblend, float), (slum, float))
+    on_cpu = wp.get_device(device).is_cpu
+
     def run(lo: int, hi: int) -> None:
-        m = hi - lo
-        out_irr = wp.zeros(m, dtype=wp.vec3, device=device)
-        out_cnt = wp.zeros(m, dtype=float, device=device)
-        out_pos = wp.zeros((m, max(k, 1)), dtype=wp.vec3, device=device)
-        out_ok = wp.zeros((m, max(k, 1)), dtype=int, device=device)
-        out_light = wp.zeros((m, max(k, 1)), dtype=int, device=device)
-        out_weight = wp.zeros((m, max(k, 1)), dtype=wp.vec3, device=device)
-        out_blend = wp.zeros((m, max(k, 1)), dtype=float, device=device)
-        out_lum = wp.zeros((m, max(k, 1)), dtype=float, device=device)
-        wp.launch(lgh_gather, dim=m, device=device, inputs=[
+        # on a CPU the kernel writes into the result's rows themselves (a block's own arrays, copied
+        # over, cost a second pass and first-touch page faults on both: 18.9 M samples at k = 512)
+        outs = [wp.array(a[lo:hi], dtype=dtype, device=device, copy=False) if on_cpu else
+                wp.zeros(a[lo:hi].shape[:-1] if dtype is wp.vec3 else a[lo:hi].shape, dtype=dtype, device=device)
+                for a, dtype in outputs]
+        out_irr, out_cnt, out_pos, out_ok, out_light, out_weight, out_blend, out_lum = outs
+        wp.launch(lgh_gather, dim=hi - lo, device=device, inputs=[
             wp.array(pts[lo:hi], dtype=wp.vec3, device=device), wp.array(nrm[lo:hi], dtype=wp.vec3, device=device),
             shared["level_origin"], shared["level_spacing"], shared["level_dims"], shared["level_offset"],
             shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_lobe"], shared["light_std"],
@@ -190,19 +198,37 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
             float(clamp_distance ** 2), k,
             int(bool(jitter)), int(seed), lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), int(max(tiles, 1)),
             int(bool(stratified)), out_irr, out_cnt, out_pos, out_ok, out_light, out_weight, out_blend, out_lum])
-        irr[lo:hi] = out_irr.numpy()
-        cnt[lo:hi] = out_cnt.numpy()
-        spos[lo:hi] = out_pos.numpy()
-        sok[lo:hi] = out_ok.numpy()
-        slight[lo:hi] = out_light.numpy()
-        sweight[lo:hi] = out_weight.numpy()
-        sblend[lo:hi] = out_blend.numpy()
-        slum[lo:hi] = out_lum.numpy()
+        if not on_cpu:
+            for (a, _), o in zip(outputs, outs):
+                a[lo:hi] = o.numpy()
 
     _in_blocks(run, n, device, blocks_per_worker=4)
     light_count = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
     return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k], cnt,
                       slum[:, :k], light_count)
+
+
+def _guide_table(cum: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Cut points for drawing a member of each group in proportion to its luminance (the guide table
+    of the inverse-CDF method): the group of rows ``start .. stop - 1`` (running sums ``cum``) is cut
+    into as many equal shares of its sum as it has members, and row ``start + b`` of the table holds
+    the last row whose running sum is at most the start of share ``b``. A draw then starts from its
+    share's row and steps forward while the next running sum is at most it: the row a binary search
+    over the group finds, in about two reads instead of log2(members) (a group of the city's coarse
+    levels holds thousands of VPLs, each read a cache miss)."""
+    rows = len(cum) - 1
+    guide = np.zeros(max(rows, 1), np.int32)
+    size = (stop - start).astype(np.int64)
+    group = np.repeat(np.arange(len(start)), size)          # each row's group (rows are grouped in order)
+    if len(group) == 0:
+        return guide
+    lo, hi = start[group].astype(np.int64), stop[group].astype(np.int64)
+    share = (np.arange(rows) - lo).astype(np.float64)
+    total = cum[hi] - cum[lo]
+    edge = cum[lo] + share * total / size[group]
+    at = np.searchsorted(cum, edge, side="right") - 1
+    guide[:rows] = np.clip(at, lo, hi - 1)
+    return guide
 
 
 class ClusterSampler:
@@ -262,11 +288,12 @@ class ClusterSampler:
         self.start = np.searchsorted(g, np.arange(base), side="left")
         self.stop = np.searchsorted(g, np.arange(base), side="right")
         self.cum = np.concatenate([[0.0], np.cumsum(w)])
+        self.guide = _guide_table(self.cum, self.start, self.stop)
         self._device = None       # the tables as Warp arrays, made on the first targets() call
 
     def targets(self, lights: np.ndarray, fallback: np.ndarray, seed: int, points: np.ndarray | None = None,
                 normals: np.ndarray | None = None, blend: np.ndarray | None = None,
-                weight: np.ndarray | None = None, pixel: np.ndarray | None = None
+                weight: np.ndarray | None = None, pixel: np.ndarray | None = None, first: int = 0
                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """``(S, 3)`` targets for chosen grid lights ``lights`` (S,), ``fallback`` where a group is empty.
 
@@ -274,7 +301,9 @@ class ClusterSampler:
         With ``reweight``: ``(targets, weights (S, 3))`` from the shading ``points`` and ``normals``
         (P, 3), each sample's point index ``pixel`` (S,) int (default: sample i is point i), ``blend``
         (S,) and ``weight`` (S, 3) (:class:`LGHShading`'s ``sample_blend`` and ``sample_weight``; an S0
-        pick or an empty group keeps its ``weight``).
+        pick or an empty group keeps its ``weight``). ``first``: the index of sample 0 among all of a
+        frame's samples (their random streams are numbered by it, so blocks of samples drawn one
+        after another pick what the whole set drawn at once picks).
         (Choosing the member by its geometry term at the shading point instead, by resampling 4–8
         luminance-drawn candidates, was measured on cornell: 11.5 → 11.0 % relative RMSE at 16 samples
         per pixel, 15.6 → 16.0 % at 4, for up to twice the shadow time; not kept.)
@@ -297,29 +326,26 @@ class ClusterSampler:
         if self._device is None:   # on the CPU, beside the visibility backends' shadow rays
             cpu = lambda a, dtype: wp.array(a, dtype=dtype, device="cpu")   # noqa: E731
             self._device = dict(start=cpu(self.start.astype(np.int32), int), stop=cpu(self.stop.astype(np.int32), int),
-                                cum=cpu(self.cum, wp.float64), member=cpu(self.member.astype(np.int32), int),
+                                cum=cpu(self.cum, wp.float64), guide=cpu(self.guide, int),
+                                member=cpu(self.member.astype(np.int32), int),
                                 positions=cpu(self.positions.astype(np.float32), wp.vec3),
                                 intensity=cpu(self.intensity, wp.vec3), normals=cpu(self.normals, wp.vec3))
         d = self._device
 
+        def view(a: np.ndarray, dtype):     # the NumPy rows themselves: no copies in or out
+            return wp.array(a, dtype=dtype, device="cpu", copy=False)
+
         def run(lo: int, hi: int) -> None:
-            got = wp.empty(hi - lo, dtype=wp.vec3, device="cpu")
-            part = slice(lo, hi) if reweight else slice(0, 1)
-            w = wp.array(out_w[part], dtype=wp.vec3, device="cpu")
+            w = view(out_w[lo:hi] if reweight else out_w, wp.vec3)
             zero = wp.zeros(1, dtype=int, device="cpu")
-            pts, nrm, bl, px = ((shared[0], shared[1], wp.array(per_sample[0][lo:hi], dtype=float, device="cpu"),
-                                 wp.array(per_sample[1][lo:hi], dtype=int, device="cpu")) if reweight else
-                                (w, w, wp.zeros(1, dtype=float, device="cpu"), zero))
+            pts, nrm, bl, px = ((shared[0], shared[1], view(per_sample[0][lo:hi], float), view(per_sample[1][lo:hi], int))
+                                if reweight else (w, w, wp.zeros(1, dtype=float, device="cpu"), zero))
             wp.launch(cluster_targets, dim=hi - lo, device="cpu", inputs=[
-                wp.array(lights[lo:hi], dtype=int, device="cpu"),
-                wp.array(fallback[lo:hi], dtype=wp.vec3, device="cpu"),
-                d["start"], d["stop"], d["cum"], d["member"], d["positions"], int(self.grid_lights), int(seed), lo,
-                int(reweight), pts, nrm, px, bl, d["intensity"], d["normals"], float(self.inv_m2),
-                float(self.clamp_d2)],
-                outputs=[got, w])
-            out[lo:hi] = got.numpy()
-            if reweight:
-                out_w[lo:hi] = w.numpy()
+                view(lights[lo:hi], int), view(fallback[lo:hi], wp.vec3),
+                d["start"], d["stop"], d["cum"], d["guide"], d["member"], d["positions"], int(self.grid_lights),
+                int(seed), int(first) + lo, int(reweight), pts, nrm, px, bl, d["intensity"], d["normals"],
+                float(self.inv_m2), float(self.clamp_d2)],
+                outputs=[view(out[lo:hi], wp.vec3), w])
 
         _in_blocks(run, len(lights), "cpu", min_block=1 << 14)
         return (out, out_w) if reweight else out
@@ -357,35 +383,42 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
                 and shading.sample_blend is not None and weight is not None)
     # usually every sample was chosen: no gathers; reweighing gives the others weight 0 (and no ray)
     rows = None if reweight or ok.all() else np.flatnonzero(ok)
-
-    def chosen_samples(a: np.ndarray) -> np.ndarray:    # (P, k, ...) -> (chosen samples, ...)
-        a = a.reshape(n * k, *a.shape[2:])
-        return a if rows is None else a[rows]
-
-    # the point of each chosen sample (gathered once for the rays cast, not repeated k times)
-    pixel = (np.arange(n * k, dtype=np.int32) // np.int32(k)) if rows is None else (rows // k).astype(np.int32)
-    targets = chosen_samples(shading.sample_pos)
-    cast = slice(None)
-    if reweight:
-        targets, w = sampler.targets(chosen_samples(shading.sample_light), targets, seed, points,
-                                     normals if shading_normals is None else shading_normals,
-                                     chosen_samples(shading.sample_blend), chosen_samples(weight), pixel=pixel)
-        weight = w.reshape(n, k, 3)
-        cast = np.flatnonzero(w.any(axis=1))            # weight 0 (or not chosen): no ray
-        targets = targets[cast]
-        cast_pixel = pixel[cast]
-    elif sampler is not None and shading.sample_light is not None:
-        targets = sampler.targets(chosen_samples(shading.sample_light), targets, seed)
-    if not reweight:
-        cast_pixel = pixel
+    chosen_count = n * k if rows is None else len(rows)
+    light = None if shading.sample_light is None else shading.sample_light.reshape(n * k)
+    flat = {name: None if a is None else a.reshape(n * k, *a.shape[2:]) for name, a in
+            (("pos", shading.sample_pos), ("blend", shading.sample_blend), ("weight", weight))}
     seen = np.zeros(n * k, np.float32)                  # 1 where a chosen sample is visible
-    got = ~occluded(points[cast_pixel], targets, normals=normals[cast_pixel])
-    if reweight:
-        seen[cast] = got
-    elif rows is None:
-        seen[:] = got
-    else:
-        seen[rows] = got
+    if reweight:        # Σ_k V w and Σ_k w per point and channel, block by block (blocks of whole points)
+        num, den = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
+    rays = 0
+    # the chosen samples in blocks of about SHADOW_BLOCK (the same picks: the random streams are numbered
+    # by sample), of whole points when every sample is taken
+    block = max(1, SHADOW_BLOCK // k) * k if rows is None else SHADOW_BLOCK
+    for lo in range(0, chosen_count, block):
+        hi = min(chosen_count, lo + block)
+        at = slice(lo, hi) if rows is None else rows[lo:hi]          # the block's samples, as (P·k) rows
+        pixel = (np.arange(lo, hi, dtype=np.int32) // np.int32(k)) if rows is None else (at // k).astype(np.int32)
+        targets, cast_pixel = flat["pos"][at], pixel
+        if reweight:
+            targets, w = sampler.targets(light[at], targets, seed, points,
+                                         normals if shading_normals is None else shading_normals,
+                                         flat["blend"][at], flat["weight"][at], pixel=pixel, first=lo)
+            cast = np.flatnonzero((w[:, 0] != 0) | (w[:, 1] != 0) | (w[:, 2] != 0))     # weight 0: no ray
+            targets = np.take(targets, cast, axis=0)
+            cast_pixel = pixel[cast]
+        elif sampler is not None and light is not None:
+            targets = sampler.targets(light[at], targets, seed, first=lo)
+        # np.take: row gathers several times faster than fancy indexing
+        got = ~occluded(np.take(points, cast_pixel, axis=0), targets, normals=np.take(normals, cast_pixel, axis=0))
+        rays += int(got.size)
+        if reweight:
+            vis = seen[at]          # a view: every sample is taken (rows is None), the block whole points
+            vis[cast] = got
+            p0, p1 = lo // k, hi // k
+            num[p0:p1] = np.einsum("pk,pkc->pc", vis.reshape(-1, k), w.reshape(-1, k, 3))
+            den[p0:p1] = w.reshape(-1, k, 3).sum(axis=1)
+        else:
+            seen[at] = got
     seen = seen.reshape(n, k)
     chosen = shading.sample_ok.sum(axis=1)
     per = np.float32(1.0) / np.maximum(chosen, 1).astype(np.float32)
@@ -393,8 +426,6 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
     if reweight:
         # self-normalised: the members' visible share of their own irradiance, Σ w V / Σ w per channel,
         # scales the grid lights' irradiance (the shadow ratio; noise in w shared by both sums cancels)
-        num = np.einsum("pk,pkc->pc", seen, weight)
-        den = weight.sum(axis=1)
         # (where every sample drew a VPL that sends the point nothing, no ray says anything: unshadowed)
         ratio = np.where(den > 0, num / np.maximum(den, 1e-30), 1.0)
         shadowed = (shading.irradiance * ratio).astype(np.float32)
@@ -406,7 +437,7 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
         shadowed = np.where(chosen[:, None] > 0, lum[:, None] * mean, shading.irradiance).astype(np.float32)
     else:
         shadowed = shading.irradiance * visible[:, None]
-    return visible, shadowed, int(got.size)
+    return visible, shadowed, rays
 
 
 def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarray,

@@ -243,23 +243,26 @@ def _is_dynamic(p: Prototype) -> bool:
 
 class _RayKernel:
     """:meth:`ExactBackend.shadow_rays` of chunks of one batch, by the compiled kernel: inputs as the
-    kernel reads them (float64 points, float32 normals: the casts the rule makes) wrapped once per
-    batch, rays written per chunk into fresh arrays (they stay in cache for Embree)."""
+    kernel reads them (float64 points, float32 or float64 targets as they come, float32 normals: the
+    casts the rule makes) wrapped once per batch, rays written per chunk into fresh arrays (they stay in cache for Embree)."""
 
     def __init__(self, origins, targets, normals, distant, epsilon: float) -> None:
         from usdml.kernels import shadow_rays as kernels
         from usdml.kernels import warp
 
         wp = self.wp = warp()
-        self.kernel = kernels.shadow_rays
+        # float32 targets are read as they are, points as float64 (float32 -> float64 is exact, and the
+        # kernel rounds back to the same float32): no float64 copy of a batch of float32 targets
+        f32 = targets.dtype == np.float32
+        self.kernel = kernels.shadow_rays_df if f32 else kernels.shadow_rays
         self.device = wp.get_device("cpu")
         # compile / load here, on the caller's thread, before the pool's workers launch it together
         wp.load_module(kernels, device=self.device)
-        # float32 -> float64 is exact, and the kernel rounds back to the same float32
-        as64 = lambda a: np.ascontiguousarray(a, np.float64)      # noqa: E731
         wrap = lambda a, dtype: wp.array(a, dtype=dtype, device=self.device, copy=False)  # noqa: E731
         self.inputs = [
-            wrap(as64(origins), wp.vec3d), wrap(as64(targets), wp.vec3d),
+            wrap(np.ascontiguousarray(origins, np.float64), wp.vec3d),
+            wrap(np.ascontiguousarray(targets, np.float32), wp.vec3f) if f32 else
+            wrap(np.ascontiguousarray(targets, np.float64), wp.vec3d),
             wrap(np.ascontiguousarray(np.zeros((1, 3), np.float32) if normals is None else normals, np.float32),
                  wp.vec3f),
             wrap(np.ascontiguousarray(np.zeros(1, bool) if distant is None or not distant.any() else distant),
