@@ -339,6 +339,9 @@ def cluster_targets(
     grid_lights: int,                         # M
     seed: int,
     first: int,                               # global index of this launch's first sample (RNG stream)
+    stratified: int,                          # 1: the rank-th of a run draws from the rank-th share
+    rank: wp.array(dtype=int),                # (S,) the sample's place among its point's samples of its light
+    run_length: wp.array(dtype=int),          # (S,) how many they are
     reweight: int,                            # 1: weigh each sample by its member's own irradiance
     points: wp.array(dtype=wp.vec3),          # (P,) shading points (reweight only)
     normals: wp.array(dtype=wp.vec3),         # (P,) their shading normals
@@ -376,7 +379,10 @@ def cluster_targets(
         out[t] = fallback[t]
         return
     rng = wp.rand_init(seed, first + t)
-    x = c0 + wp.float64(wp.randf(rng)) * total
+    u = wp.float64(wp.randf(rng))
+    if stratified == 1:
+        u = (wp.float64(rank[t]) + u) / wp.float64(run_length[t])
+    x = c0 + u * total
     # the last row whose running sum is <= x: from the cut point of x's share, stepping forward (the
     # row a binary search over lo .. hi - 1 finds; a cut point past x, which rounding could give, falls
     # back to that search)
