@@ -136,7 +136,6 @@ def shadow_rays(origins: wp.array(dtype=wp.vec3d), targets: wp.array(dtype=wp.ve
           wp.inf)
 
 
-
 @wp.func_native(_reading(_SNIPPET, "double", "float"))
 def _rays_df(origins: wp.array(dtype=wp.vec3d), targets: wp.array(dtype=wp.vec3f), normals: wp.array(dtype=wp.vec3f),
              distant: wp.array(dtype=wp.bool), has_normals: int, has_distant: int, epsilon: float, margin: float,

@@ -268,3 +268,30 @@ def test_one_cosine_emitter_is_lambertian_at_every_distance(start, device):
     want = flux * (cos_l / (np.pi * d[:, 0] ** 2))[:, None]
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
     assert (got[cos_l == 0] == 0).all() and (cos_l == 0).sum() > 100     # nothing behind its surface
+
+
+def test_sample_runs_and_guide_table():
+    """sample_runs numbers a point's consecutive samples on one light; the guide table's cut points
+    lead a forward step to the row a binary search over the group finds, for any draw."""
+    from usdml.lighting.lgh_lighting import _guide_table, sample_runs
+
+    rank, length = sample_runs(np.array([5, 5, 7, 7, 7, 5, 5, 2]), 4)      # two points of 4 samples
+    np.testing.assert_array_equal(rank, [0, 1, 0, 1, 0, 0, 1, 0])
+    np.testing.assert_array_equal(length, [2, 2, 2, 2, 1, 2, 2, 1])
+    rng = np.random.default_rng(4)
+    w = rng.random(300) ** 4
+    w[rng.random(300) < 0.1] = 0.0                                           # zero-luminance members too
+    cum = np.concatenate([[0.0], np.cumsum(w)])
+    start, stop = np.array([0, 7, 7, 150]), np.array([7, 7, 150, 300])       # an empty group among them
+    guide = _guide_table(cum, start, stop)
+    for lo, hi in zip(start, stop):
+        if hi <= lo:
+            continue
+        for x in cum[lo] + rng.random(500) * (cum[hi] - cum[lo]):
+            want = lo + np.searchsorted(cum[lo:hi], x, side="right") - 1          # last row with cum <= x
+            share = min(max(int((x - cum[lo]) / (cum[hi] - cum[lo]) * (hi - lo)), 0), hi - lo - 1)
+            a = guide[lo + share]
+            assert cum[a] <= x
+            while a + 1 < hi and cum[a + 1] <= x:
+                a += 1
+            assert a == want
