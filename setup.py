@@ -1,5 +1,5 @@
-"""The compiled CPU voxel queries (kernels/voxelq.c), SVO traversal (kernels/svoq.c) and INSM maps
-(kernels/insmr.c) as optional
+"""The compiled CPU voxel queries (kernels/voxelq.c), SVO traversal (kernels/svoq.c), INSM maps
+(kernels/insmr.c) and LGH gather (kernels/lghq.c) as optional
 extensions: everything else is in pyproject.toml. Without a C compiler the install goes on and usdml
 answers those queries with its Warp kernels instead (``usdml info`` says which path a machine has)."""
 
@@ -16,5 +16,9 @@ setup(ext_modules=[Extension(
     extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"], optional=True),
     Extension("usdml.kernels._insmr", sources=["kernels/insmr.c"], depends=["kernels/light_term.h"],
               # no contraction: the maps round as the Warp kernels' do
+              extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"],
+              optional=True),
+    Extension("usdml.kernels._lghq", sources=["kernels/lghq.c"],
+              # no contraction: the gather rounds as the Warp kernel's does (the same picks)
               extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"],
               optional=True)])

@@ -261,7 +261,11 @@ def lgh_gather(
             if st.total <= 0.0:
                 break
             st.step = st.total / float(samples)
-            st.xi = wp.randf(st.rng)
+            # through a local: wp.randf on the struct's field draws from a copy and leaves st.rng where it
+            # was, so the first jittered sample drew xi again as its first number
+            rng = st.rng
+            st.xi = wp.randf(rng)
+            st.rng = rng
             st.u = st.xi * st.step
         if s0 == 1:
             # S0: the input lights within 2 r_0 = alpha h_1 (h_0 = h_1 / 2), found through a grid of S1 cells

@@ -164,3 +164,28 @@ def warnings_log(caplog):
 
 __all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_points", "ALBEDO", "ground_stage",
            "render_aovs", "assert_direct"]
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    """cornell.usda's frame 1 at 48 px for indirect light: ``(snapshot, exact backend, G-buffer, hit points,
+    normals, albedo, 3,000 VPLs)``."""
+    from dataclasses import replace
+
+    from usdml.lighting.vpl import generate_vpls
+    from usdml.render.frame import conform_camera
+    from usdml.render.gbuffer import build_gbuffer
+    from usdml.scene import diff
+    from usdml.stage import StageDelegate
+    from usdml.visibility import ExactBackend
+
+    d = StageDelegate(STAGES / "cornell.usda")
+    snap = d.snapshot(1)
+    ex = ExactBackend()
+    ex.update(snap, diff(None, snap))
+    w, h = snap.camera.resolution(48)
+    gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
+    hit = gb.hit.ravel()
+    pts, nrm, alb = (gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit])
+    vpls = generate_vpls(snap, ex, snap.lights, 3000, 3, seed=0)
+    return snap, ex, gb, pts, nrm, alb, vpls

@@ -1,7 +1,6 @@
 """Indirect light with VPLs (paper 004): the LGH against brute force, end to end through the renderer."""
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,27 +10,9 @@ from usdml.cli import main
 from usdml.lighting.direct import shade_direct
 from usdml.lighting.lgh import build_lgh
 from usdml.lighting.lgh_lighting import lgh_indirect
-from usdml.lighting.vpl import generate_vpls
-from usdml.render.frame import FrameRenderer, conform_camera
-from usdml.render.gbuffer import build_gbuffer
-from usdml.scene import diff
+from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
-from usdml.visibility import ExactBackend
-
-
-@pytest.fixture(scope="module")
-def cornell():
-    d = StageDelegate(STAGES / "cornell.usda")
-    snap = d.snapshot(1)
-    ex = ExactBackend()
-    ex.update(snap, diff(None, snap))
-    w, h = snap.camera.resolution(48)
-    gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
-    hit = gb.hit.ravel()
-    pts, nrm, alb = (gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit])
-    vpls = generate_vpls(snap, ex, snap.lights, 3000, 3, seed=0)
-    return snap, ex, gb, pts, nrm, alb, vpls
 
 
 def _unshadowed_error(cornell):
@@ -161,3 +142,51 @@ def test_gi_table_keeps_and_reuses_its_brute_force_pass(tmp_path, capsys, monkey
     assert all(0 < r["mean_ratio"] < 2 for r in second["rows"])
     with pytest.raises(SystemExit):
         gi_table.main(args[:2] + ["400"] + args[3:])
+
+
+@pytest.mark.parametrize("targets,start,inclusion,interleave", [("member", 0, False, 1), ("cluster", 1, True, 2),
+                                                                ("jitter", 1, False, 1)])
+def test_shading_block_by_block_gives_the_pixels_of_one_call(cornell, monkeypatch, targets, start, inclusion,
+                                                            interleave):
+    """lgh_indirect gathers and casts shadow rays for blocks of points (SHADOW_BLOCK samples at a time); every
+    point's and every sample's random stream is numbered as in one whole-frame call, so blocks of 7 points,
+    or of any size, give what lgh_lighting and shadow_fraction give on the whole frame (bit for bit but for
+    einsum's rounding)."""
+    from usdml.lighting import lgh_lighting as module
+
+    snap, ex, gb, pts, nrm, alb, vpls = cornell
+    intensity = vpls.flux / np.float32(4 * np.pi)
+    lgh = build_lgh(vpls.position, intensity, normal=vpls.normal)
+    sources = (vpls.position, intensity, vpls.normal)
+    k = 8
+    ys, xs = np.nonzero(gb.hit)
+    tile = (ys % interleave) * interleave + (xs % interleave)
+
+    def run():
+        return lgh_indirect(pts, nrm, alb, lgh, ex.occluded, alpha=2.0, samples=k, seed=4,
+                            meters_per_unit=snap.meters_per_unit, image=(gb.hit, gb.position), filter_iterations=0,
+                            interleave=interleave, sources=sources, start_level=start, shadow_targets=targets,
+                            inclusion=inclusion)
+
+    monkeypatch.setattr(module, "SHADOW_BLOCK", 7 * k)
+    small = run()
+    monkeypatch.setattr(module, "SHADOW_BLOCK", 1 << 30)
+    whole = run()
+    shading = module.lgh_lighting(pts, nrm, lgh, 2.0, k, 4, snap.meters_per_unit, tile=tile,
+                                  tiles=interleave * interleave, s0=sources if start == 0 else None,
+                                  jitter=targets == "jitter")
+    sampler = None if targets == "jitter" else module.ClusterSampler(
+        lgh, *sources, reweight=targets == "member", meters_per_unit=snap.meters_per_unit,
+        stratify=module.STRATIFY_MEMBERS)
+    visible, shadowed, rays = module.shadow_fraction(pts, nrm, shading, ex.occluded, sampler, 4, inclusion=inclusion)
+    assert len(pts) > 7 * 50 and small.stats["shadow_rays"] == whole.stats["shadow_rays"] == rays > 0
+    for got in (small, whole):
+        np.testing.assert_array_equal(got.visible, visible)
+        np.testing.assert_array_equal(got.unshadowed, (alb.astype(np.float32) / np.float32(np.pi)) * shading.irradiance)
+        want = (alb.astype(np.float32) / np.float32(np.pi)) * shadowed
+        if targets == "member":      # per-point sums: the same bits
+            np.testing.assert_array_equal(got.radiance, want)
+        else:       # NumPy's einsum sums a block's points in an order of its own: the last bit may move
+            np.testing.assert_allclose(got.radiance, want, rtol=1e-6, atol=0)
+        np.testing.assert_array_equal(got.count, shading.count)
+    assert 0.05 < visible.mean() < 0.95      # shadows fall and light reaches: the rays decide something

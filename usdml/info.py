@@ -29,6 +29,13 @@ def _render_settings(snap: Snapshot) -> dict | None:
     }
 
 
+def _lgh_cpu_path() -> str:
+    """The CPU path of the LGH's gather and shadow targets (``--gi lgh``, ``--direct lgh``)."""
+    from usdml.lighting import lgh_native
+
+    return lgh_native.describe()
+
+
 def stage_info(delegate: StageDelegate, time: float | None = None, started: float | None = None) -> dict:
     """Summary of ``delegate``'s stage at ``time`` (default: its start timecode) as a JSON-able dict.
 
@@ -71,6 +78,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "backends": {name: backend_class(name).summary for name in backend_names()},
         "backendCpuPaths": {name: backend_class(name).cpu_path() for name in backend_names()
                             if backend_class(name).cpu_path()},
+        "lghCpuPath": _lgh_cpu_path(),
         **memory,
         "unsupported": dict(sorted(delegate.unsupported.items())),
         "warnings": list(delegate.warn.messages),
@@ -115,6 +123,8 @@ def format_info(info: dict) -> str:
                                              for name, summary in info["backends"].items()))
     for name, line in info["backendCpuPaths"].items():
         lines.append(f"{name + ' cpu':<11} {line}")
+    if info.get("lghCpuPath"):
+        lines.append(f"{'lgh cpu':<11} {info['lghCpuPath']}")
     for name in backend_names():
         if info.get(f"{name}Memory"):
             lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")

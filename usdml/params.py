@@ -351,6 +351,10 @@ _ROWS = (
           h_l is the grid size of level l. Larger alpha widens the blending
           functions: more grid lights per shading point, more accurate and
           slower.'''),
+    Param("lgh_cpu_kernel", str, "auto", "usdml:lgh:cpuKernel", "--lgh-cpu-kernel",
+          "how the LGH's gather and shadow-ray targets run on a CPU: auto (the compiled kernels when they were "
+          "built, else Warp), native (compiled; an error without them) or warp", LIGHTING_COMMANDS,
+          source="measured (usdml): docs/gi.md", choices=("auto", "native", "warp")),
     Param("lgh_levels", int, 0, "usdml:lgh:levels", "--lgh-levels",
           "LGH levels; 0 = the paper's rule (the most whose S1 has under half as many lights as VPLs)",
           LIGHTING_COMMANDS, source="paper 004", range=Range(0), label="LGH levels", metavar="N",

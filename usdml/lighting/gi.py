@@ -122,7 +122,8 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
                          interleave=settings.interleave, device=device,
                          sources=(position, intensity, normal), start_level=settings.lgh_start_level,
                          filter_iterations=settings.shadow_filter_iterations,
-                         shadow_targets=settings.shadow_targets, geometric=geometric)
+                         shadow_targets=settings.shadow_targets, geometric=geometric,
+                         cpu_kernel=settings.lgh_cpu_kernel)
         stats.update(r.stats)
         return GIResult(r.radiance, stats)
     t2 = _time.perf_counter()

@@ -133,7 +133,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
 
     ``occluded`` is the visibility backend's shadow query; ``shade_rest(points, normals, albedo,
     lights, geometric=)`` shades the every-light rest (the backend's ``shade_direct``). ``settings``:
-    ``direct_shadow_samples``, ``direct_alpha``, ``shadow_filter_iterations``, ``seed``. ``image =
+    ``direct_shadow_samples``, ``direct_alpha``, ``shadow_filter_iterations``, ``seed``, ``lgh_cpu_kernel``. ``image =
     (hit, positions)`` lets the shadow ratio be filtered; ``geometric`` normals, when given, are where
     shadow rays leave from (and, for the rest, which lights face a point).
     """
@@ -151,7 +151,8 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
     clamp = 1e-6 * float(direct.lgh.h1)
     if direct.sampler is None:
         direct.sampler = ClusterSampler(direct.lgh, *direct.sources, reweight=SHADOW_TARGETS == "member",
-                                        meters_per_unit=meters_per_unit, clamp_distance=clamp)
+                                        meters_per_unit=meters_per_unit, clamp_distance=clamp,
+                                        cpu_kernel=settings.lgh_cpu_kernel)
         stats["sampler_seconds"] = _time.perf_counter() - t1
     r = lgh_indirect(points, normals, albedo, direct.lgh, occluded, alpha=settings.direct_alpha,
                      samples=rays_per_pass(settings), seed=settings.seed, meters_per_unit=meters_per_unit,
@@ -159,7 +160,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
                      filter_iterations=max(settings.shadow_filter_iterations, 0), device=device,
                      sources=direct.sources,
                      start_level=0, shadow_targets=SHADOW_TARGETS, geometric=geometric, sampler=direct.sampler,
-                     inclusion=True)
+                     inclusion=True, cpu_kernel=settings.lgh_cpu_kernel)
     stats.update({f"lgh_{k}": v for k, v in r.stats.items()})
     stats["lgh_shading_seconds"] = _time.perf_counter() - t1
     count = np.asarray(r.count if r.count is not None else np.zeros(n), np.float32)

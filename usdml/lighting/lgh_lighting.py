@@ -115,6 +115,133 @@ def s0_cells(lgh, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return cells, start, order
 
 
+def _compiled(cpu_kernel: str) -> bool:
+    """Whether the LGH's CPU kernels run compiled (``kernels/lghq.c``) for ``cpu_kernel`` (auto, native,
+    warp: ``--lgh-cpu-kernel``); native without the compiled library is an error."""
+    from usdml import params
+
+    params.check("lgh_cpu_kernel", cpu_kernel)
+    if cpu_kernel == "warp":
+        return False
+    from usdml.lighting import lgh_native
+
+    if lgh_native.library() is None:
+        if cpu_kernel == "native":
+            from usdml.errors import UsdmlError
+
+            raise UsdmlError(f"--lgh-cpu-kernel native: {lgh_native.describe()}")
+        return False
+    return True
+
+
+class LGHGather:
+    """:func:`lgh_lighting` made once for a frame's hierarchy and settings, called on blocks of points.
+
+    The grid's flat arrays, the S0 buckets and their Warp arrays are made here once: a frame's
+    passes call it on blocks of a few hundred points (:func:`lgh_indirect`), each gathering what a
+    call on all points at once gathers for those points (each point's random stream is numbered by
+    its index among all, ``first`` plus its row). Arguments as :func:`lgh_lighting`.
+    """
+
+    def __init__(self, lgh, alpha: float = 1.0, samples: int = 4, seed: int = 0, meters_per_unit: float = 1.0,
+                 clamp_distance: float | None = None, device: str = "cpu", tiles: int = 1,
+                 s0: tuple | None = None, jitter: bool = True, stratified: bool = True, cpu_kernel: str = "auto"):
+        from usdml.kernels import warp
+
+        wp = self._wp = warp()
+        self.device = device
+        self.k = max(int(samples), 0)
+        self.tiles = int(max(tiles, 1))
+        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count = _flatten(lgh)
+        self.empty = len(pos) == 0
+        if clamp_distance is None:
+            clamp_distance = 0.5 * float(lgh.h1)
+        self.light_count = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
+        if self.empty:
+            return
+        shared = [wp.array(origin, dtype=wp.vec3, device=device), wp.array(spacing, dtype=float, device=device),
+                  wp.array(dims, dtype=wp.vec3i, device=device), wp.array(offset, dtype=int, device=device),
+                  wp.array(vertex_light, dtype=int, device=device), wp.array(pos, dtype=wp.vec3, device=device),
+                  wp.array(inten, dtype=wp.vec3, device=device), wp.array(lobe, dtype=wp.vec3, device=device),
+                  wp.array(std.astype(np.float32), dtype=float, device=device),
+                  wp.array(count, dtype=float, device=device), len(spacing)]
+        if s0 is not None:
+            cells, start, order = s0_cells(lgh, s0[0])
+            s0_args = [1, wp.vec3i(*map(int, cells)), wp.array(start, dtype=int, device=device),
+                       wp.array(order, dtype=int, device=device),
+                       wp.array(np.ascontiguousarray(s0[0], np.float32), dtype=wp.vec3, device=device),
+                       wp.array(np.ascontiguousarray(s0[1], np.float32), dtype=wp.vec3, device=device),
+                       wp.array(np.ascontiguousarray(s0[2] if len(s0) > 2 and s0[2] is not None
+                                                     else np.zeros((len(s0[0]), 3)), np.float32),
+                                dtype=wp.vec3, device=device)]
+        else:
+            empty3 = wp.zeros(1, dtype=wp.vec3, device=device)
+            s0_args = [0, wp.vec3i(1, 1, 1), wp.zeros(2, dtype=int, device=device),
+                       wp.zeros(1, dtype=int, device=device), empty3, empty3, empty3]
+        self._args = [*shared, *s0_args, float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2),
+                      self.k, int(bool(jitter)), int(seed)]
+        self._stratified = int(bool(stratified))
+        self._on_cpu = wp.get_device(device).is_cpu
+        self._native = None
+        if self._on_cpu and _compiled(cpu_kernel):
+            from usdml.lighting.lgh_native import Gather
+
+            s0_tables = None if s0 is None else (cells, start, order, s0[0], s0[1], s0_args[6].numpy())
+            self._native = Gather((origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count), s0_tables,
+                                  alpha, 1.0 / meters_per_unit ** 2, clamp_distance ** 2, self.k, jitter, seed,
+                                  self.tiles, stratified)
+
+    def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
+                 first: int = 0) -> LGHShading:
+        """The shading of ``points`` (P, 3), the ``first``-th to ``first + P - 1``-th of all points."""
+        from usdml.kernels.lgh_lighting import lgh_gather
+
+        wp, device, k = self._wp, self.device, self.k
+        n = len(points)
+        irr = np.zeros((n, 3), np.float32)
+        cnt = np.zeros(n, np.float32)
+        spos = np.zeros((n, max(k, 1), 3), np.float32)
+        sok = np.zeros((n, max(k, 1)), np.int32)
+        slight = np.zeros((n, max(k, 1)), np.int32)       # 0 where no sample was taken, as sample_ok says
+        sweight = np.zeros((n, max(k, 1), 3), np.float32)
+        sblend = np.zeros((n, max(k, 1)), np.float32)
+        slum = np.zeros((n, max(k, 1)), np.float32)
+        if n == 0 or self.empty:
+            return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k],
+                              sblend[:, :k], cnt, slum[:, :k])
+        pts = np.ascontiguousarray(points, np.float32)
+        nrm = np.ascontiguousarray(normals, np.float32)
+        tiles = self.tiles if tile is not None else 1
+        tile_ids = np.zeros(n, np.int32) if tiles <= 1 else np.ascontiguousarray(tile, np.int32)
+        outputs = ((irr, wp.vec3), (cnt, float), (spos, wp.vec3), (sok, int), (slight, int), (sweight, wp.vec3),
+                   (sblend, float), (slum, float))
+        on_cpu = self._on_cpu
+        if self._native is not None:     # the compiled gather: rows of the same arrays, from the thread pool
+            arrays = tuple(a for a, _ in outputs)
+            _in_blocks(lambda lo, hi: self._native(pts, nrm, tile_ids, lo, hi, first, arrays), n, device,
+                       blocks_per_worker=4)
+            return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k],
+                              sblend[:, :k], cnt, slum[:, :k], self.light_count)
+
+        def run(lo: int, hi: int) -> None:
+            # on a CPU the kernel writes into the result's rows themselves (a block's own arrays, copied
+            # over, cost a second pass and first-touch page faults on both: 18.9 M samples at k = 512)
+            outs = [wp.array(a[lo:hi], dtype=dtype, device=device, copy=False) if on_cpu else
+                    wp.zeros(a[lo:hi].shape[:-1] if dtype is wp.vec3 else a[lo:hi].shape, dtype=dtype, device=device)
+                    for a, dtype in outputs]
+            wp.launch(lgh_gather, dim=hi - lo, device=device, inputs=[
+                wp.array(pts[lo:hi], dtype=wp.vec3, device=device), wp.array(nrm[lo:hi], dtype=wp.vec3, device=device),
+                *self._args, int(first) + lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), tiles,
+                self._stratified, *outs])
+            if not on_cpu:
+                for (a, _), o in zip(outputs, outs):
+                    a[lo:hi] = o.numpy()
+
+        _in_blocks(run, n, device, blocks_per_worker=4)
+        return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k],
+                          cnt, slum[:, :k], self.light_count)
+
+
 def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
                  device: str = "cpu", tile: np.ndarray | None = None, tiles: int = 1,
@@ -136,82 +263,8 @@ def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.
     lights whose index is ``tile[i]`` modulo n², scaled by n² (an unbiased 1/n² subset per pixel of an
     n × n tile; the screen-space filter then removes the structured noise).
     """
-    from usdml.kernels import warp
-    from usdml.kernels.lgh_lighting import lgh_gather
-
-    wp = warp()
-    n = len(points)
-    k = max(int(samples), 0)
-    origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count = _flatten(lgh)
-    if clamp_distance is None:
-        clamp_distance = 0.5 * float(lgh.h1)
-    irr = np.zeros((n, 3), np.float32)
-    cnt = np.zeros(n, np.float32)
-    spos = np.zeros((n, max(k, 1), 3), np.float32)
-    sok = np.zeros((n, max(k, 1)), np.int32)
-    slight = np.zeros((n, max(k, 1)), np.int32)       # 0 where no sample was taken, as sample_ok says
-    sweight = np.zeros((n, max(k, 1), 3), np.float32)
-    sblend = np.zeros((n, max(k, 1)), np.float32)
-    slum = np.zeros((n, max(k, 1)), np.float32)
-    if n == 0 or len(pos) == 0:
-        return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k],
-                          cnt, slum[:, :k])
-    shared = dict(
-        level_origin=wp.array(origin, dtype=wp.vec3, device=device),
-        level_spacing=wp.array(spacing, dtype=float, device=device),
-        level_dims=wp.array(dims, dtype=wp.vec3i, device=device),
-        level_offset=wp.array(offset, dtype=int, device=device),
-        vertex_light=wp.array(vertex_light, dtype=int, device=device),
-        light_pos=wp.array(pos, dtype=wp.vec3, device=device),
-        light_int=wp.array(inten, dtype=wp.vec3, device=device),
-        light_std=wp.array(std.astype(np.float32), dtype=float, device=device),
-        light_lobe=wp.array(lobe, dtype=wp.vec3, device=device),
-        light_count=wp.array(count, dtype=float, device=device),
-    )
-    if s0 is not None:
-        cells, start, order = s0_cells(lgh, s0[0])
-        s0_args = [1, wp.vec3i(*map(int, cells)), wp.array(start, dtype=int, device=device),
-                   wp.array(order, dtype=int, device=device),
-                   wp.array(np.ascontiguousarray(s0[0], np.float32), dtype=wp.vec3, device=device),
-                   wp.array(np.ascontiguousarray(s0[1], np.float32), dtype=wp.vec3, device=device),
-                   wp.array(np.ascontiguousarray(s0[2] if len(s0) > 2 and s0[2] is not None
-                                                 else np.zeros((len(s0[0]), 3)), np.float32),
-                            dtype=wp.vec3, device=device)]
-    else:
-        empty3 = wp.zeros(1, dtype=wp.vec3, device=device)
-        s0_args = [0, wp.vec3i(1, 1, 1), wp.zeros(2, dtype=int, device=device), wp.zeros(1, dtype=int, device=device),
-                   empty3, empty3, empty3]
-    pts = np.ascontiguousarray(points, np.float32)
-    nrm = np.ascontiguousarray(normals, np.float32)
-    tile_ids = np.zeros(n, np.int32) if tile is None or tiles <= 1 else np.ascontiguousarray(tile, np.int32)
-
-    outputs = ((irr, wp.vec3), (cnt, float), (spos, wp.vec3), (sok, int), (slight, int), (sweight, wp.vec3),
-               (sblend, float), (slum, float))
-    on_cpu = wp.get_device(device).is_cpu
-
-    def run(lo: int, hi: int) -> None:
-        # on a CPU the kernel writes into the result's rows themselves (a block's own arrays, copied
-        # over, cost a second pass and first-touch page faults on both: 18.9 M samples at k = 512)
-        outs = [wp.array(a[lo:hi], dtype=dtype, device=device, copy=False) if on_cpu else
-                wp.zeros(a[lo:hi].shape[:-1] if dtype is wp.vec3 else a[lo:hi].shape, dtype=dtype, device=device)
-                for a, dtype in outputs]
-        out_irr, out_cnt, out_pos, out_ok, out_light, out_weight, out_blend, out_lum = outs
-        wp.launch(lgh_gather, dim=hi - lo, device=device, inputs=[
-            wp.array(pts[lo:hi], dtype=wp.vec3, device=device), wp.array(nrm[lo:hi], dtype=wp.vec3, device=device),
-            shared["level_origin"], shared["level_spacing"], shared["level_dims"], shared["level_offset"],
-            shared["vertex_light"], shared["light_pos"], shared["light_int"], shared["light_lobe"], shared["light_std"],
-            shared["light_count"], len(spacing), *s0_args, float(alpha), float(1.0 / meters_per_unit ** 2),
-            float(clamp_distance ** 2), k,
-            int(bool(jitter)), int(seed), lo, wp.array(tile_ids[lo:hi], dtype=int, device=device), int(max(tiles, 1)),
-            int(bool(stratified)), out_irr, out_cnt, out_pos, out_ok, out_light, out_weight, out_blend, out_lum])
-        if not on_cpu:
-            for (a, _), o in zip(outputs, outs):
-                a[lo:hi] = o.numpy()
-
-    _in_blocks(run, n, device, blocks_per_worker=4)
-    light_count = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
-    return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k], cnt,
-                      slum[:, :k], light_count)
+    return LGHGather(lgh, alpha, samples, seed, meters_per_unit, clamp_distance, device,
+                     tiles if tile is not None else 1, s0, jitter, stratified)(points, normals, tile)
 
 
 def sample_runs(light: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -272,8 +325,9 @@ class ClusterSampler:
 
     def __init__(self, lgh, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray | None = None,
                  reweight: bool = False, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
-                 stratify: bool = False):
+                 stratify: bool = False, cpu_kernel: str = "auto"):
         self.positions = np.asarray(positions, np.float64)
+        self.cpu_kernel = cpu_kernel
         self.intensity = np.asarray(intensity, np.float32).reshape(-1, 3)
         self.normals = (np.zeros_like(self.intensity) if normals is None
                         else np.asarray(normals, np.float32).reshape(-1, 3))
@@ -319,6 +373,7 @@ class ClusterSampler:
         self.cum = np.concatenate([[0.0], np.cumsum(w)])
         self.guide = _guide_table(self.cum, self.start, self.stop)
         self._device = None       # the tables as Warp arrays, made on the first targets() call
+        self._native = None       # or as the compiled kernel's (kernels/lghq.c)
 
     def targets(self, lights: np.ndarray, fallback: np.ndarray, seed: int, points: np.ndarray | None = None,
                 normals: np.ndarray | None = None, blend: np.ndarray | None = None,
@@ -353,8 +408,21 @@ class ClusterSampler:
         if reweight:
             pixel = np.arange(len(lights), dtype=np.int32) if pixel is None else np.ascontiguousarray(pixel, np.int32)
             per_sample = (np.ascontiguousarray(blend, np.float32), pixel)
-            shared = (wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu"),
-                      wp.array(np.ascontiguousarray(normals, np.float32), dtype=wp.vec3, device="cpu"))
+            shared_np = (np.ascontiguousarray(points, np.float32), np.ascontiguousarray(normals, np.float32))
+        strata = (np.ascontiguousarray(runs[0], np.int32), np.ascontiguousarray(runs[1], np.int32)) \
+            if runs is not None else None
+        if self._native is None and self._device is None and _compiled(self.cpu_kernel):
+            from usdml.lighting.lgh_native import Members
+
+            self._native = Members(self.start, self.stop, self.cum, self.guide, self.member, self.positions,
+                                   self.intensity, self.normals, self.grid_lights, self.inv_m2, self.clamp_d2)
+        if self._native is not None:
+            extra = None
+            if reweight:
+                extra = (shared_np[0], shared_np[1], per_sample[1], per_sample[0])
+            _in_blocks(lambda lo, hi: self._native(lights, fallback, seed, first, strata, extra, lo, hi, out, out_w),
+                       len(lights), "cpu", min_block=1 << 14)
+            return (out, out_w) if reweight else out
         if self._device is None:   # on the CPU, beside the visibility backends' shadow rays
             cpu = lambda a, dtype: wp.array(a, dtype=dtype, device="cpu")   # noqa: E731
             self._device = dict(start=cpu(self.start.astype(np.int32), int), stop=cpu(self.stop.astype(np.int32), int),
@@ -363,12 +431,11 @@ class ClusterSampler:
                                 positions=cpu(self.positions.astype(np.float32), wp.vec3),
                                 intensity=cpu(self.intensity, wp.vec3), normals=cpu(self.normals, wp.vec3))
         d = self._device
+        if reweight:
+            shared = tuple(wp.array(a, dtype=wp.vec3, device="cpu") for a in shared_np)
 
         def view(a: np.ndarray, dtype):     # the NumPy rows themselves: no copies in or out
             return wp.array(a, dtype=dtype, device="cpu", copy=False)
-
-        strata = (np.ascontiguousarray(runs[0], np.int32), np.ascontiguousarray(runs[1], np.int32)) \
-            if runs is not None else None
 
         def run(lo: int, hi: int) -> None:
             w = view(out_w[lo:hi] if reweight else out_w, wp.vec3)
@@ -391,7 +458,7 @@ class ClusterSampler:
 def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading,
                     occluded: Callable[..., np.ndarray], sampler: ClusterSampler | None = None,
                     seed: int = 0, shading_normals: np.ndarray | None = None,
-                    inclusion: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+                    inclusion: bool = False, first: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
     """Shadow rays for the chosen samples: ``(visible (P,), shadowed (P, 3), rays)``.
 
     ``visible`` is the fraction of each point's samples that are visible (1 where none was chosen);
@@ -410,6 +477,9 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
     the same sum without V scales the irradiance. Unbiased like the mean, but a light's floor or ceil
     of k f_i / F samples no longer changes its weight: with fewer lights than samples (one light, a
     pair) the shadows are exact.
+
+    ``first``: the number of the first sample's random stream (``lo · k`` for points ``lo ..`` of a
+    frame shaded block by block, so every sample of the frame has its own stream).
     """
     n, k = shading.sample_ok.shape
     if k == 0 or not shading.sample_ok.any():
@@ -439,13 +509,13 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
         if reweight:
             targets, w = sampler.targets(light[at], targets, seed, points,
                                          normals if shading_normals is None else shading_normals,
-                                         flat["blend"][at], flat["weight"][at], pixel=pixel, first=lo,
+                                         flat["blend"][at], flat["weight"][at], pixel=pixel, first=first + lo,
                                          runs=sample_runs(light[at], k) if sampler.stratify else None)
             cast = np.flatnonzero((w[:, 0] != 0) | (w[:, 1] != 0) | (w[:, 2] != 0))     # weight 0: no ray
             targets = np.take(targets, cast, axis=0)
             cast_pixel = pixel[cast]
         elif sampler is not None and light is not None:
-            targets = sampler.targets(light[at], targets, seed, first=lo)
+            targets = sampler.targets(light[at], targets, seed, first=first + lo)
         # np.take: row gathers several times faster than fancy indexing
         got = ~occluded(np.take(points, cast_pixel, axis=0), targets, normals=np.take(normals, cast_pixel, axis=0))
         rays += int(got.size)
@@ -453,8 +523,14 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
             vis = seen[at]          # a view: every sample is taken (rows is None), the block whole points
             vis[cast] = got
             p0, p1 = lo // k, hi // k
-            num[p0:p1] = np.einsum("pk,pkc->pc", vis.reshape(-1, k), w.reshape(-1, k, 3))
-            den[p0:p1] = w.reshape(-1, k, 3).sum(axis=1)
+            if sampler._native is not None:     # compiled: one pass in double, from the thread pool
+                from usdml.lighting.lgh_native import sums
+
+                vis2, w3, n_out, d_out = vis.reshape(-1, k), w.reshape(-1, k, 3), num[p0:p1], den[p0:p1]
+                _in_blocks(lambda a, b: sums(vis2, w3, n_out, d_out, a, b), p1 - p0, "cpu")
+            else:
+                num[p0:p1] = np.einsum("pk,pkc->pc", vis.reshape(-1, k), w.reshape(-1, k, 3))
+                den[p0:p1] = w.reshape(-1, k, 3).sum(axis=1)
         else:
             seen[at] = got
     seen = seen.reshape(n, k)
@@ -529,7 +605,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  interleave: int = 1, device: str = "cpu", sources: tuple | None = None,
                  start_level: int = 1, shadow_targets: str = "member",
                  geometric: np.ndarray | None = None, stratified: bool = True,
-                 sampler: "ClusterSampler | None" = None, inclusion: bool = False) -> IndirectResult:
+                 sampler: "ClusterSampler | None" = None, inclusion: bool = False,
+                 cpu_kernel: str = "auto") -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``sources = (positions, intensities[, normals])`` are the input lights the LGH was built from
@@ -543,7 +620,9 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     ratio is used. ``occluded`` None gives unshadowed lighting. Shadow rays leave along the
     ``geometric`` normals when given (the shading ``normals`` otherwise). ``sampler``: the
     :class:`ClusterSampler` of ``sources`` for ``shadow_targets`` made once for the frame's passes
-    (made here otherwise); ``inclusion``: :func:`shadow_fraction`'s estimator.
+    (made here otherwise); ``inclusion``: :func:`shadow_fraction`'s estimator; ``cpu_kernel``: auto,
+    native or warp (``--lgh-cpu-kernel``: the compiled gather and targets of :mod:`usdml.lighting.lgh_native`
+    or the Warp kernels, on a CPU).
     """
     stats: dict = {}
     t0 = _time.perf_counter()
@@ -552,27 +631,56 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         hit = image[0]
         ys, xs = np.nonzero(hit)                  # row-major, the order of the hit points
         tile = (ys % interleave) * interleave + (xs % interleave)
-    shading = lgh_lighting(points, normals, lgh, alpha, samples if occluded is not None else 0, seed,
-                           meters_per_unit, clamp_distance, device, tile=tile,
-                           tiles=interleave * interleave if tile is not None else 1,
-                           s0=sources if start_level == 0 and sources is not None else None,
-                           jitter=sources is None or shadow_targets == "jitter", stratified=stratified)
-    stats["lighting_seconds"] = _time.perf_counter() - t0
-    unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading.irradiance
+    k = max(int(samples), 0) if occluded is not None else 0
+    gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device,
+                       tiles=interleave * interleave if tile is not None else 1,
+                       s0=sources if start_level == 0 and sources is not None else None,
+                       jitter=sources is None or shadow_targets == "jitter", stratified=stratified,
+                       cpu_kernel=cpu_kernel)
     if occluded is None:
+        shading = gather(points, normals, tile)
+        stats["lighting_seconds"] = _time.perf_counter() - t0
+        unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading.irradiance
         return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats, shading.count)
+    lighting_seconds = _time.perf_counter() - t0
     t1 = _time.perf_counter()
     cluster = sources is not None and shadow_targets in ("member", "cluster")
     if cluster and sampler is None:
         sampler = ClusterSampler(lgh, sources[0], sources[1], sources[2] if len(sources) > 2 else None,
                                  reweight=shadow_targets == "member", meters_per_unit=meters_per_unit,
-                                 clamp_distance=clamp_distance, stratify=STRATIFY_MEMBERS)
+                                 clamp_distance=clamp_distance, stratify=STRATIFY_MEMBERS, cpu_kernel=cpu_kernel)
     elif not cluster:
         sampler = None
-    visible, shadowed, rays = shadow_fraction(points, normals if geometric is None else geometric, shading,
-                                              occluded, sampler, seed, shading_normals=normals, inclusion=inclusion)
-    stats["shadow_seconds"] = _time.perf_counter() - t1
+    shadow_seconds = _time.perf_counter() - t1
+    # gather and shadow rays block by block of points (SHADOW_BLOCK samples): the samples of a frame
+    # (18.9 M on the city at 256 px, k = 512) never exist at once, so their arrays stay a few MiB that
+    # the allocator reuses instead of frame-sized ones paid for in first-touch page faults; each point's
+    # and each sample's random stream is numbered as in one call on the whole frame
+    n = len(points)
+    geometric = normals if geometric is None else geometric
+    shading_irradiance = np.empty((n, 3), np.float32)
+    count = np.empty(n, np.float32)
+    visible = np.empty(n, np.float32)
+    shadowed = np.empty((n, 3), np.float32)
+    rays = 0
+    step = max(1, SHADOW_BLOCK // max(k, 1))
+    for lo in range(0, n, step):
+        hi = min(n, lo + step)
+        t = _time.perf_counter()
+        shading = gather(points[lo:hi], normals[lo:hi], None if tile is None else tile[lo:hi], first=lo)
+        t_mid = _time.perf_counter()
+        visible[lo:hi], shadowed[lo:hi], block_rays = shadow_fraction(
+            points[lo:hi], geometric[lo:hi], shading, occluded, sampler, seed, shading_normals=normals[lo:hi],
+            inclusion=inclusion, first=lo * k)
+        shading_irradiance[lo:hi] = shading.irradiance
+        count[lo:hi] = shading.count
+        rays += block_rays
+        lighting_seconds += t_mid - t
+        shadow_seconds += _time.perf_counter() - t_mid
+    stats["lighting_seconds"] = lighting_seconds
+    stats["shadow_seconds"] = shadow_seconds
     stats["shadow_rays"] = rays
+    unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading_irradiance
     t2 = _time.perf_counter()
     irradiance = shadowed
     if filter_iterations < 0:
@@ -585,7 +693,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         h, w = hit.shape
         plane = np.zeros((h * w, 6), np.float32)
         plane[hit.ravel(), :3] = shadowed               # shadowed estimate, per channel
-        plane[hit.ravel(), 3:] = shading.irradiance     # unshadowed
+        plane[hit.ravel(), 3:] = shading_irradiance     # unshadowed
         nimg = np.zeros((h * w, 3), np.float32)
         nimg[hit.ravel()] = normals
         # guided by the G-buffer only (normal, position): with a few samples per pixel a value
@@ -595,7 +703,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                                  device=device).reshape(-1, 6)[hit.ravel()]
         # the shadow-ratio estimator: filtered shadowed over filtered unshadowed, per channel
         ratio = np.where(filtered[:, 3:] > 0, filtered[:, :3] / np.maximum(filtered[:, 3:], 1e-30), visible[:, None])
-        irradiance = shading.irradiance * np.clip(ratio, 0.0, 1.0).astype(np.float32)
+        irradiance = shading_irradiance * np.clip(ratio, 0.0, 1.0).astype(np.float32)
     stats["filter_seconds"] = _time.perf_counter() - t2
     radiance = (albedo.astype(np.float32) / np.float32(np.pi)) * irradiance
-    return IndirectResult(radiance.astype(np.float32), unshadowed, visible, stats, shading.count)
+    return IndirectResult(radiance.astype(np.float32), unshadowed, visible, stats, count)

@@ -1,0 +1,616 @@
+/* The LGH's CPU kernels in C: kernels/lgh_lighting.py's lgh_gather and cluster_targets, the same rule
+ * in the same order, one point (one sample) at a time over a block of rows, called from the thread
+ * pool (ctypes releases the GIL).
+ *
+ * Why: Warp runs a CPU launch on one thread and its code for the gather spent about 25 ns per light
+ * visited (city, 100k VPLs, alpha 4: some 4,300 lights in each of two sweeps per point). Warp's random
+ * numbers (PCG hash, randf) are reproduced bit for bit; the arithmetic follows the Warp kernels
+ * expression by expression, built without contraction (-ffp-contract=off), so the picks agree with
+ * them (usdml.lighting.lgh_native states the agreement and tests/test_lgh_native.py checks it).
+ * Pure compute: arrays in, arrays out.
+ */
+
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+#define EXPORT __attribute__((visibility("default")))
+
+static const float LUMA0 = 0.2126f, LUMA1 = 0.7152f, LUMA2 = 0.0722f;
+
+/* ---- Warp's random numbers (warp/native/rand.h) ---- */
+
+static inline uint32_t pcg(uint32_t state) {
+    uint32_t b = state * 747796405u + 2891336453u;
+    uint32_t c = ((b >> ((b >> 28u) + 4u)) ^ b) * 277803737u;
+    return (c >> 22u) ^ c;
+}
+
+static inline uint32_t rand_init(int32_t seed, int32_t offset) {
+    return pcg((uint32_t)seed + pcg((uint32_t)offset));
+}
+
+static inline float randf(uint32_t *state) {
+    *state = pcg(*state);
+    return (float)(*state >> 8) * (1.0f / 16777216.0f);
+}
+
+static inline float randn(uint32_t *state) {
+    float a = randf(state);
+    float b = randf(state);
+    return sqrtf(-2.0f * logf(a + 5.96e-8f)) * cosf(2.0f * 3.14159265358979323846f * b);
+}
+
+static inline float clampf(float x, float a, float b) { return fminf(fmaxf(a, x), b); }
+
+static inline float dot3(const float *a, const float *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+/* ---- the gather (lgh_gather) ---- */
+
+typedef struct {
+    int32_t n_levels;
+    const float *level_origin;     /* (L, 3) */
+    const float *level_spacing;    /* (L,) */
+    const int32_t *level_dims;     /* (L, 3) */
+    const int32_t *level_offset;   /* (L,) */
+    const int32_t *vertex_light;   /* vertex -> light or -1 */
+    const float *light_pos;        /* (M, 3) */
+    const float *light_int;        /* (M, 3) */
+    const float *light_lobe;       /* (M, 3) */
+    const float *light_std;        /* (M,) */
+    const float *light_count;      /* (M,) */
+    int32_t m;
+    int32_t s0;
+    int32_t s0_cells[3];
+    const int32_t *s0_start;
+    const int32_t *s0_light;
+    const float *s0_pos, *s0_int, *s0_lobe;
+    float alpha, inv_m2, clamp_d2;
+    int32_t samples, jitter, seed, tiles, stratified;
+} Gather;
+
+typedef struct {
+    float *irradiance;     /* (P, 3) */
+    float *count;          /* (P,) */
+    float *sample_pos;     /* (P, stride, 3) */
+    int32_t *sample_ok;    /* (P, stride) */
+    int32_t *sample_light; /* (P, stride) */
+    float *sample_weight;  /* (P, stride, 3) */
+    float *sample_blend;   /* (P, stride) */
+    float *sample_lum;     /* (P, stride) */
+    int32_t stride;        /* max(samples, 1) */
+} Outputs;
+
+typedef struct {
+    uint32_t rng;
+    float acc[3], count, total, run;
+    int32_t s;
+    float u, step, xi;
+} Sweep;
+
+static inline float blend(int level, int top, float d, float r) {
+    if (level == top && level == 0) return 1.0f;
+    float w = 1.0f;
+    if (level > 0) {
+        float x = clampf((d - 0.5f * r) / (0.5f * r), 0.0f, 1.0f);
+        w = x * x * (3.0f - 2.0f * x);
+    }
+    if (level < top) {
+        float y = clampf((d - r) / r, 0.0f, 1.0f);
+        w = w * (1.0f - y * y * (3.0f - 2.0f * y));
+    }
+    return w;
+}
+
+static inline float lobe_factor(const float *nu, const float *w, float d) {
+    float c = -dot3(nu, w) / d;
+    return 1.0f - sqrtf(dot3(nu, nu)) + 4.0f * fmaxf(c, 0.0f);
+}
+
+/* light_term: e (3) and B in e4[3]; 0 where the light does not reach the point */
+static inline void light_term(const float *p, const float *n, const float *q, const float *intensity, const float *nu,
+                              int level, int top, float r, float inv_m2, float clamp_d2, float scale, float *e4) {
+    float w[3] = {q[0] - p[0], q[1] - p[1], q[2] - p[2]};
+    float d2 = dot3(w, w);
+    float d = sqrtf(d2);
+    e4[0] = e4[1] = e4[2] = e4[3] = 0.0f;
+    if (d <= 0.0f) return;
+    float b = blend(level, top, d, r);
+    float cos_s = dot3(n, w) / d;
+    if (b <= 0.0f || cos_s <= 0.0f) return;
+    float lobe = lobe_factor(nu, w, d);
+    if (lobe <= 0.0f) return;
+    float s = b * lobe * cos_s * inv_m2 / fmaxf(d2, clamp_d2) * scale;
+    e4[0] = intensity[0] * s;
+    e4[1] = intensity[1] * s;
+    e4[2] = intensity[2] * s;
+    e4[3] = b;
+}
+
+static inline void take(uint32_t *rng, const float *e, float f, float b, int32_t s, int64_t row, const float *q,
+                        float sd, int32_t v, const Outputs *o) {
+    float jitter[3] = {0.0f, 0.0f, 0.0f};
+    if (sd > 0.0f) {
+        jitter[0] = randn(rng) * sd;
+        jitter[1] = randn(rng) * sd;
+        jitter[2] = randn(rng) * sd;
+    }
+    int64_t at = row * o->stride + s;
+    o->sample_pos[3 * at + 0] = q[0] + jitter[0];
+    o->sample_pos[3 * at + 1] = q[1] + jitter[1];
+    o->sample_pos[3 * at + 2] = q[2] + jitter[2];
+    o->sample_ok[at] = 1;
+    o->sample_light[at] = v;
+    o->sample_weight[3 * at + 0] = e[0] / f;
+    o->sample_weight[3 * at + 1] = e[1] / f;
+    o->sample_weight[3 * at + 2] = e[2] / f;
+    o->sample_blend[at] = b / f;
+    o->sample_lum[at] = f;
+}
+
+/* Appendix A's streaming pick (not stratified) */
+static inline void pick(uint32_t *rng, const float *e, float f, float b, float total, int32_t samples, int64_t row,
+                        const float *q, float sd, int32_t v, const Outputs *o) {
+    float p = f / total;
+    float lq = 0.0f;
+    if (p < 1.0e-4f)
+        lq = -p * (1.0f + 0.5f * p);
+    else if (p < 1.0f)
+        lq = logf(1.0f - p);
+    int32_t s = -1;
+    while (s < samples) {
+        if (p >= 1.0f) {
+            s = s + 1;
+        } else {
+            float gap = logf(fmaxf(randf(rng), 1.0e-30f)) / lq;
+            if (gap >= (float)(samples - s - 1)) break;
+            s = s + 1 + (int32_t)gap;
+        }
+        if (s >= samples) break;
+        take(rng, e, f, b, s, row, q, sd, v, o);
+    }
+}
+
+static inline void visit(Sweep *st, int sweep, int stratified, const float *e4, float scale, float count,
+                         int32_t samples, int64_t row, const float *q, float sd, int32_t v, const Outputs *o) {
+    float f = e4[0] * LUMA0 + e4[1] * LUMA1 + e4[2] * LUMA2;
+    if (f <= 0.0f) return;
+    float b = e4[3] * scale;
+    if (sweep == 0) {
+        st->acc[0] = st->acc[0] + e4[0];
+        st->acc[1] = st->acc[1] + e4[1];
+        st->acc[2] = st->acc[2] + e4[2];
+        st->count = st->count + b * count;
+        st->total = st->total + f;
+        if (stratified == 0) pick(&st->rng, e4, f, b, st->total, samples, row, q, sd, v, o);
+        return;
+    }
+    st->run = st->run + f;
+    while (st->s < samples && st->u < st->run) {
+        take(&st->rng, e4, f, b, st->s, row, q, sd, v, o);
+        st->s = st->s + 1;
+        st->u = ((float)st->s + st->xi) * st->step;
+    }
+}
+
+static inline int32_t imax(int32_t a, int32_t b) { return a > b ? a : b; }
+static inline int32_t imin(int32_t a, int32_t b) { return a < b ? a : b; }
+
+/* the lights that reach a point, in the Warp kernel's visiting order: light_term's e and B, and the
+ * light's index as a sample names it (M + input light for S0) */
+typedef struct {
+    float e[4];
+    int32_t v;
+} Reached;
+
+typedef struct {
+    Reached *at;
+    int64_t n, cap;
+} List;
+
+static int push(List *list, const float *e4, int32_t v) {
+    if (list->n == list->cap) {
+        int64_t cap = list->cap ? 2 * list->cap : 4096;
+        Reached *grown = (Reached *)realloc(list->at, (size_t)cap * sizeof(Reached));
+        if (!grown) return 0;
+        list->at = grown;
+        list->cap = cap;
+    }
+    Reached *r = list->at + list->n++;
+    r->e[0] = e4[0];
+    r->e[1] = e4[1];
+    r->e[2] = e4[2];
+    r->e[3] = e4[3];
+    r->v = v;
+    return 1;
+}
+
+/* A batch of up to 8 candidate lights of one level (the same blending level and radius): their
+ * light_term, then those that reach the point pushed in order. Scalar C, or AVX2 with the same IEEE
+ * operations in the same order (division and square root are correctly rounded in both): the same bits. */
+typedef struct {
+    int32_t v[8];
+    int n;
+} Batch;
+
+typedef struct {
+    const float *pos, *inten, *lobe;   /* the level's tables (grid lights, or S0's input lights) */
+    int32_t name_base;                 /* a sample's name for light v: name_base + v */
+    int level, top;
+    float r, inv_m2, clamp_d2, scale;
+} Level;
+
+static int flush_scalar(const Level *lv, const float *p, const float *n, Batch *b, List *list) {
+    for (int i = 0; i < b->n; i++) {
+        int32_t v = b->v[i];
+        float e4[4];
+        light_term(p, n, lv->pos + 3 * (int64_t)v, lv->inten + 3 * (int64_t)v, lv->lobe + 3 * (int64_t)v, lv->level,
+                   lv->top, lv->r, lv->inv_m2, lv->clamp_d2, lv->scale, e4);
+        if (e4[0] * LUMA0 + e4[1] * LUMA1 + e4[2] * LUMA2 > 0.0f && !push(list, e4, lv->name_base + v)) return 0;
+    }
+    b->n = 0;
+    return 1;
+}
+
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#define LGHQ_AVX2 1
+
+__attribute__((target("avx2"))) static int flush_avx2(const Level *lv, const float *p, const float *n, Batch *b,
+                                                      List *list) {
+    if (b->n == 0) return 1;
+    int32_t idx[8];
+    for (int i = 0; i < 8; i++) idx[i] = 3 * b->v[i < b->n ? i : 0];
+    __m256i ix = _mm256_loadu_si256((const __m256i *)idx);
+    __m256i iy = _mm256_add_epi32(ix, _mm256_set1_epi32(1)), iz = _mm256_add_epi32(ix, _mm256_set1_epi32(2));
+    __m256 wx = _mm256_sub_ps(_mm256_i32gather_ps(lv->pos, ix, 4), _mm256_set1_ps(p[0]));
+    __m256 wy = _mm256_sub_ps(_mm256_i32gather_ps(lv->pos, iy, 4), _mm256_set1_ps(p[1]));
+    __m256 wz = _mm256_sub_ps(_mm256_i32gather_ps(lv->pos, iz, 4), _mm256_set1_ps(p[2]));
+    __m256 d2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(wx, wx), _mm256_mul_ps(wy, wy)), _mm256_mul_ps(wz, wz));
+    __m256 d = _mm256_sqrt_ps(d2);
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), two = _mm256_set1_ps(2.0f),
+                 three = _mm256_set1_ps(3.0f);
+    __m256 w = one;
+    if (!(lv->level == lv->top && lv->level == 0)) {
+        if (lv->level > 0) {
+            __m256 half = _mm256_set1_ps(0.5f * lv->r);
+            __m256 x = _mm256_div_ps(_mm256_sub_ps(d, half), half);
+            x = _mm256_min_ps(_mm256_max_ps(zero, x), one);
+            w = _mm256_mul_ps(_mm256_mul_ps(x, x), _mm256_sub_ps(three, _mm256_mul_ps(two, x)));
+        }
+        if (lv->level < lv->top) {
+            __m256 r = _mm256_set1_ps(lv->r);
+            __m256 y = _mm256_div_ps(_mm256_sub_ps(d, r), r);
+            y = _mm256_min_ps(_mm256_max_ps(zero, y), one);
+            w = _mm256_mul_ps(w, _mm256_sub_ps(one, _mm256_mul_ps(_mm256_mul_ps(y, y),
+                                                                  _mm256_sub_ps(three, _mm256_mul_ps(two, y)))));
+        }
+    }
+    __m256 ndw = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_set1_ps(n[0]), wx),
+                                             _mm256_mul_ps(_mm256_set1_ps(n[1]), wy)),
+                               _mm256_mul_ps(_mm256_set1_ps(n[2]), wz));
+    __m256 cos_s = _mm256_div_ps(ndw, d);
+    __m256 ux = _mm256_i32gather_ps(lv->lobe, ix, 4), uy = _mm256_i32gather_ps(lv->lobe, iy, 4),
+           uz = _mm256_i32gather_ps(lv->lobe, iz, 4);
+    __m256 udw = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ux, wx), _mm256_mul_ps(uy, wy)), _mm256_mul_ps(uz, wz));
+    __m256 c = _mm256_div_ps(_mm256_sub_ps(zero, udw), d);
+    __m256 len = _mm256_sqrt_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ux, ux), _mm256_mul_ps(uy, uy)),
+                                              _mm256_mul_ps(uz, uz)));
+    __m256 lobe = _mm256_add_ps(_mm256_sub_ps(one, len), _mm256_mul_ps(_mm256_set1_ps(4.0f), _mm256_max_ps(c, zero)));
+    __m256 ok = _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(d, zero, _CMP_GT_OQ), _mm256_cmp_ps(w, zero, _CMP_GT_OQ)),
+                              _mm256_and_ps(_mm256_cmp_ps(cos_s, zero, _CMP_GT_OQ), _mm256_cmp_ps(lobe, zero, _CMP_GT_OQ)));
+    __m256 sc = _mm256_mul_ps(_mm256_mul_ps(_mm256_mul_ps(w, lobe), cos_s), _mm256_set1_ps(lv->inv_m2));
+    sc = _mm256_mul_ps(_mm256_div_ps(sc, _mm256_max_ps(d2, _mm256_set1_ps(lv->clamp_d2))), _mm256_set1_ps(lv->scale));
+    sc = _mm256_and_ps(sc, ok);
+    w = _mm256_and_ps(w, ok);
+    __m256 ex = _mm256_mul_ps(_mm256_i32gather_ps(lv->inten, ix, 4), sc);
+    __m256 ey = _mm256_mul_ps(_mm256_i32gather_ps(lv->inten, iy, 4), sc);
+    __m256 ez = _mm256_mul_ps(_mm256_i32gather_ps(lv->inten, iz, 4), sc);
+    float e0[8], e1[8], e2[8], bb[8];
+    _mm256_storeu_ps(e0, ex);
+    _mm256_storeu_ps(e1, ey);
+    _mm256_storeu_ps(e2, ez);
+    _mm256_storeu_ps(bb, w);
+    for (int i = 0; i < b->n; i++) {
+        float e4[4] = {e0[i], e1[i], e2[i], bb[i]};
+        if (e4[0] * LUMA0 + e4[1] * LUMA1 + e4[2] * LUMA2 > 0.0f && !push(list, e4, lv->name_base + b->v[i])) return 0;
+    }
+    b->n = 0;
+    return 1;
+}
+#endif
+
+/* which batch evaluator this CPU runs: 8 (AVX2) or 1 (scalar); lghq_simd(0) forces scalar */
+static int use_avx2 = -1;
+
+EXPORT int lghq_simd(int allow) {
+#ifdef LGHQ_AVX2
+    use_avx2 = allow && __builtin_cpu_supports("avx2");
+#else
+    (void)allow;
+    use_avx2 = 0;
+#endif
+    return use_avx2 ? 8 : 1;
+}
+
+static inline int flush(const Level *lv, const float *p, const float *n, Batch *b, List *list) {
+#ifdef LGHQ_AVX2
+    if (use_avx2) return flush_avx2(lv, p, n, b, list);
+#endif
+    return flush_scalar(lv, p, n, b, list);
+}
+
+static inline int add(const Level *lv, const float *p, const float *n, Batch *b, List *list, int32_t v) {
+    b->v[b->n++] = v;
+    return b->n < 8 ? 1 : flush(lv, p, n, b, list);
+}
+
+/* every light whose term at the point is non-zero, in order (a light of luminance 0 visits nothing) */
+static int collect(const Gather *g, const float *p, const float *n, int32_t tile, List *list) {
+    const float scale = (float)g->tiles;
+    const int top = g->n_levels - 1 + g->s0;
+    Batch batch = {{0}, 0};
+    list->n = 0;
+    if (g->s0 == 1) {
+        float h1 = g->level_spacing[0];
+        float r0 = g->alpha * 0.5f * h1;
+        float rel0[3] = {(p[0] - g->level_origin[0]) / h1, (p[1] - g->level_origin[1]) / h1,
+                         (p[2] - g->level_origin[2]) / h1};
+        int32_t reach = (int32_t)ceilf(g->alpha);
+        int32_t ci = (int32_t)floorf(rel0[0]), cj = (int32_t)floorf(rel0[1]), ck = (int32_t)floorf(rel0[2]);
+        const int32_t *cells = g->s0_cells;
+        Level lv0 = {g->s0_pos, g->s0_int, g->s0_lobe, g->m, 0, top, r0, g->inv_m2, g->clamp_d2, scale};
+        for (int32_t i = imax(ci - reach, 0); i <= imin(ci + reach, cells[0] - 1); i++)
+            for (int32_t j = imax(cj - reach, 0); j <= imin(cj + reach, cells[1] - 1); j++)
+                for (int32_t k = imax(ck - reach, 0); k <= imin(ck + reach, cells[2] - 1); k++) {
+                    int32_t c = (i * cells[1] + j) * cells[2] + k;
+                    for (int32_t e_i = g->s0_start[c]; e_i < g->s0_start[c + 1]; e_i++) {
+                        int32_t v = g->s0_light[e_i];
+                        if (g->tiles > 1 && v % g->tiles != tile) continue;
+                        if (!add(&lv0, p, n, &batch, list, v)) return 0;
+                    }
+                }
+        if (!flush(&lv0, p, n, &batch, list)) return 0;
+    }
+    for (int l = 0; l < g->n_levels; l++) {
+        float h = g->level_spacing[l];
+        float r = g->alpha * h;
+        const int32_t *dims = g->level_dims + 3 * l;
+        const float *origin = g->level_origin + 3 * l;
+        float rel[3] = {(p[0] - origin[0]) / h, (p[1] - origin[1]) / h, (p[2] - origin[2]) / h};
+        float span = 2.0f * g->alpha + 1.7321f;
+        if (l == g->n_levels - 1) span = 1.0e9f;
+        const int32_t *vl = g->vertex_light + g->level_offset[l];
+        Level lvl = {g->light_pos, g->light_int, g->light_lobe, 0, l + g->s0, top, r, g->inv_m2, g->clamp_d2, scale};
+        int32_t i0 = imax((int32_t)ceilf(rel[0] - span), 0);
+        int32_t i1 = imin((int32_t)floorf(rel[0] + span), dims[0] - 1);
+        for (int32_t i = i0; i <= i1; i++) {
+            float dx = (float)i - rel[0];
+            float ry = sqrtf(fmaxf(span * span - dx * dx, 0.0f));
+            int32_t j0 = imax((int32_t)ceilf(rel[1] - ry), 0);
+            int32_t j1 = imin((int32_t)floorf(rel[1] + ry), dims[1] - 1);
+            for (int32_t j = j0; j <= j1; j++) {
+                float dy = (float)j - rel[1];
+                float rz = sqrtf(fmaxf(span * span - dx * dx - dy * dy, 0.0f));
+                int32_t k0 = imax((int32_t)ceilf(rel[2] - rz), 0);
+                int32_t k1 = imin((int32_t)floorf(rel[2] + rz), dims[2] - 1);
+                const int32_t *col = vl + (i * dims[1] + j) * dims[2];
+                for (int32_t k = k0; k <= k1; k++) {
+                    int32_t v = col[k];
+                    if (v < 0) continue;
+                    if (g->tiles > 1 && v % g->tiles != tile) continue;
+                    if (!add(&lvl, p, n, &batch, list, v)) return 0;
+                }
+            }
+        }
+        if (!flush(&lvl, p, n, &batch, list)) return 0;
+    }
+    return 1;
+}
+
+/* The Warp kernel's two sweeps over the lights that reach the point, each light's term computed once
+ * (the Warp kernel computes it in both sweeps): the same sums, picks and random numbers. */
+static int gather_point(const Gather *g, const float *p, const float *n, int32_t tile, uint32_t rng, int64_t row,
+                        const Outputs *o, List *list) {
+    if (!collect(g, p, n, tile, list)) return 0;
+    Sweep st = {0};
+    st.rng = rng;
+    const int32_t samples = g->samples;
+    const float scale = (float)g->tiles;
+    const int32_t m = g->m;
+    int sweeps = (g->stratified == 1 && samples > 0) ? 2 : 1;
+    for (int sweep = 0; sweep < sweeps; sweep++) {
+        if (sweep == 1) {
+            if (st.total <= 0.0f) break;
+            st.step = st.total / (float)samples;
+            st.xi = randf(&st.rng);
+            st.u = st.xi * st.step;
+        }
+        for (int64_t a = 0; a < list->n; a++) {
+            if (sweep == 1 && st.s >= samples) break;
+            const Reached *r = list->at + a;
+            int32_t v = r->v;
+            const float *q = v >= m ? g->s0_pos + 3 * (int64_t)(v - m) : g->light_pos + 3 * (int64_t)v;
+            float count = v >= m ? 1.0f : g->light_count[v];
+            float sd = v >= m ? 0.0f : g->light_std[v] * (float)g->jitter;
+            visit(&st, sweep, g->stratified, r->e, scale, count, samples, row, q, sd, v, o);
+        }
+    }
+    o->irradiance[3 * row + 0] = st.acc[0];
+    o->irradiance[3 * row + 1] = st.acc[1];
+    o->irradiance[3 * row + 2] = st.acc[2];
+    o->count[row] = st.count;
+    return 1;
+}
+
+/* Points lo .. hi - 1 of the arrays (rows of points, normals, tile and the outputs); point i's random
+ * stream is numbered first + i, as the Warp kernel's first + tid. The outputs start zeroed. Returns 0
+ * when out of memory (the list of a point's lights). */
+EXPORT int lghq_gather(const Gather *g, const float *points, const float *normals, const int32_t *tile, int64_t lo,
+                       int64_t hi, int64_t first, const Outputs *o) {
+    List list = {NULL, 0, 0};
+    int ok = 1;
+    if (use_avx2 < 0) lghq_simd(1);
+    for (int64_t i = lo; i < hi && ok; i++)
+        ok = gather_point(g, points + 3 * i, normals + 3 * i, g->tiles > 1 ? tile[i] : 0,
+                          rand_init(g->seed, (int32_t)(first + i)), i, o, &list);
+    free(list.at);
+    return ok;
+}
+
+/* ---- shadow-ray targets (cluster_targets) ---- */
+
+/* a member row: its running luminance and what a draw reads of its input light, in one 48-byte
+ * record (cum[row], then the light's position, intensity and normal, and its index): a draw reads the
+ * guide, then one or two records instead of the running sums, the member table and three light tables
+ * (each a cache miss: those loads were most of the targets' time) */
+typedef struct {
+    double cum;
+    float pos[3], inten[3], nrm[3];
+    int32_t member;
+} Row;
+
+typedef struct {
+    const int32_t *start, *stop;   /* (M,) member rows of each grid light */
+    const Row *rows;               /* (rows + 1,) the last one only for its running sum */
+    const int32_t *guide;          /* (rows,) cut points */
+    const float *positions;        /* (N, 3) input light positions (S0 picks) */
+    int32_t grid_lights;
+    float inv_m2, clamp_d2;
+} Members;
+
+static inline void vpl_term(const float *p, const float *n, const float *q, const float *intensity, const float *nq,
+                            float inv_m2, float clamp_d2, float *e) {
+    float w[3] = {q[0] - p[0], q[1] - p[1], q[2] - p[2]};
+    float d2 = dot3(w, w);
+    float d = sqrtf(d2);
+    e[0] = e[1] = e[2] = 0.0f;
+    if (d <= 0.0f) return;
+    float cos_s = dot3(n, w) / d;
+    float lobe = lobe_factor(nq, w, d);
+    if (cos_s <= 0.0f || lobe <= 0.0f) return;
+    float s = lobe * cos_s * inv_m2 / fmaxf(d2, clamp_d2);
+    e[0] = intensity[0] * s;
+    e[1] = intensity[1] * s;
+    e[2] = intensity[2] * s;
+}
+
+/* Samples lo .. hi - 1: targets (and with reweight the weights, in: pick's e / f). rank / run_length
+ * are read when stratified, points / normals / pixel / blend_over_f when reweight. The samples go in
+ * batches of 32 in three passes (the draw's share, its guide entry, its record), each pass prefetching
+ * what the next reads: a draw's loads depend on one another, and one after another they were cache
+ * misses in a row. The same draws, in the same order, as cluster_targets. */
+#define TARGET_BATCH 32
+
+EXPORT void lghq_targets(const Members *mb, const int32_t *lights, const float *fallback, int32_t seed, int64_t first,
+                         int32_t stratified, const int32_t *rank, const int32_t *run_length, int32_t reweight,
+                         const float *points, const float *normals, const int32_t *pixel, const float *blend_over_f,
+                         int64_t lo, int64_t hi, float *out, float *out_weight) {
+    const Row *rows = mb->rows;
+    double xs[TARGET_BATCH], totals[TARGET_BATCH];
+    int32_t at[TARGET_BATCH];   /* guide row of the draw; -1: the fallback, -2: an S0 light */
+    for (int64_t t0 = lo; t0 < hi; t0 += TARGET_BATCH) {
+        int nb = (int)(hi - t0 < TARGET_BATCH ? hi - t0 : TARGET_BATCH);
+        for (int i = 0; i < nb; i++) {
+            int64_t t = t0 + i;
+            int32_t v = lights[t];
+            at[i] = -1;
+            if (v >= mb->grid_lights) {
+                at[i] = -2;
+            } else if (v >= 0) {
+                int32_t a0 = mb->start[v], hi_row = mb->stop[v];
+                double c0 = rows[a0].cum;
+                double total = rows[hi_row].cum - c0;
+                if (hi_row > a0 && total > 0.0) {
+                    uint32_t rng = rand_init(seed, (int32_t)(first + t));
+                    double u = (double)randf(&rng);
+                    if (stratified == 1) u = ((double)rank[t] + u) / (double)run_length[t];
+                    double x = c0 + u * total;
+                    int32_t m_rows = hi_row - a0;
+                    int32_t share = (int32_t)((x - c0) / total * (double)m_rows);
+                    share = imin(imax(share, 0), m_rows - 1);
+                    xs[i] = x;
+                    totals[i] = total;
+                    at[i] = a0 + share;
+                    __builtin_prefetch(mb->guide + at[i]);
+                }
+            }
+        }
+        for (int i = 0; i < nb; i++)
+            if (at[i] >= 0) {
+                int32_t a = mb->guide[at[i]];
+                __builtin_prefetch(rows + a);
+                __builtin_prefetch((const char *)(rows + a) + 63);
+            }
+        for (int i = 0; i < nb; i++) {
+            int64_t t = t0 + i;
+            int32_t v = lights[t];
+            const float *target = fallback + 3 * t;
+            if (at[i] == -2) {
+                target = mb->positions + 3 * (int64_t)(v - mb->grid_lights);
+            } else if (at[i] >= 0) {
+                int32_t a0 = mb->start[v], hi_row = mb->stop[v];
+                double x = xs[i], total = totals[i];
+                int32_t a = mb->guide[at[i]];
+                if (rows[a].cum > x) {
+                    int32_t b = hi_row - 1;
+                    a = a0;
+                    while (a < b) {
+                        int32_t mid = (a + b + 1) / 2;
+                        if (rows[mid].cum <= x)
+                            a = mid;
+                        else
+                            b = mid - 1;
+                    }
+                }
+                while (a + 1 < hi_row && rows[a + 1].cum <= x) a = a + 1;
+                const Row *row = rows + a;
+                target = row->pos;
+                if (reweight == 1) {
+                    const float *ij = row->inten;
+                    double lum = (double)(ij[0] * LUMA0 + ij[1] * LUMA1 + ij[2] * LUMA2);
+                    float *w = out_weight + 3 * t;
+                    if (lum <= 0.0) {
+                        w[0] = w[1] = w[2] = 0.0f;
+                    } else {
+                        int32_t p = pixel[t];
+                        float e[3];
+                        vpl_term(points + 3 * (int64_t)p, normals + 3 * (int64_t)p, target, ij, row->nrm, mb->inv_m2,
+                                 mb->clamp_d2, e);
+                        float s = blend_over_f[t] * (float)(total / lum);
+                        w[0] = e[0] * s;
+                        w[1] = e[1] * s;
+                        w[2] = e[2] * s;
+                    }
+                }
+            }
+            out[3 * t + 0] = target[0];
+            out[3 * t + 1] = target[1];
+            out[3 * t + 2] = target[2];
+        }
+    }
+}
+
+/* Points lo .. hi - 1 of k samples each: num = sum_s V_s w_s and den = sum_s w_s per channel (visible
+ * (P, k) float32 0/1, weight (P, k, 3)), summed in sample order in double and rounded once. */
+EXPORT void lghq_sums(const float *visible, const float *weight, int64_t k, int64_t lo, int64_t hi, float *num,
+                      float *den) {
+    for (int64_t p = lo; p < hi; p++) {
+        double sn[3] = {0, 0, 0}, sd[3] = {0, 0, 0};
+        const float *v = visible + p * k, *w = weight + 3 * p * k;
+        for (int64_t s = 0; s < k; s++)
+            for (int c = 0; c < 3; c++) {
+                sd[c] += w[3 * s + c];
+                sn[c] += v[s] * w[3 * s + c];
+            }
+        for (int c = 0; c < 3; c++) {
+            num[3 * p + c] = (float)sn[c];
+            den[3 * p + c] = (float)sd[c];
+        }
+    }
+}
+
+/* an importable module, so that setuptools builds it as an extension; the functions are called by ctypes */
+static struct PyModuleDef lghq_module = {PyModuleDef_HEAD_INIT, "_lghq", "LGH gather and shadow targets (ctypes)", -1, NULL};
+PyMODINIT_FUNC PyInit__lghq(void) { return PyModule_Create(&lghq_module); }

@@ -1,0 +1,174 @@
+"""The compiled CPU path of the LGH's gather and shadow-ray targets: ``kernels/lghq.c`` through ctypes.
+
+Why compiled: Warp runs a CPU launch on one thread, one point at a time, and its code for the gather
+spent about 25 ns per light visited (the city at 100k VPLs, alpha 4: some 4,300 lights in each of the
+stratified sweep's two passes per point, 3.7 s of a 256 px frame on two cores). ``lghq.c`` is the
+rule of :mod:`usdml.kernels.lgh_lighting`'s ``lgh_gather`` and ``cluster_targets``, expression by
+expression with Warp's random numbers, called on blocks of rows from the thread pool of
+:mod:`usdml.parallel` (ctypes releases the GIL during a call).
+
+What a machine gets: ``pip install`` builds it as the optional extension ``usdml.kernels._lghq``
+(setup.py). Without a C compiler :func:`library` returns None and the LGH runs the Warp kernels
+(``--lgh-cpu-kernel warp`` does the same); ``usdml info`` names the path (:func:`describe`). GPUs run
+Warp.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import lru_cache
+
+import numpy as np
+
+from usdml.visibility.voxel_native import open_extension
+
+__all__ = ["library", "describe", "simd", "Gather", "Members", "sums"]
+
+_P = ctypes.c_void_p
+_i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
+
+
+class _Gather(ctypes.Structure):
+    _fields_ = [("n_levels", _i32), ("level_origin", _P), ("level_spacing", _P), ("level_dims", _P),
+                ("level_offset", _P), ("vertex_light", _P), ("light_pos", _P), ("light_int", _P), ("light_lobe", _P),
+                ("light_std", _P), ("light_count", _P), ("m", _i32), ("s0", _i32), ("s0_cells", _i32 * 3),
+                ("s0_start", _P), ("s0_light", _P), ("s0_pos", _P), ("s0_int", _P), ("s0_lobe", _P), ("alpha", _f32),
+                ("inv_m2", _f32), ("clamp_d2", _f32), ("samples", _i32), ("jitter", _i32), ("seed", _i32),
+                ("tiles", _i32), ("stratified", _i32)]
+
+
+class _Outputs(ctypes.Structure):
+    _fields_ = [("irradiance", _P), ("count", _P), ("sample_pos", _P), ("sample_ok", _P), ("sample_light", _P),
+                ("sample_weight", _P), ("sample_blend", _P), ("sample_lum", _P), ("stride", _i32)]
+
+
+class _Members(ctypes.Structure):
+    _fields_ = [("start", _P), ("stop", _P), ("rows", _P), ("guide", _P), ("positions", _P), ("grid_lights", _i32),
+                ("inv_m2", _f32), ("clamp_d2", _f32)]
+
+
+#: ``lghq.c``'s member record: the running sum, then the member light's position, intensity, normal, index
+ROW = np.dtype([("cum", np.float64), ("pos", np.float32, 3), ("inten", np.float32, 3), ("nrm", np.float32, 3),
+                ("member", np.int32)])
+
+
+@lru_cache(maxsize=1)
+def _load() -> tuple[ctypes.CDLL | None, str]:
+    lib, why = open_extension("_lghq")
+    if lib is None:
+        return None, why
+    lib.lghq_gather.argtypes = [ctypes.POINTER(_Gather), _P, _P, _P, _i64, _i64, _i64, ctypes.POINTER(_Outputs)]
+    lib.lghq_gather.restype = ctypes.c_int
+    lib.lghq_simd.argtypes = [ctypes.c_int]
+    lib.lghq_simd.restype = ctypes.c_int
+    lib.lghq_simd(1)
+    lib.lghq_targets.argtypes = [ctypes.POINTER(_Members), _P, _P, _i32, _i64, _i32, _P, _P, _i32, _P, _P, _P, _P,
+                                 _i64, _i64, _P, _P]
+    lib.lghq_targets.restype = None
+    lib.lghq_sums.argtypes = [_P, _P, _i64, _i64, _i64, _P, _P]
+    lib.lghq_sums.restype = None
+    return lib, ""
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled gather, or None where it was not built (no C compiler at install)."""
+    return _load()[0]
+
+
+def describe() -> str:
+    """One line: which CPU path the LGH's gather and shadow targets take on this machine (``usdml info``)."""
+    lib, why = _load()
+    if lib is not None:
+        width = lib.lghq_simd(1)
+        return f"compiled gather (kernels/lghq.c), one point per thread, light terms {'8 at a time (AVX2)' if width == 8 else 'one at a time'}"
+    return \
+        f"Warp kernels, one point per thread (compiled gather {why})"
+
+
+def simd(allow: bool = True) -> int:
+    """The gather's light terms 8 at a time (AVX2, where the CPU has it) or, with ``allow`` False, one at a
+    time (the same bits; for tests and measurements): the width it runs. 0 without the library."""
+    lib = library()
+    return 0 if lib is None else int(lib.lghq_simd(int(bool(allow))))
+
+
+def _c(a, dtype) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype)
+
+
+def _ptr(a: np.ndarray | None) -> int | None:
+    return None if a is None else a.ctypes.data
+
+
+class Gather:
+    """``lghq_gather``'s tables for one hierarchy and its settings (the arguments of
+    :class:`usdml.lighting.lgh_lighting.LGHGather`; the arrays are held here)."""
+
+    def __init__(self, flat: tuple, s0: tuple | None, alpha: float, inv_m2: float, clamp_d2: float, samples: int,
+                 jitter: bool, seed: int, tiles: int, stratified: bool):
+        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count = flat
+        self._hold = hold = [_c(origin, np.float32), _c(spacing, np.float32), _c(dims, np.int32),
+                             _c(offset, np.int32), _c(vertex_light, np.int32), _c(pos, np.float32),
+                             _c(inten, np.float32), _c(lobe, np.float32), _c(std, np.float32), _c(count, np.float32)]
+        g = self.table = _Gather()
+        g.n_levels = len(hold[1])
+        (g.level_origin, g.level_spacing, g.level_dims, g.level_offset, g.vertex_light, g.light_pos, g.light_int,
+         g.light_lobe, g.light_std, g.light_count) = (_ptr(a) for a in hold)
+        g.m = len(hold[5])
+        if s0 is not None:
+            cells, start, order, s0_pos, s0_int, s0_lobe = s0
+            arrays = [_c(start, np.int32), _c(order, np.int32), _c(s0_pos, np.float32), _c(s0_int, np.float32),
+                      _c(s0_lobe, np.float32)]
+            hold += arrays
+            g.s0 = 1
+            g.s0_cells[:] = [int(c) for c in cells]
+            g.s0_start, g.s0_light, g.s0_pos, g.s0_int, g.s0_lobe = (_ptr(a) for a in arrays)
+        g.alpha, g.inv_m2, g.clamp_d2 = float(alpha), float(inv_m2), float(clamp_d2)
+        g.samples, g.jitter, g.seed = int(samples), int(bool(jitter)), int(seed)
+        g.tiles, g.stratified = int(max(tiles, 1)), int(bool(stratified))
+
+    def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray, lo: int, hi: int, first: int,
+                 outputs: tuple) -> None:
+        """Rows ``lo .. hi - 1`` of ``points`` / ``normals`` (P, 3) float32 and ``tile`` (P,) int32 into
+        ``outputs`` = (irradiance, count, pos, ok, light, weight, blend, lum), C-contiguous, zeroed; the
+        rows' random streams numbered ``first + row``."""
+        irr, cnt, spos, sok, slight, sweight, sblend, slum = outputs
+        out = _Outputs(*(a.ctypes.data for a in outputs), spos.shape[1])
+        if not library().lghq_gather(ctypes.byref(self.table), points.ctypes.data, normals.ctypes.data,
+                                     tile.ctypes.data, int(lo), int(hi), int(first), ctypes.byref(out)):
+            raise MemoryError("the LGH gather ran out of memory for a point's list of lights")
+
+
+class Members:
+    """``lghq_targets``' tables: a :class:`usdml.lighting.lgh_lighting.ClusterSampler`'s members."""
+
+    def __init__(self, start, stop, cum, guide, member, positions, intensity, normals, grid_lights: int,
+                 inv_m2: float, clamp_d2: float):
+        member = np.asarray(member, np.int64)
+        rows = np.zeros(len(cum), ROW)            # len(member) + 1: the last row holds only the total
+        rows["cum"] = cum
+        rows["member"][:-1] = member
+        for name, a in (("pos", positions), ("inten", intensity), ("nrm", normals)):
+            rows[name][:-1] = np.asarray(a, np.float32).reshape(-1, 3)[member]
+        positions = _c(positions, np.float32)
+        self._hold = hold = [_c(start, np.int32), _c(stop, np.int32), rows, _c(guide, np.int32), positions]
+        self.table = _Members(*(a.ctypes.data for a in hold), int(grid_lights), float(inv_m2), float(clamp_d2))
+
+    def __call__(self, lights, fallback, seed: int, first: int, runs, reweight: tuple | None, lo: int, hi: int,
+                 out: np.ndarray, out_weight: np.ndarray) -> None:
+        """Samples ``lo .. hi - 1`` (C-contiguous int32 / float32 arrays, as ``cluster_targets`` takes them):
+        ``runs = (rank, length)`` or None, ``reweight = (points, normals, pixel, blend)`` or None."""
+        rank, length = runs if runs is not None else (None, None)
+        pts, nrm, pixel, blend = reweight if reweight is not None else (None, None, None, None)
+        library().lghq_targets(ctypes.byref(self.table), lights.ctypes.data, fallback.ctypes.data, int(seed),
+                               int(first), int(runs is not None), _ptr(rank), _ptr(length), int(reweight is not None),
+                               _ptr(pts), _ptr(nrm), _ptr(pixel), _ptr(blend), int(lo), int(hi), out.ctypes.data,
+                               out_weight.ctypes.data)
+
+
+def sums(visible: np.ndarray, weight: np.ndarray, num: np.ndarray, den: np.ndarray, lo: int, hi: int) -> None:
+    """Points ``lo .. hi - 1``: ``num`` = Σ_s V_s w_s and ``den`` = Σ_s w_s per channel (``visible`` (P, k)
+    float32, ``weight`` (P, k, 3) float32, ``num`` / ``den`` (P, 3) float32, all C-contiguous), summed in
+    double (``lghq_sums``)."""
+    library().lghq_sums(visible.ctypes.data, weight.ctypes.data, visible.shape[1], int(lo), int(hi), num.ctypes.data,
+                        den.ctypes.data)
