@@ -434,7 +434,7 @@ def test_thin_voxelization_hides_fewer_lights_wrongly(small_city):
 
 def test_bench_orders_queries_as_the_shading_kernel_asks_them():
     from usdml.bench import shading_order
-    from usdml.visibility.voxel import morton_order
+    from usdml.zorder import morton_order
 
     rng = np.random.default_rng(5)
     points = rng.uniform(-1, 1, (200, 3))

@@ -22,7 +22,8 @@ from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry, require_lights
 from usdml.visibility import ExactBackend, make_backend
 from usdml.visibility.base import all_members
-from usdml.visibility.voxel import SHADE_TILE, morton_order
+from usdml.visibility.voxel import SHADE_TILE
+from usdml.zorder import morton_order
 
 
 #: queries each backend answers before anything is timed (kernel modules load, scenes commit)

@@ -345,7 +345,7 @@ class ClusterSampler:
         # over the group's extent), else in input order
         place = np.arange(n, dtype=np.int64)
         if self.stratify and n:
-            from usdml.visibility.voxel import morton_order
+            from usdml.zorder import morton_order
 
             place[morton_order(self.positions)] = np.arange(n, dtype=np.int64)
         members, groups, weights = [], [], []

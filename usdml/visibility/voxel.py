@@ -57,10 +57,11 @@ from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, availabl
 from usdml.visibility.voxel_budget import array_roles, memory_estimate, memory_line
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, core_bounds
 from usdml.visibility.voxel_rotate import MAX_RESOLUTION, rotate_array
+from usdml.zorder import morton_order
 
 log = logging.getLogger("usdml")
 
-__all__ = ["VoxelBackend", "MAX_SKIP", "CONSERVATIVE_MAX_SKIP", "SHADE_TILE", "morton_order"]
+__all__ = ["VoxelBackend", "MAX_SKIP", "CONSERVATIVE_MAX_SKIP", "SHADE_TILE"]
 
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
 REBUILDS = VOXEL_REBUILDS
@@ -75,17 +76,6 @@ MAX_SKIP = 2.0
 CONSERVATIVE_MAX_SKIP = 4.0
 #: points per tile of the CPU shading kernel (kernels.direct_shading.shade_tiles)
 SHADE_TILE = 64
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting ``points`` along a Z-order curve of a 2^10 grid over their bounds."""
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    q = ((points - lo) / np.maximum(hi - lo, 1e-12) * 1023).astype(np.uint64)
-    code = np.zeros(len(points), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
 
 
 @dataclass
