@@ -68,6 +68,12 @@ typedef struct {
     const float *s0_pos, *s0_int, *s0_lobe;
     float alpha, inv_m2, clamp_d2;
     int32_t samples, jitter, seed, tiles, stratified;
+    /* which vertices hold a light, a bit each: per level its columns (i, j) of occ_words[l] 64-bit words
+     * along k from occ_offset[l]; the walk reads the vertex's light only where its bit is set (most of
+     * a point's vertices are empty, and their entries were cache misses) */
+    const uint64_t *occupancy;
+    const int64_t *occ_offset;
+    const int32_t *occ_words;
 } Gather;
 
 typedef struct {
@@ -321,10 +327,13 @@ __attribute__((target("avx2"))) static int flush_avx2(const Level *lv, const flo
 }
 #endif
 
-/* which batch evaluator this CPU runs: 8 (AVX2) or 1 (scalar); lghq_simd(0) forces scalar */
+/* which batch evaluator this CPU runs: 8 (AVX2) or 1 (scalar); lghq_simd(0) forces scalar,
+ * lghq_simd(1) takes AVX2 where the CPU has it, lghq_simd(-1) only says which is in use */
 static int use_avx2 = -1;
 
 EXPORT int lghq_simd(int allow) {
+    if (allow < 0 && use_avx2 >= 0) return use_avx2 ? 8 : 1;
+    if (allow < 0) allow = 1;
 #ifdef LGHQ_AVX2
     use_avx2 = allow && __builtin_cpu_supports("avx2");
 #else
@@ -382,6 +391,8 @@ static int collect(const Gather *g, const float *p, const float *n, int32_t tile
         float span = 2.0f * g->alpha + 1.7321f;
         if (l == g->n_levels - 1) span = 1.0e9f;
         const int32_t *vl = g->vertex_light + g->level_offset[l];
+        const uint64_t *occ = g->occupancy + g->occ_offset[l];
+        const int32_t words = g->occ_words[l];
         Level lvl = {g->light_pos, g->light_int, g->light_lobe, 0, l + g->s0, top, r, g->inv_m2, g->clamp_d2, scale};
         int32_t i0 = imax((int32_t)ceilf(rel[0] - span), 0);
         int32_t i1 = imin((int32_t)floorf(rel[0] + span), dims[0] - 1);
@@ -395,12 +406,20 @@ static int collect(const Gather *g, const float *p, const float *n, int32_t tile
                 float rz = sqrtf(fmaxf(span * span - dx * dx - dy * dy, 0.0f));
                 int32_t k0 = imax((int32_t)ceilf(rel[2] - rz), 0);
                 int32_t k1 = imin((int32_t)floorf(rel[2] + rz), dims[2] - 1);
+                if (k0 > k1) continue;
                 const int32_t *col = vl + (i * dims[1] + j) * dims[2];
-                for (int32_t k = k0; k <= k1; k++) {
-                    int32_t v = col[k];
-                    if (v < 0) continue;
-                    if (g->tiles > 1 && v % g->tiles != tile) continue;
-                    if (!add(&lvl, p, n, &batch, list, v)) return 0;
+                const uint64_t *bits = occ + ((int64_t)i * dims[1] + j) * words;
+                for (int32_t w = k0 >> 6; w <= (k1 >> 6); w++) {
+                    uint64_t mask = bits[w];
+                    if (w == (k0 >> 6)) mask &= ~0ULL << (k0 & 63);
+                    if (w == (k1 >> 6)) mask &= ~0ULL >> (63 - (k1 & 63));
+                    while (mask) {            /* the set bits in ascending k: the Warp kernel's order */
+                        int32_t k = (w << 6) + __builtin_ctzll(mask);
+                        mask &= mask - 1;
+                        int32_t v = col[k];
+                        if (g->tiles > 1 && v % g->tiles != tile) continue;
+                        if (!add(&lvl, p, n, &batch, list, v)) return 0;
+                    }
                 }
             }
         }

@@ -34,7 +34,7 @@ class _Gather(ctypes.Structure):
                 ("light_std", _P), ("light_count", _P), ("m", _i32), ("s0", _i32), ("s0_cells", _i32 * 3),
                 ("s0_start", _P), ("s0_light", _P), ("s0_pos", _P), ("s0_int", _P), ("s0_lobe", _P), ("alpha", _f32),
                 ("inv_m2", _f32), ("clamp_d2", _f32), ("samples", _i32), ("jitter", _i32), ("seed", _i32),
-                ("tiles", _i32), ("stratified", _i32)]
+                ("tiles", _i32), ("stratified", _i32), ("occupancy", _P), ("occ_offset", _P), ("occ_words", _P)]
 
 
 class _Outputs(ctypes.Structure):
@@ -79,7 +79,7 @@ def describe() -> str:
     """One line: which CPU path the LGH's gather and shadow targets take on this machine (``usdml info``)."""
     lib, why = _load()
     if lib is not None:
-        width = lib.lghq_simd(1)
+        width = lib.lghq_simd(-1)
         return f"compiled gather (kernels/lghq.c), one point per thread, light terms {'8 at a time (AVX2)' if width == 8 else 'one at a time'}"
     return \
         f"Warp kernels, one point per thread (compiled gather {why})"
@@ -98,6 +98,26 @@ def _c(a, dtype) -> np.ndarray:
 
 def _ptr(a: np.ndarray | None) -> int | None:
     return None if a is None else a.ctypes.data
+
+
+def _occupancy(dims: np.ndarray, offset: np.ndarray, vertex_light: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One bit per grid vertex, set where it holds a light: per level, each column (i, j) as
+    ceil(dims_k / 64) little-endian 64-bit words along k (``lghq.c``'s ``occupancy``), the levels one
+    after another: ``(words (uint64), first word of each level (int64), words per column (int32))``."""
+    parts, starts, widths = [], [], []
+    at = 0
+    for (d0, d1, d2), off in zip(np.asarray(dims, np.int64).reshape(-1, 3), np.asarray(offset, np.int64)):
+        words = (int(d2) + 63) // 64
+        held = np.zeros((int(d0), int(d1), words * 64), bool)
+        held[:, :, :d2] = (vertex_light[off:off + d0 * d1 * d2] >= 0).reshape(d0, d1, d2)
+        packed = np.packbits(held, axis=2, bitorder="little").reshape(-1)
+        parts.append(np.frombuffer(packed.tobytes(), "<u8"))
+        starts.append(at)
+        widths.append(words)
+        at += len(parts[-1])
+    return (np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros(1, np.uint64), np.uint64),
+            np.asarray(starts, np.int64), np.asarray(widths, np.int32))
 
 
 class Gather:
@@ -126,6 +146,9 @@ class Gather:
         g.alpha, g.inv_m2, g.clamp_d2 = float(alpha), float(inv_m2), float(clamp_d2)
         g.samples, g.jitter, g.seed = int(samples), int(bool(jitter)), int(seed)
         g.tiles, g.stratified = int(max(tiles, 1)), int(bool(stratified))
+        occupancy, occ_offset, occ_words = _occupancy(hold[2], hold[3], hold[4])
+        hold += [occupancy, occ_offset, occ_words]
+        g.occupancy, g.occ_offset, g.occ_words = (_ptr(a) for a in (occupancy, occ_offset, occ_words))
 
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray, lo: int, hi: int, first: int,
                  outputs: tuple) -> None:
