@@ -2,6 +2,8 @@
 gather (sums, picks, jittered positions), the same member draws and weights, bit for bit, with the light
 terms 8 at a time (AVX2) or one at a time; and the same frame through lgh_indirect."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,9 @@ from usdml.lighting import lgh_lighting as m  # noqa: E402
 from usdml.lighting import lgh_native  # noqa: E402
 from usdml.lighting.lgh import build_lgh  # noqa: E402
 
+#: CI sets USDML_REQUIRE_NATIVE=1 so that a failed build fails these tests instead of skipping them
+if lgh_native.library() is None and os.environ.get("USDML_REQUIRE_NATIVE") == "1":
+    raise RuntimeError(f"USDML_REQUIRE_NATIVE=1 but the LGH's CPU path is {lgh_native.describe()}")
 pytestmark = pytest.mark.skipif(lgh_native.library() is None, reason="kernels/lghq.c was not built")
 
 
