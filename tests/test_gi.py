@@ -82,7 +82,8 @@ def test_compare_gi_with_s0_and_more_samples(capsys):
     assert 0 < out["rel_rmse"] < 0.3            # measured 0.213: S0 and 16 samples, below the default's 0.260
 
 
-@pytest.mark.parametrize("flag,value", [("--lgh-start-level", "2"), ("--shadow-filter-iterations", "11")])
+@pytest.mark.parametrize("flag,value", [("--lgh-start-level", "2"), ("--shadow-filter-iterations", "11"),
+                                        ("--lgh-cpu-kernel", "avx")])
 def test_bad_gi_settings_are_one_line_errors(flag, value, capsys):
     try:
         code = main(["compare", str(STAGES / "cornell.usda"), "--gi", "lgh", "--vpls", "100", "--imageWidth", "16",
