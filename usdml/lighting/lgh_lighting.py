@@ -159,6 +159,21 @@ class LGHGather:
         self.light_count = np.concatenate([count, np.ones(len(s0[0]) if s0 is not None else 0, np.float32)])
         if self.empty:
             return
+        if s0 is not None:
+            cells, start, order = s0_cells(lgh, s0[0])
+            s0_normals = np.ascontiguousarray(s0[2] if len(s0) > 2 and s0[2] is not None
+                                              else np.zeros((len(s0[0]), 3)), np.float32)
+        self._stratified = int(bool(stratified))
+        self._on_cpu = wp.get_device(device).is_cpu
+        self._native = None
+        if self._on_cpu and _compiled(cpu_kernel):     # the compiled gather's own tables; no Warp arrays
+            from usdml.lighting.lgh_native import Gather
+
+            s0_tables = None if s0 is None else (cells, start, order, s0[0], s0[1], s0_normals)
+            self._native = Gather((origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count), s0_tables,
+                                  alpha, 1.0 / meters_per_unit ** 2, clamp_distance ** 2, self.k, jitter, seed,
+                                  self.tiles, stratified)
+            return
         shared = [wp.array(origin, dtype=wp.vec3, device=device), wp.array(spacing, dtype=float, device=device),
                   wp.array(dims, dtype=wp.vec3i, device=device), wp.array(offset, dtype=int, device=device),
                   wp.array(vertex_light, dtype=int, device=device), wp.array(pos, dtype=wp.vec3, device=device),
@@ -166,30 +181,17 @@ class LGHGather:
                   wp.array(std.astype(np.float32), dtype=float, device=device),
                   wp.array(count, dtype=float, device=device), len(spacing)]
         if s0 is not None:
-            cells, start, order = s0_cells(lgh, s0[0])
             s0_args = [1, wp.vec3i(*map(int, cells)), wp.array(start, dtype=int, device=device),
                        wp.array(order, dtype=int, device=device),
                        wp.array(np.ascontiguousarray(s0[0], np.float32), dtype=wp.vec3, device=device),
                        wp.array(np.ascontiguousarray(s0[1], np.float32), dtype=wp.vec3, device=device),
-                       wp.array(np.ascontiguousarray(s0[2] if len(s0) > 2 and s0[2] is not None
-                                                     else np.zeros((len(s0[0]), 3)), np.float32),
-                                dtype=wp.vec3, device=device)]
+                       wp.array(s0_normals, dtype=wp.vec3, device=device)]
         else:
             empty3 = wp.zeros(1, dtype=wp.vec3, device=device)
             s0_args = [0, wp.vec3i(1, 1, 1), wp.zeros(2, dtype=int, device=device),
                        wp.zeros(1, dtype=int, device=device), empty3, empty3, empty3]
         self._args = [*shared, *s0_args, float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2),
                       self.k, int(bool(jitter)), int(seed)]
-        self._stratified = int(bool(stratified))
-        self._on_cpu = wp.get_device(device).is_cpu
-        self._native = None
-        if self._on_cpu and _compiled(cpu_kernel):
-            from usdml.lighting.lgh_native import Gather
-
-            s0_tables = None if s0 is None else (cells, start, order, s0[0], s0[1], s0_args[6].numpy())
-            self._native = Gather((origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count), s0_tables,
-                                  alpha, 1.0 / meters_per_unit ** 2, clamp_distance ** 2, self.k, jitter, seed,
-                                  self.tiles, stratified)
 
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
                  first: int = 0) -> LGHShading:
@@ -454,6 +456,18 @@ class ClusterSampler:
         _in_blocks(run, len(lights), "cpu", min_block=1 << 14)
         return (out, out_w) if reweight else out
 
+    def shadow_sums(self, visible: np.ndarray, weight: np.ndarray, num: np.ndarray, den: np.ndarray) -> None:
+        """Per point, Σ_s V_s w_s into ``num`` and Σ_s w_s into ``den`` ((P, 3) each) from ``visible`` (P, k)
+        and the weights :meth:`targets` gave (P, k, 3): in C in one pass in double where the targets ran
+        compiled, else by NumPy (float32)."""
+        if self._native is not None:
+            from usdml.lighting.lgh_native import sums
+
+            _in_blocks(lambda lo, hi: sums(visible, weight, num, den, lo, hi), len(visible), "cpu")
+        else:
+            num[:] = np.einsum("pk,pkc->pc", visible, weight)
+            den[:] = weight.sum(axis=1)
+
 
 def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading,
                     occluded: Callable[..., np.ndarray], sampler: ClusterSampler | None = None,
@@ -523,14 +537,7 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
             vis = seen[at]          # a view: every sample is taken (rows is None), the block whole points
             vis[cast] = got
             p0, p1 = lo // k, hi // k
-            if sampler._native is not None:     # compiled: one pass in double, from the thread pool
-                from usdml.lighting.lgh_native import sums
-
-                vis2, w3, n_out, d_out = vis.reshape(-1, k), w.reshape(-1, k, 3), num[p0:p1], den[p0:p1]
-                _in_blocks(lambda a, b: sums(vis2, w3, n_out, d_out, a, b), p1 - p0, "cpu")
-            else:
-                num[p0:p1] = np.einsum("pk,pkc->pc", vis.reshape(-1, k), w.reshape(-1, k, 3))
-                den[p0:p1] = w.reshape(-1, k, 3).sum(axis=1)
+            sampler.shadow_sums(vis.reshape(-1, k), w.reshape(-1, k, 3), num[p0:p1], den[p0:p1])
         else:
             seen[at] = got
     seen = seen.reshape(n, k)
