@@ -6,7 +6,7 @@ answers those queries with its Warp kernels instead (``usdml info`` says which p
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension(
-    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h", "kernels/light_term.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h", "kernels/simd_pick.h"],
+    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h", "kernels/light_term.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_avx512x2.h", "kernels/simd_undef.h", "kernels/simd_pick.h"],
     # portable code: the AVX2 functions carry their own target attribute and are picked at run time
     extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing"],
     optional=True), Extension(

@@ -69,6 +69,24 @@ typedef __m256 M;
         for (int k_ = 0; k_ < 3; k_++) \
             (out)[k_] = _mm256_mask_i32gather_ps(_mm256_setzero_ps(), (p) + k_, i3_, live, 4); \
     } while (0)
+/* the same from double triples, rounded to float: per coordinate two 64-bit gathers of 4 lanes */
+#define LOAD_XYZ64(p, m, live, out) do { \
+        __m128i i3_ = _mm_mullo_epi32(_mm_setr_epi32(0, 1, 2, 3), _mm_set1_epi32(3)); \
+        __m256i li_ = _mm256_castps_si256(live); \
+        __m256d mlo_ = _mm256_castsi256_pd(_mm256_cvtepi32_epi64(_mm256_castsi256_si128(li_))); \
+        __m256d mhi_ = _mm256_castsi256_pd(_mm256_cvtepi32_epi64(_mm256_extracti128_si256(li_, 1))); \
+        for (int k_ = 0; k_ < 3; k_++) { \
+            __m128 lo_ = _mm256_cvtpd_ps(_mm256_mask_i32gather_pd(_mm256_setzero_pd(), (p) + k_, i3_, mlo_, 8)); \
+            __m128 hi_ = _mm256_cvtpd_ps(_mm256_mask_i32gather_pd(_mm256_setzero_pd(), (p) + 12 + k_, i3_, mhi_, 8)); \
+            (out)[k_] = _mm256_set_m128(hi_, lo_); \
+        } \
+        (void)(m); \
+    } while (0)
+/* the largest of the 8 lanes */
+#define IREDUCE_MAX(v) ({ __m256i v_ = (v), m_ = _mm256_max_epi32(v_, _mm256_permute2x128_si256(v_, v_, 1)); \
+        m_ = _mm256_max_epi32(m_, _mm256_shuffle_epi32(m_, _MM_SHUFFLE(1, 0, 3, 2))); \
+        m_ = _mm256_max_epi32(m_, _mm256_shuffle_epi32(m_, _MM_SHUFFLE(2, 3, 0, 1))); \
+        _mm256_cvtsi256_si32(m_); })
 #define IOR _mm256_or_si256
 #define IXOR _mm256_xor_si256
 #define FLOOR _mm256_floor_ps
@@ -76,3 +94,27 @@ typedef __m256 M;
 /* the mask whose lane k is bit k of the integer b */
 #define MFROMBITS(b) _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_and_si256(_mm256_set1_epi32((int)(b)), \
         _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)), _mm256_setzero_si256()))
+
+/* F[k] (k < 12) of every lane from the 12-float rows tab + 12 d (rows of the inactive lanes too: give
+ * them a valid d): per lane three 16-byte loads, each block of four floats transposed 4 x 4 within the
+ * 128-bit lanes; register lane 4 i + q is built from the rows of lanes q + 4 i, which that transpose
+ * puts back in order */
+#define GATHER_ROWS12(tab, d, m, F) do { \
+        int li_[8]; \
+        _mm256_storeu_si256((__m256i *)li_, d); \
+        for (int j_ = 0; j_ < 3; j_++) { \
+            __m256 z_[4]; \
+            for (int q_ = 0; q_ < 4; q_++) \
+                z_[q_] = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps((tab) + 12 * (size_t)li_[q_] + 4 * j_)), \
+                                              _mm_loadu_ps((tab) + 12 * (size_t)li_[q_ + 4] + 4 * j_), 1); \
+            __m256d t0_ = _mm256_castps_pd(_mm256_unpacklo_ps(z_[0], z_[1])); \
+            __m256d t1_ = _mm256_castps_pd(_mm256_unpackhi_ps(z_[0], z_[1])); \
+            __m256d t2_ = _mm256_castps_pd(_mm256_unpacklo_ps(z_[2], z_[3])); \
+            __m256d t3_ = _mm256_castps_pd(_mm256_unpackhi_ps(z_[2], z_[3])); \
+            (F)[4 * j_] = _mm256_castpd_ps(_mm256_unpacklo_pd(t0_, t2_)); \
+            (F)[4 * j_ + 1] = _mm256_castpd_ps(_mm256_unpackhi_pd(t0_, t2_)); \
+            (F)[4 * j_ + 2] = _mm256_castpd_ps(_mm256_unpacklo_pd(t1_, t3_)); \
+            (F)[4 * j_ + 3] = _mm256_castpd_ps(_mm256_unpackhi_pd(t1_, t3_)); \
+        } \
+        (void)(m); \
+    } while (0)

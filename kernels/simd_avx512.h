@@ -1,5 +1,5 @@
 /* The vector API of the SIMD bodies for AVX-512 (16 lanes): W, SUFFIX, TARGET, V / VI / M and their operations.
- * Shared by kernels/voxelq.c and kernels/svoq.c: define, include the SIMD body, then simd_undef.h. */
+ * Used by kernels/svoq.c (kernels/voxelq.c uses simd_avx512x2.h): define, include the SIMD body, then simd_undef.h. */
 /* AVX-512: masks are k registers */
 #define W 16
 #define SUFFIX(f) f##_avx512
@@ -63,27 +63,9 @@ typedef __mmask16 M16;
 #define IOTA _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
 #define COMPRESS_F(p, m, v) ({ _mm512_mask_compressstoreu_ps(p, m, v); __builtin_popcount(m); })
 #define COMPRESS_I(p, m, v) ({ _mm512_mask_compressstoreu_epi32(p, m, v); __builtin_popcount(m); })
-/* x, y, z of m <= 16 consecutive float triples: three loads and six two-source permutes */
-#define LOAD_XYZ(p, m, live, out) do { \
-        __m512 a0_, a1_, a2_; \
-        if ((m) == 16) { a0_ = _mm512_loadu_ps(p); a1_ = _mm512_loadu_ps((p) + 16); a2_ = _mm512_loadu_ps((p) + 32); } \
-        else { \
-            __mmask64 all_ = (m) * 3 >= 64 ? ~(__mmask64)0 : (((__mmask64)1 << ((m) * 3)) - 1); \
-            a0_ = _mm512_maskz_loadu_ps((__mmask16)all_, p); \
-            a1_ = _mm512_maskz_loadu_ps((__mmask16)(all_ >> 16), (p) + 16); \
-            a2_ = _mm512_maskz_loadu_ps((__mmask16)(all_ >> 32), (p) + 32); \
-        } \
-        for (int k_ = 0; k_ < 3; k_++) { \
-            VI i1_ = _mm512_add_epi32(_mm512_mullo_epi32(IOTA, _mm512_set1_epi32(3)), _mm512_set1_epi32(k_)); \
-            __m512 t_ = _mm512_permutex2var_ps(a0_, i1_, a1_); /* lanes with index < 32 */ \
-            __mmask16 hi_ = _mm512_cmpge_epi32_mask(i1_, _mm512_set1_epi32(32)); \
-            VI i2_ = _mm512_mask_blend_epi32(hi_, IOTA, _mm512_sub_epi32(i1_, _mm512_set1_epi32(16))); \
-            (out)[k_] = _mm512_permutex2var_ps(t_, i2_, a2_); \
-        } \
-        (void)(live); \
-    } while (0)
 #define IOR _mm512_or_si512
 #define IXOR _mm512_xor_si512
 #define FLOOR(x) _mm512_roundscale_ps(x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC)
 #define MALL ((__mmask16)0xFFFF)
 #define MFROMBITS(b) ((__mmask16)(b))
+

@@ -1,5 +1,9 @@
 /* Undefines the vector API of simd_avx2.h / simd_avx512.h, so the next instruction set can define it. */
 #undef W
+#undef V
+#undef VI
+#undef M
+#undef X2_INLINE
 #undef SUFFIX
 #undef TARGET
 #undef SET
@@ -55,8 +59,12 @@
 #undef COMPRESS_F
 #undef COMPRESS_I
 #undef LOAD_XYZ
+#undef LOAD_XYZ64
+#undef XYZ_OF3
 #undef IOR
 #undef IXOR
 #undef FLOOR
 #undef MALL
 #undef MFROMBITS
+#undef GATHER_ROWS12
+#undef IREDUCE_MAX

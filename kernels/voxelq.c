@@ -1,16 +1,15 @@
 /* Paper 000's voxel shadow queries (Alg. 2 / 4) and many-light shading (Alg. 3) on the CPU, compiled:
- * the rule of kernels/voxel.py and kernels/direct_shading.py, answering 8 queries at a time with AVX2
- * (picked at run time) or one at a time in plain C. Loaded with ctypes by usdml.visibility.voxel_native,
- * which says what every table below holds; called from a thread pool (ctypes releases the GIL).
+ * the rule of kernels/voxel.py and kernels/direct_shading.py, answering 32 queries at a time with
+ * AVX-512 (two registers of 16, kernels/simd_avx512x2.h), 8 with AVX2 (picked at run time) or one at a
+ * time in plain C. Loaded with ctypes by usdml.visibility.voxel_native, which says what every table
+ * below holds; called from a thread pool (ctypes releases the GIL).
  *
  * Differences from the Warp kernels, none changing the rule:
  *   - one folded affine map per (array, direction bin), grid = F p + f, instead of world -> array then
  *     array -> bin (for the static array the world -> array map is folded in too);
  *   - a row's table entries packed in two words (start of its words, first and end word);
  *   - instances found by a BVH over their world boxes built here (the Warp kernel uses wp.Bvh), the
- *     segment, not the whole ray, tested against the boxes;
- *   - when all 8 lanes share a direction bin (tiles of neighbouring points to one light mostly do) its
- *     map is loaded once instead of gathered per lane.
+ *     segment, not the whole ray, tested against the boxes.
  * The answers agree with the Warp kernel's but for floating-point rounding at voxel borders
  * (tests/test_voxel_native.py states the agreement).
  */
@@ -67,12 +66,7 @@ typedef struct {
 
 #define DEG 57.29577951308232f
 #define BATCH 256
-#ifndef GROUPS
-#define GROUPS 4    /* SIMD groups whose memory reads overlap (voxelq_simd.h's batch) */
-#endif
-#ifndef DISTINCT_BINS
-#define DISTINCT_BINS 2     /* direction bins of one group loaded whole before the rest is gathered */
-#endif
+#define PF_ROUNDS 2  /* the inputs are prefetched this many rounds of GROUPS groups ahead */
 
 /* ---------------------------------------------------------------- scalar rule */
 
@@ -307,15 +301,18 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 
 #define MAX_TILE 256     /* most points per shading tile of the SIMD shading */
 
-/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 16 (AVX-512) queries at a time */
+/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 32 (AVX-512, two registers) queries at a time */
 
 
 #ifdef VQ_X86
+#define GROUPS 4     /* SIMD groups whose memory reads overlap (voxelq_simd.h's batch) */
 #include "simd_avx2.h"
 #include "voxelq_simd.h"
 #include "simd_undef.h"
 
-#include "simd_avx512.h"
+#undef GROUPS
+#define GROUPS 2     /* of 32 lanes: the same 64 queries in flight */
+#include "simd_avx512x2.h"
 #include "voxelq_simd.h"
 #endif
 
@@ -323,7 +320,7 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 static BatchFn pick(int kernel) {
 #ifdef VQ_X86
     switch (simd_lanes(kernel)) {
-    case 16: return batch_avx512;
+    case 16: return batch_avx512x2;
     case 8: return batch_avx2;
     }
 #endif
@@ -332,16 +329,22 @@ static BatchFn pick(int kernel) {
 
 /* ---------------------------------------------------------------- entry points */
 
-/* queries answered at once by ``kernel`` (as pick) on this CPU: 16 (AVX-512), 8 (AVX2) or 1 */
-int vq_simd_width(int32_t kernel) { return simd_lanes(kernel); }
+/* queries answered at once by ``kernel`` (as pick) on this CPU: 32 (AVX-512, two registers), 8 (AVX2) or 1 */
+int vq_simd_width(int32_t kernel) {
+    int lanes = simd_lanes(kernel);
+    return lanes == 16 ? 32 : lanes;
+}
 
 /* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
- * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free.
+ * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free; or,
+ * when blocked is not NULL, blocked[i] = 1 for a hit, 0 free (out unused: occluded() wants no more, and
+ * on the city's bench rays a float per ray and NumPy's comparison pass took 5 % of the time).
  * f64_mask bit a: input a (points, targets, normals) is float64; distant_u8: the flags are bytes (bool).
  * kernel: as pick(). */
+#define BYTES_CHUNK 8192     /* queries answered into a float buffer on the stack per call, for blocked */
 void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const void *pts, const void *tgt,
               const void *nrm, const void *distant, int32_t want_t, int32_t kernel, float *out, int32_t f64_mask,
-              int32_t distant_u8) {
+              int32_t distant_u8, uint8_t *blocked) {
     BatchFn fn = pick(kernel);
     SoA b = {{NULL}, NULL, 3, {NULL}, NULL};
     const void *src[3] = {pts, tgt, nrm};
@@ -351,7 +354,23 @@ void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, c
     }
     if (distant_u8) b.distant8 = (const uint8_t *)distant + first;
     else b.distant = (const int32_t *)distant + first;
-    fn(s, r, (int)count, &b, want_t, out + first);
+    if (!blocked) {
+        fn(s, r, (int)count, &b, want_t, out + first);
+        return;
+    }
+    float buf[BYTES_CHUNK];
+    for (int64_t i = 0; i < count; i += BYTES_CHUNK) {
+        int m = count - i < BYTES_CHUNK ? (int)(count - i) : BYTES_CHUNK;
+        SoA c = b;
+        for (int a = 0; a < 3; a++) {
+            if (c.d[a]) c.d[a] += 3 * i;
+            else c.c[3 * a] += 3 * i;
+        }
+        if (c.distant8) c.distant8 += i;
+        else c.distant += i;
+        fn(s, r, m, &c, 0, buf);
+        for (int q = 0; q < m; q++) blocked[first + i + q] = buf[q] >= 0.0f;
+    }
 }
 
 /* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
@@ -361,8 +380,8 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
               int32_t *blocked, int32_t *facing) {
     BatchFn fn = pick(kernel);
 #ifdef VQ_X86
-    if (tile <= MAX_TILE && (fn == batch_avx512 || fn == batch_avx2)) {
-        (fn == batch_avx512 ? shade_avx512 : shade_avx2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
+    if (tile <= MAX_TILE && (fn == batch_avx512x2 || fn == batch_avx2)) {
+        (fn == batch_avx512x2 ? shade_avx512x2 : shade_avx2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
                                                          radiance, blocked, facing);
         return;
     }

@@ -1,5 +1,5 @@
 /* The SIMD body of kernels/voxelq.c, written once against a small vector API and included once per
- * instruction set (AVX2: 8 lanes, AVX-512: 16). The including file defines:
+ * instruction set (AVX2: 8 lanes, AVX-512: 32 as two registers of 16). The including file defines:
  *   W (lanes), SUFFIX(name), TARGET (the function attribute), V / VI / M (float, int32 and mask
  *   vectors) and the operations used below (vq_* functions and macros, see voxelq.c).
  * The rule is array_hit / shadow_scalar's in voxelq.c, lane by lane. */
@@ -40,8 +40,8 @@ TARGET static inline VI SUFFIX(vbin)(const VQScene *s, V dx, V dy, V dz) {
 /* one group of W queries against the static array between its two stages (see batch) */
 typedef struct {
     V qa[3], dq[3], t0, t1, inv_dw;
-    VI lo, hi, lo_p, hi_p, npieces, dir_base, idx, st, en;
-    M active, forward, ok;
+    VI lo, hi, lo_p, hi_p, npieces, dir_base, idx, st, en, idx1, st1, en1;
+    M active, forward, ok, ok1;
     int maxp, seg_shift, n;
 } SUFFIX(Group);
 
@@ -71,8 +71,7 @@ TARGET static inline VI SUFFIX(piece)(const VQScene *s, const SUFFIX(Group) *g, 
     return IADD(IADD(g->dir_base, rst), w);
 }
 
-/* stage 1: everything up to the first piece's word, which is prefetched (a prefetch retires at once;
- * a gather here would hold up the instructions behind it until its cache lines arrive) */
+/* stage 1: everything up to the first two pieces' words, which are prefetched */
 TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3], const V e[3],
                                    V skip0, V skip1, int seg_shift) {
     int a = s->world_array[world], n = s->arr_n[a];
@@ -108,27 +107,11 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
         if (!MBITS(active)) return;
     }
     VI d = SUFFIX(vbin)(s, da[0], da[1], da[2]);
-    /* the bins' folded maps: each of up to DISTINCT_BINS bins the active lanes hold is loaded once and
-     * blended into its lanes (neighbouring points' rays to one light mostly share one or two);
-     * more are gathered lane by lane */
+    /* the bins' folded maps, read per lane (neighbouring points' rays to one light meet 7 bins per 16
+     * on the city's bench rays, so loading shared bins whole and blending them lost) */
     V F[12];
-    const float *tab = s->world_fold[world];
     d = SELI(active, d, ISET(0));
-    int lanes[W];
-    ISTORE(lanes, d);
-    M left = active;
-    for (int k = 0; k < 12; k++) F[k] = SET(0.0f);
-    for (int round = 0; MBITS(left) && round < DISTINCT_BINS; round++) {
-        int ref = lanes[__builtin_ctz(MBITS(left))];
-        M mine = MAND(left, IEQ(d, ISET(ref)));
-        const float *row = tab + (size_t)ref * 12;
-        for (int k = 0; k < 12; k++) F[k] = SEL(mine, SET(row[k]), F[k]);
-        left = MANDN(mine, left);
-    }
-    if (MBITS(left)) {
-        VI idx = IMUL(d, ISET(12));
-        for (int k = 0; k < 12; k++) F[k] = SEL(left, GATHER_F(tab + k, idx), F[k]);
-    }
+    GATHER_ROWS12(s->world_fold[world], d, active, F);
     V qa[3], qb[3], dq[3];
     for (int i = 0; i < 3; i++) {
         qa[i] = FMA(F[4 * i], o[0], FMA(F[4 * i + 1], o[1], FMA(F[4 * i + 2], o[2], F[4 * i + 3])));
@@ -163,15 +146,20 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
     g->t0 = t0;
     g->t1 = t1;
     g->active = active;
-    int np[W];
-    ISTORE(np, g->npieces);
-    unsigned am = MBITS(active);
-    for (int l = 0; l < W; l++)
-        if ((am >> l & 1) && np[l] > g->maxp) g->maxp = np[l];
+    g->maxp = IREDUCE_MAX(SELI(active, g->npieces, ISET(0)));
+    /* the first two pieces' rows, and their words prefetched (a prefetch retires at once; a gather here
+     * would hold up the instructions behind it until its cache lines arrive). Every lane's words, without
+     * a branch per lane: a lane that reads nothing still names a word of the array */
     g->idx = SUFFIX(piece)(s, g, 0, &g->st, &g->en, &g->ok);
     int idx[W];
     ISTORE(idx, g->idx);
-    for (unsigned ok = MBITS(g->ok); ok; ok &= ok - 1) __builtin_prefetch(s->words + idx[__builtin_ctz(ok)]);
+    for (int l = 0; l < W; l++) __builtin_prefetch(s->words + idx[l]);
+    g->ok1 = MNONE;
+    if (g->maxp > 1) {
+        g->idx1 = SUFFIX(piece)(s, g, 1, &g->st1, &g->en1, &g->ok1);
+        ISTORE(idx, g->idx1);
+        for (int l = 0; l < W; l++) __builtin_prefetch(s->words + idx[l]);
+    }
 }
 
 /* stage 2: the pieces in order from the ray's start, the first hit ending a lane. out: -1 free,
@@ -196,7 +184,16 @@ TARGET static void SUFFIX(finish)(const VQScene *s, SUFFIX(Group) *g, int want_t
         active = MANDN(hm, active);
         g->active = active;
         if (++p >= g->maxp || !MBITS(MAND(active, IGT(g->npieces, ISET(p))))) break;
-        VI idx = SUFFIX(piece)(s, g, p, &st, &en, &ok);
+        VI idx;
+        if (p == 1) {
+            /* the second piece's row was looked up and its word prefetched in prepare */
+            idx = g->idx1;
+            st = g->st1;
+            en = g->en1;
+            ok = MAND(g->ok1, active);
+        } else {
+            idx = SUFFIX(piece)(s, g, p, &st, &en, &ok);
+        }
         word = MGATHER_I(s->words, idx, ok);
     }
     unsigned hb = MBITS(hit_any);
@@ -237,11 +234,14 @@ TARGET static inline void SUFFIX(setup)(const VQRule *r, const V c[9], M dist, V
     /* offset world units along the normal turned toward the light */
     V step = SEL(hasn, DIV(SEL(LT(nd, zf), SET(-r->offset), SET(r->offset)), SEL(hasn, nn, SET(1.0f))), zf);
     for (int k = 0; k < 3; k++) o[k] = FMA(nm[k], step, p[k]);
-    /* a distant ray ends its distance from the scene's centre plus the scene's diameter away */
-    V oc0 = SUB(o[0], SET(r->far_center[0])), oc1 = SUB(o[1], SET(r->far_center[1])), oc2 = SUB(o[2], SET(r->far_center[2]));
-    V lt = SQRT(FMA(tg[0], tg[0], FMA(tg[1], tg[1], MUL(tg[2], tg[2]))));
-    V reach = DIV(ADD(SQRT(FMA(oc0, oc0, FMA(oc1, oc1, MUL(oc2, oc2)))), SET(r->far)), SEL(GT(lt, zf), lt, SET(1.0f)));
-    for (int k = 0; k < 3; k++) e[k] = SEL(dist, FMA(tg[k], reach, o[k]), tg[k]);
+    for (int k = 0; k < 3; k++) e[k] = tg[k];
+    if (MBITS(dist)) {
+        /* a distant ray ends its distance from the scene's centre plus the scene's diameter away */
+        V oc0 = SUB(o[0], SET(r->far_center[0])), oc1 = SUB(o[1], SET(r->far_center[1])), oc2 = SUB(o[2], SET(r->far_center[2]));
+        V lt = SQRT(FMA(tg[0], tg[0], FMA(tg[1], tg[1], MUL(tg[2], tg[2]))));
+        V reach = DIV(ADD(SQRT(FMA(oc0, oc0, FMA(oc1, oc1, MUL(oc2, oc2)))), SET(r->far)), SEL(GT(lt, zf), lt, SET(1.0f)));
+        for (int k = 0; k < 3; k++) e[k] = SEL(dist, FMA(tg[k], reach, o[k]), tg[k]);
+    }
     *skip1 = SEL(dist, zf, SET(r->end_skip));
     M use = MAND(hasn, GT(ln, zf));
     if (!(r->slab > 0.0f)) use = MNONE;
@@ -262,6 +262,17 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
         int ng = (n - i0 + W - 1) / W;
         ng = ng < GROUPS ? ng : GROUPS;
         float res[GROUPS][W];
+        int ahead = i0 + 2 * GROUPS * W;
+        if (b->stride == 3 && ahead < n) {
+            /* the inputs two rounds ahead, streamed from memory while this round computes (on the
+             * city's bench rays a third of the kernel's time went waiting for them) */
+            int end = ahead + GROUPS * W < n ? ahead + GROUPS * W : n;
+            for (int a = 0; a < 3; a++) {
+                const char *p0 = b->d[a] ? (const char *)(b->d[a] + 3 * (size_t)ahead) : (const char *)(b->c[3 * a] + 3 * (size_t)ahead);
+                const char *p1 = b->d[a] ? (const char *)(b->d[a] + 3 * (size_t)end) : (const char *)(b->c[3 * a] + 3 * (size_t)end);
+                for (const char *q = p0; q < p1; q += 64) __builtin_prefetch(q);
+            }
+        }
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
             live[h] = IGT(ISET(m), IOTA);
@@ -269,11 +280,8 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
             if (b->stride == 3) {
                 for (int a = 0; a < 3; a++) {
                     if (b->d[a]) {
-                        /* float64 input: this group's triples converted on the way in */
-                        float tmp[3 * W];
-                        const double *src = b->d[a] + 3 * j0;
-                        for (int q = 0; q < 3 * W; q++) tmp[q] = q < 3 * m ? (float)src[q] : 0.0f;
-                        LOAD_XYZ(tmp, W, live[h], c + 3 * a);
+                        /* float64 input: rounded to float on the way in */
+                        LOAD_XYZ64(b->d[a] + 3 * j0, m, live[h], c + 3 * a);
                     } else {
                         LOAD_XYZ(b->c[3 * a] + 3 * j0, m, live[h], c + 3 * a);
                     }

@@ -94,6 +94,30 @@ def test_native_kernel_answers_as_the_warp_kernel(scene, isa):
         assert (d > 1e-3).mean() <= 1e-3 and d.max() <= 1.5, f"{(d > 1e-3).sum()} of {d.size}; max {d.max()}"
 
 
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_blocked_flags_are_the_distances_answers_across_chunks(isa):
+    """``query`` into a bool array (what ``occluded`` asks: the kernel writes bytes, answering 8,192 rays
+    at a time) gives the float path's answers, from any first ray and across chunk edges."""
+    rng = np.random.default_rng(3)
+    _, native = backends(isa)
+    try:
+        native.update(scene_frames("occluder")[0], diff(None, scene_frames("occluder")[0]))
+        o, t, kw = volume_queries(rng, 30000)
+        o, t = np.ascontiguousarray(o, np.float32), np.ascontiguousarray(t)        # float32 and float64 inputs
+        nrm, di = np.ascontiguousarray(kw["normals"], np.float32), np.ascontiguousarray(kw["distant"])
+        rule = native._native_rule()
+        dist = np.full(len(o), 7.0, np.float32)
+        flags = np.zeros(len(o), bool)
+        for first, count in ((0, 5), (5, 8192 * 2 + 3), (16392, len(o) - 16392)):
+            native._native.query(rule, first, count, o, t, nrm, di, False, dist)
+            native._native.query(rule, first, count, o, t, nrm, di, False, flags)
+        assert np.array_equal(flags, dist >= 0) and 0.05 < flags.mean() < 0.95
+        with pytest.raises(TypeError, match="float32 or bool"):
+            native._native.query(rule, 0, 4, o, t, nrm, di, False, np.zeros(4, np.float64))
+    finally:
+        native.close()
+
 @pytest.mark.parametrize("isa", ISAS)
 @pytest.mark.parametrize("scene", ["occluder", "instances"])
 def test_native_shading_equals_the_warp_shading_kernel(scene, isa):

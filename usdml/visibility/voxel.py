@@ -641,17 +641,18 @@ class VoxelBackend(VisibilityBackend):
         self._split(n, launch)
         return out.numpy()
 
-    def _native_hits(self, origins, targets, normals, distant, want_distance: bool) -> np.ndarray:
+    def _native_hits(self, origins, targets, normals, distant, want_distance: bool, blocked: bool = False) -> np.ndarray:
         """:meth:`hit_distances` by the compiled kernel, which reads float64 inputs and bool flags as they
-        are (converting 7 M float64 rays to float32 first cost about a third of the city's bench)."""
+        are (converting 7 M float64 rays to float32 first cost about a third of the city's bench); with
+        ``blocked``, :meth:`occluded`'s flags, written by the kernel as they are."""
         origins = as_vectors(origins, "origins", dtype=None)
         n = origins.shape[0]
         targets = as_vectors(targets, "targets", n, dtype=None)
         normals = None if normals is None else as_vectors(normals, "normals", n, dtype=None)
         distant = None if distant is None else as_flags(distant, "distant", n)
-        res = np.empty(n, np.float32)
+        res = np.empty(n, bool if blocked else np.float32)
         if n == 0 or self._gpu["n_arrays"] == 0:
-            res[:] = -1.0
+            res[:] = False if blocked else -1.0
             return res
         rule = self._native_rule()
         # read in place (float32 or float64, bool or int32 flags): no conversion pass over the inputs
@@ -663,6 +664,10 @@ class VoxelBackend(VisibilityBackend):
         return res
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        if not self._gpu:
+            raise RuntimeError("VoxelBackend.update() must be called before queries")
+        if self._native is not None:
+            return self._native_hits(origins, targets, normals, distant, False, blocked=True)
         return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
 
     def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):

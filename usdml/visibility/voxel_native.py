@@ -3,7 +3,7 @@
 Why a compiled kernel
     On a CPU the voxel query is compute-bound (docs/voxel.md, "CPU speed"): Warp runs a CPU launch on
     one thread, one query at a time, and its code for this rule ran 1.4-1.8x slower than plain C.
-    ``voxelq.c`` answers the same rule 16 queries at a time with AVX-512, 8 with AVX2 (chosen at run
+    ``voxelq.c`` answers the same rule 32 queries at a time with AVX-512 (two registers of 16), 8 with AVX2 (chosen at run
     time, so one build serves every x86-64 CPU) or one at a time in C, from the thread pool of
     :mod:`usdml.parallel` (ctypes releases the GIL during a call).
 
@@ -108,7 +108,7 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
     lib.vq_simd_width.argtypes = [ctypes.c_int32]
     lib.vq_simd_width.restype = ctypes.c_int
     lib.vq_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, P, P, P,
-                             P, ctypes.c_int32, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32]
+                             P, ctypes.c_int32, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32, P]
     lib.vq_query.restype = None
     lib.vq_shade.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), P, P, P,
                              ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, P, P, P]
@@ -129,7 +129,7 @@ def library() -> ctypes.CDLL | None:
 #: the compiled kernel's instruction sets, widest first, by the number ``voxelq.c``'s ``pick`` takes:
 #: ``auto`` the widest this CPU has, ``avx2`` at most AVX2, ``scalar`` plain C
 ISAS = {"auto": 0, "avx2": 2, "scalar": 1}
-WIDTH_NAMES = {16: "AVX-512", 8: "AVX2", 1: "scalar"}
+WIDTH_NAMES = {32: "AVX-512", 16: "AVX-512", 8: "AVX2", 1: "scalar"}
 
 
 def simd_width(isa: str = "auto") -> int:
@@ -292,7 +292,8 @@ class NativeScene:
     def query(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
               normals: np.ndarray, distant: np.ndarray, want_t: bool, out: np.ndarray) -> None:
         """``out[first:first + count]``: queries ``first ..`` of the C-contiguous (n, 3) float32 or float64
-        inputs and (n,) int32 or bool flags (read as they are: no conversion pass)."""
+        inputs and (n,) int32 or bool flags (read as they are: no conversion pass). ``out`` float32: the
+        distances (-1 free); bool: whether each ray is blocked, written as it is (``want_t`` ignored)."""
         arrays = (origins, targets, normals)
         for a in arrays:
             if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
@@ -300,9 +301,13 @@ class NativeScene:
         if distant.dtype not in (np.int32, np.bool_) or not distant.flags.c_contiguous:
             raise TypeError("distant flags must be C-contiguous int32 or bool")
         f64 = sum(1 << i for i, a in enumerate(arrays) if a.dtype == np.float64)
+        flags = out.dtype == np.bool_
+        if not flags and out.dtype != np.float32:
+            raise TypeError("query output must be float32 or bool")
         self.lib.vq_query(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count), origins.ctypes.data,
                           targets.ctypes.data, normals.ctypes.data, distant.ctypes.data, int(want_t), self.kernel,
-                          out.ctypes.data, f64, int(distant.dtype == np.bool_))
+                          None if flags else out.ctypes.data, f64, int(distant.dtype == np.bool_),
+                          out.ctypes.data if flags else None)
 
     def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
               first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
