@@ -452,3 +452,37 @@ def test_bench_orders_queries_as_the_shading_kernel_asks_them():
     # the tile of 16 points along the Z-order curve is spatially tight: its box is far smaller than the scene's
     tile0 = points[morton_order(points.astype(np.float32))[:16]]
     assert np.ptp(tile0, axis=0).prod() < 0.25 * np.ptp(points, axis=0).prod()
+
+
+def test_core_bounds_trims_a_ground_to_the_horizon_and_counts_what_reaches_out():
+    from usdml.visibility.voxel_grid import core_bounds
+
+    rng = np.random.default_rng(2)
+    # 2,000 small triangles in the unit cube, and a ground of two huge triangles far past them
+    base = rng.uniform(0, 1, (2000, 1, 3))
+    small = (base + rng.uniform(-0.01, 0.01, (2000, 3, 3))).reshape(-1, 3)
+    ground = np.array([[-500, -0.1, -500], [500, -0.1, -500], [500, -0.1, 500], [-500, -0.1, 500]], float)
+    pts = np.concatenate([small, ground])
+    tris = np.concatenate([np.arange(6000).reshape(-1, 3), 6000 + np.array([[0, 1, 2], [0, 2, 3]])])
+    lo, hi, outside = core_bounds(pts, tris)
+    assert outside == 2 and np.all(lo > -0.05) and np.all(hi < 1.05)
+    # without the ground: the box of every triangle, nothing outside
+    lo, hi, outside = core_bounds(small, np.arange(6000).reshape(-1, 3))
+    assert outside == 0 and np.allclose(lo, small.min(0)) and np.allclose(hi, small.max(0))
+
+
+def test_clip_to_box_keeps_inside_drops_outside_and_cuts_crossing_triangles():
+    from usdml.visibility.voxel_grid import clip_to_box
+
+    pts = np.array([[0.2, 0.2, 0.5], [0.8, 0.2, 0.5], [0.5, 0.8, 0.5],       # inside
+                    [3, 3, 3], [4, 3, 3], [3, 4, 3],                         # outside
+                    [0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [0.5, 0.9, 0.5]], float)   # crossing x = 1
+    tris = np.arange(9).reshape(3, 3)
+    lo, hi = np.zeros(3), np.ones(3)
+    out_pts, out_tris, cut = clip_to_box(pts, tris, lo, hi)
+    assert cut == 2 and [0, 1, 2] in out_tris.tolist() and len(out_tris) >= 2
+    corners = out_pts[out_tris[1:]].reshape(-1, 3)
+    assert np.all(corners >= lo - 1e-12) and np.all(corners <= hi + 1e-12)
+    # every point inside: the same triangles back, nothing cut
+    p2, t2, cut2 = clip_to_box(pts[:3], tris[:1], lo, hi)
+    assert cut2 == 0 and np.array_equal(t2, tris[:1]) and np.array_equal(p2, pts[:3])

@@ -245,15 +245,19 @@ def core_bounds(points: np.ndarray, triangles: np.ndarray, trim: float = 0.001
     a, b, c = (points[triangles[:, k]] for k in range(3))
     tlo, thi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
     lo, hi = tlo.min(0), thi.max(0)
-    if triangles.shape[0] * trim >= 1.0:
-        cen = (a + b + c) / 3.0
-        qlo, qhi = np.quantile(cen, trim, axis=0), np.quantile(cen, 1.0 - trim, axis=0)
-        # outliers: triangles reaching outside the quantile box that are large next to it
-        big = np.linalg.norm(thi - tlo, axis=1) > 0.5 * float(np.linalg.norm(qhi - qlo))
-        reach = np.any((tlo < qlo) | (thi > qhi), axis=1)
-        keep = ~(big & reach)
-        if keep.any():
-            lo, hi = tlo[keep].min(0), thi[keep].max(0)
+    if triangles.shape[0] * trim < 1.0:
+        return lo, hi, 0
+    cen = (a + b + c) / 3.0
+    qlo, qhi = np.quantile(cen, trim, axis=0), np.quantile(cen, 1.0 - trim, axis=0)
+    # outliers: triangles reaching outside the quantile box that are large next to it
+    big = np.linalg.norm(thi - tlo, axis=1) > 0.5 * float(np.linalg.norm(qhi - qlo))
+    reach = np.any((tlo < qlo) | (thi > qhi), axis=1)
+    keep = ~(big & reach)
+    if keep.all() or not keep.any():
+        # the box of every triangle: none reaches outside it (a deforming mesh rebuilt per frame,
+        # 254 k triangles: 0.073 -> 0.05 s without the count)
+        return lo, hi, 0
+    lo, hi = tlo[keep].min(0), thi[keep].max(0)
     outside = int((~np.all((tlo >= lo) & (thi <= hi), axis=1)).sum())
     return lo, hi, outside
 
@@ -266,6 +270,10 @@ def clip_to_box(points: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: n
     points = np.asarray(points, np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    if len(points) and np.all(points.min(0) >= lo) and np.all(points.max(0) <= hi):
+        # every point inside, so every triangle (a per-frame array in its own bounds: 254 k
+        # triangles, 0.02 s of the per-frame rebuild without the per-triangle tests)
+        return points, triangles, 0
     tri = points[triangles]
     # element-wise min / max of the corners, as core_bounds (a (T, 3, 3) reduction along its middle
     # axis is slower; the 254 k-triangle creature, all inside: 0.126 -> 0.088 s, the same output)
