@@ -6,12 +6,12 @@ answers those queries with its Warp kernels instead (``usdml info`` says which p
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension(
-    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h", "kernels/light_term.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_avx512x2.h", "kernels/simd_undef.h", "kernels/simd_pick.h"],
+    "usdml.kernels._voxelq", sources=["kernels/voxelq.c"], depends=["kernels/voxelq_simd.h", "kernels/light_term.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_x2.h", "kernels/simd_undef.h", "kernels/simd_undef_ops.h", "kernels/simd_pick.h"],
     # portable code: the AVX2 functions carry their own target attribute and are picked at run time
     extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing"],
     optional=True), Extension(
     "usdml.kernels._svoq", sources=["kernels/svoq.c"],
-    depends=["kernels/svoq_simd.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h", "kernels/simd_pick.h"],
+    depends=["kernels/svoq_simd.h", "kernels/simd_avx2.h", "kernels/simd_avx512.h", "kernels/simd_undef.h", "kernels/simd_undef_ops.h", "kernels/simd_pick.h"],
     # no a * b + c contracted into one rounding: the SIMD walk must round as the scalar one does
     extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"], optional=True),
     Extension("usdml.kernels._insmr", sources=["kernels/insmr.c"], depends=["kernels/light_term.h"],

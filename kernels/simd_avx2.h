@@ -1,5 +1,5 @@
 /* The vector API of the SIMD bodies for AVX2 (8 lanes): W, SUFFIX, TARGET, V / VI / M and their operations.
- * Shared by kernels/voxelq.c and kernels/svoq.c: define, include the SIMD body, then simd_undef.h. */
+ * Shared by kernels/voxelq.c (doubled by simd_x2.h) and kernels/svoq.c: define, include the SIMD body, then simd_undef.h. */
 /* AVX2: masks are float vectors of all-ones / zero lanes */
 #define W 8
 #define SUFFIX(f) f##_avx2
@@ -98,7 +98,8 @@ typedef __m256 M;
 /* F[k] (k < 12) of every lane from the 12-float rows tab + 12 d (rows of the inactive lanes too: give
  * them a valid d): per lane three 16-byte loads, each block of four floats transposed 4 x 4 within the
  * 128-bit lanes; register lane 4 i + q is built from the rows of lanes q + 4 i, which that transpose
- * puts back in order */
+ * puts back in order (this beat twelve 64-bit gathers a little: 28.2 -> 25.7 ns a query on the city's bench
+ * rays, one thread) */
 #define GATHER_ROWS12(tab, d, m, F) do { \
         int li_[8]; \
         _mm256_storeu_si256((__m256i *)li_, d); \

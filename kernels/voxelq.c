@@ -1,6 +1,6 @@
 /* Paper 000's voxel shadow queries (Alg. 2 / 4) and many-light shading (Alg. 3) on the CPU, compiled:
  * the rule of kernels/voxel.py and kernels/direct_shading.py, answering 32 queries at a time with
- * AVX-512 (two registers of 16, kernels/simd_avx512x2.h), 8 with AVX2 (picked at run time) or one at a
+ * AVX-512 or 16 with AVX2 (two registers per vector, kernels/simd_x2.h; picked at run time) or one at a
  * time in plain C. Loaded with ctypes by usdml.visibility.voxel_native, which says what every table
  * below holds; called from a thread pool (ctypes releases the GIL).
  *
@@ -301,19 +301,27 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 
 #define MAX_TILE 256     /* most points per shading tile of the SIMD shading */
 
-/* ---------------------------------------------------------------- SIMD: 8 (AVX2) or 32 (AVX-512, two registers) queries at a time */
+/* ---------------------------------------------------------------- SIMD: 16 (AVX2) or 32 (AVX-512) queries at a time */
 
 
 #ifdef VQ_X86
-#define GROUPS 4     /* SIMD groups whose memory reads overlap (voxelq_simd.h's batch) */
+/* each instruction set with two registers per vector (simd_x2.h): AVX-512 32 lanes, AVX2 16; two groups
+ * in flight (on the city's bench rays, one thread: AVX-512 15.2 -> 13.6 ns a query against one register
+ * of 16 lanes and four groups, AVX2 23.2-23.5 -> 19.5-21.8 ns against 8 lanes and four groups) */
+#define GROUPS 2     /* SIMD groups whose memory reads overlap (voxelq_simd.h's batch) */
+#define X2_TAG avx2x2
 #include "simd_avx2.h"
+#include "simd_x2.h"
 #include "voxelq_simd.h"
 #include "simd_undef.h"
+#undef X2_TAG
 
-#undef GROUPS
-#define GROUPS 2     /* of 32 lanes: the same 64 queries in flight */
-#include "simd_avx512x2.h"
+#define X2_TAG avx512x2
+#include "simd_avx512.h"
+#include "simd_x2.h"
 #include "voxelq_simd.h"
+#include "simd_undef.h"
+#undef X2_TAG
 #endif
 
 /* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
@@ -321,7 +329,7 @@ static BatchFn pick(int kernel) {
 #ifdef VQ_X86
     switch (simd_lanes(kernel)) {
     case 16: return batch_avx512x2;
-    case 8: return batch_avx2;
+    case 8: return batch_avx2x2;
     }
 #endif
     return batch_scalar;
@@ -329,11 +337,15 @@ static BatchFn pick(int kernel) {
 
 /* ---------------------------------------------------------------- entry points */
 
-/* queries answered at once by ``kernel`` (as pick) on this CPU: 32 (AVX-512, two registers), 8 (AVX2) or 1 */
+/* queries answered at once by ``kernel`` (as pick) on this CPU: 32 (AVX-512), 16 (AVX2), both as two
+ * registers per vector, or 1 (plain C) */
 int vq_simd_width(int32_t kernel) {
     int lanes = simd_lanes(kernel);
-    return lanes == 16 ? 32 : lanes;
+    return lanes > 1 ? 2 * lanes : 1;
 }
+
+/* the lanes of one register of the instruction set ``kernel`` runs: 16 (AVX-512), 8 (AVX2) or 1 */
+int vq_simd_isa(int32_t kernel) { return simd_lanes(kernel); }
 
 /* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
  * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free; or,
@@ -380,8 +392,8 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
               int32_t *blocked, int32_t *facing) {
     BatchFn fn = pick(kernel);
 #ifdef VQ_X86
-    if (tile <= MAX_TILE && (fn == batch_avx512x2 || fn == batch_avx2)) {
-        (fn == batch_avx512x2 ? shade_avx512x2 : shade_avx2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
+    if (tile <= MAX_TILE && (fn == batch_avx512x2 || fn == batch_avx2x2)) {
+        (fn == batch_avx512x2 ? shade_avx512x2 : shade_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
                                                          radiance, blocked, facing);
         return;
     }

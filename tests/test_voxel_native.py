@@ -34,7 +34,7 @@ pytestmark = pytest.mark.skipif(voxel_native.library() is None, reason="the comp
 SETTINGS = UsdmlSettings(voxel_resolution=32, direction_step=10.0)
 QUIET = {"report": lambda line: None}
 #: the compiled kernel's instruction sets this CPU runs (auto: the widest)
-ISAS = ["auto"] + (["avx2"] if voxel_native.simd_width("avx2") == 8 and voxel_native.simd_width() > 8 else []) \
+ISAS = ["auto"] + (["avx2"] if voxel_native.isa_width("avx2") == 8 and voxel_native.isa_width() > 8 else []) \
     + ["scalar"]
 
 
@@ -159,6 +159,17 @@ def test_describe_names_the_instruction_set():
     line = voxel_native.describe()
     assert line.startswith("compiled kernel") and str(voxel_native.simd_width()) in line or "scalar" in line
 
+
+
+def test_widths_and_names_follow_the_instruction_set():
+    """Two registers per vector: 2 x the register's lanes at a time; names by the instruction set."""
+    for isa in ISAS:
+        lanes, register = voxel_native.simd_width(isa), voxel_native.isa_width(isa)
+        assert lanes == (2 * register if register > 1 else 1)
+        b = make_backend("voxel", SETTINGS, "cpu", cpu_kernel="native", native_isa=isa, **QUIET)
+        want = {16: "native-avx512", 8: "native-avx2", 1: "native-scalar"}[register]
+        assert b.kernel_name == want
+        b.close()
 
 def test_native_alg5_rotation_sets_the_same_bits_as_warp():
     """Alg. 5's point mapping by the compiled kernel (``rotate_point``): the same integer rule, the same words."""

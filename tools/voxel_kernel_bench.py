@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     di = np.ascontiguousarray(di, np.int32)
     kernels = [("warp", {"cpu_kernel": "warp"})]
     if native_lib.library() is not None:
-        isas = ["scalar"] + (["avx2"] if native_lib.simd_width("avx2") == 8 else [])
-        if native_lib.simd_width() > 8:
+        isas = ["scalar"] + (["avx2"] if native_lib.isa_width("avx2") == 8 else [])
+        if native_lib.isa_width() > 8:
             isas.append("auto")
         kernels += [(isa, {"cpu_kernel": "native", "native_isa": isa}) for isa in isas]
     quiet = {"report": lambda line: None}

@@ -21,7 +21,7 @@ import numpy as np
 # the instruction sets (ISAS: the numbers svoq.c's pick takes are voxelq.c's) and the info line
 from usdml.visibility.voxel_native import ISAS, open_extension, path_line
 
-__all__ = ["ISAS", "NativeSvo", "library", "describe", "simd_width"]
+__all__ = ["ISAS", "NativeSvo", "library", "describe", "isa_width", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -63,6 +63,10 @@ def simd_width(isa: str = "auto") -> int:
     (AVX2) or 1 (scalar); 0 without it."""
     lib = library()
     return int(lib.svo_simd_width(ISAS[isa])) if lib is not None else 0
+
+
+#: the walk runs one ray per lane of one register: its width is its instruction set's
+isa_width = simd_width
 
 
 def describe() -> str:

@@ -256,8 +256,8 @@ class VoxelBackend(VisibilityBackend):
         """Which kernels answer queries: ``warp``, ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
         if not self.native:
             return "warp"
-        from usdml.visibility.voxel_native import kernel_label, simd_width
-        return kernel_label(simd_width(self.native_isa))
+        from usdml.visibility.voxel_native import isa_width, kernel_label
+        return kernel_label(isa_width(self.native_isa))
 
     # ------------------------------------------------------------------ building
 

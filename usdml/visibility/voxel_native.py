@@ -3,9 +3,9 @@
 Why a compiled kernel
     On a CPU the voxel query is compute-bound (docs/voxel.md, "CPU speed"): Warp runs a CPU launch on
     one thread, one query at a time, and its code for this rule ran 1.4-1.8x slower than plain C.
-    ``voxelq.c`` answers the same rule 32 queries at a time with AVX-512 (two registers of 16), 8 with AVX2 (chosen at run
-    time, so one build serves every x86-64 CPU) or one at a time in C, from the thread pool of
-    :mod:`usdml.parallel` (ctypes releases the GIL during a call).
+    ``voxelq.c`` answers the same rule 32 queries at a time with AVX-512, 16 with AVX2 (two registers
+    per vector; chosen at run time, so one build serves every x86-64 CPU) or one at a time in C, from
+    the thread pool of :mod:`usdml.parallel` (ctypes releases the GIL during a call).
 
 What a machine gets
     ``pip install`` builds the library as the optional extension ``usdml.kernels._voxelq`` (setup.py).
@@ -35,7 +35,7 @@ import numpy as np
 
 from usdml.errors import UsdmlError
 
-__all__ = ["NativeScene", "library", "describe", "packed_rows", "rotate_point", "simd_width"]
+__all__ = ["NativeScene", "library", "describe", "isa_width", "packed_rows", "rotate_point", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -107,6 +107,8 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
     P = ctypes.c_void_p
     lib.vq_simd_width.argtypes = [ctypes.c_int32]
     lib.vq_simd_width.restype = ctypes.c_int
+    lib.vq_simd_isa.argtypes = [ctypes.c_int32]
+    lib.vq_simd_isa.restype = ctypes.c_int
     lib.vq_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, P, P, P,
                              P, ctypes.c_int32, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32, P]
     lib.vq_query.restype = None
@@ -129,36 +131,47 @@ def library() -> ctypes.CDLL | None:
 #: the compiled kernel's instruction sets, widest first, by the number ``voxelq.c``'s ``pick`` takes:
 #: ``auto`` the widest this CPU has, ``avx2`` at most AVX2, ``scalar`` plain C
 ISAS = {"auto": 0, "avx2": 2, "scalar": 1}
-WIDTH_NAMES = {32: "AVX-512", 16: "AVX-512", 8: "AVX2", 1: "scalar"}
+#: instruction sets by the lanes of one register
+WIDTH_NAMES = {16: "AVX-512", 8: "AVX2", 1: "scalar"}
 
 
 def simd_width(isa: str = "auto") -> int:
-    """Queries the compiled kernel answers at once on this CPU with ``isa`` (:data:`ISAS`): 16
-    (AVX-512), 8 (AVX2) or 1 (scalar); 0 without the kernel."""
+    """Queries the compiled kernel answers at once on this CPU with ``isa`` (:data:`ISAS`): 32
+    (AVX-512) or 16 (AVX2), as two registers per vector, or 1 (scalar); 0 without the kernel."""
     lib = library()
     return int(lib.vq_simd_width(ISAS[isa])) if lib is not None else 0
 
 
+def isa_width(isa: str = "auto") -> int:
+    """The lanes of one register of the instruction set the compiled kernel runs with ``isa``: 16
+    (AVX-512), 8 (AVX2) or 1 (scalar); 0 without the kernel."""
+    lib = library()
+    return int(lib.vq_simd_isa(ISAS[isa])) if lib is not None else 0
+
+
 def kernel_label(width: int) -> str:
-    """A compiled kernel's name in ``usdml bench`` / ``compare`` results by its SIMD width:
-    ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
+    """A compiled kernel's name in ``usdml bench`` / ``compare`` results by the lanes of one register
+    of its instruction set: ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
     return "native-" + WIDTH_NAMES[width].replace("-", "").lower()
 
 
-def path_line(what: str, why: str, width: int, unit: str) -> str:
+def path_line(what: str, why: str, width: int, unit: str, register: int | None = None) -> str:
     """``usdml info``'s line for a compiled CPU path ``what`` (``why``: why it is missing, "" when
-    built) running ``width`` ``unit`` at a time."""
+    built) running ``width`` ``unit`` at a time, on an instruction set of ``register`` lanes a register
+    (default ``width``)."""
     if why:
         return f"Warp kernels (the {what} is {why}; reinstall with a C compiler for the fast path)"
     if width == 1:
         return f"{what}, scalar (no AVX2 on this CPU)"
-    return f"{what}, {WIDTH_NAMES[width]} ({width} {unit} at a time)"
+    return f"{what}, {WIDTH_NAMES[register or width]} ({width} {unit} at a time)"
 
 
 def describe() -> str:
     """One line: which CPU path voxel queries take on this machine (``usdml info``)."""
     lib, why = _load()
-    return path_line("compiled kernel", why, simd_width() if lib is not None else 0, "queries")
+    if lib is None:
+        return path_line("compiled kernel", why, 0, "queries")
+    return path_line("compiled kernel", why, simd_width(), "queries", isa_width())
 
 
 def packed_rows(layout) -> np.ndarray | None:
