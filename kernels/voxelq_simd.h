@@ -268,9 +268,9 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
              * the city's bench rays: 21.5 -> 18.5 ns a query) */
             int end = ahead + GROUPS * W < n ? ahead + GROUPS * W : n;
             for (int a = 0; a < 3; a++) {
-                const char *p0 = b->d[a] ? (const char *)(b->d[a] + 3 * (size_t)ahead) : (const char *)(b->c[3 * a] + 3 * (size_t)ahead);
-                const char *p1 = b->d[a] ? (const char *)(b->d[a] + 3 * (size_t)end) : (const char *)(b->c[3 * a] + 3 * (size_t)end);
-                for (const char *q = p0; q < p1; q += 64) __builtin_prefetch(q);
+                const char *base = b->d[a] ? (const char *)b->d[a] : (const char *)b->c[3 * a];
+                size_t triple = b->d[a] ? 3 * sizeof(double) : 3 * sizeof(float);
+                for (const char *q = base + triple * ahead; q < base + triple * end; q += 64) __builtin_prefetch(q);
             }
         }
         for (int h = 0; h < ng; h++) {

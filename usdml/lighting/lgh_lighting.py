@@ -208,9 +208,13 @@ class LGHGather:
         sweight = np.zeros((n, max(k, 1), 3), np.float32)
         sblend = np.zeros((n, max(k, 1)), np.float32)
         slum = np.zeros((n, max(k, 1)), np.float32)
-        if n == 0 or self.empty:
+
+        def result(light_count=None) -> LGHShading:
             return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k],
-                              sblend[:, :k], cnt, slum[:, :k])
+                              sblend[:, :k], cnt, slum[:, :k], light_count)
+
+        if n == 0 or self.empty:
+            return result()
         pts = np.ascontiguousarray(points, np.float32)
         nrm = np.ascontiguousarray(normals, np.float32)
         tiles = self.tiles if tile is not None else 1
@@ -222,8 +226,7 @@ class LGHGather:
             arrays = tuple(a for a, _ in outputs)
             _in_blocks(lambda lo, hi: self._native(pts, nrm, tile_ids, lo, hi, first, arrays), n, device,
                        blocks_per_worker=4)
-            return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k],
-                              sblend[:, :k], cnt, slum[:, :k], self.light_count)
+            return result(self.light_count)
 
         def run(lo: int, hi: int) -> None:
             # on a CPU the kernel writes into the result's rows themselves (a block's own arrays, copied
@@ -240,8 +243,7 @@ class LGHGather:
                     a[lo:hi] = o.numpy()
 
         _in_blocks(run, n, device, blocks_per_worker=4)
-        return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k], sblend[:, :k],
-                          cnt, slum[:, :k], self.light_count)
+        return result(self.light_count)
 
 
 def lgh_lighting(points: np.ndarray, normals: np.ndarray, lgh, alpha: float = 1.0, samples: int = 4,

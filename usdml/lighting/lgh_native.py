@@ -81,8 +81,7 @@ def describe() -> str:
     if lib is not None:
         width = lib.lghq_simd(-1)
         return f"compiled gather (kernels/lghq.c), one point per thread, light terms {'8 at a time (AVX2)' if width == 8 else 'one at a time'}"
-    return \
-        f"Warp kernels, one point per thread (compiled gather {why})"
+    return f"Warp kernels, one point per thread (compiled gather {why})"
 
 
 def simd(allow: bool = True) -> int:

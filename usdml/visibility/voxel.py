@@ -664,9 +664,7 @@ class VoxelBackend(VisibilityBackend):
         return res
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
-        if not self._gpu:
-            raise RuntimeError("VoxelBackend.update() must be called before queries")
-        if self._native is not None:
+        if self._native is not None:      # set by update() (hit_distances says when it was not called)
             return self._native_hits(origins, targets, normals, distant, False, blocked=True)
         return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
 
