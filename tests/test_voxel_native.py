@@ -95,6 +95,44 @@ def test_native_kernel_answers_as_the_warp_kernel(scene, isa):
 
 
 
+
+def _segment_meets_box(o, t, lo, hi):
+    """Whether each segment o -> t meets the box [lo, hi] (the slab test, in float64)."""
+    d = t - o
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = (lo - o) / d, (hi - o) / d
+    near = np.nanmax(np.where(d == 0, np.where((o >= lo) & (o <= hi), -np.inf, np.inf), np.minimum(a, b)), axis=1)
+    far = np.nanmin(np.where(d == 0, np.where((o >= lo) & (o <= hi), np.inf, -np.inf), np.maximum(a, b)), axis=1)
+    return (near <= far) & (far >= 0) & (near <= 1)
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_native_kernel_answers_a_floating_box_as_the_slab_test_does(isa):
+    """Against geometry, not another usdml method: one box floating above ground points, lights above
+    it. Every segment that misses the box grown by 3 voxels is free, every one that crosses the box
+    shrunk by 3 voxels is blocked (between the two, voxels and bins may go either way)."""
+    from plain_scenes import snapshot, soup
+    from voxel_reference import box
+
+    lo, hi = np.array([-2.0, 1.0, -2.0]), np.array([2.0, 3.0, 2.0])
+    native = make_backend("voxel", UsdmlSettings(voxel_resolution=64, direction_step=5.0), "cpu",
+                          cpu_kernel="native", native_isa=isa, **QUIET)
+    try:
+        native.update(snapshot([soup("/box", box(lo, hi))]))
+        rng = np.random.default_rng(8)
+        n = 20000
+        o = np.c_[rng.uniform(-6, 6, n), np.zeros(n), rng.uniform(-6, 6, n)]
+        t = np.c_[rng.uniform(-6, 6, n), rng.uniform(5, 9, n), rng.uniform(-6, 6, n)]
+        got = native.occluded(o, t, normals=np.tile([0.0, 1.0, 0.0], (n, 1)))
+        arr = native.arrays[0]
+        margin = 3 * 2.0 * arr.half / arr.resolution / arr.to_array[0, 0]      # 3 voxels, world units
+        free = ~_segment_meets_box(o, t, lo - margin, hi + margin)
+        blocked = _segment_meets_box(o, t, lo + margin, hi - margin)
+        assert free.mean() > 0.3 and blocked.mean() > 0.1 and (free | blocked).mean() > 0.7    # measured 0.77
+        assert not got[free].any() and got[blocked].all()
+    finally:
+        native.close()
+
 @pytest.mark.parametrize("isa", ISAS)
 def test_blocked_flags_are_the_distances_answers_across_chunks(isa):
     """``query`` into a bool array (what ``occluded`` asks: the kernel writes bytes, answering 8,192 rays
