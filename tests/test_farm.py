@@ -48,6 +48,24 @@ def test_frames_on_a_local_cluster_equal_one_process(tmp_path, capsys):
             np.testing.assert_array_equal(one[aov], farm[aov])
 
 
+def test_a_retry_keeps_what_this_run_wrote_with_its_settings(tmp_path):
+    """Issue 38: the farm's retry rule is --resume's test: a file written since the run started (here: dated
+    in the future) counts as this run's only if its settings digest is this render's; such a frame is done
+    and its file in ``files``, a file with other settings is rendered again."""
+    out = str(tmp_path / "p.####.exr")
+    settings = dict(aovs=["color"], pixel_samples=1)
+    usdml.Recorder(image_width=12, **settings).record_sequence(PARK, "1", out)
+    usdml.Recorder(image_width=8, **settings).record_sequence(PARK, "2", out)
+    future = time.time() + 3600
+    for f in (1, 2):
+        os.utime(tmp_path / f"p.000{f}.exr", (future, future))
+    result = usdml.Recorder(image_width=12, workers=1, **settings).record_sequence(PARK, "1:3", out)
+    assert result.frames == [1.0, 2.0, 3.0] and result.failed == [] and result.skipped == []
+    assert result.files == [str(tmp_path / f"p.000{f}.exr") for f in (1, 2, 3)]
+    assert os.stat(tmp_path / "p.0001.exr").st_mtime == pytest.approx(future)          # kept
+    assert read_exr(tmp_path / "p.0002.exr")[0]["color"].shape[1] == 12                # rendered again
+
+
 def _is_worker(proc) -> bool:
     """A Dask worker process (multiprocessing's spawned child), not its resource tracker."""
     try:

@@ -106,6 +106,32 @@ def test_the_example_script_relights_a_shot(new_stage, tmp_path):
     out = tmp_path / "shot.####.exr"
     done = subprocess.run([sys.executable, str(ROOT / "tools" / "record_shot.py"), path, str(out), "--light-scale", "2",
                            "--imageWidth", "12", "--frames", "1"], capture_output=True, text=True)
+def test_a_result_lists_the_files_this_call_wrote(new_stage, tmp_path):
+    """Issue 38: ``files`` holds the EXRs this call wrote, ``skipped_files`` those a resume left alone,
+    ``previews`` the PNGs, ``stale`` the frames whose files had other settings."""
+    stage = new_stage(start=1, end=3)
+    add_quad(stage, "/World/ground", size=20)
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    out = str(tmp_path / "seq.####.exr")
+
+    def record(frames, width=8, **options):
+        return usdml.Recorder(image_width=width, aovs=["color"], pixel_samples=1, **options).record_sequence(
+            path, frames, out, resume=True)
+
+    def files(ext, *frames):
+        return [str(tmp_path / f"seq.000{f}.{ext}") for f in frames]
+
+    first = record("1:2", preview=True)
+    assert first.files == files("exr", 1, 2) and first.previews == files("png", 1, 2)
+    again = record("1:3")
+    assert again.frames == [3.0] and again.files == files("exr", 3) and again.previews == []
+    assert again.skipped == [1.0, 2.0] and again.skipped_files == files("exr", 1, 2) and again.stale == []
+    wider = record("1:3", width=12)
+    assert wider.stale == [1.0, 2.0, 3.0] and wider.skipped == [] and wider.skipped_files == []
+    assert wider.files == files("exr", 1, 2, 3)
+
+
     assert done.returncode == 0, done.stderr
     assert str(tmp_path / "shot.0001.exr") in done.stdout
     assert read_exr(tmp_path / "shot.0001.exr")[0]["direct"].max() > 0

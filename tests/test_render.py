@@ -1,15 +1,18 @@
 """`usdml render`: analytic one-light images, shadows, EXR products, RenderSettings, resume, determinism."""
 
+import hashlib
+import json
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, UsdGeom, UsdLux
+from pxr import Gf, Usd, UsdGeom, UsdLux
 
+import usdml
 from conftest import ALBEDO, add_cube_mesh, add_quad, assert_direct, ground_stage, render_aovs
-from usdml.aov.exr import is_complete_exr, read_exr
+from usdml.aov.exr import is_complete_exr, read_exr, write_exr
 from usdml.cli import main
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
@@ -168,6 +171,84 @@ def test_resume_after_an_interrupted_sequence(new_stage, tmp_path, monkeypatch, 
     assert "1 frame(s) already complete" in capsys.readouterr().out
     assert os.stat(tmp_path / "seq.0001.exr").st_mtime_ns == before["seq.0001.exr"]
     assert all(is_complete_exr(tmp_path / f"seq.000{i}.exr") for i in range(1, 5))
+
+
+def _json_render(capsys, argv) -> dict:
+    capsys.readouterr()
+    assert main(argv + ["--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_resume_renders_again_frames_made_with_other_settings(new_stage, tmp_path, capsys):
+    """Issue 38: frames made at another width, with another seed, from an edited stage or by a usdml that
+    wrote no settings digest are stale: rendered again, and the summary says how many."""
+    path = _sequence_stage(new_stage)
+    out = tmp_path / "seq.####.exr"
+    render = ["render", path, str(out), "--pixel-samples", "1", "--frames"]
+    assert main(render + ["1:3", "--imageWidth", "16"]) == 0
+    write_exr(tmp_path / "seq.0004.exr", {"color": np.zeros((24, 24, 4), np.float32)})   # no usdml:settings
+    capsys.readouterr()
+    assert main(render + ["1:4", "--imageWidth", "24", "--resume"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("rendered 4 frame(s) at 24x14") and "4 stale (other settings), rendered again" in text
+    assert "already complete" not in text
+    aovs, meta = read_exr(tmp_path / "seq.0001.exr")
+    assert aovs["color"].shape == (14, 24, 4)
+    written = json.loads(meta["usdml:settings"])
+    assert written["resolution"] == [24, 14] and written["params"]["pixel_samples"] == 1
+    assert written["stage"]["path"] == path and written["camera"] == "(framing)"
+    assert meta["usdml:settingsDigest"] == "sha256:" + hashlib.sha256(meta["usdml:settings"].encode()).hexdigest()
+
+    same = _json_render(capsys, render + ["1:4", "--imageWidth", "24", "--resume"])
+    assert same["skipped"] == [1.0, 2.0, 3.0, 4.0] and same["frames"] == [] and same["stale"] == []
+    seed = _json_render(capsys, render + ["1:2", "--imageWidth", "24", "--seed", "7", "--resume"])
+    assert seed["stale"] == [1.0, 2.0] and seed["frames"] == [1.0, 2.0] and seed["skipped"] == []
+    stage = Usd.Stage.Open(path)
+    UsdLux.SphereLight(stage.GetPrimAtPath("/World/lamp")).CreateIntensityAttr(3.0)
+    stage.Save()
+    edited = _json_render(capsys, render + ["1:2", "--imageWidth", "24", "--seed", "7", "--resume"])
+    assert edited["stale"] == [1.0, 2.0] and edited["frames"] == [1.0, 2.0]
+
+
+def test_preview_pngs_are_in_the_summary(new_stage, tmp_path, capsys):
+    path = _sequence_stage(new_stage)
+    out = tmp_path / "p.####.exr"
+    capsys.readouterr()
+    assert main(["render", path, str(out), "--frames", "1:2", "--imageWidth", "8", "--preview"]) == 0
+    listed = [line.strip() for line in capsys.readouterr().out.splitlines()[1:]]
+    assert listed == [str(tmp_path / "p.0001.exr"), str(tmp_path / "p.0002.exr"),
+                      str(tmp_path / "p.0001.png"), str(tmp_path / "p.0002.png")]
+    summary = _json_render(capsys, ["render", path, str(out), "--frames", "1:3", "--imageWidth", "8", "--preview",
+                                    "--resume"])
+    assert summary["outputs"] == [str(tmp_path / "p.0003.exr")]
+    assert summary["previews"] == [str(tmp_path / "p.0003.png")]
+    assert summary["skippedOutputs"] == [str(tmp_path / "p.0001.exr"), str(tmp_path / "p.0002.exr")]
+
+
+def test_an_output_path_takes_the_render_settings_resolution(new_stage, tmp_path):
+    """Issue 38: with OUTPUT, the RenderSettings in force (flag or stage metadata) give the resolution;
+    --imageWidth wins for the width and keeps the RenderSettings' aspect."""
+    from pxr import UsdRender
+
+    path = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/b").AddTranslateOp().Set((0, 3, 0)))
+    stage = Usd.Stage.Open(path)
+    UsdRender.Settings.Define(stage, "/Render/Settings").CreateResolutionAttr(Gf.Vec2i(40, 20))
+    stage.Save()
+
+    def size(*argv) -> tuple:
+        out = tmp_path / f"r{len(list(tmp_path.glob('r*.exr')))}.exr"
+        assert main(["render", path, str(out), "--aovs", "color", "--pixel-samples", "1", *argv]) == 0
+        return read_exr(out)[0]["color"].shape[:2]
+
+    assert size("--imageWidth", "16") == (16, 16)                              # no RenderSettings: the camera's
+    flag = ("--renderSettingsPrimPath", "/Render/Settings")
+    assert size("--imageWidth", "16", *flag) == (8, 16)                        # --imageWidth wins, the RS aspect
+    assert size(*flag) == (20, 40)                                             # the RenderSettings resolution
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.Save()
+    assert size() == (20, 40)                                                  # by the stage's metadata too
+    assert usdml.Recorder(pixel_samples=1, aovs=["color"]).record(path, 1, str(tmp_path / "api.exr")).resolution \
+        == [40, 20]
 
 
 def test_render_settings_drive_products_on_openusd_stages(assets, tmp_path, monkeypatch, capsys):

@@ -197,8 +197,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
     res = "x".join(map(str, summary["resolution"]))
     print(f"rendered {done} frame(s) at {res} with {summary['visibility']} visibility: "
           f"{summary['secondsPerFrame']:.2f} s/frame, {summary['seconds']:.1f} s in all"
-          + (f"; {len(summary['skipped'])} frame(s) already complete, skipped" if summary["skipped"] else ""))
-    for path in summary["outputs"]:
+          + (f"; {len(summary['skipped'])} frame(s) already complete, skipped" if summary["skipped"] else "")
+          + (f"; {len(summary['stale'])} stale (other settings), rendered again" if summary["stale"] else ""))
+    for path in summary["outputs"] + summary["previews"]:
         print(f"  {path}")
     return 0
 

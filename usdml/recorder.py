@@ -48,9 +48,9 @@ MAX_WIDTH = 16384
 class RecordResult:
     """What one :meth:`Recorder.record` or :meth:`Recorder.record_sequence` did."""
 
-    files: list[str]                 #: every file written, in frame order
+    files: list[str]                 #: the EXR files this call wrote, in frame order (not the skipped frames')
     frames: list[float]              #: the timecodes rendered
-    skipped: list[float]             #: timecodes already complete (``resume``)
+    skipped: list[float]             #: timecodes already complete with these settings (``resume``), not rendered
     seconds: float                   #: the whole call
     seconds_per_frame: float
     resolution: list[int]
@@ -60,6 +60,11 @@ class RecordResult:
     summary: dict = field(default_factory=dict)         #: ``usdml render --json``'s summary
 
 
+    #: timecodes whose files were complete but made with other settings or stage content (``resume``): rendered
+    #: again, so also in ``frames``
+    stale: list[float] = field(default_factory=list)
+    previews: list[str] = field(default_factory=list)   #: the PNG previews this call wrote (``preview``)
+    skipped_files: list[str] = field(default_factory=list)   #: the files of ``skipped``, left as they were
 def check_width(width: int | None) -> None:
     """A one-line error for an image width outside ``1 .. MAX_WIDTH``."""
     if width is not None and not 1 <= width <= MAX_WIDTH:
@@ -121,7 +126,9 @@ class Recorder:
         """Render ``frames`` (a FrameSpec such as ``"101:148"`` or ``"1:10x2"``, timecodes, or None: the
         start frame) of ``stage`` to ``output_path``, whose frame placeholders follow usdrecord's rule
         (one is needed when frames are given); ``resume`` skips frames whose files are complete;
-        ``single_file``: one frame to ``output_path`` as it is (:meth:`record`)."""
+        ``single_file``: one frame to ``output_path`` as it is (:meth:`record`). A file counts as complete
+        when it decodes in full and its ``usdml:settingsDigest`` matches this render's settings and stage
+        (:mod:`usdml.render.identity`); one with other settings is rendered again and listed in ``stale``."""
         from usdml.render.sequence import RenderJob, render_sequence
 
         o = self.options
@@ -144,7 +151,8 @@ class Recorder:
                             skipped=list(summary["skipped"]), seconds=summary["seconds"],
                             seconds_per_frame=summary["secondsPerFrame"], resolution=list(summary["resolution"]),
                             warnings=collect.messages, failed=list(summary.get("failed", [])),
-                            rerun=summary.get("rerun"), summary=summary)
+                            rerun=summary.get("rerun"), summary=summary, stale=list(summary["stale"]),
+                            previews=list(summary["previews"]), skipped_files=list(summary["skippedOutputs"]))
 
     def _on_dask(self, job) -> dict:
         """The job's frames as chunks on Dask (:mod:`usdml.render.farm`)."""

@@ -37,7 +37,8 @@ Header.
   z and w. Pixel (i, j) has its centre at NDC ((i + 0.5) / W, (j + 0.5) / H).
   :func:`usdml_world_to_camera` / :func:`usdml_world_to_ndc` undo both conversions.
 * ``usdml:timeCode`` (double), ``usdml:stage`` (string, the stage's path),
-  ``usdml:settings`` (string, JSON with sorted keys), ``usdml:aovs`` (string, JSON
+  ``usdml:settings`` (string, JSON with sorted keys; a render writes what its pixels depend on and
+  ``usdml:settingsDigest``, :mod:`usdml.render.identity`), ``usdml:aovs`` (string, JSON
   ``{layer: aov}``, so a renamed layer reads back as its AOV), ``usdml:version`` (string);
   then every entry of ``metadata`` (see :func:`write_exr` for the types).
 
@@ -66,7 +67,7 @@ from usdml.aov.names import AOVS, NO_ID, AovSpec, find_aov
 from usdml.errors import UsdmlError
 
 __all__ = [
-    "ExrError", "write_exr", "read_exr", "is_complete_exr", "write_png_preview",
+    "ExrError", "write_exr", "read_exr", "is_complete_exr", "exr_attribute", "write_png_preview",
     "exr_world_to_camera", "exr_world_to_ndc", "usdml_world_to_camera", "usdml_world_to_ndc",
     "camera_matrices", "COMPRESSIONS",
 ]
@@ -406,6 +407,17 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
     Raises :class:`ExrError` for a missing or unreadable file.
     """
     import OpenEXR
+def _open_input(path: str | os.PathLike):
+    """OpenImageIO's reader of the file at ``path`` (the caller closes it), or None for a missing or
+    unreadable file."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path)) if Path(path).is_file() else None
+    if inp is None:
+        oiio.geterror()     # clear the global error message
+    return inp
+
+
 
     path = Path(path)
     if not path.is_file():
@@ -439,6 +451,19 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
             layer, suffix = unprefixed.get("depth", "depth"), name
         elif "." in name:
             layer, suffix = name.rsplit(".", 1)
+def exr_attribute(path: str | os.PathLike, name: str) -> str | None:
+    """The string attribute ``name`` of an OpenEXR file's header (``usdml:settingsDigest``), read
+    without its pixels; None for a missing attribute or an unreadable file. Never raises for a bad file."""
+    inp = _open_input(path)
+    if inp is None:
+        return None
+    try:
+        value = inp.spec().getattribute(name)
+        return value if isinstance(value, str) else None
+    finally:
+        inp.close()
+
+
         else:
             layer, suffix = name, ""
         groups.setdefault(layer, {})[suffix] = a
@@ -477,12 +502,8 @@ def is_complete_exr(path: str | os.PathLike, channels: Any = None) -> bool:
     """
     import OpenImageIO as oiio
 
-    path = Path(path)
-    if not path.is_file():
-        return False
-    inp = oiio.ImageInput.open(str(path))
+    inp = _open_input(path)
     if inp is None:
-        oiio.geterror()     # clear the global error message
         return False
     try:
         if inp.format_name() != "openexr":

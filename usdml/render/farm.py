@@ -5,8 +5,9 @@ cluster (DESIGN.md, "Scale-out").
   ``--scheduler ADDRESS`` uses a running cluster (``dask scheduler`` / ``dask worker``) instead.
 * A chunk is ``--chunk-size`` consecutive frames of the FrameSpec (the last one shorter), rendered by
   :func:`usdml.render.sequence.render_sequence` in the worker. A retried chunk skips the frames a killed
-  attempt already wrote in this run (complete files written since the run started; older files are
-  rendered again unless ``--resume``). Files are written under a hidden name and renamed,
+  attempt already wrote in this run (complete files with this run's settings digest, written since the
+  run started; older files are rendered again unless ``--resume`` finds them complete with the same
+  settings, the test ``--resume`` uses). Files are written under a hidden name and renamed,
   so a worker killed mid-frame leaves no partial file. ``--retries R`` gives every chunk R + 1
   attempts; a worker that dies has its chunk rescheduled by the scheduler on another worker.
 * Each worker renders with ``--nthreads`` threads (``USDML_THREADS``, :func:`usdml.parallel.cpu_workers`),
@@ -14,8 +15,9 @@ cluster (DESIGN.md, "Scale-out").
 * Structures built per prototype (voxel arrays, octrees) go through the content-addressed cache on a
   path every worker reads (``USDML_CACHE_DIR``); each is written to a temporary file and renamed, so
   workers that build the same one at once both leave one complete file.
-* The summary: frames done, failed and skipped, each failure's message, and a FrameSpec that renders
-  the failed frames again; ``usdml render`` exits non-zero when a frame failed.
+* The summary: frames done (by this run, a killed attempt's included), failed, skipped and stale
+  (``--resume``), each failure's message, and a FrameSpec that renders the failed frames again;
+  ``usdml render`` exits non-zero when a frame failed.
 
 Frames are the same pixels as a one-process render: a frame depends only on the stage, the settings
 and the seed.
@@ -104,7 +106,8 @@ def render_on_dask(job, frames: list[float], *, workers: int | None = None, sche
     startup = _time.perf_counter() - t0
     print(f"usdml: dask: {len(client.scheduler_info()['workers'])} worker(s) ready in {startup:.1f} s", file=sys.stderr,
           flush=True)
-    done, failed, skipped, outputs, errors, seconds = [], [], [], [], {}, []
+    done, failed, skipped, stale, errors, seconds = [], [], [], [], {}, []
+    files = {"outputs": [], "previews": [], "skippedOutputs": []}
     resolution, visibility = [0, 0], ""
     try:
         futures = {}
@@ -126,10 +129,13 @@ def render_on_dask(job, frames: list[float], *, workers: int | None = None, sche
             for f in summary["frames"]:           # a line per frame as chunks come back
                 print(f"usdml: frame {f:g} done (worker pid {summary['worker']}, chunk {rerun_spec(part)}, "
                       f"{summary['chunkSeconds']:.1f} s)", file=sys.stderr, flush=True)
-            done.extend(summary["frames"])
-            # frames a chunk skipped: finished by its earlier attempt in this run, or (--resume) before it
-            (skipped if job.resume else done).extend(summary["skipped"])
-            outputs.extend(summary["outputs"])
+            # frames a chunk did not render: finished by its earlier attempt in this run (recovered), or
+            # (--resume) before the run
+            done.extend(summary["frames"] + summary["recovered"])
+            skipped.extend(summary["skipped"])
+            stale.extend(summary["stale"])
+            for key, paths in files.items():
+                paths.extend(summary[key])
             if summary["frames"]:
                 seconds.append(summary["chunkSeconds"] / len(summary["frames"]))
             resolution, visibility = summary["resolution"], summary["visibility"]
@@ -141,12 +147,13 @@ def render_on_dask(job, frames: list[float], *, workers: int | None = None, sche
     done.sort(key=order.get)
     failed.sort(key=order.get)
     skipped.sort(key=order.get)
+    stale.sort(key=order.get)
     return {
-        "stage": stage, "frames": done, "failed": failed, "skipped": skipped,
+        "stage": stage, "frames": done, "failed": failed, "skipped": skipped, "stale": stale,
         "rerun": rerun_spec(failed) if failed else None, "errors": errors,
         "resolution": resolution, "visibility": visibility,
         "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
         "seconds": _time.perf_counter() - started, "startupSeconds": startup,
         "workers": workers, "scheduler": scheduler, "chunkSize": chunk_size, "retries": retries,
-        "threadsPerWorker": threads, "outputs": sorted(outputs),
+        "threadsPerWorker": threads, **{key: sorted(paths) for key, paths in files.items()},
     }

@@ -4,7 +4,9 @@ Instancing is kept, never flattened: every native prototype and every PointInsta
 becomes one :class:`~usdml.scene.Prototype` in its own space with N instance transforms; nested
 instancing (a PointInstancer inside a prototype, instances inside a PointInstancer prototype)
 composes instance transforms, not geometry. Geometry that does not change over the shot is read
-once and reused by later snapshots.
+once and reused by later snapshots. A prototype with UsdSkel-skinned meshes is posed once per frame
+in its own space and shared by its instances; instances whose bindings pose it differently (their
+own ``skel:animationSource``) get one prototype per pose.
 """
 
 from __future__ import annotations
@@ -80,6 +82,14 @@ def require_lights(delegate: "StageDelegate", snap: Snapshot, command: str) -> N
         domes = " (dome lights are not measured)" if snap.domes else ""
         raise UsdmlError(f"{delegate.path}: no lights at time {snap.time:g}{domes}, so no shadow rays to "
                          f"{command}; give a --frame or a stage with UsdLux lights")
+
+
+def _proxy(prim: Usd.Prim, root: Usd.Prim, space: Usd.Prim) -> Usd.Prim:
+    """``prim`` of prototype ``root`` as seen below ``space``: its instance proxy under the native
+    instance ``space``, or ``prim`` itself when ``space`` is ``root`` (a PointInstancer prototype)."""
+    if space == root:
+        return prim
+    return space.GetStage().GetPrimAtPath(space.GetPath().AppendPath(prim.GetPath().MakeRelativePath(root.GetPath())))
 
 
 def _matrix(m) -> np.ndarray:
@@ -170,6 +180,7 @@ class StageDelegate:
             self.skel = SkelResolver(self.warn)
             self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
             self._mesh_ids: dict[str, int] = {}
+            self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
             self._assign_mesh_ids()
 
     # ----------------------------------------------------------------------------------------------
@@ -242,7 +253,7 @@ class StageDelegate:
             skinned = self.skel.query(prim) is not None
             deforming = skinned and self.skel.is_animated(prim) or points_vary(prim)
             if skinned:
-                posed = self.skel.posed_world_points(prim, t, xf)
+                posed = self.skel.posed_points(prim, t, xf)
                 mesh = read_mesh(prim, t, None, self._mesh_id(path), self.warn, points=posed,
                                  deforming=deforming, authored_normals=False,
                                  materials=self._gprim.get("materials"))
@@ -272,30 +283,26 @@ class StageDelegate:
             if proto_path not in contents:
                 contents[proto_path] = self._walk(root, t, xf, purposes)
             content = contents[proto_path]
-            proto_meshes = []
             deforming = False
-            for prim, rel, animated in content.meshes:
-                path = str(prim.GetPath())
-                varying = animated or points_vary(prim)
-                if self.skel.query(prim) is not None:
-                    self.warn(f"{path}: skinned meshes inside instance prototypes are rendered at rest")
+            for k, (sel, space) in enumerate(self._pose_groups(root, inst, content, xf)):
+                proto_meshes, varying = self._prototype_meshes(root, content, space, t, xf)
                 deforming |= varying
-                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True, **self._gprim) if varying
-                        else self._cached_mesh(prim, t, rel, proto_path))
-                if mesh is not None:
-                    proto_meshes.append(mesh)
-            if proto_meshes:
-                existing = next((p for p in prototypes if p.path == proto_path), None)
+                if not proto_meshes:
+                    continue
+                path = proto_path if k == 0 else f"{proto_path}[{space.GetPath()}]"
+                instancers = [inst.instancers[i] for i in sel]
+                existing = next((p for p in prototypes if p.path == path), None)
                 if existing is not None:     # reached again through another nesting path
-                    existing.xforms = np.concatenate([existing.xforms, xforms])
-                    existing.instance_ids = np.concatenate([existing.instance_ids, ids])
-                    existing.instancers += inst.instancers
+                    existing.xforms = np.concatenate([existing.xforms, xforms[sel]])
+                    existing.instance_ids = np.concatenate([existing.instance_ids, ids[sel]])
+                    existing.instancers += instancers
                     existing.animated |= inst.animated
                 else:
+                    name = instancers[0] if root.IsPrototype() else proto_path
                     prototypes.append(Prototype(
-                        path=proto_path, name=self._prototype_name(root, inst), kind=self._kind(root),
-                        meshes=proto_meshes, xforms=xforms, instance_ids=ids, instancers=list(inst.instancers),
-                        animated=inst.animated, deforming=deforming))
+                        path=path, name=name, kind=self._kind(root), meshes=proto_meshes, xforms=xforms[sel],
+                        instance_ids=ids[sel], instancers=instancers, animated=inst.animated,
+                        deforming=varying))
             for params, rel in content.lights:
                 light_parts.append(expand(params, xforms @ rel, ids, self.meters_per_unit))
             for nested_path, nested in content.instances.items():
@@ -325,8 +332,64 @@ class StageDelegate:
         return snap
 
     # ----------------------------------------------------------------------------------------------
-    def _prototype_name(self, root: Usd.Prim, inst: _InstanceSet) -> str:
-        return inst.instancers[0] if root.IsPrototype() else str(root.GetPath())
+    def _pose_groups(self, root: Usd.Prim, inst: _InstanceSet, content: _Content,
+                     xf: UsdGeom.XformCache) -> list[tuple[np.ndarray, Usd.Prim | None]]:
+        """The instances of prototype ``root`` that pose its skinned meshes alike, as ``(instance
+        indices, space)``: ``space`` is the prim whose frame posed points are given in and through
+        which skel bindings are read (a native instance, the PointInstancer prototype root itself),
+        None when nothing in the prototype is skinned.
+
+        A native prototype's meshes are skinned through an instance's proxies, as UsdSkel binds them
+        there; instances with equal :meth:`SkelResolver.binding_key` share one pose. Which meshes are
+        skinned is read through the prototype's first instance (by path), and so is the pose of
+        instances reached only through an outer prototype (nested instancing)."""
+        everyone = [(np.arange(len(inst.instancers)), None)]
+        if not root.IsPrototype():
+            skinned = any(self.skel.query(prim) is not None for prim, _, _ in content.meshes)
+            return [(everyone[0][0], root)] if skinned else everyone
+        first = self._first_instance.get(str(root.GetPath()))
+        if first is None:
+            first = self._first_instance[str(root.GetPath())] = min(root.GetInstances(), key=lambda p: str(p.GetPath()))
+        skinnable = [prim for prim, _, _ in content.meshes if self.skel.query(_proxy(prim, root, first)) is not None]
+        if not skinnable:
+            return everyone
+        groups: dict[tuple, tuple[Usd.Prim, list[int]]] = {}
+        keys: dict[str, tuple] = {}
+        for i, path in enumerate(inst.instancers):
+            if path not in keys:
+                space = self.stage.GetPrimAtPath(path)
+                if not (space and space.IsInstance() and space.GetPrototype() == root):
+                    space = first
+                key = tuple(self.skel.binding_key(_proxy(p, root, space), space, xf) for p in skinnable)
+                keys[path] = (key, space)
+            key, space = keys[path]
+            groups.setdefault(key, (space, []))[1].append(i)
+        if all(k is None for key in groups for k in key):
+            return everyone
+        return [(np.asarray(members), space) for space, members in groups.values()]
+
+    def _prototype_meshes(self, root: Usd.Prim, content: _Content, space: Usd.Prim | None, t: Usd.TimeCode,
+                          xf: UsdGeom.XformCache) -> tuple[list[Mesh], bool]:
+        """The meshes of prototype ``root`` in its space, skinned ones posed through ``space`` (see
+        :meth:`_pose_groups`), and whether any of them deforms over the shot."""
+        meshes, deforming = [], False
+        proto_path = str(root.GetPath())
+        for prim, rel, animated in content.meshes:
+            path = str(prim.GetPath())
+            source = None if space is None else _proxy(prim, root, space)
+            if source is not None and self.skel.query(source) is not None:
+                varying = self.skel.is_animated(source, space) or points_vary(prim)
+                mesh = read_mesh(prim, t, None, self._mesh_id(path), self.warn,
+                                 points=self.skel.posed_points(source, t, xf, space), deforming=varying,
+                                 authored_normals=False, materials=self._gprim.get("materials"))
+            else:
+                varying = animated or points_vary(prim)
+                mesh = (read_gprim(prim, t, rel, self._mesh_id(path), self.warn, deforming=True, **self._gprim)
+                        if varying else self._cached_mesh(prim, t, rel, proto_path))
+            deforming |= varying
+            if mesh is not None:
+                meshes.append(mesh)
+        return meshes, deforming
 
     @staticmethod
     def _kind(root: Usd.Prim) -> str:
