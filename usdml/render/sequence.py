@@ -3,8 +3,9 @@
 Products come from the OUTPUT argument (one product, ``--aovs`` or :data:`DEFAULT_AOVS`) or, when
 there is none, from the stage's RenderSettings (each product's ``productName`` at each frame, its
 ordered RenderVars mapped to usdml AOVs). Every file is written under a temporary name and renamed;
-``resume`` skips frames whose files are all complete, so an interrupted sequence loses at most the
-frame in flight.
+``resume`` skips frames whose files are all complete and were rendered with the same settings from the
+same stage (``usdml:settingsDigest``, :mod:`usdml.render.identity`), so an interrupted sequence loses at
+most the frame in flight; a complete file with other settings is *stale* and rendered again.
 """
 
 from __future__ import annotations
@@ -16,14 +17,17 @@ from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
-from usdml.aov.exr import camera_matrices, is_complete_exr, make_output_folder, write_exr, write_png_preview
+from usdml.aov.exr import (camera_matrices, exr_attribute, is_complete_exr, make_output_folder, write_exr,
+                           write_png_preview)
 from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, log
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
+from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
+from usdml.stage.fingerprint import stage_fingerprint
 from usdml.visibility import backend_names
 
 
@@ -54,16 +58,21 @@ class RenderJob:
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
     #: one frame (``frames``) written to ``output`` as it is: no frame placeholder needed (the API's record)
     single_file: bool = False
-    #: skip frames whose files are complete and written since this time (``time.time()``): a farm chunk's
-    #: retry skips what its killed attempt finished, and nothing older
+    #: skip frames whose files are complete, rendered with these settings and written since this time
+    #: (``time.time()``): a farm chunk's retry skips what its killed attempt finished, and nothing older
     resume_since: float | None = None
 
 
 def _resolution(snap, job: RenderJob) -> tuple[int, int]:
-    """RenderSettings (or first product) resolution scaled to ``--imageWidth``, else width 960 and the camera aspect."""
+    """The image size. ``--imageWidth`` wins for the width; the RenderSettings in force (``--renderSettingsPrimPath``
+    or the stage's ``renderSettingsPrimPath``) give the aspect, and the width when ``--imageWidth`` is not given:
+    the first product's resolution when the products are written (no OUTPUT), the RenderSettings' own with an
+    OUTPUT path. Without RenderSettings: width 960 and the camera's aspect."""
     rs = snap.render_settings
-    if rs is not None and not job.output:
-        w, h = (rs.products[0].resolution or rs.resolution) if rs.products else rs.resolution
+    if rs is not None:
+        w, h = rs.resolution
+        if not job.output and rs.products:
+            w, h = rs.products[0].resolution or rs.resolution
         if job.image_width:
             return int(job.image_width), max(1, round(job.image_width * h / w))
         return int(w), int(h)
@@ -136,10 +145,18 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
     return products
 
 
-def _frame_done(products: list[Product], frame: float, since: float | None = None) -> bool:
-    """Every file of ``frame`` is a complete EXR (and, with ``since``, written at or after that time)."""
-    return all(is_complete_exr(p.paths[frame]) and (since is None or os.path.getmtime(p.paths[frame]) >= since)
-               for p in products)
+def _frame_state(products: list[Product], digests: list[str], frame: float) -> str:
+    """``done``: every file of ``frame`` is a complete EXR whose ``usdml:settingsDigest`` is its product's in
+    ``digests``; ``stale``: every file is complete but one was rendered with other settings or from other stage
+    content (or by a usdml that wrote no digest); ``missing``: a file is absent, partial or corrupt."""
+    paths = [p.paths[frame] for p in products]
+    if not all(is_complete_exr(path) for path in paths):
+        return "missing"
+    return "done" if all(exr_attribute(path, DIGEST_ATTR) == d for path, d in zip(paths, digests)) else "stale"
+
+
+def _written_since(products: list[Product], frame: float, since: float) -> bool:
+    return all(os.path.getmtime(p.paths[frame]) >= since for p in products)
 
 
 def check_device(device: str) -> None:
@@ -182,7 +199,14 @@ def build_messages() -> dict:
 
 
 def render_sequence(job: RenderJob) -> dict:
-    """Render every frame of ``job``; returns a summary (frames written, skipped, seconds per frame)."""
+    """Render every frame of ``job``; returns a summary:
+
+    ``frames`` rendered by this call; ``skipped`` (``resume``): complete with these settings, left alone;
+    ``stale`` (``resume``): complete but made with other settings, rendered again (also in ``frames``);
+    ``recovered`` (``resume_since``): complete with these settings and written since then, by an earlier
+    attempt of this run; ``outputs`` the EXR files of ``frames`` and ``recovered``, ``previews`` their PNGs
+    (``preview``), ``skippedOutputs`` the files of ``skipped``; ``resolution``, ``secondsPerFrame``, ``seconds``,
+    ``visibility``, ``settingsDigest`` (per product, :mod:`usdml.render.identity`)."""
     started = _time.perf_counter()
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
@@ -204,40 +228,60 @@ def render_sequence(job: RenderJob) -> dict:
     renderer = FrameRenderer(delegate, settings, job.device, camera_light=job.camera_light,
                              backend_options=build_messages())
     stage_file = os.path.abspath(delegate.path) if os.path.exists(delegate.path) else delegate.path
-    written, skipped, seconds = [], [], []
+    common = dict(resolution=(width, height), camera=first.camera.path,
+                  render_settings=str(delegate.settings_prim.GetPath()) if delegate.settings_prim else None,
+                  purposes=job.purposes, implicit_detail=job.implicit_detail, camera_light=job.camera_light,
+                  stage=stage_fingerprint(delegate.stage))
+    identities = [frame_settings(settings.as_dict(), layers=p.layers, **common) for p in products]
+    digests = [settings_digest(i) for i in identities]
+    written, skipped, stale, recovered, seconds = [], [], [], [], []
+    since = job.resume_since
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
             for f in frames:
-                if (job.resume and _frame_done(products, f)) or \
-                        (job.resume_since is not None and _frame_done(products, f, job.resume_since)):
-                    skipped.append(f)
+                state = _frame_state(products, digests, f) if job.resume or since is not None else "missing"
+                ours = state == "done" and since is not None and _written_since(products, f, since)
+                if ours or (state == "done" and job.resume):
+                    (recovered if ours else skipped).append(f)
                     bar.update(1)
                     continue
+                if state == "stale" and job.resume:
+                    stale.append(f)
                 t0 = _time.perf_counter()
                 with tqdm(total=width * height, desc=f"frame {f:g}", unit="px", leave=False, disable=None,
                           file=sys.stderr) as px:
                     result = renderer.render(f, width, height, wanted, progress=px.update)
                 w2c, w2n = camera_matrices(result.camera)
-                for product in products:
+                for product, identity, digest in zip(products, identities, digests):
                     path = product.paths[f]
                     aovs = {layer: result.buffers[aov] for layer, aov in product.layers.items()}
                     write_exr(path, aovs, layers=product.layers, world_to_camera=w2c, world_to_ndc=w2n,
-                              timecode=f, stage=stage_file, settings=settings.as_dict(),
-                              metadata={"usdml:renderProduct": product.source,
+                              timecode=f, stage=stage_file, settings=settings_json(identity),
+                              metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
                                         "usdml:camera": result.camera.path or "(framing)"})
                     if job.preview and "color" in result.buffers:
-                        write_png_preview(os.path.splitext(path)[0] + ".png", result.buffers["color"],
-                                          tonemap="reinhard")
+                        write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
                 written.append(f)
                 bar.update(1)
     finally:
         renderer.close()
     total = _time.perf_counter() - started
+    order = {f: i for i, f in enumerate(frames)}
+    mine = sorted(written + recovered, key=order.get)        # the frames whose files this run wrote
     return {
-        "stage": delegate.path, "frames": written, "skipped": skipped,
+        "stage": delegate.path, "frames": written, "skipped": skipped, "stale": stale, "recovered": recovered,
         "resolution": [width, height],
         "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
         "seconds": total, "visibility": settings.visibility,
-        "outputs": [p.paths[f] for f in written for p in products],
+        "outputs": [p.paths[f] for f in mine for p in products],
+        "previews": [q for f in mine for p in products if os.path.isfile(q := _preview_path(p.paths[f]))]
+        if job.preview else [],
+        "skippedOutputs": [p.paths[f] for f in skipped for p in products],
+        "settingsDigest": digests,
     }
+
+
+def _preview_path(exr_path: str) -> str:
+    """``--preview``'s PNG beside an EXR."""
+    return os.path.splitext(exr_path)[0] + ".png"
