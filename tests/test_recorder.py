@@ -101,11 +101,6 @@ def test_a_sequence_resumes_and_warnings_come_back(new_stage, tmp_path):
     assert rec.record(path, 2, str(tmp_path / "plain.exr")).files == [str(tmp_path / "plain.exr")]
 
 
-def test_the_example_script_relights_a_shot(new_stage, tmp_path):
-    path = _shot(new_stage)
-    out = tmp_path / "shot.####.exr"
-    done = subprocess.run([sys.executable, str(ROOT / "tools" / "record_shot.py"), path, str(out), "--light-scale", "2",
-                           "--imageWidth", "12", "--frames", "1"], capture_output=True, text=True)
 def test_a_result_lists_the_files_this_call_wrote(new_stage, tmp_path):
     """Issue 38: ``files`` holds the EXRs this call wrote, ``skipped_files`` those a resume left alone,
     ``previews`` the PNGs, ``stale`` the frames whose files had other settings."""
@@ -132,6 +127,11 @@ def test_a_result_lists_the_files_this_call_wrote(new_stage, tmp_path):
     assert wider.files == files("exr", 1, 2, 3)
 
 
+def test_the_example_script_relights_a_shot(new_stage, tmp_path):
+    path = _shot(new_stage)
+    out = tmp_path / "shot.####.exr"
+    done = subprocess.run([sys.executable, str(ROOT / "tools" / "record_shot.py"), path, str(out), "--light-scale", "2",
+                           "--imageWidth", "12", "--frames", "1"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert str(tmp_path / "shot.0001.exr") in done.stdout
     assert read_exr(tmp_path / "shot.0001.exr")[0]["direct"].max() > 0

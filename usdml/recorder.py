@@ -58,13 +58,13 @@ class RecordResult:
     failed: list[float] = field(default_factory=list)   #: on Dask: timecodes whose chunk failed every attempt
     rerun: str | None = None                            #: a FrameSpec of ``failed``
     summary: dict = field(default_factory=dict)         #: ``usdml render --json``'s summary
-
-
     #: timecodes whose files were complete but made with other settings or stage content (``resume``): rendered
     #: again, so also in ``frames``
     stale: list[float] = field(default_factory=list)
     previews: list[str] = field(default_factory=list)   #: the PNG previews this call wrote (``preview``)
     skipped_files: list[str] = field(default_factory=list)   #: the files of ``skipped``, left as they were
+
+
 def check_width(width: int | None) -> None:
     """A one-line error for an image width outside ``1 .. MAX_WIDTH``."""
     if width is not None and not 1 <= width <= MAX_WIDTH:

@@ -407,17 +407,6 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
     Raises :class:`ExrError` for a missing or unreadable file.
     """
     import OpenEXR
-def _open_input(path: str | os.PathLike):
-    """OpenImageIO's reader of the file at ``path`` (the caller closes it), or None for a missing or
-    unreadable file."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path)) if Path(path).is_file() else None
-    if inp is None:
-        oiio.geterror()     # clear the global error message
-    return inp
-
-
 
     path = Path(path)
     if not path.is_file():
@@ -451,19 +440,6 @@ def _open_input(path: str | os.PathLike):
             layer, suffix = unprefixed.get("depth", "depth"), name
         elif "." in name:
             layer, suffix = name.rsplit(".", 1)
-def exr_attribute(path: str | os.PathLike, name: str) -> str | None:
-    """The string attribute ``name`` of an OpenEXR file's header (``usdml:settingsDigest``), read
-    without its pixels; None for a missing attribute or an unreadable file. Never raises for a bad file."""
-    inp = _open_input(path)
-    if inp is None:
-        return None
-    try:
-        value = inp.spec().getattribute(name)
-        return value if isinstance(value, str) else None
-    finally:
-        inp.close()
-
-
         else:
             layer, suffix = name, ""
         groups.setdefault(layer, {})[suffix] = a
@@ -491,6 +467,17 @@ def exr_attribute(path: str | os.PathLike, name: str) -> str | None:
             out[out == NO_ID] = -1
         aovs[layer] = out
     return aovs, metadata
+
+
+def _open_input(path: str | os.PathLike):
+    """OpenImageIO's reader of the file at ``path`` (the caller closes it), or None for a missing or
+    unreadable file."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path)) if Path(path).is_file() else None
+    if inp is None:
+        oiio.geterror()     # clear the global error message
+    return inp
 
 
 def is_complete_exr(path: str | os.PathLike, channels: Any = None) -> bool:
@@ -522,6 +509,19 @@ def is_complete_exr(path: str | os.PathLike, channels: Any = None) -> bool:
         return True
     except Exception:  # noqa: BLE001
         return False
+    finally:
+        inp.close()
+
+
+def exr_attribute(path: str | os.PathLike, name: str) -> str | None:
+    """The string attribute ``name`` of an OpenEXR file's header (``usdml:settingsDigest``), read
+    without its pixels; None for a missing attribute or an unreadable file. Never raises for a bad file."""
+    inp = _open_input(path)
+    if inp is None:
+        return None
+    try:
+        value = inp.spec().getattribute(name)
+        return value if isinstance(value, str) else None
     finally:
         inp.close()
 
