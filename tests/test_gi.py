@@ -130,8 +130,9 @@ def test_gi_table_keeps_and_reuses_its_brute_force_pass(tmp_path, capsys, monkey
     monkeypatch.syspath_prepend(str(ROOT / "tools"))
     import gi_table
     ref = tmp_path / "bf.npz"
-    args = [str(STAGES / "cornell.usda"), "--vpls", "300", "--imageWidth", "16", "--alphas", "2", "--samples", "4",
-            "--start-levels", "0", "--shadow-targets", "member,cluster", "--reference", str(ref), "--json"]
+    args = [str(STAGES / "cornell.usda"), "--vpls", "300", "--imageWidth", "16", "--lgh-alpha", "2",
+            "--shadow-samples", "4", "--lgh-start-level", "0", "--shadow-targets", "member,cluster",
+            "--reference", str(ref), "--json"]
     assert gi_table.main(args) == 0
     first = json.loads(capsys.readouterr().out)
     assert ref.exists()

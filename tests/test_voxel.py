@@ -395,9 +395,9 @@ def test_voxel_table_tool_reports_every_setting(lit_stage, tmp_path):
     import sys
 
     env = {**os.environ, "USDML_CACHE_DIR": str(tmp_path / "cache")}
-    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "voxel_table.py"), lit_stage, "--resolutions", "8,16",
-                           "--steps", "30", "--imageWidth", "32", "--frameWidth", "24", "--frameHeight", "16",
-                           "--json"], capture_output=True, text=True, timeout=300, env=env)
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "voxel_table.py"), lit_stage, "--voxel-resolution",
+                           "8,16", "--direction-step", "30", "--imageWidth", "32", "--frameWidth", "24",
+                           "--frameHeight", "16", "--json"], capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(proc.stdout)
     assert [(r["voxel_resolution"], r["direction_step"]) for r in rows] == [(8, 30.0), (16, 30.0)]

@@ -372,7 +372,7 @@ def direct_compare(data: dict) -> list[str]:
 
 
 def direct_frame(data: dict) -> list[str]:
-    """``tools/direct_lgh_scaling.py --frame SIZE --json``: a user's render of one frame with --direct lgh."""
+    """``tools/direct_lgh_scaling.py --frame-size SIZE --json``: a user's render of one frame with --direct lgh."""
     rows = [[f"{r['lights']:,}", f"{r['resolution'][0]}×{r['resolution'][1]}", str(r["pixel_samples"]),
              r["visibility"], f"{r['seconds']:.1f}"] for run in data["runs"] for r in run["output"] or []]
     return _table(["lamps", "pixels", "pixel samples", "visibility", "usdml render s (all of it)"], rows)
@@ -505,7 +505,7 @@ def rerun(name: str, only: set[int] | None = None, timeout: float | None = None)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--check", action="store_true", help="exit 1 if a table differs from its data")
     g.add_argument("--list", action="store_true", help="print each table's data source and commands")

@@ -16,9 +16,9 @@ Usage::
     python tools/direct_lgh_scaling.py --lights 1000,10000,100000,1000000 --imageWidth 256 --json
     python tools/direct_lgh_scaling.py --lights 1024 --imageWidth 256 --full-reference 2000
     python tools/direct_lgh_scaling.py --json > rows.json; python tools/direct_lgh_scaling.py --rows rows.json --plot p.png
-    python tools/direct_lgh_scaling.py --lights 1000000 --frame 512   # usdml render of a 512 x 512 frame
+    python tools/direct_lgh_scaling.py --lights 1000000 --frame-size 512   # usdml render of a 512 x 512 frame
 
-``--frame SIZE`` times instead what a user waits for: ``usdml render`` (:class:`usdml.Recorder`) of one
+``--frame-size SIZE`` times instead what a user waits for: ``usdml render`` (:class:`usdml.Recorder`) of one
 SIZE x SIZE frame with ``--direct lgh`` (a layer over the stage sets its RenderSettings resolution),
 the stage's default pixel samples and AOVs, stage load and EXR included.
 """
@@ -80,7 +80,8 @@ def time_frame(n: int, size: int, args) -> dict:
 
     path = square_stage(n, size, args.stages)
     rec = usdml.Recorder(direct="lgh", visibility=args.visibility,
-                         **({"direct_shadow_samples": args.samples} if args.samples else {}))
+                         **({"direct_shadow_samples": args.direct_shadow_samples}
+                            if args.direct_shadow_samples else {}))
     here = os.getcwd()
     os.chdir(args.stages)          # the stage's product (out/...exr, at its RenderSettings resolution) lands here
     try:
@@ -100,8 +101,8 @@ def measure(n: int, args) -> dict:
 
     path = night_stage(n, args.stages)
     overrides = {"visibility": args.visibility}
-    if args.samples:
-        overrides["direct_shadow_samples"] = args.samples
+    if args.direct_shadow_samples:
+        overrides["direct_shadow_samples"] = args.direct_shadow_samples
     subset = 0 if n <= args.full_reference else args.reference_pixels
     r = compare_direct(StageDelegate(path), "lgh", "all", image_width=args.imageWidth, overrides=overrides,
                        reference_pixels=subset)
@@ -129,24 +130,25 @@ def chart(rows: list, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("--lights", default="1000,10000,100000,1000000", help="comma-separated light counts")
     p.add_argument("--imageWidth", type=int, default=256)
     p.add_argument("--visibility", default="exact", help="shadow rays of both (default: %(default)s)")
-    p.add_argument("--samples", type=int, help="--direct-shadow-samples (default: the table's)")
+    p.add_argument("--direct-shadow-samples", type=int, metavar="N", help="shadow rays per pixel of --direct lgh "
+                   "(default: the stage's)")
     p.add_argument("--full-reference", type=int, default=10_000, metavar="N",
                    help="up to N lights the reference shades the whole frame (default: %(default)s)")
     p.add_argument("--reference-pixels", type=int, default=4096, help="above that, the pixels it shades")
     p.add_argument("--stages", default=os.path.join(tempfile.gettempdir(), "usdml-city-lights"),
                    help="where the stages are written (default: %(default)s)")
-    p.add_argument("--frame", type=int, metavar="SIZE",
+    p.add_argument("--frame-size", type=int, metavar="SIZE",
                    help="instead: time usdml render of one SIZE x SIZE frame with --direct lgh per light count")
     p.add_argument("--rows", help="chart rows from an earlier --json run instead of measuring")
     p.add_argument("--json", action="store_true")
     p.add_argument("--plot", metavar="PNG", help="also write the chart as a PNG")
     args = p.parse_args(argv)
-    if args.frame:
-        rows = [time_frame(int(x), args.frame, args) for x in args.lights.split(",")]
+    if args.frame_size:
+        rows = [time_frame(int(x), args.frame_size, args) for x in args.lights.split(",")]
         print(json.dumps(rows, indent=2) if args.json else "\n".join(
             f"{r['lights']:>9,} lamps, {r['resolution'][0]}x{r['resolution'][1]}: {r['seconds']:.1f} s" for r in rows))
         return 0

@@ -22,7 +22,7 @@ import time
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--imageWidth", type=int, default=128)
     p.add_argument("--frame", type=float, help="timecode (default: the stage's start)")

@@ -19,7 +19,7 @@ import tempfile
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--frames", default="1:12")
     p.add_argument("--imageWidth", type=int, default=96)

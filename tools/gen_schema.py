@@ -305,7 +305,7 @@ def _with_newline(text: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
     parser.add_argument("schema", nargs="?", type=Path, default=SCHEMA_DIR / "schema.usda",
                         help="schema source layer (default: %(default)s)")
     parser.add_argument("outdir", nargs="?", type=Path, default=None,

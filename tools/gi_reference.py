@@ -9,7 +9,7 @@
   sphere see each other with the same geometry term ``cos θ cos θ' / d² = 1 / 4R²``, so after the first
   bounce the radiance is uniform and every bounce multiplies it by ρ: ``indirect = direct · (ρ + … + ρ^B)``.
 
-``python tools/gi_reference.py [--vpls N] [--bounces B] [--imageWidth W] [--spp S] [--json]`` prints, for
+``python tools/gi_reference.py [--vpls N] [--vpl-bounces B] [--imageWidth W] [--spp S] [--json]`` prints, for
 ``--gi vpl-bruteforce``, ``--gi lgh`` and ``--gi svo``, the ``indirect`` energy ratio against Mitsuba on a closed
 Cornell-style box (two point lights, camera inside), the median 16×16-block relative error, and the
 furnace ratio against the analytic series.
@@ -216,22 +216,22 @@ def measure(vpls: int = 20_000, bounces: int = 3, width: int = 64, spp: int = 25
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter, allow_abbrev=False)
     ap.add_argument("--vpls", type=int, default=20_000)
-    ap.add_argument("--bounces", type=int, default=3)
+    ap.add_argument("--vpl-bounces", type=int, default=3, help="diffuse bounces of the indirect light")
     ap.add_argument("--imageWidth", type=int, default=64)
     ap.add_argument("--spp", type=int, default=256, help="Mitsuba samples per pixel")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--albedo", type=float, default=0.5, help="furnace sphere albedo")
-    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--gi", default=",".join(METHODS), help="--gi methods to measure, comma-separated")
     ap.add_argument("--no-mitsuba", action="store_true", help="furnace only")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    r = measure(a.vpls, a.bounces, a.imageWidth, a.spp, a.seed, a.albedo, a.methods.split(","), not a.no_mitsuba)
+    r = measure(a.vpls, a.vpl_bounces, a.imageWidth, a.spp, a.seed, a.albedo, a.gi.split(","), not a.no_mitsuba)
     if a.json:
         print(json.dumps(r, indent=2))
         return 0
-    print(f"{a.vpls} VPLs, {a.bounces} bounces, {a.imageWidth} px, Mitsuba {a.spp} spp; furnace rho {a.albedo}")
+    print(f"{a.vpls} VPLs, {a.vpl_bounces} bounces, {a.imageWidth} px, Mitsuba {a.spp} spp; furnace rho {a.albedo}")
     for method, row in r["methods"].items():
         print(f"{method:>15}: " + ", ".join(f"{k} {v:.3f}" for k, v in row.items()))
     return 0

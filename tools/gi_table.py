@@ -3,8 +3,8 @@
 
 Usage::
 
-    python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--alphas 1,2]
-        [--samples 1,4] [--start-levels 1,0] [--filter-iterations -1] [--frame F]
+    python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--lgh-alpha 1,2]
+        [--shadow-samples 1,4] [--lgh-start-level 1,0] [--shadow-filter-iterations -1] [--frame F]
         [--visibility exact] [--reference-visibility exact] [--reference FILE.npz] [--json]
 
 The G-buffer and the VPLs (same seed) are made once; ``vpl-bruteforce`` (every VPL, exact
@@ -51,14 +51,16 @@ def chart(rows: list, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--vpls", type=int, default=10_000)
     p.add_argument("--imageWidth", type=int, default=96)
-    p.add_argument("--alphas", default="1,2")
-    p.add_argument("--samples", default="1,4")
-    p.add_argument("--start-levels", default="1,0")
-    p.add_argument("--filter-iterations", default="-1", help="à-trous iterations to try (-1: by samples)")
+    p.add_argument("--lgh-alpha", default="1,2", metavar="A[,A...]", help="LGH alphas to try (%(default)s)")
+    p.add_argument("--shadow-samples", default="1,4", metavar="N[,N...]",
+                   help="stochastic shadow samples per pixel to try (%(default)s)")
+    p.add_argument("--lgh-start-level", default="1,0", metavar="L[,L...]", help="LGH start levels to try (%(default)s)")
+    p.add_argument("--shadow-filter-iterations", default="-1", metavar="N[,N...]",
+                   help="à-trous iterations to try (-1: by samples)")
     p.add_argument("--shadow-targets", default=None, help="shadow-ray targets to try (default: the stage's)")
     p.add_argument("--frame", type=float)
     p.add_argument("--visibility", default="exact", help="backend of the LGH's shadow rays (%(default)s)")
@@ -126,10 +128,10 @@ def main(argv: list[str] | None = None) -> int:
     mean = float(b.mean())
     rows = []
     target_choices = args.shadow_targets.split(",") if args.shadow_targets else [base.shadow_targets]
-    for alpha in map(float, args.alphas.split(",")):
-        for k in _ints(args.samples):
-            for start, iterations, targets in ((s, i, t) for s in _ints(args.start_levels)
-                                               for i in _ints(args.filter_iterations) for t in target_choices):
+    for alpha in map(float, args.lgh_alpha.split(",")):
+        for k in _ints(args.shadow_samples):
+            for start, iterations, targets in ((s, i, t) for s in _ints(args.lgh_start_level)
+                                               for i in _ints(args.shadow_filter_iterations) for t in target_choices):
                 r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
                                         shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility)
                 rays_check = {}

@@ -100,7 +100,7 @@ def chart(rows: list, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stages", nargs="+")
     p.add_argument("--imageWidth", type=int, default=128)
     p.add_argument("--dynamic", action="store_true", help="a moving frame against a still one (module doc)")

@@ -34,7 +34,7 @@ def chart(rows: list, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--vpls", default="1000,10000,100000,1000000")
     p.add_argument("--repeat", type=int, default=5)

@@ -36,12 +36,13 @@ def chart(rows: list, path: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     from usdml.params import add_cmdline_args, overrides_from_args
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--lights", default="512,1024,2048,4096,10000", help="comma-separated light counts")
     p.add_argument("--imageWidth", type=int, default=192)
     p.add_argument("--frame", type=float, help="first of the two frames (default: the stage's start)")
-    p.add_argument("--backends", default="voxel,exact")
+    p.add_argument("--visibility", default="voxel,exact", metavar="NAME[,NAME...]",
+                   help="visibility backends to time, comma-separated (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the resampled lights (default: %(default)s)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         delegate.snapshot = snapshot
         try:
             row = {"stage": args.stage, "lights": n, "frame": f1}
-            for name in args.backends.split(","):
+            for name in args.visibility.split(","):
                 w, h = delegate.snapshot(f0).camera.resolution(args.imageWidth)
                 with steady_frame(delegate, settings.updated(visibility=name), f0, w, h) as (res, seconds, r):
                     st = res.stats
@@ -83,18 +84,18 @@ def main(argv: list[str] | None = None) -> int:
                                          fully_dynamic=b.fully_dynamic, mapping=b.mapping)
                     elif r.backend.supports(STATS) and name != "exact":
                         row[name].update(r.backend.describe())     # e.g. insm: its per-frame timings
-            for name in args.backends.split(","):
+            for name in args.visibility.split(","):
                 if name != "exact" and "exact" in row:
                     row[f"{name}_speedup_vs_exact"] = row["exact"]["seconds"] / row[name]["seconds"]
             rows.append(row)
             if not args.json:
                 parts = [f"{n:>6} lights"]
-                for name in args.backends.split(","):
+                for name in args.visibility.split(","):
                     b = row[name]
                     extra = f", rebuild {b['rebuild_seconds']:.2f}" if name == "voxel" else ""
                     parts.append(f"{name} {b['seconds']:.2f} s (update {b['update_seconds']:.2f}{extra}, "
                                  f"shading {b['shading_seconds']:.2f})")
-                parts += [f"{name} {row[f'{name}_speedup_vs_exact']:.2f}x exact" for name in args.backends.split(",")
+                parts += [f"{name} {row[f'{name}_speedup_vs_exact']:.2f}x exact" for name in args.visibility.split(",")
                           if f"{name}_speedup_vs_exact" in row]
                 print("; ".join(parts), flush=True)
         finally:

@@ -1923,7 +1923,7 @@ def stage_differences(committed: str, generated: str, tol: float = CHECK_TOLERAN
 
 def main(argv=None):
     default_out = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "stages")
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     parser.add_argument("--out", default=default_out, help="output directory (default: <repo>/stages)")
     parser.add_argument("--check", action="store_true",
                         help="regenerate into a scratch folder and compare with --out; exit 1 listing what differs")

@@ -53,9 +53,9 @@ def main(argv=None) -> int:
     from usdml import reference
     from usdml.aov.exr import read_exr
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     p.add_argument("stage")
-    p.add_argument("--time", type=float, default=1.0, help="timecode (default 1)")
+    p.add_argument("--frame", type=float, default=1.0, help="timecode (default: %(default)g)")
     p.add_argument("--imageWidth", type=int, default=160)
     p.add_argument("--spp", type=int, default=1024, help="Mitsuba samples per pixel (default 1024)")
     p.add_argument("--pixel-samples", default="1,4,16", help="usdml's primary rays per pixel to compare")
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     report: dict = {"stage": args.stage, "width": args.imageWidth}
-    ref = reference.load(args.stage, args.time, args.imageWidth)
+    ref = reference.load(args.stage, args.frame, args.imageWidth)
     t0 = time.perf_counter()
     shadow, facing, direct = reference.shadow_fraction(ref)
     report["reference_centre_seconds"] = time.perf_counter() - t0

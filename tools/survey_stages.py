@@ -3,10 +3,10 @@
 
 Usage::
 
-    python tools/survey_stages.py ROOT [ROOT ...] [--width 64] [--timeout 120] [--json out.json]
+    python tools/survey_stages.py ROOT [ROOT ...] [--imageWidth 64] [--timeout 120] [--json out.json]
                                   [--render-args "--visibility voxel --voxel-resolution 32"]
 
-Every ``.usd/.usda/.usdc/.usdz`` file under the roots is rendered once (start frame, ``--width``
+Every ``.usd/.usda/.usdc/.usdz`` file under the roots is rendered once (start frame, ``--imageWidth``
 pixels, into a temporary folder) with the installed ``usdml`` in a subprocess, as a user would run
 it. A stage is *rendered* (exit 0), *refused* (exit 2 with a one-line ``usdml: error:``; the reason
 is reported) or *crashed* (anything else: a traceback is a usdml bug). Prints a Markdown table and
@@ -50,9 +50,9 @@ def survey_one(stage: Path, out_dir: Path, width: int, timeout: float, extra: li
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], allow_abbrev=False)
     parser.add_argument("roots", nargs="+", type=Path)
-    parser.add_argument("--width", type=int, default=64)
+    parser.add_argument("--imageWidth", type=int, default=64, metavar="W", help="image width in pixels (default: %(default)s)")
     parser.add_argument("--timeout", type=float, default=120)
     parser.add_argument("--json", type=Path, help="write all rows to this JSON file")
     parser.add_argument("--render-args", default="", help="more arguments for every render, one string")
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for stage in stages:
-            rows.append(survey_one(stage, Path(tmp), args.width, args.timeout, shlex.split(args.render_args)))
+            rows.append(survey_one(stage, Path(tmp), args.imageWidth, args.timeout, shlex.split(args.render_args)))
             print(f"{rows[-1]['outcome']:>8}  {stage}", file=sys.stderr)
     print("| stage | outcome | reason / first warning |\n|---|---|---|")
     for r in rows:

@@ -134,7 +134,7 @@ def chart(rows: list, path: str) -> None:
 def main(argv=None) -> int:
     from usdml.visibility import backend_names
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("stage")
     ap.add_argument("--vpls", default="512,1024,2048", help="VPL counts (default: %(default)s, paper 003's)")
     ap.add_argument("--imageWidth", type=int, default=256, help="width of the accuracy renders (%(default)s)")

@@ -25,7 +25,7 @@ from dataclasses import replace
 def main(argv: list[str] | None = None) -> int:
     from usdml.params import add_cmdline_args, overrides_from_args
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stage")
     p.add_argument("--backend", choices=("voxel", "svo"), default="voxel")
     p.add_argument("--imageWidth", type=int, default=128)

@@ -13,7 +13,7 @@ building them once when it has none.
 
 Usage::
 
-    python tools/voxel_table.py stages/city.usda stages/planes.usda --resolutions 32,64,128 --steps 6,3,2
+    python tools/voxel_table.py stages/city.usda stages/planes.usda --voxel-resolution 32,64,128 --direction-step 6,3,2
 """
 
 from __future__ import annotations
@@ -49,10 +49,12 @@ def chart(rows: list, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("stages", nargs="+")
-    p.add_argument("--resolutions", default="32,64,128")
-    p.add_argument("--steps", default="6,3,2")
+    p.add_argument("--voxel-resolution", default="32,64,128", metavar="N[,N...]",
+                   help="voxel resolutions to measure, comma-separated (default: %(default)s)")
+    p.add_argument("--direction-step", default="6,3,2", metavar="DEG[,DEG...]",
+                   help="direction steps in degrees to measure, comma-separated (default: %(default)s)")
     p.add_argument("--imageWidth", type=int, default=128, help="width of the compare and bench images")
     p.add_argument("--frameWidth", type=int, default=512)
     p.add_argument("--frameHeight", type=int, default=512)
@@ -76,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_frames:
             exact_frame = _frame_seconds(delegate, delegate.usdml_settings.updated(visibility="exact"),
                                          args.frameWidth, args.frameHeight)
-        for n in (int(x) for x in args.resolutions.split(",")):
-            for k in (float(x) for x in args.steps.split(",")):
+        for n in (int(x) for x in args.voxel_resolution.split(",")):
+            for k in (float(x) for x in args.direction_step.split(",")):
                 over = {"voxel_resolution": n, "direction_step": k}
                 quiet = {"report": lambda s: None}
                 c = compare_visibility(delegate, "voxel", image_width=args.imageWidth, overrides=over,
