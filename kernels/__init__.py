@@ -1,8 +1,15 @@
 """Warp kernels (installed as usdml.kernels): pure compute over arrays, runnable on cpu and cuda.
 
 Warp prints a start-up banner and module-load lines to stdout, which ``usdml ... --json`` keeps
-for JSON alone: :func:`warp` initializes Warp with only warnings and errors reported.
+for JSON alone: :func:`warp` initializes Warp with only warnings and errors reported. On a machine
+without an NVIDIA driver Warp's native start-up also writes "Could not find or load the NVIDIA CUDA
+driver" to the process's standard error: that line is dropped (a CPU machine is usdml's usual
+one; ``--device cuda`` there is refused with usdml's own message), every other line is passed on.
 """
+
+import os as _os
+import sys as _sys
+import tempfile as _tempfile
 
 import warp as _wp
 
@@ -12,7 +19,40 @@ if hasattr(_wp, "LOG_WARNING"):
 _wp.config.quiet = True
 
 
+#: the native start-up line dropped on machines without a CUDA driver
+NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def _init_quietly() -> None:
+    """``warp.init()`` with file descriptor 2 captured: its native code writes with ``fprintf``, which
+    no Python-level redirection sees. Captured lines but :data:`NO_DRIVER`'s go to ``sys.stderr``."""
+    try:
+        _sys.stderr.flush()
+        saved = _os.dup(2)
+    except (OSError, ValueError):       # no usable descriptor 2 (an embedding host): as Warp does
+        _wp.init()
+        return
+    with _tempfile.TemporaryFile() as sink:
+        _os.dup2(sink.fileno(), 2)
+        try:
+            _wp.init()
+        finally:
+            _os.dup2(saved, 2)
+            _os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace")
+    kept = [line for line in text.splitlines(keepends=True) if NO_DRIVER not in line]
+    if kept:
+        _sys.stderr.write("".join(kept))
+
+
 def warp():
     """The initialized ``warp`` module, quiet."""
-    _wp.init()
+    global _ready
+    if not _ready:
+        _init_quietly()
+        _ready = True
     return _wp
+
+
+_ready = False

@@ -72,13 +72,18 @@ def test_an_in_memory_stage_renders(tmp_path):
 
 def test_settings_are_checked_as_the_command_line_checks_them(new_stage, capsys):
     path = _shot(new_stage)
+    # the same rule; a script's message names its keyword, the command line's the flag
     with pytest.raises(usdml.UsdmlError) as api:
         usdml.Recorder(voxel_resolution=2)
     assert main(["render", path, "/tmp/x.exr", "--voxel-resolution", "2"]) != 0
-    assert str(api.value) in capsys.readouterr().err
-    with pytest.raises(usdml.UsdmlError, match="unknown setting.*colour"):
+    err = capsys.readouterr().err
+    assert str(api.value) == "voxel resolution must be in [4, 2048], got 2 (keyword voxel_resolution, stage " \
+                             "attribute usdml:voxel:resolution)"
+    assert "usdml: error: voxel resolution must be in [4, 2048], got 2 (--voxel-resolution, " \
+           "usdml:voxel:resolution)" in err
+    with pytest.raises(usdml.UsdmlError, match="unknown keyword.*colour"):
         usdml.Recorder(colour="red")
-    with pytest.raises(usdml.UsdmlError, match="imageWidth 0"):
+    with pytest.raises(usdml.UsdmlError, match="image_width 0"):
         usdml.Recorder(image_width=0)
     with pytest.raises(usdml.UsdmlError, match="no such file"):
         usdml.Recorder().record("/nope/shot.usda", 1, "/tmp/x.exr")

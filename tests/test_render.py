@@ -296,7 +296,7 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
     (["--gi", "lgh", "--lgh-alpha", "nan"], "LGH alpha must be finite"),
     (["--seed", "-1"], "seed must be >= 0"),
     (["--purposes", "render,bogus"], "--purposes: unknown purpose(s) bogus"),
-    (["--implicit-detail", "5000"], "use 3 to 1024 segments"),
+    (["--implicit-detail", "5000"], "--implicit-detail 5000: give an integer from 3 to 1024"),
 ])
 def test_render_errors(new_stage, tmp_path, capsys, argv, message):
     path = _sequence_stage(new_stage)
@@ -324,7 +324,7 @@ def test_bench_and_compare_check_the_width_and_need_lights(new_stage, capsys, co
     extra = ["--visibility", "voxel"] if command == "compare" else []
     assert main([command, path, "--imageWidth", "0", *extra]) == 2
     err = capsys.readouterr().err
-    assert "--imageWidth 0: use 1 to 16384 pixels" in err and "Traceback" not in err
+    assert "--imageWidth 0: give an integer from 1 to 16384 (pixels)" in err and "Traceback" not in err
     dark = ground_stage(new_stage, lambda stage: None)
     assert main([command, dark, "--imageWidth", "8", *extra]) == 2
     assert f"no lights at time 1, so no shadow rays to {command}" in capsys.readouterr().err

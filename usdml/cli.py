@@ -13,8 +13,30 @@ import logging
 import sys
 import time
 
-from usdml.params import add_cmdline_args, overrides_from_args
+from usdml.params import DEFAULT_WIDTH, add_cmdline_args, overrides_from_args
 from usdml.recorder import check_width
+
+
+class _ArgumentError(Exception):
+    """A command line argparse refuses: printed as one ``usdml: error:`` line."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with no prefix matching (a new flag never rebinds an old script's abbreviation) and
+    its refusals raised, so :func:`main` prints them as every other mistake: one line, exit 2, no
+    usage dump. Subcommands' parsers are of this class too (``add_subparsers`` uses the parent's)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs["allow_abbrev"] = False
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        raise _ArgumentError(f"{self.prog}: {message}; see {self.prog} --help")
+
+
+def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
+    # SUPPRESS: not given after the command, the value before it (or False) stays
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="do not print warnings")
 
 
 def _add_stage_args(p: argparse.ArgumentParser) -> None:
@@ -175,7 +197,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from usdml.recorder import Recorder
 
     # the command is the pipeline API (usdml.Recorder): one code path
-    recorder = Recorder(image_width=args.imageWidth, camera=args.camera, render_settings=args.render_settings,
+    recorder = Recorder(_flags=True, image_width=args.imageWidth, camera=args.camera, render_settings=args.render_settings,
                         purposes=_purposes(args), implicit_detail=args.implicit_detail,
                         camera_light=args.cameraLightEnabled,
                         aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
@@ -219,11 +241,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _warn_unused(args: argparse.Namespace, mode: str, options: dict) -> None:
+    """A ``usdml: warning:`` for each given option (flag -> (its dest, the modes that read it)) that
+    ``mode``, the comparison being made, does not read."""
+    log = logging.getLogger("usdml")
+    for flag, (dest, modes) in options.items():
+        if getattr(args, dest) is not None and mode not in modes:
+            log.warning(f"{flag} is ignored: it applies to compare {modes} (this comparison: {mode})")
+
+
 def _cmd_compare(args: argparse.Namespace) -> int:
     from usdml.compare import compare_gi, format_gi_comparison
     from usdml.errors import UsdmlError
 
     check_width(args.imageWidth)
+    mode = "--direct" if args.direct is not None and not args.gi else "--visibility" if args.visibility else "--gi"
+    _warn_unused(args, mode, {"--heatmap": ("heatmap", "--visibility"), "--plot": ("plot", "--visibility"),
+                              "--png": ("png", "--gi or --direct"), "--reference-pixels": ("reference_pixels", "--direct")})
     if args.direct is not None and not args.gi:       # --visibility: both renders' shadow rays
         from usdml.compare import compare_direct, format_direct_comparison
 
@@ -258,7 +292,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="usdml", description="Render USD stages with thousands of lights.")
+    parser = _Parser(prog="usdml", description="Render USD stages with thousands of lights.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     parser.add_argument("-q", "--quiet", action="store_true", help="do not print warnings")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -273,7 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("output", nargs="?", help="output EXR path; '#' marks the frame number "
                         "(out.####.exr); default: the RenderSettings products")
     render.add_argument("--frames", help="FrameSpec as usdrecord: 1:48, 1:10x2, 1,5,9 (default: the start frame)")
-    render.add_argument("--imageWidth", type=int, help="image width in pixels (height from the aspect ratio)")
+    render.add_argument("--imageWidth", type=int, metavar="W",
+                        help="image width in pixels, height from the aspect ratio (default: the RenderSettings' "
+                             f"resolution, else {DEFAULT_WIDTH})")
     render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
                         "shadow, depth, normal, P, albedo, primId, instanceId)")
     _add_device_arg(render)
@@ -318,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "(paper 000 Fig. 6: blue darker, red brighter, error x 10)")
     compare.add_argument("--plot", metavar="PREFIX", help="with --visibility: write PREFIX.heatmap.png (the heat map) "
                          "and PREFIX.hist.png (histograms of the per-pixel errors)")
-    compare.add_argument("--imageWidth", type=int, default=128, help="image width (default: %(default)s)")
+    compare.add_argument("--imageWidth", type=int, default=128, metavar="W", help="image width in pixels (default: %(default)s)")
     compare.add_argument("--reference-pixels", type=int, metavar="N",
                          help="with --direct lgh --against all: shade the every-light reference on N random pixels "
                               "only and extrapolate its time (for 100,000 lights and more)")
@@ -331,7 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="time the visibility queries of one frame")
     _add_stage_args(bench)
     bench.add_argument("--visibility", action="append", help="backend to time (repeat for several; default exact)")
-    bench.add_argument("--imageWidth", type=int, default=512, help="image width in pixels (default: %(default)s)")
+    bench.add_argument("--imageWidth", type=int, default=512, metavar="W", help="image width in pixels (default: %(default)s)")
     bench.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
     _add_device_arg(bench)
     bench.add_argument("--json", action="store_true", help="print JSON")
@@ -349,7 +385,34 @@ def build_parser() -> argparse.ArgumentParser:
     bake.add_argument("--json", action="store_true", help="print JSON")
     add_cmdline_args(bake, "bake")
     bake.set_defaults(run=_cmd_bake)
+    for command in sub.choices.values():
+        _add_quiet_arg(command)
     return parser
+
+
+def _unrecognized(parser: argparse.ArgumentParser, argv: list[str] | None, message: str) -> str:
+    """argparse reports a subcommand's unknown flags as the top parser's: name the subcommand, its help
+    and the flag each unknown one most resembles (``--direct-s``: did you mean --direct-shadow-samples?)."""
+    prefix = f"{parser.prog}: unrecognized arguments: "
+    argv = sys.argv[1:] if argv is None else list(argv)
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    command = next((a for a in argv if a in subs.choices), None)
+    if not message.startswith(prefix) or command is None:
+        return message
+    import difflib
+
+    sub = subs.choices[command]
+    unknown = message[len(prefix):].split("; see ")[0]
+    flags = [o for a in sub._actions for o in a.option_strings if o.startswith("--")]
+    hints = []
+    for given in (u.split("=")[0] for u in unknown.split() if u.startswith("--")):
+        longer = [f for f in flags if f.startswith(given)]       # an abbreviation: name the flags it starts
+        if len(longer) > 3:
+            longer = [f"one of the {len(longer)} flags starting {given}"]
+        hints += longer or difflib.get_close_matches(given, flags, n=1, cutoff=0.75)
+    return (f"{sub.prog}: unrecognized arguments: {unknown}"
+            + (f"; did you mean {' or '.join(hints)}? (flags are never abbreviated)" if hints else "")
+            + f"; see {sub.prog} --help")
 
 
 class _OneLine(logging.Handler):
@@ -361,7 +424,11 @@ class _OneLine(logging.Handler):
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except _ArgumentError as e:
+        print(f"usdml: error: {_unrecognized(parser, argv, str(e))}", file=sys.stderr)
+        return 2
     if args.version:
         from usdml import __version__
 

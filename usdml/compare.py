@@ -40,6 +40,36 @@ def indirect_error(test: dict, reference: dict) -> tuple[float, float]:
     return rmse, float(b.mean()) if b.size else 0.0
 
 
+def _warn_ignored(overrides: dict | None, settings) -> None:
+    """A warning for each given setting the comparison does not read (:func:`usdml.params.ignored`)."""
+    from usdml.errors import log
+    from usdml.params import ignored
+
+    for message in ignored(overrides or {}, settings):
+        log.warning(message)
+
+
+def png_names(prefix: str | None, names) -> list[str]:
+    """``PREFIX_<name>.png`` of each of ``names`` (``--png PREFIX``), each checked writable before any
+    render (:func:`usdml.outputs.check_output`)."""
+    from usdml.outputs import check_output
+
+    return [str(check_output(f"{prefix}_{n}.png", "--png")) for n in names] if prefix else []
+
+
+def _write_pngs(prefix: str | None, hit: np.ndarray, images: dict) -> None:
+    """``PREFIX_<name>.png`` of each linear RGB image of ``images`` (None: skipped), Reinhard-tone-mapped,
+    black where ``hit`` is False."""
+    if not prefix:
+        return
+    from usdml.aov.exr import write_png_preview
+
+    for name, img in images.items():
+        if img is not None:
+            rgba = np.dstack([img, hit.astype(np.float32)]).astype(np.float32)
+            write_png_preview(f"{prefix}_{name}.png", rgba, tonemap="reinhard", alpha=False)
+
+
 def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | None = None,
                image_width: int = 128, device: str = "cpu", png_prefix: str | None = None,
                overrides: dict | None = None, gi_visibility: str | None = None) -> dict:
@@ -48,9 +78,11 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     for name in (gi, against):
         if name == "none":
             raise UsdmlError("--gi and --against must name a global illumination method (lgh, svo, vpl-bruteforce)")
+    png_names(png_prefix, ("direct", "indirect", "color", "indirect_reference"))
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     base = delegate.usdml_settings.updated(**(overrides or {}))
+    _warn_ignored(overrides, base.updated(gi=gi))
     snap = delegate.snapshot(frame)
     width, height = snap.camera.resolution(image_width)
     from usdml.lighting.gi import warm_up
@@ -62,13 +94,8 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     rmse, mean = indirect_error(test.buffers, ref.buffers)
     gi_test = test.stats.get("gi_seconds", 0.0)
     gi_ref = ref.stats.get("gi_seconds", 0.0)
-    if png_prefix:
-        from usdml.aov.exr import write_png_preview
-
-        for name, img in (("direct", test.buffers["direct"]), ("indirect", test.buffers["indirect"]),
-                          ("color", test.buffers["color"][..., :3]), ("indirect_reference", ref.buffers["indirect"])):
-            rgba = np.dstack([img, hit.astype(np.float32)]).astype(np.float32)
-            write_png_preview(f"{png_prefix}_{name}.png", rgba, tonemap="reinhard", alpha=False)
+    _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "indirect": test.buffers["indirect"],
+                                  "color": test.buffers["color"][..., :3], "indirect_reference": ref.buffers["indirect"]})
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "gi": gi, "against": against, "vpls": test.stats.get("gi", {}).get("vpls", 0),
@@ -124,9 +151,11 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
     choices = ("all", "lgh")
     if direct not in choices or against not in choices or direct == against:
         raise UsdmlError(f"--direct and --against must be two different direct-lighting methods ({', '.join(choices)})")
+    png_names(png_prefix, ("direct", "direct_reference"))
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     base = delegate.usdml_settings.updated(**(overrides or {})).updated(pixel_samples=1, gi="none")
+    _warn_ignored(overrides, base.updated(direct=direct))
     snap = delegate.snapshot(frame)
     width, height = snap.camera.resolution(image_width)
     from usdml.lighting.gi import warm_up
@@ -152,13 +181,7 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
         compared = int(hit.sum())
     rmse = float(np.sqrt(np.mean((a - b) ** 2))) if a.size else 0.0
     mean = float(b.mean()) if b.size else 0.0
-    if png_prefix:
-        from usdml.aov.exr import write_png_preview
-
-        for name, img in (("direct", test.buffers["direct"]), ("direct_reference", ref_img)):
-            if img is not None:
-                rgba = np.dstack([img, hit.astype(np.float32)]).astype(np.float32)
-                write_png_preview(f"{png_prefix}_{name}.png", rgba, tonemap="reinhard", alpha=False)
+    _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "direct_reference": ref_img})
     test_shading = test.stats["shading_seconds"]
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
@@ -186,7 +209,11 @@ def format_direct_comparison(r: dict) -> str:
 
 # ---------------------------------------------------------------------------------------- visibility
 
-def error_heatmap(signed: np.ndarray, base: np.ndarray, hit: np.ndarray, scale: float = 10.0) -> np.ndarray:
+#: the heat map's opacity per unit of signed error (paper 000 Fig. 6: x 10, full colour at 10 %)
+HEATMAP_SCALE = 10.0
+
+
+def error_heatmap(signed: np.ndarray, base: np.ndarray, hit: np.ndarray, scale: float = HEATMAP_SCALE) -> np.ndarray:
     """Paper 000 Fig. 6: the shadow image in grey, pixels the approximation makes darker in blue and
     brighter in red, with opacity ``scale × |error|``. ``signed`` = (wrongly hidden - wrongly visible)
     / lights per pixel. Returns (H, W, 3) uint8."""
@@ -224,9 +251,17 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     if backend == ExactBackend.name:
         approximate = [n for n in backend_names() if n != ExactBackend.name]
         raise UsdmlError(f"--visibility exact against exact: give an approximate backend ({', '.join(approximate)})")
+    from usdml.outputs import IMAGE_EXTENSIONS, check_output
+
+    if heatmap:
+        check_output(heatmap, "--heatmap", IMAGE_EXTENSIONS)
+    if plot:
+        for suffix in ("heatmap", "hist"):
+            check_output(f"{plot}.{suffix}.png", "--plot")
     frame = delegate.start_time if frame is None else frame
     delegate.check_time(frame)
     settings = delegate.usdml_settings.updated(**(overrides or {})).updated(visibility=backend)
+    _warn_ignored(overrides, settings)
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)
     require_lights(delegate, snap, "compare")
@@ -281,28 +316,25 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
     eps_s = np.abs(wrong_hidden - wrong_visible) / max(n_l, 1)
     n_queries = int(counts["facing"].sum())
-    if plot:
-        from usdml.plots import histogram
-
-        heatmap = heatmap or f"{plot}.heatmap.png"
-        signed_s = (wrong_hidden - wrong_visible) / max(n_l, 1)
-        histogram(f"{plot}.hist.png", {"ε_v (wrongly answered / lights)": 100 * eps_v,
-                                       "signed ε_s (hidden − visible) / lights": 100 * signed_s},
-                  "per-pixel error (%)", f"{backend} against {against}, {n_px:,} pixels")
+    eps_s_signed = (wrong_hidden - wrong_visible) / max(n_l, 1)
+    signed = np.zeros(width * height)
+    signed[hit] = eps_s_signed
+    signed = signed.reshape(height, width)
+    shadow = np.zeros(width * height)
+    shadow[hit] = counts["blocked"] / np.maximum(counts["facing"], 1)
+    shadow = shadow.reshape(height, width)
     if heatmap:
-        import OpenImageIO as oiio
+        from usdml.outputs import write_image
 
-        signed = np.zeros(width * height)
-        signed[hit] = (wrong_hidden - wrong_visible) / max(n_l, 1)
-        shadow = np.zeros(width * height)
-        shadow[hit] = counts["blocked"] / np.maximum(counts["facing"], 1)
-        img = error_heatmap(signed.reshape(height, width), shadow.reshape(height, width), gb.hit)
-        out = oiio.ImageOutput.create(heatmap)
-        if out is None:
-            raise UsdmlError(f"cannot write {heatmap}: {oiio.geterror()}")
-        out.open(heatmap, oiio.ImageSpec(width, height, 3, "uint8"))
-        out.write_image(img)
-        out.close()
+        write_image(heatmap, error_heatmap(signed, shadow, gb.hit, HEATMAP_SCALE))
+    if plot:
+        from usdml.plots import error_map, histogram
+
+        error_map(f"{plot}.heatmap.png", error_heatmap(signed, shadow, gb.hit, HEATMAP_SCALE), HEATMAP_SCALE,
+                  f"{backend} against {against}: blue darker, red brighter")
+        histogram(f"{plot}.hist.png", {"ε_v (wrongly answered / lights)": 100 * eps_v,
+                                       "signed ε_s (hidden − visible) / lights": 100 * eps_s_signed},
+                  "per-pixel error (%)", f"{backend} against {against}, {n_px:,} pixels")
     nq = max(n_queries, 1)
     result = {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": n_px, "lights": n_l,

@@ -29,6 +29,12 @@ COMMANDS = (RENDER, COMPARE, BENCH, BAKE)
 VOXEL_COMMANDS = (RENDER, COMPARE, BENCH, BAKE)
 LIGHTING_COMMANDS = (RENDER, COMPARE)
 
+#: image width in pixels when neither ``--imageWidth`` nor a RenderSettings resolution gives one
+DEFAULT_WIDTH = 960
+
+#: most segments --implicit-detail accepts (a sphere is about 2·detail² triangles)
+MAX_IMPLICIT_DETAIL = 1024
+
 #: most primary rays per pixel (a 32 x 32 grid)
 MAX_PIXEL_SAMPLES = 1024
 
@@ -89,6 +95,9 @@ class Param:
     doc: str = ""
     #: give argparse the choices (it refuses others itself); False leaves the refusal to check()
     parser_choices: bool = True
+    #: when the setting is read: any of ``(field, values)`` holds (None: always); :func:`ignored` warns of a
+    #: flag given where it is not read
+    applies: tuple[tuple[str, tuple], ...] | None = None
 
     @property
     def name(self) -> str:
@@ -151,6 +160,15 @@ def _or(names) -> str:
 
 _BACKENDS = backend_names()
 
+# when the settings of one method are read (Param.applies)
+_GI_LGH = (("gi", ("lgh",)),)
+_DIRECT_LGH = (("direct", ("lgh",)),)
+_ANY_LGH = _GI_LGH + _DIRECT_LGH
+_GI = (("gi", ("lgh", "svo", "vpl-bruteforce")),)
+_VOXEL = (("visibility", ("voxel",)),)
+_SVO = (("visibility", ("svo",)), ("gi", ("svo",)))      # --gi svo casts its rays through an octree
+_INSM = (("visibility", ("insm",)),)
+
 #: every setting, in the order of UsdmlSettings' fields
 _ROWS = (
     Param("visibility", str, "exact", "usdml:visibility", "--visibility",
@@ -170,7 +188,7 @@ _ROWS = (
           doc='''Voxels per axis of each direction voxelization (paper 000 uses 128).
 
           Each voxelization holds resolution^3 bits: at 128 and a 2 degree
-          direction step, the 90 x 90 array takes just under 2 GB.'''),
+          direction step, the 90 x 90 array takes just under 2 GB.''', applies=_VOXEL),
     Param("direction_step", float, 2.0, "usdml:voxel:directionStep", "--direction-step",
           "degrees between direction bins (k in paper 000: 90 x 90 directions at 2)", VOXEL_COMMANDS,
           source="paper 000", range=Range(0.1, 90), metavar="DEG",
@@ -198,7 +216,7 @@ _ROWS = (
           "rotate" voxelizes the frame's geometry once and fills every other
           direction by rotating it (paper 000, Algorithm 5); "geometry"
           voxelizes every direction from the geometry (Algorithm 1), slower
-          and more accurate.'''),
+          and more accurate.''', applies=_VOXEL),
     Param("voxel_mapping", str, "point", "usdml:voxel:mapping", "--voxel-mapping",
           "Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) or every voxel it "
           "overlaps (conservative)", VOXEL_COMMANDS, source="paper 000, Alg. 5", choices=("point", "conservative"),
@@ -207,7 +225,7 @@ _ROWS = (
           "point" (the paper) sets the voxel holding the rotated voxel's
           centre, leaving some holes in tilted surfaces; "conservative" sets
           every voxel the rotated voxel overlaps: no holes, thicker surfaces,
-          slower.'''),
+          slower.''', applies=_VOXEL),
     # leaving the surface (usdml.visibility.voxel's module doc): usdml's measured rule, not the paper's
     Param("voxel_normal_offset", float, 1.0, "usdml:voxel:normalOffset", "--voxel-normal-offset",
           "voxels (of the static array) a shadow ray starts off its surface, along the normal turned "
@@ -215,23 +233,23 @@ _ROWS = (
           doc='''Voxels (of the static array, in world units) a shadow ray starts off its surface, along the normal turned toward the light.
 
           Occluders closer than about normalOffset + slab voxels to the shading
-          point do not shadow.'''),
+          point do not shadow.''', applies=_VOXEL),
     Param("voxel_skip", float, 1.0, "usdml:voxel:skip", "--voxel-skip",
           "voxels a shadow ray ignores at its start to leave its own surface (more at grazing angles)",
-          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS", applies=_VOXEL),
     Param("voxel_slab", float, 1.0, "usdml:voxel:slab", "--voxel-slab",
           "voxels above the tangent plane a grazing shadow ray skips to (slab / sin(angle) along the ray, "
-          "at most the max skip)", VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+          "at most the max skip)", VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS", applies=_VOXEL),
     Param("voxel_max_skip", float, 0.0, "usdml:voxel:maxSkip", "--voxel-max-skip",
           "most voxels a grazing shadow ray skips to leave its surface; 0 = automatic: 2, or 4 with the "
           "conservative mapping", VOXEL_COMMANDS, source="measured (usdml): 2 point, 4 conservative",
-          range=Range(0), metavar="VOXELS"),
+          range=Range(0), metavar="VOXELS", applies=_VOXEL),
     Param("voxel_end_skip", float, 1.0, "usdml:voxel:endSkip", "--voxel-end-skip",
           "voxels a shadow ray ignores at the light's end, so a light mounted on a wall is not hidden by it",
-          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS"),
+          VOXEL_COMMANDS, source="measured (usdml)", range=Range(0), metavar="VOXELS", applies=_VOXEL),
     Param("voxel_segment", int, 32, "usdml:voxel:segment", "--voxel-segment",
           "voxels a shadow ray looks up in one row before it picks its row anew (a divisor of 32)",
-          VOXEL_COMMANDS, source="one 32-bit word of a row", choices=(1, 2, 4, 8, 16, 32)),
+          VOXEL_COMMANDS, source="one 32-bit word of a row", choices=(1, 2, 4, 8, 16, 32), applies=_VOXEL),
     Param("voxel_cpu_kernel", str, "auto", "usdml:voxel:cpuKernel", "--voxel-cpu-kernel",
           "how voxel queries run on a CPU: auto (the compiled kernel, AVX2 where the CPU has it, else Warp), "
           "native (the compiled kernel; an error without it) or warp", VOXEL_COMMANDS,
@@ -241,18 +259,18 @@ _ROWS = (
           "native" is the compiled kernel built at install (8 queries at a
           time with AVX2 when the CPU has it, else one at a time); "warp" the
           Warp kernels (also what a GPU runs); "auto" the compiled kernel when
-          it was built, else Warp.'''),
+          it was built, else Warp.''', applies=_VOXEL),
     Param("voxel_core", float, 0.0, "usdml:voxel:core", "--voxel-core",
           "voxelization rule of the cached arrays: 0 rasterizes rows' centre lines; a fraction > 0 marks "
           "surface samples in that central part of a row", VOXEL_COMMANDS, source="measured (usdml)",
-          range=Range(0, 1), metavar="FRACTION"),
+          range=Range(0, 1), metavar="FRACTION", applies=_VOXEL),
     Param("voxel_frame_core", float, 0.0, "usdml:voxel:frameCore", "--voxel-frame-core",
           "the same rule for per-frame arrays rebuilt from geometry (voxel rebuild geometry)",
           VOXEL_COMMANDS, source="measured (usdml)", range=Range(0, 1), metavar="FRACTION",
-          doc="Voxelization rule of per-frame arrays rebuilt from geometry (rebuild = geometry), as core."),
+          doc="Voxelization rule of per-frame arrays rebuilt from geometry (rebuild = geometry), as core.", applies=_VOXEL),
     Param("voxel_memory_limit", float, 0.0, "usdml:voxel:memoryLimit", "--voxel-memory-limit",
           "GiB the voxel arrays may take; 0 = automatic: 80 % of the available memory", VOXEL_COMMANDS,
-          source="the machine", range=Range(0), metavar="GIB"),
+          source="the machine", range=Range(0), metavar="GIB", applies=_VOXEL),
 
     # -- sparse voxel octree (paper 003)
     Param("svo_resolution", int, 0, "usdml:svo:resolution", "--svo-resolution",
@@ -263,11 +281,11 @@ _ROWS = (
 
           0 picks the paper's: 128 for a room (a scene at most 20 m across by
           its metersPerUnit, like the paper's Cornell box), 256 for a larger
-          scene (its Sponza).'''),
+          scene (its Sponza).''', applies=_SVO),
     Param("svo_cpu_kernel", str, "auto", "usdml:svo:cpuKernel", "--svo-cpu-kernel",
           "how SVO queries run on a CPU: auto (the compiled traversal when it was built, else Warp), native "
           "(the compiled traversal; an error without it) or warp", VOXEL_COMMANDS,
-          source="measured (usdml): docs/svo.md", choices=("auto", "native", "warp")),
+          source="measured (usdml): docs/svo.md", choices=("auto", "native", "warp"), applies=_SVO),
 
     # -- intermediate shadow maps (paper 001)
     Param("insm_count", int, 10, "usdml:insm:count", "--insm-count",
@@ -277,22 +295,22 @@ _ROWS = (
 
           10 are the paper's: the midpoints of the box's eight non-vertical
           edges and the centres of its left and right faces; other counts
-          take a prefix of one fixed order of 26 (docs/insm.md).'''),
+          take a prefix of one fixed order of 26 (docs/insm.md).''', applies=_INSM),
     Param("insm_resolution", int, 128, "usdml:insm:resolution", "--insm-resolution",
           "pixels per side of each depth image", VOXEL_COMMANDS, source="paper 001, Table 2",
-          range=Range(8, 4096), metavar="W"),
+          range=Range(8, 4096), metavar="W", applies=_INSM),
     Param("insm_light_resolution", int, 512, "usdml:insm:lightResolution", "--insm-light-resolution",
           "texels per side of each view of a light's shadow map (six views for a point light)", VOXEL_COMMANDS,
-          source="paper 001, Table 3", range=Range(16, 8192), metavar="S"),
+          source="paper 001, Table 3", range=Range(16, 8192), metavar="S", applies=_INSM),
     Param("insm_threshold", float, 2.0, "usdml:insm:threshold", "--insm-threshold",
           "depth-discontinuity threshold of the triangulation, in pixel footprints of the depth image",
           VOXEL_COMMANDS, source="paper 001, Alg. 2 (scene-dependent there; measured: docs/insm.md)",
-          range=Range(0, low_open=True), metavar="PIXELS"),
+          range=Range(0, low_open=True), metavar="PIXELS", applies=_INSM),
 
     Param("insm_cpu_kernel", str, "auto", "usdml:insm:cpuKernel", "--insm-cpu-kernel",
           "how the per-light maps run on a CPU: auto (the compiled maps when they were built, else Warp), native "
           "(the compiled maps; an error without them) or warp", VOXEL_COMMANDS,
-          source="measured (usdml): docs/insm.md", choices=("auto", "native", "warp")),
+          source="measured (usdml): docs/insm.md", choices=("auto", "native", "warp"), applies=_INSM),
 
     # -- direct light from many lights (paper 004 over the stage's own lights)
     Param("direct", str, "all", "usdml:direct", "--direct",
@@ -314,7 +332,7 @@ _ROWS = (
           doc='''--direct lgh: blending radius factor alpha of the hierarchy over the stage's lights, r_l = alpha h_l; the lights within alpha h_1 of a point light it themselves.
 
           Larger alpha: more lights exact and finer grid lights farther out (less
-          error in the light and in its shadows), more lights visited per pixel.'''),
+          error in the light and in its shadows), more lights visited per pixel.''', applies=_DIRECT_LGH),
     Param("direct_shadow_samples", int, 64, "usdml:direct:shadowSamples", "--direct-shadow-samples",
           "--direct lgh: shadow rays per pixel (shared by its primary rays), importance-sampled from the lights "
           "that reach it",
@@ -323,7 +341,7 @@ _ROWS = (
 
           More samples, less shadow noise. The shadows are not filtered unless
           usdml:shadow:filterIterations is set: on the city at night the filter
-          blurred more shadow than it removed noise (docs/lgh-direct.md).'''),
+          blurred more shadow than it removed noise (docs/lgh-direct.md).''', applies=_DIRECT_LGH),
 
     # -- global illumination (papers 004 and 003)
     Param("gi", str, "none", "usdml:gi", "--gi",
@@ -338,11 +356,11 @@ _ROWS = (
           512 to 2,048 first-bounce VPLs: usdml:vpl:count 1024, usdml:vpl:bounces 1.'''),
     Param("vpl_count", int, 100_000, "usdml:vpl:count", "--vpls", "virtual point lights per frame",
           LIGHTING_COMMANDS, source="paper 004", range=Range(1), label="VPL count", metavar="N",
-          doc="Virtual point lights generated per frame (paper 004 uses 100K)."),
+          doc="Virtual point lights generated per frame (paper 004 uses 100K).", applies=_GI),
     Param("vpl_bounces", int, 3, "usdml:vpl:bounces", "--vpl-bounces",
           "diffuse bounces of the light paths that place VPLs", LIGHTING_COMMANDS, source="paper 004",
           range=Range(1), label="VPL bounces", metavar="N",
-          doc="Diffuse bounces of the light paths that place VPLs (paper 004 traces up to three)."),
+          doc="Diffuse bounces of the light paths that place VPLs (paper 004 traces up to three).", applies=_GI),
     Param("lgh_alpha", float, 1.0, "usdml:lgh:alpha", "--lgh-alpha",
           "LGH blending radius factor alpha, r_l = alpha h_l", LIGHTING_COMMANDS, source="paper 004",
           range=Range(0, low_open=True), label="LGH alpha", metavar="ALPHA",
@@ -350,24 +368,24 @@ _ROWS = (
 
           h_l is the grid size of level l. Larger alpha widens the blending
           functions: more grid lights per shading point, more accurate and
-          slower.'''),
+          slower.''', applies=_GI_LGH),
     Param("lgh_cpu_kernel", str, "auto", "usdml:lgh:cpuKernel", "--lgh-cpu-kernel",
           "how the LGH's gather and shadow-ray targets run on a CPU: auto (the compiled kernels when they were "
           "built, else Warp), native (compiled; an error without them) or warp", LIGHTING_COMMANDS,
-          source="measured (usdml): docs/gi.md", choices=("auto", "native", "warp")),
+          source="measured (usdml): docs/gi.md", choices=("auto", "native", "warp"), applies=_ANY_LGH),
     Param("lgh_levels", int, 0, "usdml:lgh:levels", "--lgh-levels",
           "LGH levels; 0 = the paper's rule (the most whose S1 has under half as many lights as VPLs)",
           LIGHTING_COMMANDS, source="paper 004", range=Range(0), label="LGH levels", metavar="N",
           doc='''Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
 
-          Any positive value forces that number of levels.'''),
+          Any positive value forces that number of levels.''', applies=_ANY_LGH),
     Param("lgh_start_level", int, 1, "usdml:lgh:startLevel", "--lgh-start-level",
           "finest LGH level lit from: 1 = S1 as the paper, 0 = the VPLs themselves (S0)", LIGHTING_COMMANDS,
           source="paper 004, Sec. 4.1", choices=(0, 1), label="LGH start level",
           doc='''Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
 
           S0 makes the near field exact (each pixel visits the VPLs within
-          alpha h_1) at some extra lighting cost.'''),
+          alpha h_1) at some extra lighting cost.''', applies=_GI_LGH),
     Param("gi_svo_skip", float, 0.5, "usdml:gi:svoSkip", "--gi-svo-skip",
           "--gi svo: pairs whose light is below this fraction of the pixel's mean cast no shadow ray and count "
           "as seen as much as the pixel's traced light (0 = trace every pair with G > 0)", LIGHTING_COMMANDS,
@@ -375,20 +393,20 @@ _ROWS = (
           doc='''--gi svo: (pixel, VPL) pairs whose unshadowed light is below this fraction of the mean of the pixel's pairs cast no shadow ray (paper 003 skips the V term for faint VPLs).
 
           Their light counts as visible in the proportion the pixel's traced
-          light is. 0 traces every pair with G > 0.'''),
+          light is. 0 traces every pair with G > 0.''', applies=(("gi", ("svo",)),)),
     Param("interleave", int, 1, "usdml:lgh:interleave", "--interleave",
           "interleaved sampling tile size: each pixel of an n x n tile gathers 1/n^2 of the grid lights "
           "(1 = off)", LIGHTING_COMMANDS, source="paper 004, Sec. 4 (off by default)", choices=(1, 2, 4),
           doc='''Interleaved sampling tile size n (1, 2 or 4): each pixel of an n x n tile gathers a different 1/n^2 of the grid lights (paper 004, Sec. 4).
 
-          1 disables it.'''),
+          1 disables it.''', applies=_GI_LGH),
     Param("shadow_samples", int, 4, "usdml:shadow:samples", "--shadow-samples",
           "stochastic shadow samples per pixel", LIGHTING_COMMANDS, source="paper 004", range=Range(1),
           metavar="N",
           doc='''Stochastic shadow samples per pixel (paper 004 uses 4).
 
           Shadow rays are importance-sampled from the lights that contribute to
-          the pixel and filtered before being used as shadow ratio estimators.'''),
+          the pixel and filtered before being used as shadow ratio estimators.''', applies=_GI_LGH),
     Param("shadow_filter_iterations", int, -1, "usdml:shadow:filterIterations", "--shadow-filter-iterations",
           "a-trous iterations over the stochastic shadows; 0 = unfiltered, -1 = by the samples (3 at 4 per "
           "pixel, one fewer per 4x more, none from 256)", LIGHTING_COMMANDS,
@@ -397,7 +415,7 @@ _ROWS = (
 
           Each iteration doubles the filter's reach (3 iterations: +-14 pixels).
           -1: 3 iterations at 4 samples per pixel, one fewer for every 4x more
-          samples, none from 256 (the best measured on cornell and city).'''),
+          samples, none from 256 (the best measured on cornell and city).''', applies=_ANY_LGH),
     Param("shadow_targets", str, "member", "usdml:shadow:targets", "--shadow-targets",
           "LGH shadow rays to a VPL of the chosen grid light, weighed by its own irradiance (member) or by "
           "the grid light's (cluster), or to the grid light's centre jittered by its variance (jitter, as "
@@ -408,7 +426,7 @@ _ROWS = (
 
           Grid-light centres average surface points and often lie inside
           geometry, so jittered targets over-occlude; cluster avoids that, and
-          member also leaves out the VPLs that face away from the pixel.'''),
+          member also leaves out the VPLs that face away from the pixel.''', applies=_GI_LGH),
 
     # -- sampling
     Param("dome_samples", int, 256, "usdml:dome:samples", "--dome-samples",
@@ -440,16 +458,32 @@ _ROWS = (
 PARAMS: dict[str, Param] = {p.field: p for p in _ROWS}
 
 
-def check(name: str, value):
+def check(name: str, value, keyword: bool = False):
     """``value`` if setting ``name`` (a :data:`PARAMS` field) accepts it; else a one-line
-    :class:`UsdmlError` naming the setting by its flag and schema attribute."""
+    :class:`UsdmlError` naming the setting by its flag and schema attribute (``keyword``: by the
+    Python keyword, ``name``, and the attribute: a script's message)."""
     param = PARAMS.get(name)
     if param is None:
         raise UsdmlError(f"unknown setting {name!r}; settings: {', '.join(PARAMS)}")
     problem = param.problem(value)
     if problem:
-        raise UsdmlError(f"{problem} ({param.where})")
+        where = f"keyword {name}, stage attribute {param.attribute}" if keyword else param.where
+        raise UsdmlError(f"{problem} ({where})")
     return value
+
+
+def ignored(given, settings) -> list[str]:
+    """A warning for each field of ``given`` (the settings a flag or keyword set) that ``settings`` (the
+    effective ones, the stage's included) do not read: ``--gi-svo-skip`` without ``--gi svo``."""
+    out = []
+    for name in given:
+        p = PARAMS[name]
+        if p.applies is None or any(getattr(settings, f) in values for f, values in p.applies):
+            continue
+        need = " or ".join(f"{PARAMS[f].flag} {'/'.join(values)}" for f, values in p.applies)
+        here = ", ".join(f"{PARAMS[f].flag} {getattr(settings, f)}" for f in dict(p.applies))
+        out.append(f"{p.flag} is ignored: it applies with {need} (here: {here})")
+    return out
 
 
 def default_help(param: Param) -> str:
@@ -457,6 +491,11 @@ def default_help(param: Param) -> str:
     default = param.default
     shown = ("on" if default else "off") if param.type is bool else f"{default:g}" if param.type is float else default
     return f"{param.help} (default: the stage's {param.attribute}, else {shown})".replace("%", "%%")
+
+
+#: the help's group of visibility flags: the backend and each backend's own settings
+VISIBILITY_GROUP = "visibility (usdml:visibility, usdml:voxel:*, usdml:svo:*, usdml:insm:*)"
+_VISIBILITY_ATTRS = ("usdml:voxel:", "usdml:svo:", "usdml:insm:")
 
 
 def add_cmdline_args(parser: argparse.ArgumentParser, command: str) -> None:
@@ -470,8 +509,7 @@ def add_cmdline_args(parser: argparse.ArgumentParser, command: str) -> None:
     rows = [p for p in PARAMS.values() if command in p.commands]
     groups = {}
     for p in rows:
-        title = ("visibility (usdml:visibility, usdml:voxel:*)"
-                 if p.attribute == "usdml:visibility" or p.attribute.startswith("usdml:voxel:")
+        title = (VISIBILITY_GROUP if p.attribute == "usdml:visibility" or p.attribute.startswith(_VISIBILITY_ATTRS)
                  else "lighting and sampling (usdml:gi, usdml:vpl:*, usdml:lgh:*, usdml:shadow:* ...)")
         group = groups.get(title) or groups.setdefault(title, parser.add_argument_group(title))
         kw = {"dest": p.field, "default": None, "help": default_help(p)}
@@ -493,5 +531,5 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
     return {f: v for f, v in values.items() if v is not None}
 
 
-__all__ = ["COMMANDS", "MAX_PIXEL_SAMPLES", "PARAMS", "Param", "Range", "add_cmdline_args", "check",
-           "default_help", "overrides_from_args"]
+__all__ = ["COMMANDS", "DEFAULT_WIDTH", "MAX_IMPLICIT_DETAIL", "MAX_PIXEL_SAMPLES", "PARAMS", "Param", "Range", "add_cmdline_args", "check",
+           "default_help", "ignored", "overrides_from_args"]

@@ -7,10 +7,9 @@ axes (units in the labels) and named series; :func:`histogram` draws distributio
 
 from __future__ import annotations
 
-import os
 from typing import Sequence
 
-__all__ = ["panels", "histogram", "series"]
+__all__ = ["error_map", "panels", "histogram", "series"]
 
 
 def _pyplot():
@@ -37,12 +36,15 @@ def _write(plt, fig, path: str) -> str:
     return path
 
 
+#: dots per inch of every chart
+DPI = 110
+
+
 def _save(fig, path: str) -> str:
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)       # never a half-written picture
+    from usdml.outputs import atomic_write
+
+    # never a half-written picture; a folder that cannot be made is one line naming it
+    atomic_write(path, ".png", lambda tmp: fig.savefig(tmp, dpi=DPI, bbox_inches="tight"))
     return path
 
 
@@ -83,6 +85,29 @@ def histogram(path: str, data: dict, xlabel: str, title: str | None = None, bins
         ax.hist(v, bins=edges, histtype="step", linewidth=1.5, label=str(label))
     ax.set_yscale("log")
     _axes(ax, title or "", xlabel, "pixels", legend=True)
+    return _write(plt, fig, path)
+
+
+def error_map(path: str, rgb, scale: float, title: str) -> str:
+    """An error heat map (``(H, W, 3)`` uint8, :func:`usdml.compare.error_heatmap`) drawn at least 6 inches
+    (660 px) wide whatever its pixel count, square pixels, with a colour bar of the signed per-pixel
+    error it encodes: red where the approximation is brighter (fewer lights blocked), blue darker,
+    fully coloured from ``100 / scale`` %."""
+    import numpy as np
+    from matplotlib.colors import LinearSegmentedColormap, Normalize
+
+    plt = _pyplot()
+    h, w = rgb.shape[:2]
+    width_in = 6.0
+    fig, ax = plt.subplots(figsize=(width_in + 1.2, max(2.0, width_in * h / max(w, 1)) + 0.6))
+    ax.imshow(np.asarray(rgb), interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title)
+    full = 100.0 / scale
+    cmap = LinearSegmentedColormap.from_list("error", [(1.0, 0.15, 0.1), (0.8, 0.8, 0.8), (0.1, 0.3, 1.0)])
+    bar = fig.colorbar(plt.cm.ScalarMappable(Normalize(-full, full), cmap), ax=ax, fraction=0.046, pad=0.04)
+    bar.set_label("signed error (wrongly hidden − visible) / lights, %")
     return _write(plt, fig, path)
 
 

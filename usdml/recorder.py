@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Callable
 from numbers import Number
 
 from usdml import params
@@ -42,6 +43,7 @@ RENDER_OPTIONS = {"image_width": None, "camera": None, "purposes": None, "aovs":
                   "workers": None, "scheduler": None, "chunk_size": 1, "retries": 2, "nthreads": None}
 #: widest image a render takes
 MAX_WIDTH = 16384
+_WIDTH_RULE = f"an integer from 1 to {MAX_WIDTH} (pixels)"
 
 
 @dataclass
@@ -65,10 +67,51 @@ class RecordResult:
     skipped_files: list[str] = field(default_factory=list)   #: the files of ``skipped``, left as they were
 
 
-def check_width(width: int | None) -> None:
-    """A one-line error for an image width outside ``1 .. MAX_WIDTH``."""
+def check_width(width: int | None, name: str = "--imageWidth") -> None:
+    """A one-line error for an image width outside ``1 .. MAX_WIDTH`` (``name``: how the user gave it)."""
     if width is not None and not 1 <= width <= MAX_WIDTH:
-        raise UsdmlError(f"--imageWidth {width}: use 1 to {MAX_WIDTH} pixels")
+        raise UsdmlError(f"{name} {width}: give {_WIDTH_RULE}")
+
+
+def _names(value) -> bool:
+    """A name, or a list / tuple of names (``aovs``, ``purposes``)."""
+    return isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value))
+
+
+def _int_from(low: int, high: int | None = None) -> Callable[[object], bool]:
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= low and (high is None or v <= high)
+
+
+#: each render option: (its flag, what it accepts, that in words); None is always accepted (the default)
+_OPTION_RULES = {
+    "image_width": ("--imageWidth", _int_from(1, MAX_WIDTH), _WIDTH_RULE),
+    "camera": ("--camera", lambda v: isinstance(v, str), "a camera prim path or name"),
+    "purposes": ("--purposes", _names, "a list of purposes (render, proxy, guide)"),
+    "aovs": ("--aovs", _names, "a list of AOV names"),
+    "render_settings": ("--renderSettingsPrimPath", lambda v: isinstance(v, str), "a RenderSettings prim path"),
+    "device": ("--device", lambda v: v in ("cpu", "cuda"), "cpu or cuda"),
+    "implicit_detail": ("--implicit-detail", _int_from(3, params.MAX_IMPLICIT_DETAIL),
+                        f"an integer from 3 to {params.MAX_IMPLICIT_DETAIL} (segments)"),
+    "camera_light": ("--disableCameraLight", lambda v: isinstance(v, bool), "True or False"),
+    "preview": ("--preview", lambda v: isinstance(v, bool), "True or False"),
+    "workers": ("--workers", _int_from(1), "an integer of 1 or more"),
+    "scheduler": ("--scheduler", lambda v: isinstance(v, str), "a scheduler address (tcp://HOST:PORT)"),
+    "chunk_size": ("--chunk-size", _int_from(1), "an integer of 1 or more (frames)"),
+    "retries": ("--retries", _int_from(0), "an integer of 0 or more"),
+    "nthreads": ("--nthreads", _int_from(1), "an integer of 1 or more"),
+}
+
+
+def _unknown_keywords(unknown: list[str], known: list[str]) -> str:
+    """``Recorder``'s one line for misspelt keywords: each with the nearest known one, if any is close."""
+    import difflib
+
+    said = []
+    for k in unknown:
+        near = difflib.get_close_matches(k, known, n=1, cutoff=0.6)
+        said.append(f"{k} (did you mean {near[0]}?)" if near else k)
+    return (f"Recorder: unknown keyword(s) {', '.join(said)}; the keywords are the render options "
+            f"({', '.join(RENDER_OPTIONS)}) and the settings of usdml.params.PARAMS")
 
 
 def frames_text(frames) -> str | None:
@@ -100,16 +143,19 @@ class Recorder:
     parameter table's fields; a stage's own ``usdml:*`` attributes apply where a keyword is not given,
     as on the command line."""
 
-    def __init__(self, **settings) -> None:
+    def __init__(self, *, _flags: bool = False, **settings) -> None:
+        # _flags: made by ``usdml render``, whose messages name the flags; a script's name its keywords
         unknown = sorted(k for k in settings if k not in RENDER_OPTIONS and k not in params.PARAMS)
         if unknown:
-            raise UsdmlError(f"Recorder: unknown setting(s) {', '.join(unknown)}; it takes "
-                             f"{', '.join(list(RENDER_OPTIONS) + list(params.PARAMS))}")
+            raise UsdmlError(_unknown_keywords(unknown, list(RENDER_OPTIONS) + list(params.PARAMS)))
         self.options = {k: settings.get(k, v) for k, v in RENDER_OPTIONS.items()}
+        for name, value in self.options.items():
+            flag, accepts, rule = _OPTION_RULES[name]
+            if value is not None and not accepts(value):
+                raise UsdmlError(f"{flag if _flags else 'Recorder: ' + name} {value!r}: give {rule}")
         self.overrides = {k: v for k, v in settings.items() if k in params.PARAMS and v is not None}
         for name, value in self.overrides.items():
-            params.check(name, value)
-        check_width(self.options["image_width"])
+            params.check(name, value, keyword=not _flags)
         aovs = self.options["aovs"]
         if isinstance(aovs, str):
             self.options["aovs"] = [a for a in aovs.split(",") if a]

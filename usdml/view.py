@@ -116,6 +116,10 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
         raise UsdmlError(f"--show {','.join(unknown)}: usdml view draws {', '.join(LAYERS)}")
     if png is None and not interactive:
         raise UsdmlError("give --png OUT.png (or --interactive where a display exists)")
+    if png is not None and not interactive:
+        from usdml.outputs import IMAGE_EXTENSIONS, check_output
+
+        check_output(png, "--png", [e for e in IMAGE_EXTENSIONS if e != ".exr"])
     if not interactive:
         why = probe()
         if why:
@@ -259,10 +263,8 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     if interactive:
         plotter.show()
     else:
-        folder = os.path.dirname(os.path.abspath(png))
-        os.makedirs(folder, exist_ok=True)
-        tmp = os.path.join(folder, f".{os.path.basename(png)}.tmp.png")
-        plotter.screenshot(tmp)
-        os.replace(tmp, png)
+        from usdml.outputs import write_image
+
+        write_image(png, plotter.screenshot(None, return_img=True))    # in the format png's extension names
     plotter.close()
     return drawn

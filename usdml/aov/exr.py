@@ -52,12 +52,10 @@ was: absent, or the previous complete file. Only a hard kill (SIGKILL, power los
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import secrets
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +63,7 @@ import numpy as np
 
 from usdml.aov.names import AOVS, NO_ID, AovSpec, find_aov
 from usdml.errors import UsdmlError
+from usdml.outputs import atomic_write, write_image
 
 __all__ = [
     "ExrError", "write_exr", "read_exr", "is_complete_exr", "exr_attribute", "write_png_preview",
@@ -123,67 +122,6 @@ def camera_matrices(camera: Any) -> tuple[np.ndarray, np.ndarray]:
     """``(world_to_camera, world_to_ndc)`` for :func:`write_exr` from a :class:`usdml.scene.Camera`."""
     world_to_camera = np.linalg.inv(np.asarray(camera.xform, np.float64))
     return world_to_camera, np.asarray(camera.projection_matrix(), np.float64) @ world_to_camera
-
-
-# --- atomic files -------------------------------------------------------------------------------
-
-def _temp_name(path: Path, suffix: str) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{suffix}")
-
-
-def make_output_folder(folder: str | os.PathLike) -> Path:
-    """Create ``folder`` and its parents for output files, or raise a one-line :class:`UsdmlError`
-    naming what is in the way (a file where a folder must go, a read-only file system ...)."""
-    folder = Path(folder)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
-        why = f"{blocker} is a file, not a folder" if blocker is not None else (e.strerror or str(e))
-        raise UsdmlError(f"{folder}: cannot create the output folder ({why}); choose another output path") from None
-    return folder
-
-
-def _cannot_create_in(folder: Path) -> str | None:
-    """Why no file can be created in ``folder`` (a probe: permissions, read-only or full file system), else None."""
-    probe = _temp_name(folder / "probe", "")
-    try:
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL))
-    except OSError as e:
-        return e.strerror or str(e)
-    with contextlib.suppress(OSError):
-        probe.unlink()
-    return None
-
-
-def _atomic_write(path: str | os.PathLike, suffix: str, write: Callable[[Path], None]) -> Path:
-    """``write(tmp)``, fsync, ``os.replace(tmp, path)``; the temp file never outlives a failure.
-
-    A failure the disk explains (the folder takes no new file, or the OS refused a write) is a
-    one-line :class:`UsdmlError` naming ``path``; any other failure of ``write`` propagates."""
-    path = Path(path)
-    make_output_folder(path.parent)
-    tmp = _temp_name(path, suffix)
-    try:
-        write(tmp)
-        if not tmp.is_file():
-            raise OSError(f"{path}: the writer produced no file")
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        if isinstance(e, (OSError, RuntimeError)):      # OpenEXR reports I/O failures as RuntimeError
-            why = _cannot_create_in(path.parent) or (e.strerror if isinstance(e, OSError) else None)
-            if why:
-                raise UsdmlError(f"{path}: cannot write the file ({why}); choose a writable output folder "
-                                 "with free space") from None
-        raise
-    return path
 
 
 # --- EXR writing --------------------------------------------------------------------------------
@@ -372,7 +310,7 @@ def write_exr(
     header["compression"] = comp
     header["type"] = OpenEXR.scanlineimage
 
-    return _atomic_write(path, ".exr", lambda tmp: _write_file(tmp, header, channels))
+    return atomic_write(path, ".exr", lambda tmp: _write_file(tmp, header, channels))
 
 
 def _write_file(path: Path, header: dict, channels: dict) -> None:
@@ -550,8 +488,6 @@ def write_png_preview(
     luminance of c (keeps hue, rolls highlights off), then clip; encode with the sRGB transfer
     function and round to 8 bits. NaN -> 0, +inf -> white. The file is tagged sRGB.
     """
-    import OpenImageIO as oiio
-
     if tonemap not in ("clamp", "reinhard"):
         raise ValueError(f"tonemap must be 'clamp' or 'reinhard', got {tonemap!r}")
     img = np.asarray(rgba, np.float64)
@@ -569,20 +505,4 @@ def write_png_preview(
     out = _srgb_encode(rgb)
     if keep_alpha:
         out = np.concatenate([out, a], axis=-1)
-    pixels = np.ascontiguousarray(np.round(out * 255.0).astype(np.uint8))
-    h, w, c = pixels.shape
-
-    def write(tmp: Path) -> None:
-        spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
-        spec.attribute("oiio:ColorSpace", "sRGB")
-        spec.attribute("oiio:UnassociatedAlpha", 1)     # our alpha is already straight
-        out_file = oiio.ImageOutput.create(str(tmp))
-        if out_file is None:
-            raise OSError(f"{path}: OpenImageIO cannot write PNG ({oiio.geterror()})")
-        try:
-            if not out_file.open(str(tmp), spec) or not out_file.write_image(pixels):
-                raise OSError(f"{path}: PNG write failed ({out_file.geterror()})")
-        finally:
-            out_file.close()
-
-    return _atomic_write(path, ".png", write)
+    return write_image(path, np.round(out * 255.0).astype(np.uint8), suffix=".png")

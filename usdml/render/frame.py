@@ -87,6 +87,7 @@ class FrameRenderer:
         self._previous: Snapshot | None = None
         self._told_camera_light = False
         self._told_no_vpls = False
+        self._told_no_grid = False
 
     def frame_lights(self, snap: Snapshot) -> Lights:
         """The snapshot's lights plus each dome light importance-sampled into distant lights.
@@ -130,6 +131,11 @@ class FrameRenderer:
 
             direct_field = prepare_direct(lights, self.settings.lgh_levels, device=self.device)
             stats["direct_lgh"] = dict(direct_field.stats)
+            if direct_field.lgh is None and len(direct_field.rest) and not self._told_no_grid:
+                log.warning(f"{self.delegate.path}: --direct lgh: none of its {len(direct_field.rest)} light(s) at time "
+                            f"{snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping cones "
+                            "or focus, shadows off, black): all are shaded every-light, as --direct all")
+                self._told_no_grid = True
         image = _PixelFilter(width, height)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
         shaded = [None] * len(passes)

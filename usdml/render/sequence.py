@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
-from usdml.aov.exr import (camera_matrices, exr_attribute, is_complete_exr, make_output_folder, write_exr,
-                           write_png_preview)
+from usdml.aov.exr import camera_matrices, exr_attribute, is_complete_exr, write_exr, write_png_preview
 from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, log
+from usdml.outputs import make_output_folder
+from usdml.params import DEFAULT_WIDTH, ignored
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.settings import UsdmlSettings
@@ -67,7 +68,7 @@ def _resolution(snap, job: RenderJob) -> tuple[int, int]:
     """The image size. ``--imageWidth`` wins for the width; the RenderSettings in force (``--renderSettingsPrimPath``
     or the stage's ``renderSettingsPrimPath``) give the aspect, and the width when ``--imageWidth`` is not given:
     the first product's resolution when the products are written (no OUTPUT), the RenderSettings' own with an
-    OUTPUT path. Without RenderSettings: width 960 and the camera's aspect."""
+    OUTPUT path. Without RenderSettings: width ``DEFAULT_WIDTH`` and the camera's aspect."""
     rs = snap.render_settings
     if rs is not None:
         w, h = rs.resolution
@@ -76,7 +77,7 @@ def _resolution(snap, job: RenderJob) -> tuple[int, int]:
         if job.image_width:
             return int(job.image_width), max(1, round(job.image_width * h / w))
         return int(w), int(h)
-    width = int(job.image_width or 960)
+    width = int(job.image_width or DEFAULT_WIDTH)
     return snap.camera.resolution(width)
 
 
@@ -211,6 +212,8 @@ def render_sequence(job: RenderJob) -> dict:
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
+    for message in ignored(job.overrides, settings):
+        log.warning(message)
     if settings.visibility not in backend_names():
         raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility "
                          + " or ".join(backend_names()))

@@ -19,13 +19,14 @@ import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 
 from usdml.errors import UsdmlError, Warnings, tf_message
+from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.diagnostics import usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
-from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, MAX_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
+from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 

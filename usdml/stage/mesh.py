@@ -24,8 +24,6 @@ from usdml.stage.implicit import IMPLICIT_TYPES, tessellate
 
 #: segments around an implicit surface's axis: usdImaging's (its sphere and cylinder adapters use 10)
 DEFAULT_IMPLICIT_DETAIL = 10
-#: most segments --implicit-detail accepts (a sphere is about 2·detail² triangles)
-MAX_IMPLICIT_DETAIL = 1024
 
 #: attributes whose time samples make a gprim's points vary
 _SHAPE_ATTRS = ("points", "size", "radius", "height", "radiusTop", "radiusBottom", "width", "length", "axis")
