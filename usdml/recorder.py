@@ -4,10 +4,12 @@
 
     import usdml
 
-    rec = usdml.Recorder(image_width=512, visibility="voxel", aovs=["color", "shadow"])
-    result = rec.record("shot.usda", 101, "out/beauty.####.exr")       # a path or an open Usd.Stage
+    rec = usdml.Recorder(image_width=128, visibility="voxel", aovs=["color", "shadow"])
+    result = rec.record("stages/park.usda", 12, "out/park.####.exr")     # a path or an open Usd.Stage
     print(result.files, result.seconds, result.warnings)
-    rec.record_sequence(stage, "101:148", "out/beauty.####.exr", resume=True)
+    rec.record_sequence("stages/park.usda", "12:14", "out/park.####.exr", resume=True)   # 12 is done: 13, 14
+
+(from the repository's root: frames 12 to 14 of the sample park).
 
 ``usdrecord``'s ``FrameRecorder.Record(stage, usdCamera, timeCode, outputImagePath)`` takes the camera
 per call; here the camera is a setting (``camera=``, a prim path or name, as ``--camera``), because
