@@ -297,3 +297,33 @@ def test_the_api_checks_types_and_names_keywords(kwargs, needle):
     message = str(e.value)
     assert needle in message, message
     assert "--" not in message, message            # a keyword, not a flag the script never typed
+
+
+def _typed_flags():
+    """(command, flag, a value it refuses) for every flag of every command that takes a typed value or a
+    choice: the table's and each command's own."""
+    _, subs = _subparsers()
+    out = []
+    for command, parser in sorted(subs.items()):
+        for action in parser._actions:
+            flag = next((o for o in action.option_strings if o.startswith("--")), None)
+            if flag is None or action.nargs == 0:
+                continue
+            if action.choices:
+                out.append((command, flag, "no-such-choice"))
+            elif action.type in (int, float):
+                out.append((command, flag, "abc"))
+    return out
+
+
+@pytest.mark.parametrize("command, flag, value", _typed_flags())
+def test_every_flag_refuses_a_bad_value_in_one_line(capsys, command, flag, value):
+    positional = {"cache": "clean"}.get(command, CORNELL)     # clean: a refused value must remove nothing
+    _one_error(capsys, [command, positional, flag, value], flag)
+
+
+@pytest.mark.parametrize("command", ["render", "compare", "bench", "bake", "info", "view"])
+def test_every_command_refuses_an_unknown_flag_and_a_missing_stage(capsys, command, tmp_path):
+    _one_error(capsys, [command, CORNELL, "--no-such-flag"], f"usdml {command}: unrecognized arguments")
+    needs = {"compare": ["--visibility", "svo"], "view": ["--png", tmp_path / "v.png"]}.get(command, [])
+    _one_error(capsys, [command, tmp_path / "nope.usda", *needs], "nope.usda")
