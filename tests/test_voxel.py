@@ -301,11 +301,11 @@ def test_cache_round_trip_reuse_and_corruption(tmp_path, small_city, caplog):
 
 
 def test_cache_loads_in_chunks_and_finds_damage_in_any_chunk(tmp_path, monkeypatch):
-    """An entry read (and hashed) in many chunks round-trips exactly, and a flipped byte in a late
-    chunk is still caught."""
+    """An entry stored (and expanded) in many zlib chunks round-trips exactly, and a flipped byte in a
+    late chunk is still caught."""
     import usdml.cache as cache_mod
 
-    monkeypatch.setattr(cache_mod, "READ_CHUNK", 4096)
+    monkeypatch.setattr(cache_mod, "ZCHUNK", 4096)
     cache = Cache(tmp_path)
     data = np.random.default_rng(3).integers(0, 2 ** 32, size=10_000, dtype=np.uint32)     # ~10 chunks
     cache.put("voxel", "k" * 40, data, {"what": "test"})

@@ -291,6 +291,37 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_cache(args: argparse.Namespace) -> int:
+    """``usdml cache list|clean``: what the on-disk cache holds, and emptying it."""
+    from usdml.cache import Cache
+    from usdml.errors import UsdmlError
+
+    cache = Cache(args.cache)
+    if args.action == "list":
+        entries = cache.entries()
+        total = sum(e.bytes for e in entries)
+        if args.json:
+            print(json.dumps({"root": str(cache.root), "limit": cache.limit, "bytes": total,
+                              "entries": [e.summary() for e in entries]}, indent=2))
+            return 0
+        for e in entries:
+            used = time.strftime("%Y-%m-%d %H:%M", time.localtime(e.last_used))
+            what = e.meta.get("source") or ("" if e.format == "USDMLC02" else f"({e.format})")
+            print(f"{e.kind:6s} {e.key[:12]}  {e.bytes / 2**20:9.2f} MiB  {used}  {what}")
+        print(f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}, {total / 2**20:.1f} MiB in {cache.root} "
+              f"(limit {cache.limit / 2**30:.2f} GiB, USDML_CACHE_SIZE)")
+        return 0
+    if args.older_than is not None and not args.older_than >= 0:
+        raise UsdmlError(f"--older-than {args.older_than:g}: give a number of days >= 0")
+    gone = cache.clean(None if args.older_than is None else args.older_than * 86400.0)
+    freed = sum(e.bytes for e in gone)
+    if args.json:
+        print(json.dumps({"root": str(cache.root), "removed": [e.summary() for e in gone], "bytes": freed}, indent=2))
+    else:
+        print(f"removed {len(gone)} entr{'y' if len(gone) == 1 else 'ies'}, freed {freed / 2**20:.1f} MiB from {cache.root}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="usdml", description="Render USD stages with thousands of lights.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -385,6 +416,15 @@ def build_parser() -> argparse.ArgumentParser:
     bake.add_argument("--json", action="store_true", help="print JSON")
     add_cmdline_args(bake, "bake")
     bake.set_defaults(run=_cmd_bake)
+
+    cache = sub.add_parser("cache", help="list or empty the on-disk cache of voxel arrays and octrees")
+    cache.add_argument("action", choices=("list", "clean"), help="list: entries, sizes, last use; clean: remove "
+                       "entries (all of them unless --older-than)")
+    cache.add_argument("--older-than", type=float, metavar="DAYS", help="clean: only entries last used more than "
+                       "DAYS days ago")
+    cache.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
+    cache.add_argument("--json", action="store_true", help="print JSON")
+    cache.set_defaults(run=_cmd_cache)
     for command in sub.choices.values():
         _add_quiet_arg(command)
     return parser

@@ -3,8 +3,9 @@
 An array covers its geometry's bounding sphere (so every direction's rotated cube holds it; a
 world-space array's box is first stretched toward a cube, :func:`normalizing_transform`). This module
 builds arrays (Alg. 1, :func:`build_array`), keys and caches them (:func:`array_key`,
-:func:`cached_array`), says what they cost (:func:`array_cost`, :func:`available_memory`) and holds
-the Warp helpers the builders share (:func:`warp_module`, :func:`clear_words`, :func:`host_words`).
+:func:`cached_array`, in the compact form of :mod:`usdml.visibility.voxel_codec`), says what they
+cost (:func:`array_cost`, :func:`available_memory`) and holds the Warp helpers the builders share
+(:func:`warp_module`, :func:`clear_words`, :func:`host_words`).
 The backend that assembles arrays and answers queries is :mod:`usdml.visibility.voxel`; Alg. 5's
 rebuild is :mod:`usdml.visibility.voxel_rotate`; directions, rows and packing are in
 :mod:`usdml.visibility.voxel_grid`, the kernels in :mod:`usdml.kernels.voxel`.
@@ -35,6 +36,7 @@ import numpy as np
 from usdml.cache import Cache, cache_key
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import content_hash
+from usdml.visibility import voxel_codec
 from usdml.visibility.voxel_grid import DirectionBins, RowLayout, clip_to_box, surface_samples
 
 log = logging.getLogger("usdml")
@@ -299,8 +301,9 @@ def cached_array(points, triangles, resolution: int, step: float, cache: Cache |
     key = array_key(points, triangles, resolution, step, bounds, core)
     if cache is not None:
         got = cache.load("voxel", key)
-        if got is not None:
-            words, meta = got
+        words = None if got is None else _expand(cache, key, *got, resolution)
+        if words is not None:
+            meta = got[1]
             return VoxelArray(words, np.asarray(meta["center"], np.float64), float(meta["half"]),
                               int(meta["resolution"]), float(meta["step"]), int(meta.get("samples", 0)),
                               key=key, source=source, cached=True)
@@ -308,7 +311,20 @@ def cached_array(points, triangles, resolution: int, step: float, cache: Cache |
                       bounds=bounds, core=core)
     arr.key = key
     if cache is not None:
-        cache.store("voxel", key, arr.words, {"center": arr.center.tolist(), "half": arr.half,
-                                              "resolution": resolution, "step": step, "samples": arr.samples,
-                                              "format": FORMAT_VERSION, "source": source})
+        packed, codec = voxel_codec.encode(arr.words, resolution)
+        cache.store("voxel", key, packed, {"center": arr.center.tolist(), "half": arr.half,
+                                           "resolution": resolution, "step": step, "samples": arr.samples,
+                                           "format": FORMAT_VERSION, "source": source, **codec})
     return arr
+
+
+def _expand(cache: Cache, key: str, packed: np.ndarray, meta: dict, resolution: int) -> np.ndarray | None:
+    """The words of a loaded entry (:mod:`usdml.visibility.voxel_codec`); None (entry removed, a
+    warning) when they do not decode."""
+    try:
+        return voxel_codec.decode(packed, meta, resolution)
+    except (ValueError, KeyError, TypeError) as e:
+        path = cache.path("voxel", key)
+        log.warning(f"voxel cache: {path}: does not decode ({e}); rebuilding")
+        path.unlink(missing_ok=True)
+        return None
