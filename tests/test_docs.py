@@ -2,6 +2,7 @@
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,11 +12,57 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_benchmark_tables_are_current():
-    """docs/benchmarks.md's tables are what docs/data/*.json hold (tools/bench_tables.py rewrites them)."""
-    run = subprocess.run([sys.executable, str(ROOT / "tools" / "bench_tables.py"), "--check"], cwd=ROOT,
-                         capture_output=True, text=True)
+def bench_tables_check(root: Path) -> subprocess.CompletedProcess:
+    """``tools/bench_tables.py --check`` run on the checkout at ``root``."""
+    return subprocess.run([sys.executable, str(root / "tools" / "bench_tables.py"), "--check"], cwd=root,
+                          capture_output=True, text=True)
+
+
+def test_benchmark_tables_and_figures_are_current():
+    """Every table and every marked figure of README.md and docs/*.md is what docs/data/*.json hold, and
+    no page states more measured figures outside markers than it may (tools/bench_tables.py)."""
+    run = bench_tables_check(ROOT)
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+@pytest.fixture
+def docs_copy(tmp_path) -> Path:
+    """A copy of what bench_tables.py reads: README.md, docs/*.md, docs/data/ and the tool."""
+    (tmp_path / "tools").mkdir()
+    shutil.copy(ROOT / "tools" / "bench_tables.py", tmp_path / "tools")
+    shutil.copy(ROOT / "README.md", tmp_path)
+    shutil.copytree(ROOT / "docs", tmp_path / "docs", ignore=shutil.ignore_patterns("images"))
+    assert bench_tables_check(tmp_path).returncode == 0
+    return tmp_path
+
+
+def test_a_figure_edited_by_hand_fails_the_check(docs_copy):
+    readme = docs_copy / "README.md"
+    text = readme.read_text()
+    m = re.search(r"(<!-- fig: city-voxel-frame-vs-exact -->)([^<]*)(<!-- /fig -->)", text)
+    assert m, "README.md states the city's voxel frame speed-up through a marker"
+    readme.write_text(text.replace(m.group(0), m.group(1) + "99.9×" + m.group(3)))
+    run = bench_tables_check(docs_copy)
+    assert run.returncode == 1 and "99.9×" in run.stdout
+
+
+def test_changed_data_fails_the_check(docs_copy):
+    data = docs_copy / "docs" / "data" / "frame-speed.json"
+    data.write_text(re.sub(r'"voxel_speedup_vs_exact": [\d.]+', '"voxel_speedup_vs_exact": 3.0', data.read_text()))
+    run = bench_tables_check(docs_copy)
+    assert run.returncode == 1 and "3.0×" in run.stdout
+
+
+def test_an_untied_figure_in_the_readme_fails_the_check(docs_copy):
+    readme = docs_copy / "README.md"
+    readme.write_text(readme.read_text().replace("## Commands\n", "## Commands\n\nA frame takes 58 s.\n", 1))
+    run = bench_tables_check(docs_copy)
+    assert run.returncode == 1 and "README.md:" in run.stderr and "58 s" in run.stderr
+
+
+def test_readme_is_an_entry_point():
+    """The README stays short (what, the two commands, the commands, conventions); detail is in docs/."""
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 250
 
 
 def readme_python(section: str) -> str:

@@ -6,6 +6,7 @@ Usage::
     python tools/bench_tables.py             # rewrite every table between its markers
     python tools/bench_tables.py --check     # exit 1 (with a diff) if a table is not what its data says
     python tools/bench_tables.py --list      # each table: where its data came from, and its commands
+    python tools/bench_tables.py --untied    # each figure in prose that no marker ties to data
     python tools/bench_tables.py --run NAME  # re-run NAME's commands, keep their JSON, rewrite the tables
     python tools/bench_tables.py --run NAME --commands 0,2   # only those commands (numbered as --list shows)
 
@@ -14,6 +15,14 @@ its JSON output as the tool printed it (``--json``) and a ``source`` saying when
 measured (or that the figures were carried over from an earlier README and await re-measuring). In a
 page under ``docs/``, the table sits between ``<!-- table: NAME -->`` and ``<!-- /table -->``; what is
 between the markers is generated (the table, then the commands), so edit the data, not the page.
+
+A figure in prose is tied to its data the same way: ``<!-- fig: NAME -->8.15 %<!-- /fig -->``, where
+``NAME`` is a key of ``FIGURES`` below (a data file, a path into it, a format); the text between the
+markers is generated, in ``README.md`` and every page under ``docs/``. ``--check`` also counts the
+figures a page states outside tables, code and markers (a number with ``×``, ``%``, ``s``, ``ms``,
+``M/s``, ...): ``README.md`` and ``docs/benchmarks.md`` may state none, every other page no more than
+``UNTIED`` allows, so a new measured figure comes with its data or does not come. ``docs/CHANGELOG.md``
+is history, dated by commit, and is not checked.
 
 ``--run`` needs usdml installed (the commands are ``python tools/...`` and ``usdml ...``; both are run
 with this interpreter); the rest is the standard library only.
@@ -36,6 +45,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 DATA = DOCS / "data"
 MARKER = re.compile(r"(<!-- table: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /table -->)", re.S)
+FIG = re.compile(r"(?<!`)(<!-- fig: (?P<name>[\w.-]+) -->)(?P<body>.*?)(<!-- /fig -->)", re.S)
+CHANGELOG = DOCS / "CHANGELOG.md"
 
 
 # ------------------------------------------------------------------------------------------- formatting
@@ -399,6 +410,134 @@ RENDERERS = {
 }
 
 
+# ---------------------------------------------------------------------------------------------- figures
+
+# A figure in prose: NAME -> (data file under docs/data/, path into its JSON, format). A path is keys and
+# list indexes joined by dots; ``[key=value,...]`` picks the first list item whose fields print as those
+# values. A format is a kind and its decimals: ``x2`` 11.65×, ``p1`` 8.2 % (of a fraction), ``s1`` 3.3 s,
+# ``n0`` 417, ``M0`` 149 M/s (of queries per second). Name each figure for what it measures, so that
+# one quantity measured two ways reads as two names.
+_MATRIX = "voxel-matrix", "runs.0.output.[stage=stages/city.usda,voxel_resolution={},direction_step={}].{}"
+FIGURES: dict[str, tuple[str, str, str]] = {
+    # the city's voxel speed, three measures: bench queries, voxel_table's query set, a whole frame
+    "city-voxel-bench-vs-exact": ("bench", "runs.0.output.[backend=voxel].speedup_vs_exact", "x2"),
+    "city-voxel-bench-vs-embree": ("bench", "runs.0.output.[backend=voxel].speedup_vs_bare_embree", "x2"),
+    "planes-voxel-bench-vs-exact": ("bench", "runs.1.output.[backend=voxel].speedup_vs_exact", "x2"),
+    "planes-voxel-bench-vs-embree": ("bench", "runs.1.output.[backend=voxel].speedup_vs_bare_embree", "x2"),
+    "city-svo-bench-vs-exact": ("bench", "runs.2.output.[backend=svo].speedup_vs_exact", "x2"),
+    "city-voxel-matrix-32-6-vs-exact": (_MATRIX[0], _MATRIX[1].format(32, 6.0, "speedup_vs_exact"), "x1"),
+    "city-voxel-matrix-32-6-qps": (_MATRIX[0], _MATRIX[1].format(32, 6.0, "queries_per_second"), "M0"),
+    "city-voxel-matrix-128-2-vs-exact": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "speedup_vs_exact"), "x1"),
+    "city-voxel-matrix-128-2-qps": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "queries_per_second"), "M0"),
+    "city-voxel-matrix-128-2-eps-v": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "eps_v"), "p2"),
+    "city-voxel-matrix-128-2-eps-s": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "eps_s"), "p2"),
+    "city-voxel-frame-vs-exact": ("frame-speed", "runs.0.output.0.voxel_speedup_vs_exact", "x1"),
+    # the compiled voxel kernel, one thread and two
+    "city-avx512-ns": ("voxel-kernels", "runs.0.output.rows.[kernel=native-avx512].ns_per_query_one_thread", "n1"),
+    "city-avx512-qps": ("voxel-kernels", "runs.0.output.rows.[kernel=native-avx512].queries_per_second", "M0"),
+    "city-avx2-ns": ("voxel-kernels", "runs.0.output.rows.[kernel=native-avx2].ns_per_query_one_thread", "n1"),
+    "city-avx2-qps": ("voxel-kernels", "runs.0.output.rows.[kernel=native-avx2].queries_per_second", "M0"),
+    # the sparse voxel octree
+    "city-svo-256-eps-v": ("svo", "runs.1.output.eps_v", "p2"),
+    "city-svo-256-eps-s": ("svo", "runs.1.output.eps_s", "p2"),
+    "city-svo-256-build-s": ("svo", "runs.1.output.tree_build_seconds", "s1"),
+    "city-svo-512-eps-v": ("svo", "runs.2.output.eps_v", "p2"),
+    "city-svo-512-eps-s": ("svo", "runs.2.output.eps_s", "p2"),
+    "city-svo-512-build-s": ("svo", "runs.2.output.tree_build_seconds", "s1"),
+    "city-svo-512-compare-vs-exact": ("svo", "runs.2.output.speedup", "x1"),
+    "park-svo-256-eps-v": ("svo", "runs.4.output.eps_v", "p1"),
+    "park-svo-256-eps-s": ("svo", "runs.4.output.eps_s", "p1"),
+    "cornell-svo-128-eps-v": ("svo", "runs.6.output.eps_v", "p1"),
+    "park-svo-rebuild-s": ("svo-rebuild", "runs.0.output.[backend=svo].rebuild_seconds", "s2"),
+    "creature-svo-rebuild-s": ("svo-rebuild", "runs.1.output.[backend=svo].rebuild_seconds", "s2"),
+    # intermediate shadow maps at the paper's settings (K 10, w 128, S 512), and the city's frame
+    "dragon-insm-paper-eps-s": ("insm", "runs.0.output.rows.[stage=stages/dragon.usda,insm_resolution=128,"
+                                "insm_light_resolution=512,insm_count=10].eps_s", "p2"),
+    "city-insm-paper-eps-s": ("insm", "runs.0.output.rows.[stage=stages/city.usda,insm_resolution=128,"
+                              "insm_light_resolution=512,insm_count=10].eps_s", "p2"),
+    "dragon-insm-w256-eps-s": ("insm", "runs.0.output.rows.[stage=stages/dragon.usda,insm_resolution=256].eps_s",
+                               "p2"),
+    "dragon-insm-w256-s": ("insm", "runs.0.output.rows.[stage=stages/dragon.usda,insm_resolution=256].frame_seconds",
+                           "s1"),
+    "dragon-insm-w256-exact-s": ("insm", "runs.0.output.rows.[stage=stages/dragon.usda,insm_resolution=256]"
+                                 ".exact_seconds", "s2"),
+    "park-insm-moving-s": ("insm-dynamic", "runs.0.output.dynamic.0.moving_seconds", "s2"),
+    "park-insm-still-s": ("insm-dynamic", "runs.0.output.dynamic.0.still_seconds", "s2"),
+    "park-insm-moving-over-still": ("insm-dynamic", "runs.0.output.dynamic.0.moving_over_still", "n2"),
+    "city-insm-frame-s": ("insm-frame", "runs.0.output.0.insm.seconds", "s1"),
+    "city-insm-frame-exact-s": ("insm-frame", "runs.0.output.0.exact.seconds", "s1"),
+    "city-insm-frame-voxel-s": ("insm-frame", "runs.0.output.0.voxel.seconds", "s2"),
+    "city-insm-frame-vs-exact": ("insm-frame", "runs.0.output.0.insm_speedup_vs_exact", "x2"),
+    "city-insm-frame-voxel-vs-exact": ("insm-frame", "runs.0.output.0.voxel_speedup_vs_exact", "x0"),
+    # --direct lgh on the city at night (100,000 lamps, 256 px, every pixel both ways)
+    "city-night-lgh-frame-s": ("direct-compare", "runs.0.output.seconds.lgh", "s1"),
+    "city-night-all-frame-s": ("direct-compare", "runs.0.output.seconds.all", "s0"),
+    "city-night-lgh-rel-rmse": ("direct-compare", "runs.0.output.rel_rmse", "p1"),
+    # LGH GI on the city, compiled gather (100k VPLs, 256 px, alpha 4, k 512, brute force in the same run)
+    "city-gi-lgh-compiled-speedup": ("gi-lgh-city-compiled", "rows.0.speedup", "x0"),
+    "city-gi-lgh-compiled-rel-rmse": ("gi-lgh-city-compiled", "rows.0.rel_rmse", "p1"),
+}
+
+_FORMATS = {
+    "x": lambda v, n: f"{v:.{n}f}×", "p": lambda v, n: f"{100 * v:.{n}f} %", "s": lambda v, n: f"{v:.{n}f} s",
+    "n": lambda v, n: f"{v:.{n}f}", "M": lambda v, n: f"{v / 1e6:.{n}f} M/s",
+}
+_STEP = re.compile(r"\[[^\]]*\]|[^.\[]+")
+
+
+def lookup(data, path: str):
+    """The value at ``path`` (keys, indexes and ``[key=value,...]`` picks; see ``FIGURES``) in ``data``."""
+    x = data
+    for step in _STEP.findall(path):
+        if step.startswith("["):
+            want = dict(kv.split("=", 1) for kv in step[1:-1].split(","))
+            x = next(i for i in x if all(str(i.get(k)) == v for k, v in want.items()))
+        elif isinstance(x, list):
+            x = x[int(step)]
+        else:
+            x = x[step]
+    return x
+
+
+def figure(name: str) -> str:
+    """The text of figure ``name`` as its data says."""
+    if name not in FIGURES:
+        raise SystemExit(f"bench_tables: unknown figure {name!r} (add it to FIGURES in tools/bench_tables.py)")
+    table, path, fmt = FIGURES[name]
+    try:
+        value = lookup(load(table), path)
+    except (KeyError, IndexError, StopIteration, ValueError, TypeError) as e:
+        raise SystemExit(f"bench_tables: figure {name!r}: no {path!r} in docs/data/{table}.json ({e!r})")
+    return _FORMATS[fmt[0]](value, int(fmt[1:]))
+
+
+# A measured figure stated in prose: a number and a unit of time, speed or error (not 4×4, a size).
+MEASURED = re.compile(r"(?<![\w.])\d[\d,.]*(?:\s?[–-]\s?\d[\d,.]*)?\s?"
+                      r"(?:×(?!\s?\d)|%|(?:s|ms|µs|ns|M/s|minutes?|hours?)\b)")
+# How many measured figures each page may state outside markers: lower it as figures are tied or
+# dropped; a page not named may state none.
+UNTIED = {
+    "docs/gi.md": 46, "docs/insm.md": 51, "docs/lgh-direct.md": 14, "docs/rendering.md": 2, "docs/svo.md": 26,
+    "docs/usd.md": 1, "docs/voxel.md": 19,
+}
+
+
+def untied(text: str) -> list[tuple[int, str]]:
+    """(line, figure) of each measured figure outside tables, code, markers and the pages' table blocks."""
+    text = MARKER.sub(lambda m: "\n" * m.group(0).count("\n"), text)
+    text = FIG.sub("", text)
+    found, fenced = [], False
+    for no, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+            continue
+        if fenced or line.lstrip().startswith("|"):
+            continue
+        line = re.sub(r"`[^`]*`", "", line)
+        found += [(no, m.group(0)) for m in MEASURED.finditer(line)]
+    return found
+
+
 # ------------------------------------------------------------------------------------------------ pages
 
 
@@ -425,11 +564,13 @@ def block(name: str) -> str:
 
 
 def render_page(text: str) -> str:
-    return MARKER.sub(lambda m: m.group(1) + block(m.group("name")) + m.group(4), text)
+    text = MARKER.sub(lambda m: m.group(1) + block(m.group("name")) + m.group(4), text)
+    return FIG.sub(lambda m: m.group(1) + figure(m.group("name")) + m.group(4), text)
 
 
 def pages() -> list[Path]:
-    return sorted(DOCS.glob("*.md"))
+    """Every page whose tables and figures come from the data: README.md and docs/*.md (not the changelog)."""
+    return [ROOT / "README.md"] + sorted(p for p in DOCS.glob("*.md") if p != CHANGELOG)
 
 
 def rewrite(check: bool) -> int:
@@ -438,6 +579,20 @@ def rewrite(check: bool) -> int:
     unplaced = sorted(set(RENDERERS) - placed)
     if unplaced:
         print(f"bench_tables: no page has a marker for {', '.join(unplaced)}", file=sys.stderr)
+    used = {m.group("name") for page in pages() for m in FIG.finditer(page.read_text())}
+    unused = sorted(set(FIGURES) - used)
+    if unused:
+        print(f"bench_tables: no page states figure {', '.join(unused)}", file=sys.stderr)
+    loose = 0
+    for page in pages():
+        rel = str(page.relative_to(ROOT))
+        found = untied(page.read_text())
+        if len(found) > UNTIED.get(rel, 0):
+            loose += 1
+            print(f"bench_tables: {rel} states {len(found)} measured figure(s) outside <!-- fig --> markers, "
+                  f"{UNTIED.get(rel, 0)} allowed (tie them to docs/data, or see --untied):", file=sys.stderr)
+            for no, fig in found:
+                print(f"  {rel}:{no}: {fig}", file=sys.stderr)
     for page in pages():
         old = page.read_text()
         new = render_page(old)
@@ -452,7 +607,7 @@ def rewrite(check: bool) -> int:
             print(f"bench_tables: rewrote {page.relative_to(ROOT)}")
     if check and stale:
         print(f"bench_tables: {stale} page(s) out of date; run python tools/bench_tables.py", file=sys.stderr)
-    return 1 if unplaced or (check and stale) else 0
+    return 1 if unplaced or unused or loose or (check and stale) else 0
 
 
 # ------------------------------------------------------------------------------------------- re-running
@@ -509,6 +664,7 @@ def main(argv: list[str] | None = None) -> int:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--check", action="store_true", help="exit 1 if a table differs from its data")
     g.add_argument("--list", action="store_true", help="print each table's data source and commands")
+    g.add_argument("--untied", action="store_true", help="print each measured figure no marker ties to data")
     g.add_argument("--run", metavar="NAME", help="re-measure table NAME (its commands), then rewrite the tables")
     p.add_argument("--commands", metavar="I,J", help="with --run: only these of its commands (numbered from 0)")
     p.add_argument("--timeout", type=float, metavar="S", help="with --run: stop a command after S seconds")
@@ -517,6 +673,13 @@ def main(argv: list[str] | None = None) -> int:
         for name in RENDERERS:
             for i, run in enumerate(_runs(load(name))):
                 print(f"{name} {i}: {run['command']}  [{run['source']}]")
+        for name, (table, path, _) in FIGURES.items():
+            print(f"fig {name}: {figure(name)}  [docs/data/{table}.json {path}]")
+        return 0
+    if args.untied:
+        for page in pages():
+            for no, fig in untied(page.read_text()):
+                print(f"{page.relative_to(ROOT)}:{no}: {fig}")
         return 0
     if args.run:
         only = None if args.commands is None else {int(i) for i in args.commands.split(",")}
