@@ -3,7 +3,7 @@
 ``usdml.lighting.direct.shade_direct`` (launched by ``usdml.visibility.voxel.VoxelBackend.shade_direct``).
 
 A light is a row of :class:`LightTable`; its ``flags`` are the bits below, the ones
-``usdml.lighting.direct`` composes per light.
+``usdml.scene.light_table`` composes per light.
 """
 
 import warp as wp
@@ -24,7 +24,7 @@ CYLINDER = wp.constant(32)        # a cylinder seen from the side: irradiance ti
 
 @wp.struct
 class LightTable:
-    """Per-light constants of :func:`light_term` (as ``usdml.lighting.direct.LightTable``; ``flags`` holds its ``LightFlag`` bits)."""
+    """Per-light constants of :func:`light_term` (as ``usdml.scene.light_table.LightTable``; ``flags`` holds its ``LightFlag`` bits)."""
 
     pos: wp.array(dtype=wp.vec3)
     axis: wp.array(dtype=wp.vec3)

@@ -18,7 +18,7 @@ import os
 import numpy as np
 import pytest
 
-from usdml.lighting.direct import facing_pairs, shade_direct
+from usdml.lighting.direct import facing_pairs, shade_direct, shade_with
 from usdml.scene import diff
 from usdml.settings import UsdmlSettings
 from usdml.visibility import ExactBackend, backend_class, backend_names, make_backend
@@ -130,14 +130,14 @@ def test_capabilities_are_declared(name):
 
 @pytest.mark.parametrize("scene", ["occluder", "instances", "deforming"])
 def test_direct_shading_equals_lighting_direct_over_occluded(name, scene, device):
-    """``SHADE_DIRECT``'s fused kernel (or the default) shades as ``lighting.direct.shade_direct``
-    asking the same backend's ``occluded``."""
+    """``lighting.direct.shade_with`` (a ``SHADE_DIRECT`` backend's fused kernel, else the plain path)
+    shades as ``lighting.direct.shade_direct`` asking the same backend's ``occluded``."""
     lit = lights(np.random.default_rng(2))
 
     def check(backend, reference, snap, rng):
         pts, nrm = surface_points(rng, 300)
         albedo = np.full((len(pts), 3), 0.5, np.float32)
-        got = backend.shade_direct(pts, nrm, albedo, lit)
+        got = shade_with(backend, pts, nrm, albedo, lit)
         want = shade_direct(pts, nrm, albedo, lit, backend.occluded)
         assert np.array_equal(got.facing, want.facing)
         assert np.allclose(got.shadow, want.shadow)

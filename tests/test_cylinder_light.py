@@ -10,7 +10,7 @@ from pxr import Gf, Usd, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh, assert_direct, ground_stage, render_aovs
 from usdml.cli import main
-from usdml.lighting.direct import shade_direct
+from usdml.lighting.direct import shade_direct, shade_with
 from usdml.scene import Lights, LightType
 from usdml.stage import StageDelegate
 
@@ -215,7 +215,7 @@ def test_voxel_kernel_shades_cylinder_lights_as_the_numpy_path(small_city):
     albedo = np.full((600, 3), 0.5, np.float32)
     voxel = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None)
     voxel.update(snap)
-    fused = voxel.shade_direct(pts, normals, albedo, lights)
+    fused = shade_with(voxel, pts, normals, albedo, lights)
     pairs = shade_direct(pts, normals, albedo, lights, voxel.occluded)
     assert np.array_equal(fused.facing, pairs.facing)
     assert fused.shadow.max() > 0
@@ -223,7 +223,7 @@ def test_voxel_kernel_shades_cylinder_lights_as_the_numpy_path(small_city):
     # the profile matters here: the same lights shaded as spheres differ by far more than float32
     as_spheres = Lights.concat([lights])
     as_spheres.type[:] = LightType.SPHERE
-    off = voxel.shade_direct(pts, normals, albedo, as_spheres).radiance
+    off = shade_with(voxel, pts, normals, albedo, as_spheres).radiance
     assert np.abs(off - fused.radiance).sum() / fused.radiance.sum() > 0.1
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from usdml.lighting.direct import shade_with
 from usdml.scene import LightType, diff
 from usdml.visibility import ExactBackend
 from usdml.visibility import insm_mesh
@@ -196,7 +197,7 @@ def test_the_frames_lights_are_mapped_and_other_targets_go_to_exact():
     b = InsmBackend(light_resolution=128)
     b.update(snap, diff(None, snap))
     albedo = np.full((len(pts), 3), 0.5, np.float32)
-    b.shade_direct(pts, nrm, albedo, lit)            # the frame's lights, point and distant, become known
+    shade_with(b, pts, nrm, albedo, lit)             # the frame's lights, point and distant, become known
     b._reset_stats()
     matrix = b.occluded_matrix(pts, nrm, lit.position, lit.type == LightType.DISTANT, lit.axis)
     point = np.flatnonzero(lit.type != LightType.DISTANT)
@@ -278,7 +279,7 @@ def test_a_frame_builds_each_lights_map_once_whatever_the_pixel_samples(new_stag
         try:
             images[name] = r.render(d.start_time, 16, 16, {"direct"}).buffers["direct"]
             if name == "insm":
-                assert r.backend.stats["maps"] == 1 and r.backend.stats["exact_queries"] == 0
+                assert r.backends.shadow.stats["maps"] == 1 and r.backends.shadow.stats["exact_queries"] == 0
         finally:
             r.close()
     np.testing.assert_allclose(images["insm"], images["exact"], rtol=1e-5, atol=1e-7)

@@ -8,7 +8,7 @@ from pxr import Sdf, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh
 from usdml.errors import UsdmlError
-from usdml.lighting.direct import LightFlag, LightTable
+from usdml.scene.light_table import LightFlag, LightTable
 from usdml.scene import LightType
 from usdml.stage import StageDelegate
 
@@ -195,7 +195,6 @@ def test_light_flags_are_the_bits_the_shading_kernel_reads():
     """One set of light flags: ``LightFlag`` composes them (``LightTable.flags``), the Warp kernel names the
     same bits as constants."""
     from usdml.kernels import direct_shading
-    from usdml.lighting.direct import LightFlag
 
     for flag in LightFlag:
         assert int(getattr(direct_shading, flag.name)) == int(flag), flag.name

@@ -303,7 +303,7 @@ def test_compiled_walks_answer_as_the_warp_kernel(scene, isa):
 
 
 def test_a_machine_without_the_compiled_walk_gets_warp(monkeypatch):
-    monkeypatch.setattr(svo_native, "_load", lambda: (None, "not built (no C compiler)"))
+    monkeypatch.setattr(svo_native.EXTENSION, "load", lambda: (None, "not built (no C compiler)"))
     b = SvoBackend(resolution=32, cache=False)
     assert not b.native and b.kernel_name == "warp"
     assert "Warp kernels" in svo_native.describe()

@@ -238,7 +238,7 @@ def test_instances_answer_as_their_array_queried_in_each_instance_space(device):
 
 
 def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_city, device):
-    from usdml.lighting.direct import shade_direct
+    from usdml.lighting.direct import shade_direct, shade_with
 
     snap, o, t, nrm, ref = small_city
     backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None, device=device)
@@ -257,7 +257,7 @@ def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_ci
         shadow=np.ones(n, bool), paths=[f"/l{i}" for i in range(n)], instance_ids=np.full(n, -1))
     pts, normals = o[:500], nrm[:500]
     albedo = np.full((500, 3), 0.5, np.float32)
-    fused = backend.shade_direct(pts, normals, albedo, lights)
+    fused = shade_with(backend, pts, normals, albedo, lights)
     pairs = shade_direct(pts, normals, albedo, lights, backend.occluded)
     assert np.array_equal(fused.facing, pairs.facing)
     assert np.allclose(fused.shadow, pairs.shadow)

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from usdml.errors import UsdmlError
+from usdml.lighting.direct import shade_with
 from usdml.scene import diff
 from usdml.settings import UsdmlSettings
 from usdml.visibility import make_backend, voxel_native
@@ -169,8 +170,8 @@ def test_native_shading_equals_the_warp_shading_kernel(scene, isa):
                 b.update(snap, diff(None, snap))
             pts, nrm = surface_points(rng, 700)
             albedo = rng.uniform(0.2, 0.9, (len(pts), 3)).astype(np.float32)
-            want = warp.shade_direct(pts, nrm, albedo, lit)
-            got = native.shade_direct(pts, nrm, albedo, lit)
+            want = shade_with(warp, pts, nrm, albedo, lit)
+            got = shade_with(native, pts, nrm, albedo, lit)
             assert np.array_equal(got.facing, want.facing) and got.queries == want.queries
             assert np.allclose(got.shadow, want.shadow)
             assert np.allclose(got.radiance, want.radiance, rtol=1e-5, atol=1e-7)
@@ -181,7 +182,7 @@ def test_native_shading_equals_the_warp_shading_kernel(scene, isa):
 
 
 def test_a_machine_without_the_compiled_kernel_gets_warp(monkeypatch):
-    monkeypatch.setattr(voxel_native, "_load", lambda: (None, "not built (no C compiler)"))
+    monkeypatch.setattr(voxel_native.EXTENSION, "load", lambda: (None, "not built (no C compiler)"))
     b = VoxelBackend(resolution=32, step=10.0, cache=False)
     assert not b.native and b.kernel_name == "warp"
     assert "Warp kernels" in voxel_native.describe() and "C compiler" in voxel_native.describe()

@@ -12,7 +12,8 @@ outgoing radiance ``ρ/π · E``, with irradiance
 * distant lights: ``E = E₀ · max(0, n·ω)`` with ω = −axis.
 
 ``S`` is UsdLux shaping: zero outside the cone half-angle, a smoothstep from ``cos(angle)`` to
-``cos(angle·(1−softness))`` across the cone edge, and focus as ``focusTint + (1 − focusTint)·cos^focus θ_l``.
+``cos(angle·(1−softness))`` across the cone edge, and focus as ``focusTint + (1 − focusTint)·cos^focus θ_l``
+(the per-light constants: :class:`usdml.scene.light_table.LightTable`).
 
 A light *faces* a point when its unshadowed contribution is non-zero; the ``shadow`` AOV is the
 fraction of facing lights that are blocked (paper 000's hiddenLightsN / n). With a geometric normal
@@ -23,98 +24,19 @@ light behind the surface must not light the point (the surface itself is in the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from enum import IntFlag
 from typing import Callable
 
 import numpy as np
 
 from usdml.parallel import cpu_workers, iter_parallel
-from usdml.scene import Lights, LightType
+from usdml.scene import Lights
+from usdml.scene.light_table import LightTable, smoothstep_cone
+from usdml.visibility.base import SHADE_DIRECT, DirectResult
+
+__all__ = ["DirectResult", "PAIRS_PER_CHUNK", "facing_pairs", "shade_direct", "shade_with", "shadow_queries"]
 
 #: (pixel, light) pairs evaluated per block: ~15 float32 arrays of this size are alive at once
 PAIRS_PER_CHUNK = 1 << 20
-
-
-@dataclass
-class DirectResult:
-    radiance: np.ndarray    #: (P, 3) float32 outgoing radiance ρ/π·ΣE over visible lights
-    shadow: np.ndarray      #: (P,) float32 blocked / facing, 0 where no light faces
-    facing: np.ndarray      #: (P,) int32 number of lights facing each point
-    queries: int            #: shadow queries asked of the backend
-
-
-def cone_edges(cone_deg: np.ndarray, softness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``cos`` of the cone's outer edge and the width in ``cos`` of its soft edge (<= 1e-12: hard)."""
-    angle = np.radians(np.minimum(cone_deg, 180.0))
-    outer = np.cos(angle)
-    return outer, np.cos(angle * (1.0 - np.clip(softness, 0.0, 1.0))) - outer
-
-
-def smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarray) -> np.ndarray:
-    """UsdLux cone with softness: 0 outside ``cone_deg``, smoothstep across the soft edge.
-
-    Float32 in, float32 out (the shading blocks); float64 in, float64 out.
-    """
-    outer, width = cone_edges(cone_deg, softness)
-    hard = width <= 1e-12
-    dtype = np.result_type(cos_l, np.float32)
-    x = np.where(hard, (cos_l >= outer).astype(dtype), (cos_l - outer) / np.where(hard, 1.0, width))
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(cone_deg >= 180.0, 1.0, x * x * (3.0 - 2.0 * x)).astype(dtype)
-
-
-class LightFlag(IntFlag):
-    """Bits of :attr:`LightTable.flags`, what the shading needs to know of each light's kind; the Warp
-    kernels (``usdml.kernels.voxel.LightTable.flags``) test the same bits."""
-
-    DISTANT = 1         #: a distant light: direction ``-axis``, no falloff
-    ONE_SIDED = 2       #: disk or rect: ``max(0, cos θ_l)`` emission profile
-    SHAPED = 4          #: shaping cone narrower than 180°
-    FOCUSED = 8         #: shaping focus > 0
-    CASTS_SHADOWS = 16  #: ShadowAPI ``inputs:shadow:enable``
-    CYLINDER = 32       #: cylinder light: projected area of its side
-
-
-class LightTable:
-    """Per-light constants of :func:`shade_direct`, as float32 rows ready to broadcast against pixels.
-
-    ``lights`` are the frame's; ``meters_per_unit`` the stage's (falloff in metres); ``min_distance``
-    the clamp of the geometry term in scene units (see :func:`shade_direct`). Boolean ``(L,)`` masks
-    ``distant``, ``one_sided``, ``shaped``, ``focused``, ``casts``, ``cylinder``; :attr:`flags` packs them.
-    """
-
-    def __init__(self, lights: Lights, meters_per_unit: float = 1.0, min_distance: float = 0.0):
-        self.n = len(lights)
-        self.inv_m2 = np.float32(1.0 / meters_per_unit ** 2)   # 1/d² with d in metres
-        self.min_d2 = np.float32(max(min_distance, 1e-12) ** 2)  # clamped geometry term (scene units²)
-        self.position = lights.position.T.astype(np.float32)           # (3, L)
-        self.axis = lights.axis.T.astype(np.float32)                   # (3, L)
-        self.distant = lights.type == LightType.DISTANT
-        self.one_sided = (lights.type == LightType.DISK) | (lights.type == LightType.RECT)
-        self.cylinder = lights.type == LightType.CYLINDER
-        self.cylinder_axis = lights.cylinder_axis().T.astype(np.float32)   # (3, L)
-        self.cone = lights.cone_angle.astype(np.float32)
-        self.softness = lights.cone_softness.astype(np.float32)
-        self.focus = lights.focus.astype(np.float32)
-        self.shaped = lights.cone_angle < 180.0
-        self.focused = lights.focus > 0
-        tint = lights.focus_tint.astype(np.float64)
-        intensity = lights.intensity.astype(np.float64)
-        # E = g · (I ⊙ tint + I ⊙ (1 − tint) · cos^focus): two RGB rows per light, so Σ_l is a matmul
-        self.base = np.where(self.focused[:, None], intensity * tint, intensity).astype(np.float32)
-        self.focus_rgb = np.where(self.focused[:, None], intensity * (1.0 - tint), 0.0).astype(np.float32)
-        self.casts = lights.shadow.copy()
-
-    @property
-    def flags(self) -> np.ndarray:
-        """``(L,) int32`` :class:`LightFlag` bits of every light."""
-        flags = np.zeros(self.n, np.int32)
-        for flag, mask in ((LightFlag.DISTANT, self.distant), (LightFlag.ONE_SIDED, self.one_sided),
-                           (LightFlag.SHAPED, self.shaped), (LightFlag.FOCUSED, self.focused),
-                           (LightFlag.CASTS_SHADOWS, self.casts), (LightFlag.CYLINDER, self.cylinder)):
-            flags[np.asarray(mask, bool)] |= np.int32(flag)
-        return flags
 
 
 def _geometry(points: np.ndarray, normals: np.ndarray, t: LightTable, geometric: np.ndarray | None = None):
@@ -251,3 +173,16 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     radiance *= albedo.astype(np.float32) / np.float32(np.pi)
     shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0)
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries)
+
+
+def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
+               progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
+               min_distance: float = 0.0, geometric: np.ndarray | None = None) -> DirectResult:
+    """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
+    updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
+    :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``.
+    Arguments and result as :func:`shade_direct`."""
+    options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+    if backend.supports(SHADE_DIRECT):
+        return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
+    return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)

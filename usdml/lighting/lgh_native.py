@@ -16,13 +16,12 @@ Warp.
 from __future__ import annotations
 
 import ctypes
-from functools import lru_cache
 
 import numpy as np
 
-from usdml.visibility.voxel_native import open_extension
+from usdml.native import Extension
 
-__all__ = ["library", "describe", "simd", "Gather", "Members", "sums"]
+__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums"]
 
 _P = ctypes.c_void_p
 _i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
@@ -52,32 +51,24 @@ ROW = np.dtype([("cum", np.float64), ("pos", np.float32, 3), ("inten", np.float3
                 ("member", np.int32)])
 
 
-@lru_cache(maxsize=1)
-def _load() -> tuple[ctypes.CDLL | None, str]:
-    lib, why = open_extension("_lghq")
-    if lib is None:
-        return None, why
-    lib.lghq_gather.argtypes = [ctypes.POINTER(_Gather), _P, _P, _P, _i64, _i64, _i64, ctypes.POINTER(_Outputs)]
-    lib.lghq_gather.restype = ctypes.c_int
-    lib.lghq_simd.argtypes = [ctypes.c_int]
-    lib.lghq_simd.restype = ctypes.c_int
-    lib.lghq_simd(1)
-    lib.lghq_targets.argtypes = [ctypes.POINTER(_Members), _P, _P, _i32, _i64, _i32, _P, _P, _i32, _P, _P, _P, _P,
-                                 _i64, _i64, _P, _P]
-    lib.lghq_targets.restype = None
-    lib.lghq_sums.argtypes = [_P, _P, _i64, _i64, _i64, _P, _P]
-    lib.lghq_sums.restype = None
-    return lib, ""
+#: ``lghq.c``'s functions; opened with the light terms 8 at a time where the CPU has AVX2
+EXTENSION = Extension("_lghq", {
+    "lghq_gather": (ctypes.c_int, [ctypes.POINTER(_Gather), _P, _P, _P, _i64, _i64, _i64, ctypes.POINTER(_Outputs)]),
+    "lghq_simd": (ctypes.c_int, [ctypes.c_int]),
+    "lghq_targets": (None, [ctypes.POINTER(_Members), _P, _P, _i32, _i64, _i32, _P, _P, _i32, _P, _P, _P, _P,
+                            _i64, _i64, _P, _P]),
+    "lghq_sums": (None, [_P, _P, _i64, _i64, _i64, _P, _P]),
+}, on_load=lambda lib: lib.lghq_simd(1))
 
 
 def library() -> ctypes.CDLL | None:
     """The compiled gather, or None where it was not built (no C compiler at install)."""
-    return _load()[0]
+    return EXTENSION.library()
 
 
 def describe() -> str:
     """One line: which CPU path the LGH's gather and shadow targets take on this machine (``usdml info``)."""
-    lib, why = _load()
+    lib, why = EXTENSION.load()
     if lib is not None:
         width = lib.lghq_simd(-1)
         return f"compiled gather (kernels/lghq.c), one point per thread, light terms {'8 at a time (AVX2)' if width == 8 else 'one at a time'}"

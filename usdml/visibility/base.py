@@ -32,7 +32,10 @@ Optional capabilities
     ``SHADE_DIRECT`` ("shade_direct")
         :meth:`~VisibilityBackend.shade_direct` is the backend's own one-kernel Alg. 3 (paper 000),
         equal to :func:`usdml.lighting.direct.shade_direct` over :meth:`~VisibilityBackend.occluded`
-        within float32 rounding. Default: that function with ``self.occluded``.
+        within float32 rounding, returning a :class:`DirectResult`. The lighting layer chooses:
+        :func:`usdml.lighting.direct.shade_with` calls this kernel hook where the backend declares it,
+        handing it the plain shading (``plain``) for what the kernel does not fuse, and shades over
+        ``occluded`` otherwise. Default: ``NotImplementedError``.
     ``HIT_DISTANCES`` ("hit_distances")
         :meth:`~VisibilityBackend.hit_distances`: per query, the distance from the ray's start to its
         first hit in the backend's own units (``-1``: free; ``>= 0`` exactly where ``occluded``), for
@@ -65,6 +68,7 @@ Adding a backend
 from __future__ import annotations
 
 import abc
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Callable, Mapping
 
@@ -73,7 +77,7 @@ import numpy as np
 from usdml.scene import Changes, Snapshot
 
 __all__ = ["VisibilityBackend", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE",
-           "LIGHT_MAJOR"]
+           "LIGHT_MAJOR", "DirectResult"]
 
 #: optional capabilities (module doc, "Optional capabilities")
 SHADE_DIRECT = "shade_direct"
@@ -82,6 +86,17 @@ STATS = "stats"
 MEMORY_ESTIMATE = "memory_estimate"
 LIGHT_MAJOR = "light_major"
 CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR)
+
+
+@dataclass
+class DirectResult:
+    """Direct light of ``P`` points (paper 000 Alg. 3): what :func:`usdml.lighting.direct.shade_direct` and
+    a ``SHADE_DIRECT`` backend's fused kernel return."""
+
+    radiance: np.ndarray    #: (P, 3) float32 outgoing radiance ρ/π·ΣE over visible lights
+    shadow: np.ndarray      #: (P,) float32 blocked / facing, 0 where no light faces
+    facing: np.ndarray      #: (P,) int32 number of lights facing each point
+    queries: int            #: shadow queries asked of the backend
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:
@@ -291,14 +306,14 @@ class VisibilityBackend(abc.ABC):
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric: np.ndarray | None = None):
-        """Direct lighting of ``points`` by every light (paper 000 Alg. 3) with this backend's shadow
-        rays: :func:`usdml.lighting.direct.shade_direct` (same arguments, its ``DirectResult``) over
-        :meth:`occluded`. ``SHADE_DIRECT`` backends replace it with one fused kernel."""
-        from usdml.lighting.direct import shade_direct
-
-        return shade_direct(points, normals, albedo, lights, self.occluded, progress, meters_per_unit=meters_per_unit,
-                            min_distance=min_distance, geometric=geometric)
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None, *,
+                     plain: Callable[..., DirectResult]) -> DirectResult:
+        """``SHADE_DIRECT``: direct lighting of ``points`` by every light (paper 000 Alg. 3) in the backend's
+        own fused kernel, arguments as :func:`usdml.lighting.direct.shade_direct`; ``plain`` is that
+        function, for what the kernel does not fuse. Callers go through
+        :func:`usdml.lighting.direct.shade_with`, which shades over :meth:`occluded` where the backend does
+        not declare it; backends that do not raise ``NotImplementedError``."""
+        raise NotImplementedError(f"the {self.name or type(self).__name__} backend has no fused direct shading")
 
     def close(self) -> None:
         """Release threads and native memory; the backend needs :meth:`update` again afterwards."""

@@ -296,8 +296,8 @@ class ExactBackend(VisibilityBackend):
         Rays per task handed to a worker (default 65536: smaller chunks lost ~30 % to overhead here).
 
     Built from settings by the default ``from_settings`` (it reads none; CPU only). Declares ``STATS``
-    (``stats``: build counters) and nothing else: shading goes through the default
-    :meth:`~usdml.visibility.base.VisibilityBackend.shade_direct` over :meth:`occluded`.
+    (``stats``: build counters) and nothing else: direct light is :func:`usdml.lighting.direct.shade_direct`
+    over :meth:`occluded` (:func:`usdml.lighting.direct.shade_with` chooses it).
     """
 
     name = "exact"

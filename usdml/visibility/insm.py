@@ -51,8 +51,8 @@ from usdml import params
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_parallel
 from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
-from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, all_members,
-                                   as_flags, as_vectors, scene_sphere)
+from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult, VisibilityBackend,
+                                   all_members, as_flags, as_vectors, scene_sphere)
 from usdml.visibility.exact import ExactBackend
 from usdml.visibility.insm_mesh import clusters, depth_images, insm_views, triangulate
 from usdml.visibility.svo_tree import svo_bounds
@@ -529,12 +529,10 @@ class InsmBackend(VisibilityBackend):
     # ------------------------------------------------------------------ queries
 
     def shade_direct(self, points, normals, albedo, lights, progress=None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric=None):
+                     min_distance: float = 0.0, geometric=None, *, plain) -> DirectResult:
         """Alg. 3 with a map lookup in place of each ray (module doc): the answers of every (point,
-        light) pair, light by light, then :func:`usdml.lighting.direct.shade_direct` over them; lights
-        in chunks of at most ``ANSWER_BYTES`` of answers."""
-        from usdml.lighting.direct import DirectResult, shade_direct
-
+        light) pair, light by light, then ``plain`` (:func:`usdml.lighting.direct.shade_direct`) over them;
+        lights in chunks of at most ``ANSWER_BYTES`` of answers. The compiled maps shade in one call."""
         self._remember(lights)
         n_p, n_l = len(points), len(lights)
         if self.native and n_p and n_l:
@@ -556,9 +554,9 @@ class InsmBackend(VisibilityBackend):
             cast = np.flatnonzero(casts[sl])
             if len(cast):
                 answers[cast] = self.blocked_lights(take_lights(part, cast), points, offset)
-            r = shade_direct(points, normals, albedo, part, None, None, meters_per_unit=meters_per_unit,
-                             min_distance=min_distance, geometric=geometric,
-                             answers=np.ascontiguousarray(answers.T))     # (P, L): each block reads its rows
+            r = plain(points, normals, albedo, part, None, None, meters_per_unit=meters_per_unit,
+                      min_distance=min_distance, geometric=geometric,
+                      answers=np.ascontiguousarray(answers.T))     # (P, L): each block reads its rows
             radiance += r.radiance
             blocked += r.shadow.astype(np.float64) * r.facing
             facing += r.facing
@@ -591,7 +589,6 @@ class InsmBackend(VisibilityBackend):
         """:meth:`shade_direct` in the compiled maps: each light's map, lookups and share of Alg. 3 in one
         call (``kernels/light_term.h``'s UsdLux rules, the voxel kernel's), per-thread sums added at the
         end; nothing of (points x lights) is held."""
-        from usdml.lighting.direct import DirectResult
         from usdml.visibility import insm_native
         from usdml.visibility.voxel_native import compiled_lights
 

@@ -13,35 +13,29 @@ What a machine gets: ``pip install`` builds it as the optional extension ``usdml
 from __future__ import annotations
 
 import ctypes
-from functools import lru_cache
 
 import numpy as np
 
-from usdml.visibility.voxel_native import open_extension
+from usdml.native import Extension
 
-__all__ = ["library", "describe", "light"]
+__all__ = ["EXTENSION", "library", "describe", "light"]
 
-
-@lru_cache(maxsize=1)
-def _load() -> tuple[ctypes.CDLL | None, str]:
-    lib, why = open_extension("_insmr")
-    if lib is None:
-        return None, why
-    P, i32, i64, f32 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64, ctypes.c_float
-    lib.insm_light.argtypes = [P, i64, P, P, i64, P, P, P, P, P, i32, i32, i32, P, i32, P, i32, P, P, P, P, i64, f32, f32, P, P,
-                               P, i32, P, P, P, P, P, P, P]
-    lib.insm_light.restype = None
-    return lib, ""
+_P, _i32, _i64, _f32 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64, ctypes.c_float
+#: ``insmr.c``'s function
+EXTENSION = Extension("_insmr", {
+    "insm_light": (None, [_P, _i64, _P, _P, _i64, _P, _P, _P, _P, _P, _i32, _i32, _i32, _P, _i32, _P, _i32, _P, _P,
+                          _P, _P, _i64, _f32, _f32, _P, _P, _P, _i32, _P, _P, _P, _P, _P, _P, _P]),
+})
 
 
 def library() -> ctypes.CDLL | None:
     """The compiled maps, or None where they were not built (no C compiler at install)."""
-    return _load()[0]
+    return EXTENSION.library()
 
 
 def describe() -> str:
     """One line: which CPU path the insm backend's maps take on this machine (``usdml info``)."""
-    lib, why = _load()
+    lib, why = EXTENSION.load()
     return "compiled maps (kernels/insmr.c), one light per thread" if lib is not None else \
         f"Warp kernels, one light per thread (compiled maps {why})"
 

@@ -190,7 +190,7 @@ class SvoBackend(VisibilityBackend):
         if not self.native:
             return "warp"
         from usdml.visibility.svo_native import simd_width
-        from usdml.visibility.voxel_native import kernel_label
+        from usdml.native import kernel_label
         return kernel_label(simd_width(self.native_isa))
 
     def describe(self) -> dict:

@@ -14,14 +14,13 @@ as ``--svo-cpu-kernel warp`` does; ``usdml info`` names the path (:func:`describ
 from __future__ import annotations
 
 import ctypes
-from functools import lru_cache
 
 import numpy as np
 
 # the instruction sets (ISAS: the numbers svoq.c's pick takes are voxelq.c's) and the info line
-from usdml.visibility.voxel_native import ISAS, open_extension, path_line
+from usdml.native import ISAS, Extension, path_line
 
-__all__ = ["ISAS", "NativeSvo", "library", "describe", "isa_width", "simd_width"]
+__all__ = ["EXTENSION", "ISAS", "NativeSvo", "library", "describe", "isa_width", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -39,23 +38,18 @@ class _Rule(ctypes.Structure):
                 ("far_center", ctypes.c_float * 3)]
 
 
-@lru_cache(maxsize=1)
-def _load() -> tuple[ctypes.CDLL | None, str]:
-    lib, why = open_extension("_svoq")
-    if lib is None:
-        return None, why
-    P = ctypes.c_void_p
-    lib.svo_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64,
-                              P, ctypes.c_int32, P, ctypes.c_int32, P, ctypes.c_int32, P, ctypes.c_int32, P]
-    lib.svo_query.restype = None
-    lib.svo_simd_width.argtypes = [ctypes.c_int32]
-    lib.svo_simd_width.restype = ctypes.c_int
-    return lib, ""
+_P = ctypes.c_void_p
+#: ``svoq.c``'s functions
+EXTENSION = Extension("_svoq", {
+    "svo_query": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64,
+                         _P, ctypes.c_int32, _P, ctypes.c_int32, _P, ctypes.c_int32, _P, ctypes.c_int32, _P]),
+    "svo_simd_width": (ctypes.c_int, [ctypes.c_int32]),
+})
 
 
 def library() -> ctypes.CDLL | None:
     """The compiled traversal, or None where it was not built (no C compiler at install)."""
-    return _load()[0]
+    return EXTENSION.library()
 
 
 def simd_width(isa: str = "auto") -> int:
@@ -71,11 +65,8 @@ isa_width = simd_width
 
 def describe() -> str:
     """One line: which CPU path SVO queries take on this machine (``usdml info``)."""
-    lib, why = _load()
+    lib, why = EXTENSION.load()
     return path_line("compiled traversal", why, simd_width() if lib is not None else 0, "rays")
-
-
-
 
 
 def _f64(a: np.ndarray) -> int:

@@ -49,9 +49,10 @@ from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Lights, Snapshot, world_geometry
+from usdml.scene.light_table import LightTable
 from usdml.settings import VOXEL_REBUILDS
-from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, VisibilityBackend, as_flags,
-                                   as_vectors, members_changed, scene_sphere)
+from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult,
+                                   VisibilityBackend, as_flags, as_vectors, members_changed, scene_sphere)
 from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
                                           normalizing_transform, voxel_kernels, warp_module)
 from usdml.visibility.voxel_budget import array_roles, memory_estimate, memory_line
@@ -104,9 +105,7 @@ def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
 
 def _direct_result(order: np.ndarray, rad: np.ndarray, blocked: np.ndarray, facing: np.ndarray, albedo,
                    all_cast: bool):
-    """The shading kernels' per-point sums (in ``order``) as ``usdml.lighting.direct.DirectResult``."""
-    from usdml.lighting.direct import DirectResult
-
+    """The shading kernels' per-point sums (in ``order``) as a :class:`DirectResult`."""
     inverse = np.empty_like(order)
     inverse[order] = np.arange(len(order))
     radiance = rad[inverse] * (np.asarray(albedo, np.float32) / np.float32(np.pi))
@@ -177,7 +176,7 @@ class VoxelBackend(VisibilityBackend):
                              ("voxel_cpu_kernel", cpu_kernel)):
             params.check(field, value)
         # the compiled CPU kernel (usdml.visibility.voxel_native) unless Warp is asked for or it was not
-        # built; a GPU always runs Warp. ``native_isa``: its instruction set (voxel_native.ISAS; narrower
+        # built; a GPU always runs Warp. ``native_isa``: its instruction set (usdml.native.ISAS; narrower
         # ones are for measuring and tests)
         self.native = False
         if str(device).startswith("cpu") and cpu_kernel != "warp":
@@ -256,7 +255,8 @@ class VoxelBackend(VisibilityBackend):
         """Which kernels answer queries: ``warp``, ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
         if not self.native:
             return "warp"
-        from usdml.visibility.voxel_native import isa_width, kernel_label
+        from usdml.native import kernel_label
+        from usdml.visibility.voxel_native import isa_width
         return kernel_label(isa_width(self.native_isa))
 
     # ------------------------------------------------------------------ building
@@ -670,17 +670,13 @@ class VoxelBackend(VisibilityBackend):
 
     def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):
         """The lights as the shading kernel's ``LightTable`` (the constants of
-        :func:`usdml.lighting.direct.shade_direct`; the compiled kernel's table on the native path), and
+        :class:`usdml.scene.light_table.LightTable`; the compiled kernel's table on the native path), and
         whether every light casts shadows."""
-        from usdml.lighting.direct import LightTable, cone_edges
-
         if self._native is not None:
             from usdml.visibility.voxel_native import compiled_lights
             return compiled_lights(lights, meters_per_unit, min_distance), bool(np.asarray(lights.shadow).all())
         t = LightTable(lights, meters_per_unit, min_distance)
         flags = t.flags        # LightFlag bits, which the kernels name as the same constants
-        outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
-        cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
         wp, ks = warp_module(), _shading_kernels()
         dev = wp.get_device(self.device)
         lt = ks.LightTable()
@@ -688,7 +684,7 @@ class VoxelBackend(VisibilityBackend):
         lt.axis = wp.array(lights.axis.astype(np.float32), dtype=wp.vec3, device=dev)
         lt.flags = wp.array(flags, dtype=wp.int32, device=dev)
         lt.cylinder_axis = wp.array(np.ascontiguousarray(t.cylinder_axis.T), dtype=wp.vec3, device=dev)
-        lt.cone = wp.array(cone, dtype=wp.vec3, device=dev)
+        lt.cone = wp.array(t.kernel_cone, dtype=wp.vec3, device=dev)
         lt.base = wp.array(t.base, dtype=wp.vec3, device=dev)
         lt.focus_rgb = wp.array(t.focus_rgb, dtype=wp.vec3, device=dev)
         lt.inv_m2, lt.min_d2 = float(t.inv_m2), float(t.min_d2)
@@ -696,16 +692,16 @@ class VoxelBackend(VisibilityBackend):
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric: np.ndarray | None = None):
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None, *,
+                     plain: Callable[..., DirectResult]) -> DirectResult:
         """Alg. 3 in one kernel (``kernels.direct_shading.shade_tiles``): every pixel against every
-        light with voxel shadow rays; the same shading as :func:`usdml.lighting.direct.shade_direct`
-        (returns its ``DirectResult``)."""
+        light with voxel shadow rays; the same shading as ``plain``
+        (:func:`usdml.lighting.direct.shade_direct`), which shades what has no kernel to run (no points,
+        no lights, nothing built)."""
         n_p, n_l = len(points), len(lights)
         if n_p == 0 or n_l == 0 or not self._gpu:
-            from usdml.lighting.direct import shade_direct
-            return shade_direct(points, normals, albedo, lights, self.occluded if self._gpu else None,
-                                progress, meters_per_unit=meters_per_unit, min_distance=min_distance,
-                                geometric=geometric)
+            return plain(points, normals, albedo, lights, self.occluded if self._gpu else None,
+                         progress, meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
         lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
         pts = np.asarray(points, np.float32)
         if self._native is not None:

@@ -28,14 +28,15 @@ Tables (built here from the backend's arrays, what ``kernels/voxel.py``'s ``Voxe
 from __future__ import annotations
 
 import ctypes
-import importlib
-from functools import lru_cache
 
 import numpy as np
 
 from usdml.errors import UsdmlError
+from usdml.native import ISAS, Extension, path_line
+from usdml.scene.light_table import LightTable
 
-__all__ = ["NativeScene", "library", "describe", "isa_width", "packed_rows", "rotate_point", "simd_width"]
+__all__ = ["EXTENSION", "NativeScene", "compiled_lights", "library", "describe", "isa_width", "packed_rows",
+           "rotate_point", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -80,63 +81,34 @@ def light_struct(pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2:
 
 def compiled_lights(lights, meters_per_unit: float = 1.0, min_distance: float = 0.0) -> _Lights:
     """``lights`` (:class:`usdml.scene.Lights`) as the compiled kernels' table: the constants of
-    :class:`usdml.lighting.direct.LightTable`, the cone as (cos outer, soft width, focus)."""
-    from usdml.lighting.direct import LightTable, cone_edges
-
+    :class:`usdml.scene.light_table.LightTable`, the cone as (cos outer, soft width, focus)."""
     t = LightTable(lights, meters_per_unit, min_distance)
-    outer, width = cone_edges(lights.cone_angle, lights.cone_softness)
-    cone = np.stack([outer, np.where(width <= 1e-12, 0.0, width), lights.focus], axis=1).astype(np.float32)
-    return light_struct(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), cone, t.base,
+    return light_struct(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), t.kernel_cone, t.base,
                         t.focus_rgb, t.flags, t.inv_m2, t.min_d2)
 
 
-def open_extension(name: str) -> tuple[ctypes.CDLL | None, str]:
-    """The compiled extension ``usdml.kernels.<name>`` as a ctypes library, or None and why not."""
-    try:
-        mod = importlib.import_module(f"usdml.kernels.{name}")
-    except ImportError as e:
-        return None, f"not built ({e})"
-    return ctypes.CDLL(mod.__file__), ""
-
-
-@lru_cache(maxsize=1)
-def _load() -> tuple[ctypes.CDLL | None, str]:
-    lib, why = open_extension("_voxelq")
-    if lib is None:
-        return None, why
-    P = ctypes.c_void_p
-    lib.vq_simd_width.argtypes = [ctypes.c_int32]
-    lib.vq_simd_width.restype = ctypes.c_int
-    lib.vq_simd_isa.argtypes = [ctypes.c_int32]
-    lib.vq_simd_isa.restype = ctypes.c_int
-    lib.vq_query.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, P, P, P,
-                             P, ctypes.c_int32, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32, P]
-    lib.vq_query.restype = None
-    lib.vq_shade.argtypes = [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), P, P, P,
-                             ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, P, P, P]
-    lib.vq_shade.restype = None
-    lib.vq_rotate_point.argtypes = [P, P, P, ctypes.c_int32, P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, P,
-                                    ctypes.c_int32, ctypes.c_int64, P]
-    lib.vq_rotate_point.restype = None
-    lib.vq_build_bvh.argtypes = [ctypes.c_int32, P, P, P, P, P]
-    lib.vq_build_bvh.restype = ctypes.c_int32
-    return lib, ""
+_P = ctypes.c_void_p
+#: ``voxelq.c``'s functions
+EXTENSION = Extension("_voxelq", {
+    "vq_simd_width": (ctypes.c_int, [ctypes.c_int32]),
+    "vq_simd_isa": (ctypes.c_int, [ctypes.c_int32]),
+    "vq_query": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P, _P,
+                        _P, ctypes.c_int32, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, _P]),
+    "vq_shade": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
+                        ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P]),
+    "vq_rotate_point": (None, [_P, _P, _P, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P,
+                               ctypes.c_int32, ctypes.c_int64, _P]),
+    "vq_build_bvh": (ctypes.c_int32, [ctypes.c_int32, _P, _P, _P, _P, _P]),
+})
 
 
 def library() -> ctypes.CDLL | None:
     """The compiled kernel, or None where it was not built (no C compiler at install)."""
-    return _load()[0]
-
-
-#: the compiled kernel's instruction sets, widest first, by the number ``voxelq.c``'s ``pick`` takes:
-#: ``auto`` the widest this CPU has, ``avx2`` at most AVX2, ``scalar`` plain C
-ISAS = {"auto": 0, "avx2": 2, "scalar": 1}
-#: instruction sets by the lanes of one register
-WIDTH_NAMES = {16: "AVX-512", 8: "AVX2", 1: "scalar"}
+    return EXTENSION.library()
 
 
 def simd_width(isa: str = "auto") -> int:
-    """Queries the compiled kernel answers at once on this CPU with ``isa`` (:data:`ISAS`): 32
+    """Queries the compiled kernel answers at once on this CPU with ``isa`` (:data:`usdml.native.ISAS`): 32
     (AVX-512) or 16 (AVX2), as two registers per vector, or 1 (scalar); 0 without the kernel."""
     lib = library()
     return int(lib.vq_simd_width(ISAS[isa])) if lib is not None else 0
@@ -149,26 +121,9 @@ def isa_width(isa: str = "auto") -> int:
     return int(lib.vq_simd_isa(ISAS[isa])) if lib is not None else 0
 
 
-def kernel_label(width: int) -> str:
-    """A compiled kernel's name in ``usdml bench`` / ``compare`` results by the lanes of one register
-    of its instruction set: ``native-avx512``, ``native-avx2`` or ``native-scalar``."""
-    return "native-" + WIDTH_NAMES[width].replace("-", "").lower()
-
-
-def path_line(what: str, why: str, width: int, unit: str, register: int | None = None) -> str:
-    """``usdml info``'s line for a compiled CPU path ``what`` (``why``: why it is missing, "" when
-    built) running ``width`` ``unit`` at a time, on an instruction set of ``register`` lanes a register
-    (default ``width``)."""
-    if why:
-        return f"Warp kernels (the {what} is {why}; reinstall with a C compiler for the fast path)"
-    if width == 1:
-        return f"{what}, scalar (no AVX2 on this CPU)"
-    return f"{what}, {WIDTH_NAMES[register or width]} ({width} {unit} at a time)"
-
-
 def describe() -> str:
     """One line: which CPU path voxel queries take on this machine (``usdml info``)."""
-    lib, why = _load()
+    lib, why = EXTENSION.load()
     if lib is None:
         return path_line("compiled kernel", why, 0, "queries")
     return path_line("compiled kernel", why, simd_width(), "queries", isa_width())
@@ -204,7 +159,7 @@ def _c(a, dtype) -> np.ndarray:
 class NativeScene:
     """The tables the compiled kernel reads for one assembled set of arrays (module doc): ``world``
     the indices of the world-space arrays (at most two), the instances the moving prototypes', queried
-    with instruction set ``isa`` (:data:`ISAS`). Holds every
+    with instruction set ``isa`` (:data:`usdml.native.ISAS`). Holds every
     NumPy buffer it points into; rebuild it whenever the backend re-assembles (cheap: per array a
     few hundred KiB of maps; the words themselves are not copied)."""
 
