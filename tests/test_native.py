@@ -1,0 +1,35 @@
+"""The one loader of the compiled kernels (usdml/native.py): what a wrapper declares is what it gets."""
+
+import ctypes
+
+import pytest
+
+from usdml.lighting import lgh_native
+from usdml.native import Extension, kernel_label, path_line
+from usdml.visibility import insm_native, svo_native, voxel_native
+
+WRAPPERS = [voxel_native, svo_native, insm_native, lgh_native]
+
+
+def test_a_missing_extension_is_none_and_says_why():
+    ext = Extension("_no_such_kernel", {"f": (ctypes.c_int, [ctypes.c_int])})
+    lib, why = ext.load()
+    assert lib is None and ext.library() is None and why.startswith("not built")
+    assert path_line("compiled kernel", why, 0, "queries").startswith("Warp kernels (the compiled kernel is not built")
+
+
+@pytest.mark.parametrize("wrapper", WRAPPERS, ids=lambda m: m.__name__.rsplit(".", 1)[-1])
+def test_every_wrapper_declares_its_functions_once(wrapper):
+    """Each wrapper's functions carry the declared signatures, and the library is opened once."""
+    lib = wrapper.library()
+    if lib is None:
+        pytest.skip(wrapper.describe())
+    assert wrapper.EXTENSION.library() is lib
+    for name, (restype, argtypes) in wrapper.EXTENSION.functions.items():
+        fn = getattr(lib, name)
+        assert fn.restype == restype and list(fn.argtypes) == list(argtypes), name
+    assert wrapper.describe()
+
+
+def test_kernel_labels_follow_the_register_width():
+    assert [kernel_label(w) for w in (16, 8, 1)] == ["native-avx512", "native-avx2", "native-scalar"]
