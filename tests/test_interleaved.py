@@ -14,10 +14,11 @@ from usdml.cli import main
 from usdml.compare import compare_gi
 from usdml.lighting import interleaved as il
 from usdml.lighting.atrous import tile_index
-from usdml.lighting.direct import shade_direct, smoothstep_cone
+from usdml.lighting.direct import shade_direct
 from usdml.lighting.vpl import LUMA, VPLs, generate_vpls
 from usdml.render.frame import FrameRenderer
 from usdml.scene import diff
+from usdml.scene.light_table import smoothstep_cone
 from usdml.scene.surface import surface_at_hits
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
@@ -258,14 +259,17 @@ def test_render_gi_svo_writes_indirect(tmp_path):
 
 def test_frame_renderer_owns_the_gi_backend(monkeypatch):
     """--gi svo builds its own visibility backend (updated per frame, closed with the renderer) unless
-    one of the renderer's backends is that backend already."""
+    one of the renderer's backends is that backend already; a backend in two roles is updated and
+    closed once."""
     d = StageDelegate(STAGES / "cornell.usda")
     settings = UsdmlSettings(gi="svo", vpl_count=64, vpl_bounces=1)
     r = FrameRenderer(d, settings)
-    assert r.gi_backend.name == il.GI_VISIBILITY == "svo" and r.gi_backend is not r.backend
+    b = r.backends
+    assert b.gi.name == il.GI_VISIBILITY == "svo" and b.gi is not b.shadow and b.shadow is b.primary
+    assert [role for role, _ in b.owners()] == ["primary", "gi"]
     r.close()
     r = FrameRenderer(d, settings.updated(visibility="svo"))       # --visibility svo: one backend for both
-    assert r.gi_backend is r.backend
+    assert r.backends.gi is r.backends.shadow and [role for role, _ in r.backends.owners()] == ["primary", "shadow"]
     r.close()
     closed, updated = [], []
     own = ExactBackend()
@@ -274,13 +278,24 @@ def test_frame_renderer_owns_the_gi_backend(monkeypatch):
     monkeypatch.setattr(own, "update", lambda snap, ch: (updated.append(snap.time), real_update(snap, ch)))
     monkeypatch.setattr(il, "gi_visibility_backend", lambda s, dev, name=None: own)
     r = FrameRenderer(d, settings, gi_visibility="own")
-    assert r.gi_backend is own
-    r.render(1, 16, 9, {"indirect"})
+    assert r.backends.gi is own
+    stats = r.render(1, 16, 9, {"indirect"}).stats
     r.close()
-    assert updated == [1] and closed == [True]
+    assert updated == [1] and closed == [True] and stats.gi_update_seconds is not None
     r2 = FrameRenderer(d, replace(settings, gi="lgh"))
-    assert r2.gi_backend is None
+    assert r2.backends.gi is None
     r2.close()
+    # --gi svo through the shadow backend: updated once a frame, closed once, no update of its own counted
+    r3 = FrameRenderer(d, settings, gi_visibility="exact")
+    exact = r3.backends.primary
+    assert r3.backends.gi is r3.backends.shadow is exact
+    calls = []
+    monkeypatch.setattr(exact, "update", lambda snap, ch, real=exact.update: (calls.append("update"), real(snap, ch)))
+    monkeypatch.setattr(exact, "close", lambda real=exact.close: (calls.append("close"), real()))
+    stats = r3.render(1, 16, 9, {"indirect"}).stats
+    r3.close()
+    assert calls == ["update", "close"] and stats.gi_update_seconds is None
+    assert "gi_update_seconds" not in stats.as_dict() and {"gi", "gi_seconds", "update_seconds"} <= set(stats.as_dict())
 
 
 def test_svo_gi_table_tool_and_its_table(capsys):

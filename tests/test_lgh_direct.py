@@ -228,7 +228,7 @@ def test_lgh_frame_against_every_light(new_stage):
     hit = np.isfinite(ref.buffers["depth"])
     err = rel_rmse(lgh.buffers["direct"], ref.buffers["direct"], hit)
     assert err < 0.06, err
-    assert lgh.stats["direct_lgh"]["grid_lights"] == 2000
+    assert lgh.stats.direct_lgh["grid_lights"] == 2000
     count = lgh.buffers["lightCount"][hit].sum() / ref.buffers["lightCount"][hit].sum()
     assert count == pytest.approx(1.0, abs=0.05)
     # the shadow AOV: blocked lights over facing lights, as every-light's, estimated (noisy per pixel)
@@ -294,8 +294,8 @@ def test_other_lights_stay_every_light(new_stage):
     path = lamp_stage(new_stage, lamps(10), extra=extra)
     lgh = render(path, direct="lgh")
     ref = render(path, direct="all")
-    assert lgh.stats["direct_lgh"] == pytest.approx(lgh.stats["direct_lgh"]) and \
-        lgh.stats["direct_lgh"]["grid_lights"] == 0 and lgh.stats["direct_lgh"]["every_light"] == 3
+    assert lgh.stats.direct_lgh == pytest.approx(lgh.stats.direct_lgh) and \
+        lgh.stats.direct_lgh["grid_lights"] == 0 and lgh.stats.direct_lgh["every_light"] == 3
     for name in ("direct", "shadow", "lightCount"):
         np.testing.assert_array_equal(lgh.buffers[name], ref.buffers[name])
 

@@ -396,7 +396,7 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     lit = ground_stage(new_stage, lambda s: UsdLux.DistantLight.Define(s, "/World/sun"))
     d = StageDelegate(lit)
     r = FrameRenderer(d, UsdmlSettings())
-    assert "camera_light" not in r.render(1, 8, 8, {"color"}).stats
+    assert not r.render(1, 8, 8, {"color"}).stats.camera_light
 
 
 def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):

@@ -16,5 +16,5 @@ def open_frame(stage: str, frame: float | None = None):
     delegate.check_time(frame)
     snap = delegate.snapshot(frame)
     renderer = FrameRenderer(delegate, delegate.usdml_settings)
-    renderer.exact.update(snap, diff(None, snap))
+    renderer.backends.primary.update(snap, diff(None, snap))
     return delegate, frame, snap, renderer, renderer.frame_lights(snap)

@@ -83,12 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     delegate, frame, snap, renderer, lights = open_frame(args.stage, args.frame)
     width, height = snap.camera.resolution(args.imageWidth)
     base = delegate.usdml_settings.updated(vpl_count=args.vpls)
-    backends = {"exact": renderer.exact}
+    backends = {"exact": renderer.backends.primary}
     for name in {args.visibility, args.reference_visibility} - {"exact"}:
         backends[name] = make_backend(name, base.updated(visibility=name), "cpu")
         backends[name].update(snap, diff(None, snap))      # builds (or reads) its arrays: not timed
     snap = replace(snap, camera=conform_camera(snap.camera, width, height))
-    gb = build_gbuffer(snap, renderer.exact, width, height)
+    gb = build_gbuffer(snap, renderer.backends.primary, width, height)
     hit = gb.hit.ravel()
     points, normals, albedo = (a.reshape(-1, 3)[hit] for a in (gb.position, gb.normal, gb.albedo))
     warm = warm_up()
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         def both(origins, targets, normals=None):
             got = occluded(origins, targets, normals=normals)
             pick = np.random.default_rng(0).permutation(len(got))[:args.check_rays]
-            exact = renderer.exact.occluded(origins[pick], targets[pick], normals=normals[pick])
+            exact = renderer.backends.primary.occluded(origins[pick], targets[pick], normals=normals[pick])
             checked.append((len(pick), int((~got[pick] & exact).sum()), int((got[pick] & ~exact).sum())))
             return got
         return both
@@ -107,8 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     def run(settings, visibility, check=False):
         occluded = backends[visibility].occluded
         t0 = time.perf_counter()
-        r = indirect_lighting(snap, renderer.exact, checking(occluded) if check else occluded, lights, points, normals,
-                              albedo, settings, image=(gb.hit, gb.position))
+        r = indirect_lighting(snap, renderer.backends.primary, checking(occluded) if check else occluded, lights,
+                              points, normals, albedo, settings, image=(gb.hit, gb.position))
         return r, time.perf_counter() - t0
 
     key = np.array([args.stage, f"{frame:g}", str(args.vpls), str(args.imageWidth), args.reference_visibility])

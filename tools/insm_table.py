@@ -74,12 +74,12 @@ def dynamic(stage: str, width: int) -> dict:
                 res = r.render(frame, w, h, {"color"})
                 seconds = time.perf_counter() - t0
                 out[label].append({"frame": frame, "seconds": seconds,
-                                   "depth_seconds": r.backend.stats["depth_seconds"],
-                                   "triangulate_seconds": r.backend.stats["triangulate_seconds"],
-                                   "update_seconds": res.stats["update_seconds"], "lights": res.stats["lights"]})
+                                   "depth_seconds": r.backends.shadow.stats["depth_seconds"],
+                                   "triangulate_seconds": r.backends.shadow.stats["triangulate_seconds"],
+                                   "update_seconds": res.stats.update_seconds, "lights": res.stats.lights})
     finally:
         r.close()
-    out["triangles"] = r.backend.triangles
+    out["triangles"] = r.backends.shadow.triangles
     for label in ("moving", "still"):
         out[f"{label}_seconds"] = min(x["seconds"] for x in out[label])
     out["moving_over_still"] = out["moving_seconds"] / out["still_seconds"]

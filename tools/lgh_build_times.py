@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for count in (int(x) for x in args.vpls.split(",") if x):
         t0 = time.perf_counter()
-        vpls = generate_vpls(snap, renderer.exact, lights, count, 3, 0)
+        vpls = generate_vpls(snap, renderer.backends.primary, lights, count, 3, 0)
         intensity = vpls.flux / np.float32(4.0 * np.pi)     # as usdml.lighting.gi builds it, normals included
         vpl_seconds = time.perf_counter() - t0
         builds = []

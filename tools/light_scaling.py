@@ -74,16 +74,16 @@ def main(argv: list[str] | None = None) -> int:
                 w, h = delegate.snapshot(f0).camera.resolution(args.imageWidth)
                 with steady_frame(delegate, settings.updated(visibility=name), f0, w, h) as (res, seconds, r):
                     st = res.stats
-                    row[name] = {"seconds": seconds, "update_seconds": st["update_seconds"],
-                                 "gbuffer_seconds": st["gbuffer_seconds"], "shading_seconds": st["shading_seconds"],
+                    row[name] = {"seconds": seconds, "update_seconds": st.update_seconds,
+                                 "gbuffer_seconds": st.gbuffer_seconds, "shading_seconds": st.shading_seconds,
                                  "resolution": [w, h]}
                     if name == "voxel":
-                        b = r.backend
+                        b = r.backends.shadow
                         row[name].update(rebuilt=b.built, rebuild_seconds=b.stats["dynamic_seconds"] if b.built else 0.0,
                                          voxel_resolution=b.resolution, direction_step=b.step,
                                          fully_dynamic=b.fully_dynamic, mapping=b.mapping)
-                    elif r.backend.supports(STATS) and name != "exact":
-                        row[name].update(r.backend.describe())     # e.g. insm: its per-frame timings
+                    elif r.backends.shadow.supports(STATS) and name != "exact":
+                        row[name].update(r.backends.shadow.describe())     # e.g. insm: its per-frame timings
             for name in args.visibility.split(","):
                 if name != "exact" and "exact" in row:
                     row[f"{name}_speedup_vs_exact"] = row["exact"]["seconds"] / row[name]["seconds"]

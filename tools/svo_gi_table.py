@@ -87,28 +87,28 @@ def measure(stage: str, vpls: list[int], image_width: int, stage_width: int, ray
     for n in vpls:
         s = base.updated(vpl_count=n)
         ref = _render(d, s.updated(gi="vpl-bruteforce"), width, height, device)
-        ref_s = ref.stats["gi_seconds"]
-        row = {"vpls": n, "bruteforce_seconds": ref_s, "bruteforce_rays": ref.stats["gi"]["shadow_rays"],
+        ref_s = ref.stats.gi_seconds
+        row = {"vpls": n, "bruteforce_seconds": ref_s, "bruteforce_rays": ref.stats.gi["shadow_rays"],
                "rays": {}}
         for name in ray_backends:
             got = _render(d, s.updated(gi="svo"), width, height, device, name)
             rmse, mean = indirect_error(got.buffers, ref.buffers)
-            gi = got.stats["gi"]
-            row["rays"][name] = {"rel_rmse": rmse / mean if mean > 0 else 0.0, "seconds": got.stats["gi_seconds"],
-                                 "speedup": ref_s / got.stats["gi_seconds"], "shadow_rays": gi["shadow_rays"],
+            gi = got.stats.gi
+            row["rays"][name] = {"rel_rmse": rmse / mean if mean > 0 else 0.0, "seconds": got.stats.gi_seconds,
+                                 "speedup": ref_s / got.stats.gi_seconds, "shadow_rays": gi["shadow_rays"],
                                  "visibility_seconds": gi["visibility_seconds"],
-                                 "update_seconds": got.stats.get("gi_update_seconds", 0.0)}
+                                 "update_seconds": got.stats.gi_update_seconds or 0.0}
         t0 = time.perf_counter()
         frame = _render(d, s.updated(gi="svo", pixel_samples=1), sw, sh, device, ray_backends[-1])
         total = time.perf_counter() - t0
-        gi = frame.stats["gi"]
+        gi = frame.stats.gi
         row["stages"] = {"backend": ray_backends[-1], "vpl_generation": gi["vpl_seconds"] + gi["lgh_seconds"],
-                         "backend_update": frame.stats.get("gi_update_seconds", 0.0),
+                         "backend_update": frame.stats.gi_update_seconds or 0.0,
                          "backend_build": (svo_build_seconds(snap, s, device) if ray_backends[-1] == "svo"
                                            else None),
                          "gather": gi["gather_seconds"], "visibility": gi["visibility_seconds"],
-                         "filter": gi["filter_seconds"], "direct": frame.stats["shading_seconds"],
-                         "gbuffer": frame.stats["gbuffer_seconds"], "frame": total,
+                         "filter": gi["filter_seconds"], "direct": frame.stats.shading_seconds,
+                         "gbuffer": frame.stats.gbuffer_seconds, "frame": total,
                          "shadow_rays": gi["shadow_rays"]}
         rows.append(row)
         print(f"{n} VPLs: brute force {ref_s:.2f} s; " + "; ".join(

@@ -92,13 +92,13 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     ref, ref_s = _render(delegate, base.updated(gi=against), frame, width, height, device, gi_visibility)
     hit = np.isfinite(ref.buffers["depth"])
     rmse, mean = indirect_error(test.buffers, ref.buffers)
-    gi_test = test.stats.get("gi_seconds", 0.0)
-    gi_ref = ref.stats.get("gi_seconds", 0.0)
+    gi_test = test.stats.gi_seconds or 0.0
+    gi_ref = ref.stats.gi_seconds or 0.0
     _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "indirect": test.buffers["indirect"],
                                   "color": test.buffers["color"][..., :3], "indirect_reference": ref.buffers["indirect"]})
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
-        "gi": gi, "against": against, "vpls": test.stats.get("gi", {}).get("vpls", 0),
+        "gi": gi, "against": against, "vpls": (test.stats.gi or {}).get("vpls", 0),
         "lgh_alpha": base.lgh_alpha, "shadow_samples": base.shadow_samples, "interleave": base.interleave,
         "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets,
         "rel_rmse": rmse / mean if mean > 0 else 0.0, "rmse": rmse, "reference_mean": mean,
@@ -106,10 +106,10 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
         "frame_seconds": {gi: test_s, against: ref_s},
         "speedup": gi_ref / gi_test if gi_test > 0 else float("inf"),
         # svo: building its visibility backend for the frame (not in "seconds", as no method's BVH is)
-        "gi_update_seconds": {gi: test.stats.get("gi_update_seconds", 0.0),
-                              against: ref.stats.get("gi_update_seconds", 0.0)},
+        "gi_update_seconds": {gi: test.stats.gi_update_seconds or 0.0,
+                              against: ref.stats.gi_update_seconds or 0.0},
         "warmup_seconds": warm,
-        "breakdown": {gi: test.stats.get("gi", {}), against: ref.stats.get("gi", {})},
+        "breakdown": {gi: test.stats.gi or {}, against: ref.stats.gi or {}},
     }
 
 
@@ -121,19 +121,19 @@ def _reference_subset(delegate: StageDelegate, settings, frame: float, width: in
     G-buffer (pixel centres, as the test's one primary ray per pixel): ``(flat pixel indices, (S, 3)
     radiance, seconds of the shading, hit pixels)``; the frame set up as a render does
     (:meth:`FrameRenderer.advance`)."""
+    from usdml.lighting.direct import shade_with
     from usdml.render.gbuffer import build_gbuffer
 
     renderer = FrameRenderer(delegate, settings, device)
     try:
         snap, lights, _ = renderer.advance(frame, width, height)
-        gb = build_gbuffer(snap, renderer.exact, width, height)
+        gb = build_gbuffer(snap, renderer.backends.primary, width, height)
         hit = np.flatnonzero(gb.hit.ravel())
         pick = np.sort(np.random.default_rng(seed).choice(hit, min(pixels, len(hit)), replace=False))
         t0 = _time.perf_counter()
-        r = renderer.backend.shade_direct(gb.position.reshape(-1, 3)[pick], gb.normal.reshape(-1, 3)[pick],
-                                          gb.albedo.reshape(-1, 3)[pick], lights, None,
-                                          meters_per_unit=snap.meters_per_unit,
-                                          geometric=gb.geometric.reshape(-1, 3)[pick])
+        r = shade_with(renderer.backends.shadow, gb.position.reshape(-1, 3)[pick], gb.normal.reshape(-1, 3)[pick],
+                       gb.albedo.reshape(-1, 3)[pick], lights, None, meters_per_unit=snap.meters_per_unit,
+                       geometric=gb.geometric.reshape(-1, 3)[pick])
         return pick, r.radiance, _time.perf_counter() - t0, len(hit)
     finally:
         renderer.close()
@@ -169,12 +169,12 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
                                                              height, device, reference_pixels, base.seed)
         a, b = got[pick].astype(np.float64), ref_px.astype(np.float64)
         ref_shading *= n_hit / max(len(pick), 1)
-        ref_s = ref_shading + test.stats["gbuffer_seconds"] + test.stats["update_seconds"]
+        ref_s = ref_shading + test.stats.gbuffer_seconds + test.stats.update_seconds
         ref_img = None
         compared = len(pick)
     else:
         ref, ref_s = _render(delegate, base.updated(direct=against), frame, width, height, device)
-        ref_shading = ref.stats["shading_seconds"]
+        ref_shading = ref.stats.shading_seconds
         a = got[hit.ravel()].astype(np.float64)
         b = ref.buffers["direct"].reshape(-1, 3)[hit.ravel()].astype(np.float64)
         ref_img = ref.buffers["direct"]
@@ -182,11 +182,11 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
     rmse = float(np.sqrt(np.mean((a - b) ** 2))) if a.size else 0.0
     mean = float(b.mean()) if b.size else 0.0
     _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "direct_reference": ref_img})
-    test_shading = test.stats["shading_seconds"]
+    test_shading = test.stats.shading_seconds
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "compared_pixels": compared, "reference_extrapolated": bool(reference_pixels > 0 and against == "all"),
-        "direct": direct, "against": against, "lights": test.stats.get("lights", 0),
+        "direct": direct, "against": against, "lights": test.stats.lights,
         "visibility": base.visibility, "direct_shadow_samples": base.direct_shadow_samples,
         "direct_alpha": base.direct_alpha,
         "rel_rmse": rmse / mean if mean > 0 else 0.0, "rmse": rmse, "reference_mean": mean,
@@ -195,7 +195,7 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
         "speedup": ref_s / test_s if test_s > 0 else float("inf"),
         "direct_speedup": ref_shading / test_shading if test_shading > 0 else float("inf"),
         "warmup_seconds": warm,
-        "breakdown": {direct: test.stats.get("direct_lgh", {})},
+        "breakdown": {direct: test.stats.direct_lgh or {}},
     }
 
 

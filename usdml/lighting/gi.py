@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -88,47 +89,76 @@ def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: n
     """Indirect radiance at ``points`` by ``settings.gi`` ("lgh", "svo" or "vpl-bruteforce").
 
     ``exact`` traces the light paths that place the VPLs (closest hits) unless ``vpl_field``
-    (:func:`prepare_vpls`) already holds them; ``occluded`` is the chosen visibility backend's
-    shadow query (for ``svo``: that of the backend the frame renderer owns for it); ``image = (hit,
-    positions)`` lets the LGH shadow ratio be filtered in screen space (``svo``: required, its tiles
-    and filter are the image's);
-    ``geometric`` normals, when given, decide which VPLs face a point and where shadow rays start
-    (:func:`usdml.lighting.direct.shade_direct`); ``target_lift`` moves ``svo``'s VPL targets off
-    their surface (:func:`usdml.lighting.interleaved.target_lift`).
+    (:func:`prepare_vpls`) already holds them; the rest as :func:`indirect_gather`'s gather.
     """
     if vpl_field is None:
         vpl_field = prepare_vpls(snap, exact, lights, settings, device)
-    stats = dict(vpl_field.stats)
-    vpls, lgh, intensity = vpl_field.vpls, vpl_field.lgh, vpl_field.intensity
-    if len(vpls) == 0:
-        return GIResult(np.zeros((len(points), 3), np.float32), stats)
-    position, normal = vpls.position, vpls.normal
-    clamp = vpl_field.clamp
-    if settings.gi == "svo":
-        from usdml.lighting.interleaved import svo_indirect
+    return indirect_gather(settings.gi)(vpl_field, snap, occluded, points, normals, albedo, settings, image=image,
+                                        device=device, geometric=geometric, target_lift=target_lift)
 
-        if image is None:
-            raise ValueError("--gi svo gathers over the image's 4x4 tiles: pass image=(hit, positions)")
 
-        radiance, s = svo_indirect(points, normals, albedo, vpls, occluded, clamp, image,
-                                   meters_per_unit=snap.meters_per_unit, geometric=geometric,
-                                   target_lift=target_lift, skip_below=settings.gi_svo_skip)
+def indirect_gather(method: str) -> Callable[..., GIResult]:
+    """``--gi method``'s gather ("lgh", "svo" or "vpl-bruteforce"), chosen once for every frame:
+    ``gather(vpl_field, snap, occluded, points, normals, albedo, settings, *, image, device, geometric,
+    target_lift) -> GIResult``, indirect radiance at ``P`` points from a frame's :class:`VPLField`.
+
+    ``occluded`` is the chosen visibility backend's shadow query (for ``svo``: that of the backend the
+    frame renderer owns for it); ``image = (hit, positions)`` lets the LGH shadow ratio be filtered in
+    screen space (``svo``: required, its tiles and filter are the image's); ``geometric`` normals, when
+    given, decide which VPLs face a point and where shadow rays start
+    (:func:`usdml.lighting.direct.shade_direct`); ``target_lift`` moves ``svo``'s VPL targets off their
+    surface (:func:`usdml.lighting.interleaved.target_lift`).
+    """
+    try:
+        gather = _GATHERS[method]
+    except KeyError:
+        raise ValueError(f"no VPL gather for --gi {method!r}; one of {', '.join(_GATHERS)}") from None
+
+    def indirect(vpl_field: VPLField, snap: Snapshot, occluded, points: np.ndarray, normals: np.ndarray,
+                 albedo: np.ndarray, settings: UsdmlSettings, **where) -> GIResult:
+        stats = dict(vpl_field.stats)
+        if len(vpl_field.vpls) == 0:
+            return GIResult(np.zeros((len(points), 3), np.float32), stats)
+        radiance, s = gather(vpl_field, snap, occluded, points, normals, albedo, settings, **where)
         stats.update(s)
         return GIResult(radiance, stats)
-    if settings.gi == "lgh":
-        r = lgh_indirect(points, normals, albedo, lgh, occluded, alpha=settings.lgh_alpha,
-                         samples=settings.shadow_samples, seed=settings.seed,
-                         meters_per_unit=snap.meters_per_unit, clamp_distance=clamp, image=image,
-                         interleave=settings.interleave, device=device,
-                         sources=(position, intensity, normal), start_level=settings.lgh_start_level,
-                         filter_iterations=settings.shadow_filter_iterations,
-                         shadow_targets=settings.shadow_targets, geometric=geometric,
-                         cpu_kernel=settings.lgh_cpu_kernel)
-        stats.update(r.stats)
-        return GIResult(r.radiance, stats)
+    return indirect
+
+
+def _gather_svo(field: VPLField, snap: Snapshot, occluded, points, normals, albedo, settings, *, image, device,
+                geometric, target_lift) -> tuple[np.ndarray, dict]:
+    """A sixteenth of the VPLs per pixel, interleaved over the image's 4x4 tiles (paper 003)."""
+    from usdml.lighting.interleaved import svo_indirect
+
+    if image is None:
+        raise ValueError("--gi svo gathers over the image's 4x4 tiles: pass image=(hit, positions)")
+    return svo_indirect(points, normals, albedo, field.vpls, occluded, field.clamp, image,
+                        meters_per_unit=snap.meters_per_unit, geometric=geometric,
+                        target_lift=target_lift, skip_below=settings.gi_svo_skip)
+
+
+def _gather_lgh(field: VPLField, snap: Snapshot, occluded, points, normals, albedo, settings, *, image, device,
+                geometric, target_lift) -> tuple[np.ndarray, dict]:
+    """The lighting grid hierarchy over the VPLs, stochastic filtered shadows (paper 004)."""
+    r = lgh_indirect(points, normals, albedo, field.lgh, occluded, alpha=settings.lgh_alpha,
+                     samples=settings.shadow_samples, seed=settings.seed,
+                     meters_per_unit=snap.meters_per_unit, clamp_distance=field.clamp, image=image,
+                     interleave=settings.interleave, device=device,
+                     sources=(field.vpls.position, field.intensity, field.vpls.normal),
+                     start_level=settings.lgh_start_level, filter_iterations=settings.shadow_filter_iterations,
+                     shadow_targets=settings.shadow_targets, geometric=geometric,
+                     cpu_kernel=settings.lgh_cpu_kernel)
+    return r.radiance, r.stats
+
+
+def _gather_bruteforce(field: VPLField, snap: Snapshot, occluded, points, normals, albedo, settings, *, image,
+                       device, geometric, target_lift) -> tuple[np.ndarray, dict]:
+    """Every VPL as a one-sided cosine light with a shadow ray: the reference."""
     t2 = _time.perf_counter()
-    r = shade_direct(points, normals, albedo, vpls.as_lights(isotropic=False), occluded,
-                     meters_per_unit=snap.meters_per_unit, min_distance=clamp, geometric=geometric)
-    stats["lighting_seconds"] = _time.perf_counter() - t2
-    stats["shadow_rays"] = r.queries
-    return GIResult(r.radiance, stats)
+    r = shade_direct(points, normals, albedo, field.vpls.as_lights(isotropic=False), occluded,
+                     meters_per_unit=snap.meters_per_unit, min_distance=field.clamp, geometric=geometric)
+    return r.radiance, {"lighting_seconds": _time.perf_counter() - t2, "shadow_rays": r.queries}
+
+
+#: --gi method -> its gather over a frame's VPLs
+_GATHERS = {"lgh": _gather_lgh, "svo": _gather_svo, "vpl-bruteforce": _gather_bruteforce}

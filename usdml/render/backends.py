@@ -1,0 +1,83 @@
+"""The visibility backends of one :class:`usdml.render.frame.FrameRenderer`, by role, with one lifecycle.
+
+Roles:
+
+* ``primary``: the exact (Embree) backend: primary rays (the G-buffer) and the VPLs' light paths;
+* ``shadow``: the configured ``--visibility`` backend, the direct light's shadow rays (``primary`` itself
+  when that is ``exact``);
+* ``gi``: ``--gi svo``'s (pixel, VPL) rays (:func:`usdml.lighting.interleaved.gi_visibility_backend`,
+  ``svo`` unless told otherwise; one of the others when it has that name); None for every other ``--gi``.
+
+Each backend is made once, updated once per frame and closed once, however many roles it holds.
+"""
+
+from __future__ import annotations
+
+import time as _time
+
+from usdml.scene import Changes, Snapshot
+from usdml.settings import UsdmlSettings
+from usdml.visibility import ExactBackend, make_backend
+from usdml.visibility.base import VisibilityBackend
+
+ROLES = ("primary", "shadow", "gi")
+
+
+class Backends:
+    """A renderer's backends by role (module doc): ``primary``, ``shadow``, ``gi`` (None without ``--gi svo``).
+
+    ``options`` (``report``, ``progress``: :mod:`usdml.visibility.base`) go to the shadow backend;
+    ``gi_visibility`` names the backend of ``--gi svo``'s rays (default
+    :data:`usdml.lighting.interleaved.GI_VISIBILITY`).
+    """
+
+    def __init__(self, settings: UsdmlSettings, device: str = "cpu", options: dict | None = None,
+                 gi_visibility: str | None = None):
+        self._roles: dict[str, VisibilityBackend | None] = {"primary": ExactBackend()}
+        self._roles["shadow"] = self._named(settings.visibility) or \
+            make_backend(settings.visibility, settings, device, **(options or {}))
+        self._roles["gi"] = None
+        if settings.gi == "svo":
+            from usdml.lighting.interleaved import GI_VISIBILITY, gi_visibility_backend
+
+            name = gi_visibility or GI_VISIBILITY
+            self._roles["gi"] = self._named(name) or gi_visibility_backend(settings, device, name)
+
+    @property
+    def primary(self) -> VisibilityBackend:
+        return self._roles["primary"]
+
+    @property
+    def shadow(self) -> VisibilityBackend:
+        return self._roles["shadow"]
+
+    @property
+    def gi(self) -> VisibilityBackend | None:
+        return self._roles["gi"]
+
+    def _named(self, name: str) -> VisibilityBackend | None:
+        """The backend already made under ``name``, the latest role's first (a backend is made once)."""
+        return next((b for _, b in reversed(self.owners()) if b.name == name), None)
+
+    def owners(self) -> list[tuple[str, VisibilityBackend]]:
+        """``(first role, backend)`` of each distinct backend, in the order they were made."""
+        seen: dict[int, tuple[str, VisibilityBackend]] = {}
+        for role, backend in self._roles.items():
+            if backend is not None and id(backend) not in seen:
+                seen[id(backend)] = (role, backend)
+        return list(seen.values())
+
+    def update(self, snapshot: Snapshot, changes: Changes) -> dict[str, float]:
+        """Each backend brought to ``snapshot`` once, rebuilding what ``changes`` names; returns the seconds
+        of each update under the first role its backend holds (a role sharing another's backend has none)."""
+        seconds = {}
+        for role, backend in self.owners():
+            t0 = _time.perf_counter()
+            backend.update(snapshot, changes)
+            seconds[role] = _time.perf_counter() - t0
+        return seconds
+
+    def close(self) -> None:
+        """Release every backend once."""
+        for _, backend in self.owners():
+            backend.close()

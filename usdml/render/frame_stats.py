@@ -1,0 +1,41 @@
+"""What one rendered frame cost and counted (:attr:`usdml.render.frame.FrameResult.stats`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+
+@dataclass
+class FrameStats:
+    """Seconds of each step of a frame (summed over its passes) and what it counted.
+
+    A field that is None (or ``camera_light`` False) did not apply to the frame and is left out of
+    :meth:`as_dict`, whose keys are the field names.
+    """
+
+    snapshot_seconds: float = 0.0           #: reading the stage at the timecode
+    update_seconds: float = 0.0             #: the primary and shadow backends brought to the frame
+    gi_update_seconds: float | None = None  #: ``--gi svo``'s own backend brought to the frame (None: shared, or none)
+    gbuffer_seconds: float = 0.0            #: primary rays
+    shading_seconds: float = 0.0            #: direct light (and the camera light)
+    shadow_queries: int = 0                 #: the direct light's shadow rays
+    gi_seconds: float | None = None         #: ``--gi``: VPLs and their LGH, and the gathers of every pass
+    #: ``--direct lgh``: the frame's hierarchy (:func:`usdml.lighting.lgh_direct.prepare_direct`) and its
+    #: shading, numbers summed over passes
+    direct_lgh: dict | None = None
+    camera_light: bool = False              #: lit by usdrecord's camera light (the stage had no lights)
+    gi: dict | None = None                  #: ``--gi``: the last pass's gather (``GIResult.stats``, usdml.lighting.gi)
+    lights: int = 0                         #: the frame's lights, a dome's samples included
+    pixels: int = 0
+    pixel_samples: int = 0                  #: primary rays per pixel
+    seconds: float = 0.0                    #: the whole frame
+
+    def as_dict(self) -> dict:
+        """JSON-able: the fields that applied (class doc), nested dicts copied."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None or (f.name == "camera_light" and not value):
+                continue
+            out[f.name] = dict(value) if isinstance(value, dict) else value
+        return out

@@ -1,0 +1,221 @@
+"""The direct and the indirect light of a frame, each integrator chosen once per renderer from the settings.
+
+Direct (:func:`direct_integrator`), per pass a G-buffer and its :class:`usdml.lighting.direct.DirectResult`:
+
+* :class:`EveryLight` (``--direct all``): every light with the shadow backend's shadows, per pass
+  (:func:`usdml.lighting.direct.shade_with`: a ``SHADE_DIRECT`` backend in one kernel);
+* :class:`EveryLightFused`: the same over a ``LIGHT_MAJOR`` backend with several primary rays per pixel:
+  every pass's points shaded by one call, so the backend's per-light structures (paper 001's maps) are
+  built once per frame, not once per pass;
+* :class:`LghDirect` (``--direct lgh``): one hierarchy over the frame's lights
+  (:mod:`usdml.lighting.lgh_direct`), gathered in every pass.
+
+Indirect (:func:`gi_integrator`): :class:`NoGI` (``--gi none``), or :class:`VplGI`: the frame's VPLs (and
+their LGH) made once, gathered in every pass by ``--gi``'s method (:func:`usdml.lighting.gi.indirect_gather`).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from usdml.errors import log
+from usdml.lighting.direct import DirectResult, shade_with
+from usdml.render.backends import Backends
+from usdml.render.frame_stats import FrameStats
+from usdml.render.gbuffer import GBuffer, build_gbuffer
+from usdml.scene import Lights, Snapshot
+from usdml.settings import UsdmlSettings
+from usdml.visibility.base import LIGHT_MAJOR
+
+Progress = Callable[[float], None] | None
+
+
+@dataclass
+class FrameInputs:
+    """What every pass of one frame reads: the snapshot (camera conformed to the image), its lights, the size."""
+
+    snap: Snapshot
+    lights: Lights
+    width: int
+    height: int
+
+
+@dataclass
+class Surface:
+    """One pass's hit pixels (G-buffer order) as ``(P, 3)`` arrays: what direct and indirect light shade."""
+
+    hit: np.ndarray             #: (H·W,) bool, the pixels whose ray hit
+    position: np.ndarray        #: (P, 3) world units
+    normal: np.ndarray          #: (P, 3) shading normals
+    albedo: np.ndarray          #: (P, 3)
+    geometric: np.ndarray       #: (P, 3) geometric normals
+
+    @classmethod
+    def of(cls, gb: GBuffer) -> "Surface":
+        hit = gb.hit.ravel()
+        return cls(hit, *(getattr(gb, name).reshape(-1, 3)[hit]
+                          for name in ("position", "normal", "albedo", "geometric")))
+
+
+def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats) -> GBuffer:
+    t0 = _time.perf_counter()
+    gb = build_gbuffer(frame.snap, backends.primary, frame.width, frame.height, offsets)
+    stats.gbuffer_seconds += _time.perf_counter() - t0
+    return gb
+
+
+class EveryLight:
+    """``--direct all``, a pass at a time (module doc)."""
+
+    def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
+        self.backends, self.settings, self.device, self.where = backends, settings, device, where
+
+    def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
+        """Once per frame, before its passes."""
+
+    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+               progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
+        """``(G-buffer, its surface, direct light)`` of each pass through ``passes`` (sub-pixel offsets,
+        :func:`usdml.render.gbuffer.pixel_offsets`), one at a time: the caller finishes a pass before the
+        next is traced."""
+        for offsets in passes:
+            gb = _gbuffer(frame, self.backends, offsets, stats)
+            surface = Surface.of(gb)
+            t0 = _time.perf_counter()
+            direct = self.shade(frame, gb, surface, stats, progress)
+            stats.shading_seconds += _time.perf_counter() - t0
+            yield gb, surface, direct
+
+    def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
+              progress: Progress) -> DirectResult:
+        return shade_with(self.backends.shadow, surface.position, surface.normal, surface.albedo, frame.lights,
+                          progress, meters_per_unit=frame.snap.meters_per_unit, geometric=surface.geometric)
+
+
+class EveryLightFused(EveryLight):
+    """``--direct all`` over a ``LIGHT_MAJOR`` backend, every pass shaded by one call (module doc)."""
+
+    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+               progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
+        gbs = [_gbuffer(frame, self.backends, offsets, stats) for offsets in passes]
+        surfaces = [Surface.of(gb) for gb in gbs]
+        t0 = _time.perf_counter()
+
+        def stacked(name: str) -> np.ndarray:
+            return np.concatenate([getattr(s, name) for s in surfaces])
+        direct = shade_with(self.backends.shadow, stacked("position"), stacked("normal"), stacked("albedo"),
+                            frame.lights, progress, meters_per_unit=frame.snap.meters_per_unit,
+                            geometric=stacked("geometric"))
+        stats.shading_seconds += _time.perf_counter() - t0
+        lo = 0
+        for i, (gb, surface) in enumerate(zip(gbs, surfaces)):
+            hi = lo + len(surface.position)
+            yield gb, surface, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
+                                            direct.queries if i == 0 else 0)
+            lo = hi
+
+
+class LghDirect(EveryLight):
+    """``--direct lgh``: a hierarchy over the frame's lights, gathered in every pass (module doc)."""
+
+    def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
+        super().__init__(backends, settings, device, where)
+        self.field = None
+        self._told_no_grid = False
+
+    def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
+        from usdml.lighting.lgh_direct import prepare_direct
+
+        self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
+        stats.direct_lgh = dict(self.field.stats)
+        if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:
+            log.warning(f"{self.where}: --direct lgh: none of its {len(self.field.rest)} light(s) at time "
+                        f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
+                        "cones or focus, shadows off, black): all are shaded every-light, as --direct all")
+            self._told_no_grid = True
+
+    def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
+              progress: Progress) -> DirectResult:
+        from usdml.lighting.lgh_direct import shade_lgh_direct
+
+        shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
+
+        def shade_rest(p, n, a, rest, geometric=None):
+            return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+
+        direct, s = shade_lgh_direct(surface.position, surface.normal, surface.albedo, self.field, shadow.occluded,
+                                     shade_rest, self.settings, meters_per_unit=mpu, image=(gb.hit, gb.position),
+                                     geometric=surface.geometric, device=self.device)
+        for k, v in s.items():
+            stats.direct_lgh[k] = stats.direct_lgh.get(k, 0) + v if isinstance(v, (int, float)) else v
+        if progress is not None:
+            progress(int(surface.hit.sum()))
+        return direct
+
+
+def direct_integrator(backends: Backends, settings: UsdmlSettings, device: str, where: str) -> EveryLight:
+    """The frame's direct light for ``settings`` (module doc); ``where`` starts its warnings (the stage)."""
+    if settings.direct == "lgh":
+        return LghDirect(backends, settings, device, where)
+    if settings.pixel_samples > 1 and backends.shadow.supports(LIGHT_MAJOR):
+        return EveryLightFused(backends, settings, device, where)
+    return EveryLight(backends, settings, device, where)
+
+
+class NoGI:
+    """``--gi none``: no indirect light."""
+
+    def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
+        """Once per frame, before its passes."""
+
+    def gather(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats) -> np.ndarray:
+        """``(P, 3)`` float32 indirect radiance at the pass's surface."""
+        return np.zeros((len(surface.position), 3), np.float32)
+
+
+class VplGI(NoGI):
+    """``--gi lgh | svo | vpl-bruteforce``: the frame's VPLs made once, gathered in every pass (module doc)."""
+
+    def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
+        from usdml.lighting.gi import indirect_gather
+
+        self.backends, self.settings, self.device, self.where = backends, settings, device, where
+        self.indirect = indirect_gather(settings.gi)
+        # --gi svo casts its rays with a backend of its own; the others with the shadow backend
+        self.rays = backends.gi or backends.shadow
+        self.field = None
+        self.target_lift = 0.0
+        self._told_no_vpls = False
+
+    def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
+        from usdml.lighting.gi import prepare_vpls
+        from usdml.lighting.interleaved import target_lift
+
+        self.field = prepare_vpls(frame.snap, self.backends.primary, frame.lights, self.settings, device=self.device)
+        stats.gi_seconds = self.field.stats["vpl_seconds"] + self.field.stats.get("lgh_seconds", 0.0)
+        self.target_lift = target_lift(self.backends.gi) if self.backends.gi is not None else 0.0
+
+    def gather(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats) -> np.ndarray:
+        t0 = _time.perf_counter()
+        gi = self.indirect(self.field, frame.snap, self.rays.occluded, surface.position, surface.normal,
+                           surface.albedo, self.settings, image=(gb.hit, gb.position), device=self.device,
+                           geometric=surface.geometric, target_lift=self.target_lift)
+        stats.gi = gi.stats                     # the last pass's
+        if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
+            n = len(frame.lights)
+            why = ("the stage has no lights (a camera light adds no indirect light)" if n == 0
+                   else f"no light path from its {n} light(s) reached the geometry")
+            log.warning(f"{self.where}: --gi {self.settings.gi}: no VPLs at time {frame.snap.time:g}: {why}; "
+                        "indirect is 0")
+            self._told_no_vpls = True
+        stats.gi_seconds += _time.perf_counter() - t0
+        return gi.radiance
+
+
+def gi_integrator(backends: Backends, settings: UsdmlSettings, device: str, where: str) -> NoGI:
+    """The frame's indirect light for ``settings`` (module doc); ``where`` starts its warnings (the stage)."""
+    return NoGI() if settings.gi == "none" else VplGI(backends, settings, device, where)
