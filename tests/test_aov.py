@@ -451,6 +451,15 @@ def test_frame_spec(spec, frames):
     assert frame_spec(spec, 1, 10) == [float(f) for f in frames]
 
 
+def test_frame_spec_takes_timecodes_as_they_are():
+    """The API's and a farm chunk's frames stay floats: no FrameSpec text (which held 6 digits) between."""
+    assert frame_spec([1, 2.5, 12345.678], 1) == [1.0, 2.5, 12345.678]
+    assert frame_spec_precision([1.25]) == 0 == frame_spec_precision("1,1.25")
+    for bad in ([], [True], ["1"], [float("nan")]):
+        with pytest.raises(FrameSpecError, match="give a FrameSpec"):
+            frame_spec(bad, 1)
+
+
 def test_frame_spec_default_is_stage_start():
     assert frame_spec(None, 1001.0, 1100.0) == [1001.0]
     assert frame_spec("  ", 3.0) == [3.0]

@@ -28,11 +28,12 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Sequence
+from numbers import Number
 
 from usdml.errors import UsdmlError, tf_message
 
 __all__ = [
-    "FrameSpecError", "OutputPathError", "frame_spec", "frame_spec_precision",
+    "FrameSpecError", "OutputPathError", "frame_spec", "frame_spec_precision", "timecodes",
     "frame_placeholder", "placeholder_precision", "format_frame", "output_paths", "MAX_FRAMES",
 ]
 
@@ -59,9 +60,10 @@ def _parts(spec: str) -> list[str]:
     return parts
 
 
-def frame_spec(spec: str | None, stage_start: float | None = None,
+def frame_spec(spec: str | Sequence[float] | None, stage_start: float | None = None,
                stage_end: float | None = None, *, max_frames: int = MAX_FRAMES) -> list[float]:
-    """The timecodes of a FrameSpec (``"101:148"``, ``"1:10x2"``, ``"1,5,10:12"``), in order.
+    """The timecodes of a FrameSpec (``"101:148"``, ``"1:10x2"``, ``"1,5,10:12"``), in order; timecodes
+    already (a list of numbers, the Python API's and a farm chunk's) are taken as they are, as floats.
 
     ``spec`` None or blank: ``[stage_start]``, usdrecord's default (FrameSpecError if
     ``stage_start`` is None too). ``stage_end`` is accepted so callers can pass the stage range;
@@ -69,6 +71,8 @@ def frame_spec(spec: str | None, stage_start: float | None = None,
     changes nothing. Raises :class:`FrameSpecError` naming the bad part.
     """
     del stage_end
+    if spec is not None and not isinstance(spec, str):
+        return timecodes(spec, max_frames=max_frames)
     if spec is None or not str(spec).strip():
         if stage_start is None:
             raise FrameSpecError("no --frames given and the stage has no start timecode")
@@ -94,9 +98,21 @@ def frame_spec(spec: str | None, stage_start: float | None = None,
     return frames
 
 
-def frame_spec_precision(spec: str | None) -> int:
-    """Decimals the frame placeholder needs: the most digits after the dot in any stride."""
-    if not spec or not str(spec).strip():
+def timecodes(frames: Sequence[float], *, max_frames: int = MAX_FRAMES) -> list[float]:
+    """``frames`` (numbers, not booleans, finite) as a list of floats; :class:`FrameSpecError` for
+    anything else, an empty list or more than ``max_frames``."""
+    items = list(frames)
+    if not items or not all(isinstance(f, Number) and not isinstance(f, bool) and math.isfinite(f) for f in items):
+        raise FrameSpecError(f"frames {frames!r}: give a FrameSpec ('101:148'), a timecode or a list of timecodes")
+    if len(items) > max_frames:
+        raise FrameSpecError(f"frames: {len(items)} timecodes, more than {max_frames}")
+    return [float(f) for f in items]
+
+
+def frame_spec_precision(spec: str | Sequence[float] | None) -> int:
+    """Decimals the frame placeholder needs: the most digits after the dot in any stride (0 for
+    timecodes given as numbers, as for a comma-separated list)."""
+    if not isinstance(spec, str) or not spec.strip():
         return 0
     precision = 0
     for part in _parts(str(spec)):
