@@ -188,7 +188,7 @@ def test_stats_and_description(name):
 def test_make_backend_reads_the_settings_and_options_override_them():
     voxel = make_backend("voxel", SETTINGS.updated(voxel_mapping="conservative"), **QUIET)
     assert (voxel.resolution, voxel.step, voxel.mapping) == (32, 10.0, "conservative")
-    assert make_backend("voxel", SETTINGS, resolution=16, **QUIET).resolution == 16
+    assert make_backend("voxel", SETTINGS, voxel_resolution=16, **QUIET).resolution == 16
     assert make_backend("exact", SETTINGS, **QUIET).name == "exact"
     assert backend_class("voxel").supports(SHADE_DIRECT) and not backend_class("exact").supports(SHADE_DIRECT)
 
@@ -262,3 +262,53 @@ def test_a_new_backend_is_one_module_and_one_registry_line(tmp_path, new_stage):
     np.testing.assert_array_equal(outputs["mine"]["direct"], outputs["exact"]["direct"])
     info = run("info", str(stage))
     assert info.returncode == 0 and "mine: Embree ray casts" in info.stdout, info.stderr
+
+
+def test_a_backend_registered_later_brings_its_own_settings_and_bakes(tmp_path, new_stage, monkeypatch, capsys):
+    """A plugin registered after ``usdml.params`` was imported (here: by this module) is a ``--visibility``
+    choice; the parameter row it declares is a flag, a checked setting the backend reads, and ``bake
+    --backend`` offers it because it declares ``BAKE``. Unregistered, all of it is gone again."""
+    from conftest import ground_stage
+    from pxr import UsdLux
+    from usdml import params
+    from usdml.cli import main
+    from usdml.visibility import registry
+
+    (tmp_path / "toy_backend.py").write_text(
+        "from usdml.visibility.base import BAKE\n"
+        "from usdml.visibility.exact import ExactBackend\n\n\n"
+        "class ToyBackend(ExactBackend):\n"
+        "    name = 'toy'\n"
+        "    capabilities = ExactBackend.capabilities | {BAKE}\n"
+        "    seen = []\n\n"
+        "    @classmethod\n"
+        "    def from_settings(cls, settings=None, device='cpu', report=None, progress=None, cache=None, **options):\n"
+        "        cls.seen.append(settings.toy_reach)\n"
+        "        return cls(**options)\n\n"
+        "    def baked(self):\n"
+        "        return {'toy': True}, ['toy: nothing kept'], '0 structure(s)'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    row = params.Param("toy_reach", float, 1.0, "how far the toy looks", params.VOXEL_COMMANDS, params.VISIBILITY,
+                       range=params.Range(0), applies=(("visibility", ("toy",)),))
+    assert row.flag == "--toy-reach" and row.attribute == "usdml:toy:reach"
+    stage = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/bulb").AddTranslateOp().Set((1, 4, 0)))
+    registry.register("toy", "toy_backend:ToyBackend", params=(row,))
+    try:
+        assert params.check("visibility", "toy") == "toy" and "toy" in params.PARAMS["visibility"].choices
+        assert "toy_reach" in params.table() and UsdmlSettings().toy_reach == 1.0
+        assert UsdmlSettings().updated(toy_reach=3.0).toy_reach == 3.0
+        out = tmp_path / "toy.exr"
+        argv = ["render", str(stage), str(out), "--visibility", "toy", "--imageWidth", "16", "--aovs", "direct"]
+        assert main(argv + ["--toy-reach", "2.5"]) == 0
+        assert backend_class("toy").seen == [2.5]
+        capsys.readouterr()
+        assert main(argv + ["--toy-reach", "-1"]) == 2
+        assert "--toy-reach, usdml:toy:reach" in capsys.readouterr().err
+        assert main(["bake", str(stage), "--backend", "toy", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["toy"] is True
+    finally:
+        registry.unregister("toy")
+    assert "toy_reach" not in params.table() and "toy" not in params.PARAMS["visibility"].choices
+    with pytest.raises(AttributeError):
+        UsdmlSettings().toy_reach
+    assert main(["bake", str(stage), "--backend", "toy"]) == 2

@@ -213,7 +213,7 @@ def test_voxel_kernel_shades_cylinder_lights_as_the_numpy_path(small_city):
         instance_ids=np.full(n, -1))
     pts, normals = o[:600], nrm[:600]
     albedo = np.full((600, 3), 0.5, np.float32)
-    voxel = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None)
+    voxel = VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, report=lambda line: None)
     voxel.update(snap)
     fused = shade_with(voxel, pts, normals, albedo, lights)
     pairs = shade_direct(pts, normals, albedo, lights, voxel.occluded)

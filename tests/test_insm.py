@@ -182,7 +182,7 @@ def test_compiled_maps_answer_as_the_warp_kernels():
     lit = lights(np.random.default_rng(4))
     got = {}
     for k in ("native", "warp"):
-        b = InsmBackend(cpu_kernel=k, light_resolution=128)
+        b = InsmBackend(insm_cpu_kernel=k, insm_light_resolution=128)
         b.update(snap, diff(None, snap))
         got[k] = b.blocked_lights(lit, pts, nrm)
         assert b.describe()["cpu_kernel"] == k
@@ -194,7 +194,7 @@ def test_compiled_maps_answer_as_the_warp_kernels():
 def test_the_frames_lights_are_mapped_and_other_targets_go_to_exact():
     snap, pts, nrm = _snapshot_and_points()
     lit = lights(np.random.default_rng(6))
-    b = InsmBackend(light_resolution=128)
+    b = InsmBackend(insm_light_resolution=128)
     b.update(snap, diff(None, snap))
     albedo = np.full((len(pts), 3), 0.5, np.float32)
     shade_with(b, pts, nrm, albedo, lit)             # the frame's lights, point and distant, become known
@@ -219,7 +219,7 @@ def test_the_frames_lights_are_mapped_and_other_targets_go_to_exact():
 
 def test_depth_images_are_cast_again_only_when_geometry_moves():
     frames = scene_frames("instances")
-    b = InsmBackend(light_resolution=64)
+    b = InsmBackend(insm_light_resolution=64)
     b.update(frames[0], diff(None, frames[0]))
     first = b._tris
     b.update(frames[0], diff(frames[0], frames[0]))
@@ -232,7 +232,7 @@ def test_depth_images_are_cast_again_only_when_geometry_moves():
 
 def test_clusters_hold_every_triangle_in_their_boxes():
     snap, _, _ = _snapshot_and_points("instances")
-    b = InsmBackend(light_resolution=64)
+    b = InsmBackend(insm_light_resolution=64)
     b.update(snap, diff(None, snap))
     first, boxes = clusters(b._tris)
     t = b._tris.reshape(-1, 3, 3)

@@ -35,7 +35,7 @@ def _flags(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 def test_every_row_is_a_field_an_attribute_and_a_flag():
     rows = list(PARAMS.values())
-    assert [f.name for f in dataclasses.fields(UsdmlSettings)] == list(PARAMS)
+    assert [f.name for f in dataclasses.fields(UsdmlSettings)] == [*PARAMS, "backend_settings"]
     assert len({p.attribute for p in rows}) == len({p.flag for p in rows}) == len(rows)
     assert SCHEMA_ATTRIBUTES == {p.attribute: p.field for p in rows}
     defaults = UsdmlSettings().as_dict()
@@ -50,20 +50,27 @@ def test_every_row_is_a_field_an_attribute_and_a_flag():
     assert PARAMS["visibility"].choices == backend_names()
 
 
-def test_voxel_knob_defaults_are_the_backends():
-    """0 stands for the backend's automatic choice (None) where it has one."""
-    from usdml.visibility import voxel
+def test_backends_read_the_table_and_have_no_defaults_of_their_own():
+    """A backend's knobs are settings: built without any it reads the table's defaults (0 standing for the
+    automatic choice where there is one), its constructor names no default of a setting, and a field given
+    by name wins."""
+    from usdml.visibility import backend_class, voxel
 
-    sig = inspect.signature(voxel.VoxelBackend.__init__).parameters
+    b = voxel.VoxelBackend(cache=False)
     s = UsdmlSettings()
-    for knob in ("normal_offset", "skip", "slab", "end_skip", "segment"):
-        assert getattr(s, f"voxel_{knob}") == sig[knob].default, knob
-    for knob in ("max_skip", "memory_limit"):
-        assert sig[knob].default is None and getattr(s, f"voxel_{knob}") == 0, knob
-    assert sig["core"].default is None and s.voxel_core == voxel.CORE
-    assert sig["frame_core"].default is None and s.voxel_frame_core == voxel.PER_FRAME_CORE
-    assert (s.voxel_resolution, s.direction_step) == (sig["resolution"].default, sig["step"].default)
-    assert (s.voxel_rebuild, s.voxel_mapping) == (sig["rebuild"].default, sig["mapping"].default)
+    assert (b.resolution, b.step, b.rebuild, b.mapping) == (s.voxel_resolution, s.direction_step, s.voxel_rebuild,
+                                                          s.voxel_mapping)
+    assert (b.normal_offset, b.skip, b.slab, b.end_skip, b.segment, b.core, b.frame_core) == \
+        (s.voxel_normal_offset, s.voxel_skip, s.voxel_slab, s.voxel_end_skip, s.voxel_segment, s.voxel_core,
+         s.voxel_frame_core)
+    assert s.voxel_max_skip == 0 and b.max_skip == voxel.MAX_SKIP and s.voxel_memory_limit == 0 and b.memory_limit is None
+    for name in ("voxel", "svo", "insm"):
+        cls = backend_class(name)
+        assert cls.reads_settings
+        assert not set(inspect.signature(cls.__init__).parameters) & set(PARAMS), name
+    assert voxel.VoxelBackend(cache=False, voxel_resolution=16).resolution == 16
+    with pytest.raises(UsdmlError, match="--voxel-segment"):
+        voxel.VoxelBackend(cache=False, voxel_segment=3)
 
 
 @pytest.mark.parametrize("command", COMMANDS)

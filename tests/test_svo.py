@@ -134,7 +134,8 @@ def test_restart_traversal_equals_a_brute_force_voxel_walk(kernel):
     rng = np.random.default_rng(5)
     tris = random_triangles(rng, n=40, size=1.0)
     snap = snapshot([soup("/t", tris)])
-    b = SvoBackend(resolution=32, cache=False, normal_offset=0, skip=0, slab=0, end_skip=0, cpu_kernel=kernel, **QUIET)
+    b = SvoBackend(svo_resolution=32, cache=False, normal_offset=0, skip=0, slab=0, end_skip=0, svo_cpu_kernel=kernel,
+                   **QUIET)
     b.update(snap)
     tree = b.trees[0]
     occ = tree.occupancy()
@@ -156,7 +157,7 @@ def test_a_square_occluder_casts_its_analytic_shadow():
     ground = soup("/ground", box((-10, -0.5, -10), (10, 0, 10)))
     square = soup("/sq", box((-1, 2.0, -1), (1, 2.05, 1)))
     snap = snapshot([ground, square])
-    b = SvoBackend(resolution=128, cache=False, **QUIET)
+    b = SvoBackend(svo_resolution=128, cache=False, **QUIET)
     b.update(snap)
     rng = np.random.default_rng(6)
     p = np.c_[rng.uniform(-5, 5, 4000), np.zeros(4000), rng.uniform(-5, 5, 4000)]
@@ -186,7 +187,7 @@ def test_instances_answer_as_their_flattened_copies():
         flat = snapshot([GROUND, soup("/flat", pts[tris], deforming=animated)])
         answers = []
         for snap in (inst, flat):
-            with SvoBackend(resolution=64, cache=False, **QUIET) as b:
+            with SvoBackend(svo_resolution=64, cache=False, **QUIET) as b:
                 b.update(snap)
                 assert len(b.trees) == (2 if animated else 1)
                 answers.append(b.hit_distances(o, t, **kw))
@@ -196,7 +197,7 @@ def test_instances_answer_as_their_flattened_copies():
 
 def test_per_frame_tree_is_rebuilt_only_when_its_geometry_changes():
     frames = scene_frames("deforming")
-    b = SvoBackend(resolution=64, cache=False, **QUIET)
+    b = SvoBackend(svo_resolution=64, cache=False, **QUIET)
     b.update(frames[0], diff(None, frames[0]))
     assert "static scene" in b.built and len(b.built) == 2
     b.update(frames[1], diff(frames[0], frames[1]))
@@ -219,14 +220,14 @@ def test_only_the_per_frame_members_that_moved_are_voxelized_again():
                         time=t)
     f1, f2, f3 = frame(1.0, -1.0), frame(2.0, 1.5), frame(3.0, 0.5)
     o, t, kw = queries(*surface_points(np.random.default_rng(2)), lights(np.random.default_rng(1)))
-    b = SvoBackend(resolution=64, cache=False, **QUIET)
+    b = SvoBackend(svo_resolution=64, cache=False, **QUIET)
     b.update(f1, diff(None, f1))          # everything new: one launch over both, no member grids kept
     assert b.stats["dynamic_members_voxelized"] == 2
     b.update(f2, diff(f1, f2))            # one stood still: member by member, their grids kept
     assert b.stats["dynamic_members_voxelized"] == 2
     b.update(f3, diff(f2, f3))            # the same one still: it keeps its grid
     assert b.stats["dynamic_members_voxelized"] == 1
-    with SvoBackend(resolution=64, cache=False, **QUIET) as fresh:
+    with SvoBackend(svo_resolution=64, cache=False, **QUIET) as fresh:
         fresh.update(f3)
         assert np.array_equal(b.hit_distances(o, t, **kw), fresh.hit_distances(o, t, **kw))
         assert np.array_equal(b.trees[1].bricks, fresh.trees[1].bricks)
@@ -235,9 +236,9 @@ def test_only_the_per_frame_members_that_moved_are_voxelized_again():
 def test_the_static_tree_is_cached_and_loads_the_same():
     snap = scene_frames("occluder")[0]
     o, t, kw = queries(*surface_points(np.random.default_rng(2)), lights(np.random.default_rng(1)))
-    first = SvoBackend(resolution=64, **QUIET)
+    first = SvoBackend(svo_resolution=64, **QUIET)
     first.update(snap)
-    second = SvoBackend(resolution=64, **QUIET)
+    second = SvoBackend(svo_resolution=64, **QUIET)
     second.update(snap)
     assert first.stats["builds"] == 1 and second.stats["loaded"] == 1 and second.stats["builds"] == 0
     assert np.array_equal(first.hit_distances(o, t, **kw), second.hit_distances(o, t, **kw))
@@ -250,7 +251,7 @@ def test_resolution_is_picked_by_the_scene_size_and_checked():
     big.meters_per_unit = 1.0
     assert auto_resolution(big) == 256
     with pytest.raises(UsdmlError, match="svo-resolution"):
-        SvoBackend(resolution=100, cache=False, **QUIET)
+        SvoBackend(svo_resolution=100, cache=False, **QUIET)
 
 
 def test_top_table_is_the_first_levels_of_the_tree():
@@ -281,8 +282,8 @@ def test_top_table_is_the_first_levels_of_the_tree():
 @pytest.mark.parametrize("scene", ["occluder", "instances", "deforming", "many_instances"])
 def test_compiled_walks_answer_as_the_warp_kernel(scene, isa):
     rng = np.random.default_rng(9)
-    warp = SvoBackend(resolution=128, cache=False, cpu_kernel="warp", **QUIET)
-    comp = SvoBackend(resolution=128, cache=False, cpu_kernel="native", native_isa=isa, **QUIET)
+    warp = SvoBackend(svo_resolution=128, cache=False, svo_cpu_kernel="warp", **QUIET)
+    comp = SvoBackend(svo_resolution=128, cache=False, svo_cpu_kernel="native", native_isa=isa, **QUIET)
     assert warp.kernel_name == "warp" and comp.kernel_name.startswith("native-")
     previous = None
     for snap in scene_frames(scene):
@@ -304,19 +305,19 @@ def test_compiled_walks_answer_as_the_warp_kernel(scene, isa):
 
 def test_a_machine_without_the_compiled_walk_gets_warp(monkeypatch):
     monkeypatch.setattr(svo_native.EXTENSION, "load", lambda: (None, "not built (no C compiler)"))
-    b = SvoBackend(resolution=32, cache=False)
+    b = SvoBackend(svo_resolution=32, cache=False)
     assert not b.native and b.kernel_name == "warp"
     assert "Warp kernels" in svo_native.describe()
     with pytest.raises(UsdmlError, match="svo-cpu-kernel"):
-        SvoBackend(resolution=32, cache=False, cpu_kernel="native")
-    assert not SvoBackend(resolution=32, cache=False, device="cuda:0").native
+        SvoBackend(svo_resolution=32, cache=False, svo_cpu_kernel="native")
+    assert not SvoBackend(svo_resolution=32, cache=False, device="cuda:0").native
 
 
 def test_a_resolution_that_cannot_be_built_is_refused_in_one_line(monkeypatch):
     from usdml.visibility import voxel_array
     monkeypatch.setattr(voxel_array, "available_memory", lambda: 2**30)
     with pytest.raises(UsdmlError, match=r"--svo-resolution 2048: building the octree needs .* lower --svo-resolution"):
-        SvoBackend(resolution=2048, cache=False, **QUIET).update(scene_frames("occluder")[0])
+        SvoBackend(svo_resolution=2048, cache=False, **QUIET).update(scene_frames("occluder")[0])
 
 
 def test_settings_reach_the_backend():

@@ -157,8 +157,8 @@ def numpy_segment_hit(arr, bins, layout, a, b, skip0=0.0, skip1=0.0, seg=32):
 def test_query_kernel_matches_numpy_reference(device):
     rng = np.random.default_rng(2)
     tris = city_tris(rng)
-    backend = VoxelBackend(resolution=32, step=10.0, cache=False, normal_offset=0.0, skip=0.0, slab=0.0,
-                           end_skip=0.0, report=lambda line: None, device=device)
+    backend = VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, voxel_normal_offset=0.0,
+                           voxel_skip=0.0, voxel_slab=0.0, voxel_end_skip=0.0, report=lambda line: None, device=device)
     backend.update(snapshot([soup("/city", tris)]))
     arr = backend.arrays[0]
     to_array = arr.to_array
@@ -177,7 +177,8 @@ def test_query_kernel_matches_numpy_reference(device):
 
 def test_voxel_backend_agrees_with_exact_on_a_small_scene(small_city, device):
     snap, o, t, nrm, ref = small_city
-    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None, device=device)
+    backend = VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, report=lambda line: None,
+                           device=device)
     backend.update(snap)
     got = backend.occluded(o, t, normals=nrm)
     assert 0.1 < ref.mean() < 0.9
@@ -192,7 +193,7 @@ def test_finer_arrays_err_less(small_city):
     snap, o, t, nrm, ref = small_city
     errors = []
     for n in (8, 32):
-        backend = VoxelBackend(resolution=n, step=10.0, cache=False, report=lambda line: None)
+        backend = VoxelBackend(voxel_resolution=n, direction_step=10.0, cache=False, report=lambda line: None)
         backend.update(snap)
         errors.append((backend.occluded(o, t, normals=nrm) != ref).mean())
     assert errors[1] < errors[0]
@@ -211,7 +212,7 @@ def test_instances_answer_as_their_array_queried_in_each_instance_space(device):
 
     o, t, nrm = ground_queries(rng, 3000)
     t[:, 1] += 3
-    kw = dict(resolution=32, step=10.0, cache=False, report=lambda line: None)
+    kw = dict(voxel_resolution=32, direction_step=10.0, cache=False, report=lambda line: None)
     both = VoxelBackend(**kw, device=device)
     both.update(scene(xforms))
     assert len(both.arrays) == 2            # static ground + ONE plane array shared by 3 instances
@@ -241,7 +242,8 @@ def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_ci
     from usdml.lighting.direct import shade_direct, shade_with
 
     snap, o, t, nrm, ref = small_city
-    backend = VoxelBackend(resolution=32, step=10.0, cache=False, report=lambda line: None, device=device)
+    backend = VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, report=lambda line: None,
+                           device=device)
     backend.update(snap)
     rng = np.random.default_rng(5)
     n = 40
@@ -267,7 +269,8 @@ def test_shading_kernel_matches_direct_shading_with_the_same_visibility(small_ci
 
 def test_memory_is_said_and_refused_when_it_would_not_fit(small_city):
     lines = []
-    backend = VoxelBackend(resolution=128, step=2.0, cache=False, memory_limit=100 << 20, report=lines.append)
+    backend = VoxelBackend(voxel_resolution=128, direction_step=2.0, cache=False, voxel_memory_limit=100 / 1024,
+                           report=lines.append)
     with pytest.raises(UsdmlError, match=r"need 0\.9\d GiB .* lower --voxel-resolution"):
         backend.update(small_city[0])
     assert lines and "939.0 MiB" in lines[0]
@@ -423,7 +426,8 @@ def test_thin_voxelization_hides_fewer_lights_wrongly(small_city):
     snap, o, t, nrm, ref = small_city
     hidden, samples = {}, {}
     for core in (1.0, 0.5):
-        backend = VoxelBackend(resolution=32, step=10.0, core=core, cache=False, report=lambda line: None)
+        backend = VoxelBackend(voxel_resolution=32, direction_step=10.0, voxel_core=core, cache=False,
+                               report=lambda line: None)
         backend.update(snap)
         got = backend.occluded(o, t, normals=nrm)
         hidden[core] = (got & ~ref).mean()

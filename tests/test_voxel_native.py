@@ -56,8 +56,8 @@ def volume_queries(rng, n: int = 3000):
 
 
 def backends(isa: str):
-    warp = make_backend("voxel", SETTINGS, "cpu", cpu_kernel="warp", **QUIET)
-    native = make_backend("voxel", SETTINGS, "cpu", cpu_kernel="native", native_isa=isa, **QUIET)
+    warp = make_backend("voxel", SETTINGS, "cpu", voxel_cpu_kernel="warp", **QUIET)
+    native = make_backend("voxel", SETTINGS, "cpu", voxel_cpu_kernel="native", native_isa=isa, **QUIET)
     assert warp.kernel_name == "warp" and native.kernel_name.startswith("native-")
     return warp, native
 
@@ -117,7 +117,7 @@ def test_native_kernel_answers_a_floating_box_as_the_slab_test_does(isa):
 
     lo, hi = np.array([-2.0, 1.0, -2.0]), np.array([2.0, 3.0, 2.0])
     native = make_backend("voxel", UsdmlSettings(voxel_resolution=64, direction_step=5.0), "cpu",
-                          cpu_kernel="native", native_isa=isa, **QUIET)
+                          voxel_cpu_kernel="native", native_isa=isa, **QUIET)
     try:
         native.update(snapshot([soup("/box", box(lo, hi))]))
         rng = np.random.default_rng(8)
@@ -183,15 +183,15 @@ def test_native_shading_equals_the_warp_shading_kernel(scene, isa):
 
 def test_a_machine_without_the_compiled_kernel_gets_warp(monkeypatch):
     monkeypatch.setattr(voxel_native.EXTENSION, "load", lambda: (None, "not built (no C compiler)"))
-    b = VoxelBackend(resolution=32, step=10.0, cache=False)
+    b = VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False)
     assert not b.native and b.kernel_name == "warp"
     assert "Warp kernels" in voxel_native.describe() and "C compiler" in voxel_native.describe()
     with pytest.raises(UsdmlError, match="voxel-cpu-kernel"):
-        VoxelBackend(resolution=32, step=10.0, cache=False, cpu_kernel="native")
+        VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, voxel_cpu_kernel="native")
 
 
 def test_a_gpu_device_never_takes_the_compiled_path():
-    assert not VoxelBackend(resolution=32, step=10.0, cache=False, device="cuda:0").native
+    assert not VoxelBackend(voxel_resolution=32, direction_step=10.0, cache=False, device="cuda:0").native
 
 
 def test_describe_names_the_instruction_set():
@@ -205,7 +205,7 @@ def test_widths_and_names_follow_the_instruction_set():
     for isa in ISAS:
         lanes, register = voxel_native.simd_width(isa), voxel_native.isa_width(isa)
         assert lanes == (2 * register if register > 1 else 1)
-        b = make_backend("voxel", SETTINGS, "cpu", cpu_kernel="native", native_isa=isa, **QUIET)
+        b = make_backend("voxel", SETTINGS, "cpu", voxel_cpu_kernel="native", native_isa=isa, **QUIET)
         want = {16: "native-avx512", 8: "native-avx2", 1: "native-scalar"}[register]
         assert b.kernel_name == want
         b.close()

@@ -150,7 +150,8 @@ def test_rotated_arrays_answer_shadow_rays_close_to_exact(device):
     assert 0.1 < ref.mean() < 0.9
     errors = {}
     for rebuild, mapping in (("geometry", "point"), ("rotate", "point"), ("rotate", "conservative")):
-        b = VoxelBackend(resolution=32, step=10.0, rebuild=rebuild, mapping=mapping, **QUIET, device=device)
+        b = VoxelBackend(voxel_resolution=32, direction_step=10.0, voxel_rebuild=rebuild, voxel_mapping=mapping, **QUIET,
+                         device=device)
         b.update(snap)
         assert b.built == ["static scene", "deforming geometry"]
         got = b.occluded(o, t, normals=nrm)
@@ -185,7 +186,7 @@ def test_a_static_scene_rebuilds_nothing_on_its_second_frame_even_with_moving_li
     tower = soup("/tower", box((-1, 0, -1), (1, 4, 1)), id=2)
     one = replace(snapshot([ground, tower]), lights=_lights(0.0))
     two = replace(snapshot([ground, tower], time=2.0), lights=_lights(3.0))
-    b = VoxelBackend(resolution=16, step=15.0, **QUIET)
+    b = VoxelBackend(voxel_resolution=16, direction_step=15.0, **QUIET)
     b.update(one, diff(None, one))
     assert b.built == ["static scene"]
     words = b.words
@@ -203,7 +204,7 @@ def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place(device):
         return snapshot([ground, blob], [prototype("/plane", plane.meshes, [translate(t, 3, 0)], animated=True)],
                         time=t)
 
-    b = VoxelBackend(resolution=16, step=15.0, **QUIET, device=device)
+    b = VoxelBackend(voxel_resolution=16, direction_step=15.0, **QUIET, device=device)
     one, two, three = frame(1.0), frame(2.0), frame(3.0)
     b.update(one, diff(None, one))
     assert sorted(b.built) == ["deforming geometry", "prototype /plane", "static scene"]
@@ -212,7 +213,7 @@ def test_a_deforming_scene_rebuilds_only_its_deforming_mesh_in_place(device):
     assert b.built == ["deforming geometry"]
     assert b.words is words                  # written in its slot: nothing reallocated
     # the in-place array is the one a fresh backend builds for frame two
-    fresh = VoxelBackend(resolution=16, step=15.0, **QUIET, device=device)
+    fresh = VoxelBackend(voxel_resolution=16, direction_step=15.0, **QUIET, device=device)
     fresh.update(two, diff(None, two))
     assert np.array_equal(b.words.numpy(), fresh.words.numpy())
     o, t, nrm = ground_queries(np.random.default_rng(2), 2000)
@@ -233,7 +234,7 @@ def test_fully_dynamic_puts_everything_in_one_per_frame_array():
                                              animated=True)], time=t)
 
     one, two = frame(1.0), frame(2.0)
-    b = VoxelBackend(resolution=16, step=15.0, fully_dynamic=True, **QUIET)
+    b = VoxelBackend(voxel_resolution=16, direction_step=15.0, fully_dynamic=True, **QUIET)
     assert [role for role, _ in b.plan(one)] == ["dynamic"]
     b.update(one, diff(None, one))
     assert b.built == ["dynamic scene"] and len(b.arrays) == 1
@@ -252,7 +253,7 @@ def test_fully_dynamic_puts_everything_in_one_per_frame_array():
     ref = exact.occluded(o, t, normals=nrm)
     errors = {}
     for fully in (True, False):
-        v = VoxelBackend(resolution=32, step=10.0, fully_dynamic=fully, **QUIET)
+        v = VoxelBackend(voxel_resolution=32, direction_step=10.0, fully_dynamic=fully, **QUIET)
         v.update(two)
         got = v.occluded(o, t, normals=nrm)
         errors[fully] = (got != ref).mean()
@@ -263,11 +264,11 @@ def test_fully_dynamic_puts_everything_in_one_per_frame_array():
 
 def test_unknown_rebuild_or_mapping_is_refused():
     with pytest.raises(UsdmlError, match="rebuild"):
-        VoxelBackend(rebuild="depth-peel", **QUIET)
+        VoxelBackend(voxel_rebuild="depth-peel", **QUIET)
     with pytest.raises(UsdmlError, match="mapping"):
-        VoxelBackend(mapping="nearest", **QUIET)
+        VoxelBackend(voxel_mapping="nearest", **QUIET)
     with pytest.raises(UsdmlError, match="core"):
-        VoxelBackend(core=-1.0, **QUIET)
+        VoxelBackend(voxel_core=-1.0, **QUIET)
 
 
 def test_conservative_mapping_keeps_the_longer_skip():
@@ -276,8 +277,8 @@ def test_conservative_mapping_keeps_the_longer_skip():
     from usdml.visibility.voxel import CONSERVATIVE_MAX_SKIP, MAX_SKIP
 
     assert VoxelBackend(**QUIET).max_skip == MAX_SKIP < CONSERVATIVE_MAX_SKIP
-    assert VoxelBackend(mapping="conservative", **QUIET).max_skip == CONSERVATIVE_MAX_SKIP
-    assert VoxelBackend(mapping="conservative", max_skip=3.0, **QUIET).max_skip == 3.0
+    assert VoxelBackend(voxel_mapping="conservative", **QUIET).max_skip == CONSERVATIVE_MAX_SKIP
+    assert VoxelBackend(voxel_mapping="conservative", voxel_max_skip=3.0, **QUIET).max_skip == 3.0
 
 
 # ---------------------------------------------------------------------------------------- CLI
@@ -352,12 +353,12 @@ def test_a_deforming_mesh_that_empties_and_comes_back():
     full = box((-2, 1, -2), (2, 3, 2))
     frames = [frame(1.0, full), frame(2.0, np.zeros((0, 3, 3))), frame(3.0, full + 0.5)]
     o, t, nrm = ground_queries(np.random.default_rng(6), 1500)
-    b = VoxelBackend(resolution=16, step=15.0, **QUIET)
+    b = VoxelBackend(voxel_resolution=16, direction_step=15.0, **QUIET)
     previous = None
     for snap in frames:
         b.update(snap, diff(previous, snap))
         previous = snap
-        fresh = VoxelBackend(resolution=16, step=15.0, **QUIET)
+        fresh = VoxelBackend(voxel_resolution=16, direction_step=15.0, **QUIET)
         fresh.update(snap)
         assert np.array_equal(b.occluded(o, t, normals=nrm), fresh.occluded(o, t, normals=nrm))
     assert len(b.arrays) == 2
@@ -373,4 +374,4 @@ def test_voxel_packing_round_trips_up_to_the_largest_resolution():
     assert sorted(back) == sorted(map(tuple, ijl.tolist()))
     blob = snapshot([soup("/blob", box((0, 0, 0), (1, 1, 1)), deforming=True)])
     with pytest.raises(UsdmlError, match="voxel-rebuild geometry"):
-        VoxelBackend(resolution=MAX_RESOLUTION * 2, **QUIET).update(blob)
+        VoxelBackend(voxel_resolution=MAX_RESOLUTION * 2, **QUIET).update(blob)

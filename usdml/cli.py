@@ -13,7 +13,7 @@ import logging
 import sys
 import time
 
-from usdml.params import DEFAULT_WIDTH, add_cmdline_args, overrides_from_args
+from usdml.params import BAKE, BENCH, COMPARE, INFO, RENDER, add_cmdline_args, options_from_args, overrides_from_args
 from usdml.recorder import check_width
 
 
@@ -39,18 +39,9 @@ def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="do not print warnings")
 
 
-def _add_stage_args(p: argparse.ArgumentParser) -> None:
+def _add_stage_args(p: argparse.ArgumentParser, command: str) -> None:
     p.add_argument("stage", help="USD stage to read (.usd, .usda, .usdc, .usdz)")
-    p.add_argument("--camera", help="camera prim path or name (default: RenderSettings camera, main_cam, "
-                                    "the first camera, else a camera framing the scene)")
-    p.add_argument("--renderSettingsPrimPath", dest="render_settings",
-                   help="RenderSettings prim (default: the stage's renderSettingsPrimPath metadata)")
-    p.add_argument("--purposes", metavar="PURPOSE[,PURPOSE...]",
-                   help="imageable purposes to include besides 'default', as usdrecord (default: the "
-                        "RenderSettings' includedPurposes, else 'render' -- final-frame geometry; "
-                        "'proxy' for usdview's interactive look)")
-    p.add_argument("--implicit-detail", type=int, default=10, metavar="N",
-                   help="segments around implicit prims (Sphere, Cylinder ...); default %(default)s as usdImaging")
+    add_cmdline_args(p, command, "camera", "render_settings", "purposes", "implicit_detail")
 
 
 #: imageable purposes besides 'default' (always drawn) that --purposes may name
@@ -91,10 +82,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_device_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default: %(default)s)")
-
-
 def _update_over(delegate, backend, frames) -> None:
     """Bring ``backend`` through every frame of ``frames`` (what ``usdml bake`` builds and caches)."""
     from usdml.scene import diff
@@ -111,69 +98,45 @@ def _update_over(delegate, backend, frames) -> None:
 
 def _cmd_bake(args: argparse.Namespace) -> int:
     from usdml.render.sequence import build_messages, frame_spec
-    from usdml.visibility import make_backend
+    from usdml.visibility import backend_class, make_backend
 
     delegate = _delegate(args)
     settings = delegate.usdml_settings.updated(**overrides_from_args(args))
     frames = frame_spec(args.frames, delegate.start_time, delegate.end_time)
-    if args.backend == "svo":
-        return _bake_svo(args, delegate, settings, frames)
-    if settings.fully_dynamic:
-        print(f"{args.stage} is fully dynamic (usdml:voxel:fullyDynamic or --fully-dynamic): its voxel array is "
-              "rebuilt every frame and not cached; nothing to bake (--no-fully-dynamic bakes the static and "
-              "prototype arrays)", file=sys.stderr)
+    skip = backend_class(args.backend).bake_skip(settings)
+    if skip:
+        print(f"{args.stage} is {skip[0]}", file=sys.stderr)
         if args.json:
-            print(json.dumps({"stage": args.stage, "frames": frames, "fully_dynamic": True, "arrays": []}, indent=2))
+            print(json.dumps({"stage": args.stage, "frames": frames, **skip[1]}, indent=2))
         return 0
     t0 = time.perf_counter()
-    backend = make_backend("voxel", settings, args.device, cache=args.cache, **build_messages())
+    backend = make_backend(args.backend, settings, args.device, cache=args.cache, **build_messages())
     _update_over(delegate, backend, frames)
-    arrays = [{"source": a.source, "key": a.key, "bytes": a.nbytes, "samples": a.samples,
-               "build_seconds": a.build_seconds, "loaded_from_cache": a.cached,
-               "path": str(backend.cache.path("voxel", a.key)) if backend.cache and a.key else None}
-              for a in backend.arrays]
+    fields, lines, total = backend.baked()
     backend.close()
-    summary = {"stage": args.stage, "frames": frames, "voxel_resolution": settings.voxel_resolution,
-               "direction_step": settings.direction_step, "directions": backend.bins.count, "arrays": arrays,
-               "built": backend.stats["builds"], "loaded": backend.stats["loaded"],
-               "seconds": time.perf_counter() - t0}
+    summary = {"stage": args.stage, "frames": frames, **fields, "seconds": time.perf_counter() - t0}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
-    for a in arrays:
-        how = "in cache" if a["loaded_from_cache"] else f"built in {a['build_seconds']:.1f} s"
-        print(f"{a['source']}: {a['bytes'] / 2**20:.1f} MiB, {how}" + (f" -> {a['path']}" if a["path"] else
-                                                                        " (deforming: rebuilt per frame, not cached)"))
-    print(f"{len(arrays)} array(s) at {settings.voxel_resolution}^3 / {settings.direction_step:g} deg "
-          f"({backend.bins.count} directions) in {summary['seconds']:.1f} s")
+    print("\n".join(lines + [f"{total} in {summary['seconds']:.1f} s"]))
     return 0
 
 
-def _bake_svo(args: argparse.Namespace, delegate, settings, frames) -> int:
-    """``usdml bake --backend svo``: the static sparse voxel octree into the cache (per-frame trees are
-    rebuilt every frame and never cached)."""
-    from usdml.render.sequence import build_messages
-    from usdml.visibility import make_backend
+class _Bakers:
+    """``bake --backend``'s choices: the registered backends that declare ``BAKE``, read when argparse asks
+    (a backend registered after the parser was made counts; the modules are imported only then)."""
 
-    t0 = time.perf_counter()
-    backend = make_backend("svo", settings, args.device, cache=args.cache, **build_messages())
-    _update_over(delegate, backend, frames)
-    trees = [{"source": t.source, "key": t.key, "bytes": t.nbytes, "resolution": t.n, "occupied_voxels": t.occupied,
-              "build_seconds": t.build_seconds, "loaded_from_cache": t.cached,
-              "path": str(backend.cache.path("svo", t.key)) if backend.cache and t.key else None}
-             for t in backend.trees]
-    backend.close()
-    summary = {"stage": args.stage, "frames": frames, "backend": "svo", "trees": trees,
-               "built": backend.stats["builds"], "loaded": backend.stats["loaded"], "seconds": time.perf_counter() - t0}
-    if args.json:
-        print(json.dumps(summary, indent=2))
-        return 0
-    for t in trees:
-        how = "in cache" if t["loaded_from_cache"] else f"built in {t['build_seconds']:.1f} s"
-        print(f"{t['source']}: {t['resolution']}^3, {t['occupied_voxels']:,} voxels, {t['bytes'] / 2**20:.2f} MiB, {how}"
-              + (f" -> {t['path']}" if t["path"] else " (rebuilt per frame, not cached)"))
-    print(f"{len(trees)} tree(s) in {summary['seconds']:.1f} s")
-    return 0
+    def _names(self) -> list[str]:
+        from usdml.visibility import backend_class, backend_names
+        from usdml.visibility.base import BAKE
+
+        return [n for n in backend_names() if backend_class(n).supports(BAKE)]
+
+    def __contains__(self, name) -> bool:
+        return name in self._names()
+
+    def __iter__(self):
+        return iter(self._names())
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
@@ -197,12 +160,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from usdml.recorder import Recorder
 
     # the command is the pipeline API (usdml.Recorder): one code path
-    recorder = Recorder(_flags=True, image_width=args.imageWidth, camera=args.camera, render_settings=args.render_settings,
-                        purposes=_purposes(args), implicit_detail=args.implicit_detail,
-                        camera_light=args.cameraLightEnabled,
-                        aovs=[a for spec in args.aovs or [] for a in spec.split(",") if a] or None,
-                        device=args.device, preview=args.preview, workers=args.workers, scheduler=args.scheduler,
-                        chunk_size=args.chunk_size, retries=args.retries, nthreads=args.nthreads,
+    recorder = Recorder(_flags=True, **dict(options_from_args(args), purposes=_purposes(args)),
                         **overrides_from_args(args))
     summary = recorder.record_sequence(args.stage, args.frames, args.output, resume=args.resume).summary
     if summary.get("failed"):
@@ -328,36 +286,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="do not print warnings")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     info = sub.add_parser("info", help="summarize what usdml reads from a stage")
-    _add_stage_args(info)
+    _add_stage_args(info, INFO)
     info.add_argument("--time", type=float, help="timecode to inspect (default: the stage's startTimeCode)")
     info.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     info.set_defaults(run=_cmd_info)
 
     render = sub.add_parser("render", help="render timecodes to multi-channel OpenEXR (AOVs)")
-    _add_stage_args(render)
+    _add_stage_args(render, RENDER)
     render.add_argument("output", nargs="?", help="output EXR path; '#' marks the frame number "
                         "(out.####.exr); default: the RenderSettings products")
     render.add_argument("--frames", help="FrameSpec as usdrecord: 1:48, 1:10x2, 1,5,9 (default: the start frame)")
-    render.add_argument("--imageWidth", type=int, metavar="W",
-                        help="image width in pixels, height from the aspect ratio (default: the RenderSettings' "
-                             f"resolution, else {DEFAULT_WIDTH})")
-    render.add_argument("--aovs", action="append", help="comma-separated AOVs to write (default: color, direct, indirect, "
-                        "shadow, depth, normal, P, albedo, primId, instanceId)")
-    _add_device_arg(render)
-    add_cmdline_args(render, "render")
+    add_cmdline_args(render, RENDER, "image_width", "aovs", "device")
+    add_cmdline_args(render, RENDER)
     render.add_argument("--resume", action="store_true", help="skip frames whose files are already complete")
-    render.add_argument("--preview", action="store_true", help="also write a PNG of the color AOV beside each EXR")
-    render.add_argument("--disableCameraLight", action="store_false", dest="cameraLightEnabled",
-                        help="no camera light for stages without lights (usdrecord's flag)")
+    add_cmdline_args(render, RENDER, "preview", "camera_light")
     render.add_argument("--json", action="store_true", help="print the summary as JSON")
-    farm = render.add_argument_group("frames on Dask (docs/rendering.md, \"Render farms\")")
-    farm.add_argument("--workers", type=int, metavar="N", help="render frames on a local Dask cluster of N process workers")
-    farm.add_argument("--scheduler", metavar="ADDRESS", help="render frames on a running Dask cluster (tcp://HOST:PORT)")
-    farm.add_argument("--chunk-size", type=int, default=1, metavar="K", help="frames per task (default: %(default)s)")
-    farm.add_argument("--retries", type=int, default=2, metavar="R",
-                      help="attempts per chunk beyond the first (default: %(default)s)")
-    farm.add_argument("--nthreads", type=int, metavar="T",
-                      help="threads each worker renders with (default: the machine's cores / --workers)")
+    add_cmdline_args(render, RENDER, "workers", "scheduler", "chunk_size", "retries", "nthreads")
     render.set_defaults(run=_cmd_render)
 
     view = sub.add_parser("view", help="a frame in 3-D (pyvista): geometry, instances, cameras, lights, to a PNG")
@@ -377,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.set_defaults(run=_cmd_view)
 
     compare = sub.add_parser("compare", help="one frame two ways: error of a method against its reference")
-    _add_stage_args(compare)
+    _add_stage_args(compare, COMPARE)
     compare.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
     compare.add_argument("--visibility", help="approximate visibility backend to compare against exact (voxel)")
     compare.add_argument("--against", help="reference method (default: exact for --visibility, vpl-bruteforce for --gi; all for --direct)")
@@ -389,32 +333,32 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--reference-pixels", type=int, metavar="N",
                          help="with --direct lgh --against all: shade the every-light reference on N random pixels "
                               "only and extrapolate its time (for 100,000 lights and more)")
-    _add_device_arg(compare)
+    add_cmdline_args(compare, COMPARE, "device")
     compare.add_argument("--png", metavar="PREFIX", help="write PREFIX_direct/indirect/color.png")
     compare.add_argument("--json", action="store_true", help="print JSON")
-    add_cmdline_args(compare, "compare")
+    add_cmdline_args(compare, COMPARE)
     compare.set_defaults(run=_cmd_compare)
 
     bench = sub.add_parser("bench", help="time the visibility queries of one frame")
-    _add_stage_args(bench)
+    _add_stage_args(bench, BENCH)
     bench.add_argument("--visibility", action="append", help="backend to time (repeat for several; default exact)")
     bench.add_argument("--imageWidth", type=int, default=512, metavar="W", help="image width in pixels (default: %(default)s)")
     bench.add_argument("--frame", type=float, help="timecode (default: the stage's start)")
-    _add_device_arg(bench)
+    add_cmdline_args(bench, BENCH, "device")
     bench.add_argument("--json", action="store_true", help="print JSON")
-    add_cmdline_args(bench, "bench")
+    add_cmdline_args(bench, BENCH)
     bench.set_defaults(run=_cmd_bench)
 
     bake = sub.add_parser("bake", help="build the voxel arrays (or the static SVO) of a stage into the cache")
-    _add_stage_args(bake)
-    bake.add_argument("--backend", choices=("voxel", "svo"), default="voxel",
+    _add_stage_args(bake, BAKE)
+    bake.add_argument("--backend", choices=_Bakers(), default="voxel",
                       help="whose structures to bake: voxel arrays (usdml:voxel settings) or the static sparse "
                            "voxel octree (usdml:svo settings) (default: %(default)s)")
     bake.add_argument("--frames", help="FrameSpec whose prototypes to bake (default: the start frame)")
-    _add_device_arg(bake)
+    add_cmdline_args(bake, BAKE, "device")
     bake.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
     bake.add_argument("--json", action="store_true", help="print JSON")
-    add_cmdline_args(bake, "bake")
+    add_cmdline_args(bake, BAKE)
     bake.set_defaults(run=_cmd_bake)
 
     cache = sub.add_parser("cache", help="list or empty the on-disk cache of voxel arrays and octrees")

@@ -57,6 +57,11 @@ Optional capabilities
         than :meth:`~VisibilityBackend.occluded` over the same pairs cut into blocks of points, so a
         caller holding a point set and a light set (``usdml compare``) asks it for the whole matrix.
         Default: ``occluded_matrix`` over ``occluded``, no faster.
+    ``BAKE`` ("bake")
+        ``usdml bake --backend NAME`` (whose choices are the backends declaring it): the backend caches what
+        it builds from the stage. Classmethod :meth:`~VisibilityBackend.bake_skip` says why some settings
+        leave nothing to cache, and :meth:`~VisibilityBackend.baked`, after the updates over the frames,
+        what was built or loaded. Default: ``None``; ``NotImplementedError``.
 
 Adding a backend
     One module with a :class:`VisibilityBackend` subclass (``name``, ``summary``, ``capabilities``, and
@@ -75,8 +80,9 @@ from typing import Callable, Mapping
 import numpy as np
 
 from usdml.scene import Changes, Snapshot
+from usdml.settings import UsdmlSettings
 
-__all__ = ["VisibilityBackend", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE",
+__all__ = ["VisibilityBackend", "baked_entry", "baked_line", "settings_with", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE",
            "LIGHT_MAJOR", "DirectResult"]
 
 #: optional capabilities (module doc, "Optional capabilities")
@@ -85,7 +91,8 @@ HIT_DISTANCES = "hit_distances"
 STATS = "stats"
 MEMORY_ESTIMATE = "memory_estimate"
 LIGHT_MAJOR = "light_major"
-CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR)
+BAKE = "bake"
+CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR, BAKE)
 
 
 @dataclass
@@ -153,6 +160,28 @@ def scene_sphere(snapshot: Snapshot) -> tuple[np.ndarray, float]:
     return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
 
 
+def settings_with(settings, values: dict):
+    """What a backend reads: ``settings`` (a :class:`usdml.settings.UsdmlSettings`; None: the parameter
+    table's defaults) with ``values`` (settings fields by name) set, each checked by the table."""
+    return (UsdmlSettings() if settings is None else settings).updated(**values)
+
+
+def baked_entry(backend, kind: str, item, **fields) -> dict:
+    """One structure ``usdml bake`` reports (``BAKE``): ``item`` (``source``, ``key``, ``nbytes``,
+    ``build_seconds``, ``cached``) with the backend's ``fields``, and its file in the backend's cache under
+    ``kind`` (None: not cached)."""
+    return {"source": item.source, "key": item.key, "bytes": item.nbytes, **fields, "build_seconds": item.build_seconds,
+            "loaded_from_cache": item.cached,
+            "path": str(backend.cache.path(kind, item.key)) if backend.cache and item.key else None}
+
+
+def baked_line(entry: dict, what: str, uncached: str) -> str:
+    """``usdml bake``'s line for ``entry`` (:func:`baked_entry`): its source, ``what`` it is, built or found,
+    and where it lies, else why not (``uncached``)."""
+    how = "in cache" if entry["loaded_from_cache"] else f"built in {entry['build_seconds']:.1f} s"
+    return f"{entry['source']}: {what}, {how}" + (f" -> {entry['path']}" if entry["path"] else f" ({uncached})")
+
+
 class VisibilityBackend(abc.ABC):
     """Answers shadow-ray queries against the geometry of the last snapshot given to :meth:`update`."""
 
@@ -160,6 +189,9 @@ class VisibilityBackend(abc.ABC):
     name: str = ""
     #: optional capabilities it implements (module doc): a subset of ``CAPABILITIES``
     capabilities: frozenset[str] = frozenset()
+    #: its constructor takes ``(settings, *, device, report, progress, **values)``: the settings it reads, those
+    #: fields by name over them (:func:`settings_with`), and no defaults of its own
+    reads_settings: bool = False
     #: one line saying what the backend is (``usdml info`` lists every registered backend with it)
     summary: str = ""
     #: counters of the last update (``STATS``); backends that declare it set their own dict
@@ -172,8 +204,11 @@ class VisibilityBackend(abc.ABC):
     def from_settings(cls, settings=None, device: str = "cpu", *, report: Callable[[str], None] | None = None,
                       progress: Callable[..., None] | None = None, **options) -> "VisibilityBackend":
         """A backend configured from ``settings`` (a :class:`usdml.settings.UsdmlSettings`, or ``None``
-        for defaults) on Warp ``device``, keyword ``options`` overriding them (module doc). The default
-        is ``cls(**options)``: a backend with no settings of its own, nothing to report, one device."""
+        for defaults) on Warp ``device``, keyword ``options`` overriding them (module doc). The default:
+        ``cls(settings, device=device, report=report, progress=progress, **options)`` for a backend that
+        ``reads_settings``, else ``cls(**options)`` (no settings of its own, nothing to report, one device)."""
+        if cls.reads_settings:
+            return cls(settings, device=device, report=report, progress=progress, **options)
         return cls(**options)
 
     @classmethod
@@ -182,6 +217,17 @@ class VisibilityBackend(abc.ABC):
         if capability not in CAPABILITIES:
             raise ValueError(f"unknown backend capability {capability!r}; one of {', '.join(CAPABILITIES)}")
         return capability in cls.capabilities
+
+    @classmethod
+    def bake_skip(cls, settings) -> tuple[str, dict] | None:
+        """``BAKE``: why ``settings`` leave nothing to cache (a line for stderr, the fields ``--json`` adds),
+        or None."""
+        return None
+
+    def baked(self) -> tuple[dict, list[str], str]:
+        """``BAKE``: what the updates so far built or loaded, before :meth:`close`: the fields ``usdml bake
+        --json`` prints, a line per structure and the summary line (``... in N s`` follows)."""
+        raise NotImplementedError(f"the {self.name} backend bakes nothing")
 
     @classmethod
     def memory_estimate(cls, snapshot: Snapshot, settings) -> dict | None:

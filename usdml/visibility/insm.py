@@ -47,12 +47,11 @@ from typing import Callable
 
 import numpy as np
 
-from usdml import params
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_parallel
 from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
 from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult, VisibilityBackend,
-                                   all_members, as_flags, as_vectors, scene_sphere)
+                                   all_members, as_flags, as_vectors, scene_sphere, settings_with)
 from usdml.visibility.exact import ExactBackend
 from usdml.visibility.insm_mesh import clusters, depth_images, insm_views, triangulate
 from usdml.visibility.svo_tree import svo_bounds
@@ -192,10 +191,10 @@ class InsmBackend(VisibilityBackend):
 
     Parameters
     ----------
-    count : depth images per frame (``K``, the paper's 10)
-    resolution : pixels per side of each depth image (``w``, the paper's 128)
-    light_resolution : texels per side of each view of a light's map (``S``, the paper's 512)
-    threshold : ``κ`` of the triangulation (:mod:`usdml.visibility.insm_mesh`)
+    settings : a :class:`usdml.settings.UsdmlSettings` (None: the table's defaults); the backend reads
+        ``insm_count`` (``K``), ``insm_resolution`` (``w``), ``insm_light_resolution`` (``S``),
+        ``insm_threshold`` (``κ`` of the triangulation, :mod:`usdml.visibility.insm_mesh`) and ``insm_cpu_kernel``
+    **values : those fields by name, over ``settings`` (``insm_light_resolution=128``)
     offset, bias : leaving the surface, in texels of the light's map (module doc)
     device : Warp device, ``cpu`` or ``cuda``
     report, progress : as every backend (:mod:`usdml.visibility.base`)
@@ -207,18 +206,15 @@ class InsmBackend(VisibilityBackend):
     name = "insm"
     summary = "intermediate shadow maps: per-light maps rasterized from K triangulated depth images (paper 001)"
     capabilities = frozenset({SHADE_DIRECT, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR})
+    reads_settings = True
 
-    def __init__(self, *, count: int = 10, resolution: int = 128, light_resolution: int = 512,
-                 threshold: float = 2.0, offset: float = OFFSET_TEXELS, bias: float = BIAS_TEXELS,
-                 cpu_kernel: str = "auto", device: str = "cpu", workers: int | None = None,
-                 report: Callable[[str], None] | None = None, progress: Callable[..., None] | None = None) -> None:
-        params.check("insm_count", int(count))
-        params.check("insm_cpu_kernel", cpu_kernel)
-        params.check("insm_resolution", int(resolution))
-        params.check("insm_light_resolution", int(light_resolution))
-        params.check("insm_threshold", float(threshold))
-        self.count, self.resolution = int(count), int(resolution)
-        self.light_resolution, self.threshold = int(light_resolution), float(threshold)
+    def __init__(self, settings=None, *, offset: float = OFFSET_TEXELS, bias: float = BIAS_TEXELS,
+                 device: str = "cpu", workers: int | None = None, report: Callable[[str], None] | None = None,
+                 progress: Callable[..., None] | None = None, **values) -> None:
+        s = settings_with(settings, values)
+        self.count, self.resolution = int(s.insm_count), int(s.insm_resolution)
+        self.light_resolution, self.threshold = int(s.insm_light_resolution), float(s.insm_threshold)
+        cpu_kernel = s.insm_cpu_kernel
         self.offset, self.bias = float(offset), float(bias)
         self.device = device
         self.workers = cpu_workers(device, workers)
@@ -243,16 +239,6 @@ class InsmBackend(VisibilityBackend):
                           lookup_seconds=0.0, last_maps=0, last_receiver_seconds=0.0, last_map_seconds=0.0,
                           last_lookup_seconds=0.0,
                           maps=0, map_queries=0, exact_queries=0)
-
-    @classmethod
-    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "InsmBackend":
-        kw: dict = {}
-        if settings is not None:
-            kw.update(count=settings.insm_count, resolution=settings.insm_resolution,
-                      light_resolution=settings.insm_light_resolution, threshold=settings.insm_threshold,
-                      cpu_kernel=settings.insm_cpu_kernel)
-        kw.update(options)
-        return cls(device=device, **kw)
 
     @classmethod
     def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:

@@ -2,7 +2,9 @@
 
 A leaf module (nothing of usdml but :mod:`usdml.errors` is imported), so the parameter table, the
 command line and the schema can list the names without importing Embree or Warp. Each entry is
-``"module:Class"``; the module is imported the first time the backend is asked for.
+``"module:Class"``; the module is imported the first time the backend is asked for. A backend from
+elsewhere (a plugin) joins with :func:`register`, any time: every list of names is read from here when
+it is needed (:func:`usdml.params.table`), so one registered after ``import usdml`` is accepted.
 """
 
 from __future__ import annotations
@@ -19,10 +21,37 @@ BACKENDS: dict[str, str] = {
     "insm": "usdml.visibility.insm:InsmBackend",
 }
 
+#: name -> the parameter rows (:class:`usdml.params.Param`) a registered backend adds to the table
+PARAMS: dict[str, tuple] = {}
+
+
+def register(name: str, target: str, params: tuple = ()) -> None:
+    """Register backend ``name`` as ``target`` (``"module:Class"``), with its own settings: ``params``,
+    rows of :class:`usdml.params.Param` (group ``usdml.params.VISIBILITY``) that join the table, its
+    flags and :class:`usdml.settings.UsdmlSettings` (read as attributes, their defaults until set)."""
+    BACKENDS[name] = target
+    PARAMS[name] = tuple(params)
+
+
+def unregister(name: str) -> None:
+    """Forget backend ``name`` and its parameter rows (a test's toy backend)."""
+    BACKENDS.pop(name, None)
+    PARAMS.pop(name, None)
+
+
+def state() -> tuple:
+    """What the table depends on: the names and the rows (compared, so a change is seen however made)."""
+    return tuple(BACKENDS), tuple((n, PARAMS.get(n, ())) for n in BACKENDS)
+
 
 def backend_names() -> tuple[str, ...]:
     """Every registered backend name, in registry order (``exact`` first)."""
     return tuple(BACKENDS)
+
+
+def backend_params() -> tuple:
+    """The parameter rows the registered backends declare, in registry order."""
+    return tuple(p for n in BACKENDS for p in PARAMS.get(n, ()))
 
 
 def backend_class(name: str):

@@ -41,13 +41,13 @@ from typing import Callable
 
 import numpy as np
 
-from usdml import params
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Snapshot, world_geometry
-from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags, as_vectors,
-                                   members_changed, scene_sphere, static_members)
+from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags,
+                                   as_vectors, baked_entry, baked_line, members_changed, scene_sphere, settings_with,
+                                   static_members)
 from usdml.visibility.svo_tree import (SvoTree, aligned_grid, cached_tree, cube_grid,
                                        svo_bounds, svo_kernels, top_level, top_table, tree_from_masks,
                                        voxelize_bricks)
@@ -100,11 +100,12 @@ class SvoBackend(VisibilityBackend):
 
     Parameters
     ----------
-    resolution : voxels per axis of the static tree, a power of two; 0: automatic (module doc)
+    settings : a :class:`usdml.settings.UsdmlSettings` (None: the table's defaults); the backend reads
+        ``svo_resolution`` (0: automatic, module doc) and ``svo_cpu_kernel``
+    **values : those fields by name, over ``settings`` (``svo_resolution=64``)
     device : Warp device, ``cpu`` or ``cuda``
     cache : a :class:`usdml.cache.Cache`, a folder, or None for the default folder; ``False``: no cache
     normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc)
-    cpu_kernel : ``auto`` (the compiled traversal when it was built, else Warp), ``native`` or ``warp``
     report, progress : as every backend (:mod:`usdml.visibility.base`)
 
     ``stats`` after each :meth:`update`: bytes, nodes, bricks, occupied voxels, build and per-frame
@@ -113,16 +114,16 @@ class SvoBackend(VisibilityBackend):
 
     name = "svo"
     summary = "sparse voxel octree, restart traversal (paper 003)"
-    capabilities = frozenset({HIT_DISTANCES, STATS, MEMORY_ESTIMATE})
+    capabilities = frozenset({HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE})
+    reads_settings = True
 
-    def __init__(self, *, resolution: int = 0, device: str = "cpu", cache=None, normal_offset: float = NORMAL_OFFSET,
+    def __init__(self, settings=None, *, device: str = "cpu", cache=None, normal_offset: float = NORMAL_OFFSET,
                  skip: float = SKIP, slab: float = SLAB, max_skip: float = MAX_SKIP, end_skip: float = END_SKIP,
-                 cpu_kernel: str = "auto", native_isa: str = "auto", workers: int | None = None,
+                 native_isa: str = "auto", workers: int | None = None,
                  report: Callable[[str], None] | None = None,
-                 progress: Callable[[int, int, str, str], None] | None = None) -> None:
-        params.check("svo_resolution", int(resolution))
-        params.check("svo_cpu_kernel", cpu_kernel)
-        self.resolution = int(resolution)
+                 progress: Callable[[int, int, str, str], None] | None = None, **values) -> None:
+        s = settings_with(settings, values)
+        self.resolution, cpu_kernel = int(s.svo_resolution), s.svo_cpu_kernel
         self.device = device
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
         self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
@@ -149,13 +150,13 @@ class SvoBackend(VisibilityBackend):
         self.built: list[str] = []
         self._described: dict | None = None        # describe() of the last trees, kept past close()
 
-    @classmethod
-    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "SvoBackend":
-        kw: dict = {}
-        if settings is not None:
-            kw.update(resolution=settings.svo_resolution, cpu_kernel=settings.svo_cpu_kernel)
-        kw.update(options)
-        return cls(device=device, **kw)
+    def baked(self) -> tuple[dict, list[str], str]:
+        """The static tree (``usdml bake``): cached, and where; per-frame trees are rebuilt every frame."""
+        trees = [baked_entry(self, "svo", t, resolution=t.n, occupied_voxels=t.occupied) for t in self.trees]
+        lines = [baked_line(t, f"{t['resolution']}^3, {t['occupied_voxels']:,} voxels, {t['bytes'] / 2**20:.2f} MiB",
+                            "rebuilt per frame, not cached") for t in trees]
+        fields = {"backend": "svo", "trees": trees, "built": self.stats["builds"], "loaded": self.stats["loaded"]}
+        return fields, lines, f"{len(trees)} tree(s)"
 
     @classmethod
     def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:

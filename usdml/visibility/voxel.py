@@ -44,15 +44,15 @@ from typing import Callable
 
 import numpy as np
 
-from usdml import params
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Lights, Snapshot, world_geometry
 from usdml.scene.light_table import LightTable
 from usdml.settings import VOXEL_REBUILDS
-from usdml.visibility.base import (HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult,
-                                   VisibilityBackend, as_flags, as_vectors, members_changed, scene_sphere)
+from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult,
+                                   VisibilityBackend, as_flags, as_vectors, baked_entry, baked_line, members_changed,
+                                   scene_sphere, settings_with)
 from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
                                           normalizing_transform, voxel_kernels, warp_module)
 from usdml.visibility.voxel_budget import array_roles, memory_estimate, memory_line
@@ -66,11 +66,6 @@ __all__ = ["VoxelBackend", "MAX_SKIP", "CONSERVATIVE_MAX_SKIP", "SHADE_TILE"]
 
 #: how the per-frame array is rebuilt: Alg. 5 (rotate one voxelization) or Alg. 1 (every direction)
 REBUILDS = VOXEL_REBUILDS
-#: the voxelization rule (``voxel_array.CORE``) of per-frame arrays rebuilt by Alg. 1 (``rebuild="geometry"``). Measured at 128³ / 2°
-#: (ε_v / ε_s, rebuild): low-poly creature (3,968 triangles) 1: 1.85 / 1.19 %, 6.4 s; 0: 1.77 / 1.08 %, 1.3 s; park 1: 32.0 /
-#: 29.0 %, 3.0 s; 0: 19.0 / 9.6 %, 1.6 s. (Alg. 5's reference voxelization has its own rule:
-#: voxel_rotate.)
-PER_FRAME_CORE = 0.0
 #: most voxels a grazing shadow ray skips to leave its surface (module doc, "Leaving the surface"),
 #: and with Alg. 5's conservative mapping, whose per-frame surfaces are about two voxels thick
 MAX_SKIP = 2.0
@@ -121,27 +116,19 @@ class VoxelBackend(VisibilityBackend):
 
     Parameters
     ----------
-    resolution : voxels per axis of each direction's voxelization (default 128)
-    step : direction bin step in degrees (default 2)
+    settings : a :class:`usdml.settings.UsdmlSettings` (None: the table's defaults); the backend reads its
+        ``voxel_*`` fields, ``direction_step`` and ``fully_dynamic`` (:data:`usdml.params.PARAMS` says what
+        each means; 0 for ``voxel_max_skip`` / ``voxel_memory_limit``: automatic, ``MAX_SKIP`` or
+        ``CONSERVATIVE_MAX_SKIP`` with the conservative mapping, 80 % of the available memory)
+    **values : those fields by name, over ``settings`` (``voxel_resolution=32, direction_step=10.0``)
     device : Warp device, ``cpu`` or ``cuda``
     cache : a :class:`usdml.cache.Cache`, a folder, or None for the default folder; ``False``: no cache
-    memory_limit : bytes the arrays may take; default: what the machine has available
-    normal_offset, skip, slab, max_skip, end_skip : leaving the surface, in voxels (module doc);
-        ``max_skip`` defaults to ``MAX_SKIP``, or ``CONSERVATIVE_MAX_SKIP`` with the conservative mapping
-    segment : voxels looked up per row (a divisor of 32): the ray picks its row anew every segment
-    core, frame_core : the voxelization rule of cached arrays (default ``CORE``) and of per-frame
-        arrays rebuilt by Alg. 1 (``PER_FRAME_CORE``): 0, the default, rasterizes rows' centre
-        lines; a fraction > 0 is the central part of a row a surface sample must lie in
-    rebuild : how the per-frame array (deforming meshes, or everything when ``fully_dynamic``) is
-        rebuilt: ``rotate`` (Alg. 5, :mod:`usdml.visibility.voxel_rotate`) or ``geometry`` (Alg. 1)
-    mapping : Alg. 5's ``point`` (the paper) or ``conservative`` mapping of rotated voxels
-    fully_dynamic : put every mesh and instance in the per-frame array (``usdml:voxel:fullyDynamic``:
-        scenes where much moves), instead of a static array plus one array per moving prototype
+    native_isa, workers : the compiled kernel's instruction set (``usdml.native.ISAS``) and CPU threads
     report : called with one line before anything is built (cost of each array), default: log.info
     progress : ``progress(done, total, label, unit)`` while building (label ``voxel array (<what>)``,
         unit ``directions``)
 
-    Built from settings by :meth:`from_settings`. Declares every optional capability
+    Built from settings by the default ``from_settings``. Declares every optional capability
     (:mod:`usdml.visibility.base`): ``SHADE_DIRECT`` (:meth:`shade_direct`, Alg. 3 in one kernel),
     ``HIT_DISTANCES`` (in voxels of the array hit), ``STATS`` and ``MEMORY_ESTIMATE``
     (:mod:`usdml.visibility.voxel_budget`).
@@ -153,28 +140,19 @@ class VoxelBackend(VisibilityBackend):
 
     name = "voxel"
     summary = "per-direction voxel arrays, shared by a prototype's instances (paper 000)"
-    capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE})
+    capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE})
+    reads_settings = True
 
-    def __init__(self, *, resolution: int = 128, step: float = 2.0, device: str = "cpu", cache=None,
-                 memory_limit: int | None = None, normal_offset: float = 1.0, skip: float = 1.0,
-                 slab: float = 1.0, max_skip: float | None = None, end_skip: float = 1.0, segment: int = 32,
-                 core: float | None = None, frame_core: float | None = None, rebuild: str = "rotate",
-                 mapping: str = "point",
-                 fully_dynamic: bool = False, cpu_kernel: str = "auto", native_isa: str = "auto", workers: int | None = None,
-                 report: Callable[[str], None] | None = None,
-                 progress: Callable[[int, int, str, str], None] | None = None) -> None:
-        self.resolution = int(resolution)
-        self.step = float(step)
-        self.rebuild, self.mapping, self.fully_dynamic = rebuild, mapping, bool(fully_dynamic)
+    def __init__(self, settings=None, *, device: str = "cpu", cache=None, native_isa: str = "auto",
+                 workers: int | None = None, report: Callable[[str], None] | None = None,
+                 progress: Callable[[int, int, str, str], None] | None = None, **values) -> None:
+        # every knob is a setting (the parameter table's default, checked there), ``values`` by field name
+        s = settings_with(settings, values)
+        self.resolution, self.step = int(s.voxel_resolution), float(s.direction_step)
+        self.rebuild, self.mapping, self.fully_dynamic = s.voxel_rebuild, s.voxel_mapping, s.fully_dynamic
         self.device = device
-        self.core = CORE if core is None else float(core)
-        self.frame_core = PER_FRAME_CORE if frame_core is None else float(frame_core)
-        # the one validation of these values, the parameter table's (what a flag or the stage may give)
-        for field, value in (("voxel_resolution", self.resolution), ("direction_step", self.step),
-                             ("voxel_segment", segment), ("voxel_rebuild", rebuild), ("voxel_mapping", mapping),
-                             ("voxel_core", self.core), ("voxel_frame_core", self.frame_core),
-                             ("voxel_cpu_kernel", cpu_kernel)):
-            params.check(field, value)
+        self.core, self.frame_core = float(s.voxel_core), float(s.voxel_frame_core)
+        cpu_kernel = s.voxel_cpu_kernel
         # the compiled CPU kernel (usdml.visibility.voxel_native) unless Warp is asked for or it was not
         # built; a GPU always runs Warp. ``native_isa``: its instruction set (usdml.native.ISAS; narrower
         # ones are for measuring and tests)
@@ -188,11 +166,11 @@ class VoxelBackend(VisibilityBackend):
         self.native_isa = native_isa
         self._native = None
         self.cache = None if cache is False else (cache if isinstance(cache, Cache) else Cache(cache))
-        self.memory_limit = memory_limit
-        self.normal_offset, self.skip, self.slab = float(normal_offset), float(skip), float(slab)
-        if max_skip is None:
-            max_skip = MAX_SKIP if self.mapping == "point" else CONSERVATIVE_MAX_SKIP
-        self.max_skip, self.end_skip, self.segment = float(max_skip), float(end_skip), int(segment)
+        # 0 = automatic: 80 % of the available memory, the mapping's longest skip
+        self.memory_limit = int(s.voxel_memory_limit * 2**30) or None
+        self.normal_offset, self.skip, self.slab = float(s.voxel_normal_offset), float(s.voxel_skip), float(s.voxel_slab)
+        self.max_skip = float(s.voxel_max_skip or (MAX_SKIP if self.mapping == "point" else CONSERVATIVE_MAX_SKIP))
+        self.end_skip, self.segment = float(s.voxel_end_skip), int(s.voxel_segment)
         self.workers = cpu_workers("cpu", workers)
         self.report = report or (lambda line: log.info(line))
         self.progress = progress
@@ -209,23 +187,23 @@ class VoxelBackend(VisibilityBackend):
         self._reported: set[str] = set()
 
     @classmethod
-    def from_settings(cls, settings=None, device: str = "cpu", **options) -> "VoxelBackend":
-        """The backend ``settings`` describe (resolution, direction step, per-frame rebuild and
-        mapping, fully dynamic, leaving the surface, voxelization rules, memory limit in GiB; 0 for
-        ``voxel_max_skip`` / ``voxel_memory_limit``: automatic) on ``device``; ``options`` (constructor
-        keywords: ``cache``, ``report``, ``progress``, ...) override them."""
-        kw: dict = {}
-        if settings is not None:
-            s = settings
-            kw.update(resolution=s.voxel_resolution, step=s.direction_step, rebuild=s.voxel_rebuild,
-                      mapping=s.voxel_mapping, fully_dynamic=s.fully_dynamic, normal_offset=s.voxel_normal_offset,
-                      skip=s.voxel_skip, slab=s.voxel_slab, end_skip=s.voxel_end_skip, segment=s.voxel_segment,
-                      core=s.voxel_core, frame_core=s.voxel_frame_core, cpu_kernel=s.voxel_cpu_kernel,
-                      # 0 = automatic: the mapping's max skip, 80 % of the available memory
-                      max_skip=s.voxel_max_skip or None,
-                      memory_limit=int(s.voxel_memory_limit * 2**30) or None)
-        kw.update(options)
-        return cls(device=device, **kw)
+    def bake_skip(cls, settings) -> tuple[str, dict] | None:
+        """A fully dynamic scene's array is rebuilt every frame: nothing to cache."""
+        if not settings.fully_dynamic:
+            return None
+        return ("fully dynamic (usdml:voxel:fullyDynamic or --fully-dynamic): its voxel array is rebuilt every frame "
+                "and not cached; nothing to bake (--no-fully-dynamic bakes the static and prototype arrays)",
+                {"fully_dynamic": True, "arrays": []})
+
+    def baked(self) -> tuple[dict, list[str], str]:
+        """The static and prototype arrays (``usdml bake``): cached, and where; deforming ones are not."""
+        arrays = [baked_entry(self, "voxel", a, samples=a.samples) for a in self.arrays]
+        lines = [baked_line(a, f"{a['bytes'] / 2**20:.1f} MiB", "deforming: rebuilt per frame, not cached")
+                 for a in arrays]
+        fields = {"voxel_resolution": self.resolution, "direction_step": self.step, "directions": self.bins.count,
+                  "arrays": arrays, "built": self.stats["builds"], "loaded": self.stats["loaded"]}
+        return fields, lines, (f"{len(arrays)} array(s) at {self.resolution}^3 / {self.step:g} deg "
+                               f"({self.bins.count} directions)")
 
     @classmethod
     def memory_estimate(cls, snapshot: Snapshot, settings) -> dict:
