@@ -1,5 +1,5 @@
 """The compiled CPU voxel queries (kernels/voxelq.c), SVO traversal (kernels/svoq.c), INSM maps
-(kernels/insmr.c) and LGH gather (kernels/lghq.c) as optional
+(kernels/insmr.c), LGH gather (kernels/lghq.c) and the cache's voxel-array coding (kernels/voxcodec.c) as optional
 extensions: everything else is in pyproject.toml. Without a C compiler the install goes on and usdml
 answers those queries with its Warp kernels instead (``usdml info`` says which path a machine has)."""
 
@@ -21,4 +21,6 @@ setup(ext_modules=[Extension(
     Extension("usdml.kernels._lghq", sources=["kernels/lghq.c"],
               # no contraction: the gather rounds as the Warp kernel's does (the same picks)
               extra_compile_args=["-O3", "-fno-math-errno", "-fno-strict-aliasing", "-ffp-contract=off"],
-              optional=True)])
+              optional=True),
+    # the cache's depth coding of voxel arrays (integers only: any compiler flags give the same bytes)
+    Extension("usdml.kernels._voxcodec", sources=["kernels/voxcodec.c"], extra_compile_args=["-O3"], optional=True)])

@@ -69,6 +69,37 @@ def test_codec_handles_full_rows_and_an_empty_array():
         voxel_codec.decode(blob[:-1], meta, 512)
 
 
+@pytest.mark.parametrize("resolution", [64, 512])
+def test_compiled_and_warp_coders_write_and_read_the_same_bytes(resolution):
+    """kernels/voxcodec.c against the Warp kernels: the same stream from the same words (a box city's
+    array, and rows of 256+ bits with uint16 counts), each decoding the other's, and each refusing a
+    stream whose bit leaves its row."""
+    if voxel_codec.EXTENSION.library() is None:
+        if os.environ.get("USDML_REQUIRE_NATIVE") == "1":
+            pytest.fail(f"kernels/voxcodec.c is not built: {voxel_codec.EXTENSION.load()[1]}")
+        pytest.skip("the compiled coder is not built (no C compiler at install)")
+    from usdml.visibility.voxel_grid import RowLayout
+
+    if resolution == 64:
+        points, tris = _tris_mesh(city_tris(np.random.default_rng(7)))
+        words = cached_array(points, tris, 64, 10.0, None).words
+    else:
+        per = RowLayout.make(512).words
+        words = np.random.default_rng(3).integers(0, 2**32, 2 * per, dtype=np.uint64).astype(np.uint32)
+        words &= np.uint32(0xF0F0FFFF)      # dense rows, irregular depths
+    assert words.any()
+    c_blob, c_meta = voxel_codec.encode(words, resolution, native=True)
+    w_blob, w_meta = voxel_codec.encode(words, resolution, native=False)
+    assert c_meta == w_meta and np.array_equal(c_blob, w_blob)
+    for native in (True, False):
+        assert np.array_equal(voxel_codec.decode(c_blob, c_meta, resolution, native=native), words)
+    damaged = c_blob.copy()
+    damaged[-1] = 0xFF                       # the last residual's high byte: a depth far outside its row
+    for native in (True, False):
+        with pytest.raises(ValueError):
+            voxel_codec.decode(damaged, c_meta, resolution, native=native)
+
+
 def test_an_undecodable_or_old_entry_is_rebuilt(tmp_path, caplog):
     points, tris = _tris_mesh(box((-1, -1, -1), (1, 2, 1)))
     cache = Cache(tmp_path)

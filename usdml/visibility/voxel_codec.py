@@ -15,6 +15,11 @@ The cache then deflates that (:mod:`usdml.cache`). Measured at 128³ / 2° (939 
 58 M set bits -> 14.0 MiB, the city 153 M -> 119.4 MiB (zlib 6; zlib alone on the dense words: 37
 MiB for cornell at level 6, 69 MiB at 1). Chains restart at every direction (one kernel thread
 each); ``DIRS_PER_CHUNK`` directions go to one launch, launches run on every core.
+
+Two implementations write and read the same bytes: ``kernels/voxcodec.c`` (the optional extension
+``usdml.kernels._voxcodec``: a row's chains in two small rolling buffers, byte planes and zigzag read in
+the same pass) and the Warp kernels of ``kernels/voxel_codec.py``, used where no C compiler built the
+former (``native=False`` picks them; the tests hold the two to the same bytes).
 """
 
 from __future__ import annotations
@@ -23,10 +28,13 @@ from functools import lru_cache
 
 import numpy as np
 
+import ctypes
+
+from usdml.native import Extension
 from usdml.parallel import cpu_workers, run_parallel
 from usdml.visibility.voxel_grid import RowLayout
 
-__all__ = ["CODEC", "decode", "encode"]
+__all__ = ["CODEC", "EXTENSION", "decode", "encode"]
 
 #: the ``codec`` an entry's metadata names (bump when the coding changes)
 CODEC = "depth2"
@@ -35,6 +43,20 @@ DIRS_PER_CHUNK = 128
 #: bit index of ``(low * 0x077CB531) >> 27`` for ``low`` one bit (the encoder's lowest-bit lookup)
 DEBRUIJN = np.zeros(32, np.int32)
 DEBRUIJN[((np.uint64(1) << np.arange(32, dtype=np.uint64)) * np.uint64(0x077CB531) & np.uint64(0xFFFFFFFF)) >> np.uint64(27)] = np.arange(32)
+
+
+_P, _i32, _i64 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64
+#: ``voxcodec.c``'s functions
+EXTENSION = Extension("_voxcodec", {
+    "vc_count": (_i64, [_P, _i64, _P, _P, _i32, _i64, _P]),
+    "vc_encode": (_i64, [_P, _i64, _P, _P, _P, _i32, _i64, _P]),
+    "vc_decode": (ctypes.c_int, [_P, _P, _P, _P, _i64, _P, _P, _P, _i32, _i64, _P]),
+})
+
+
+def _native(native: bool | None):
+    """The compiled coder when it is wanted (``native``: None or True) and was built, else None."""
+    return EXTENSION.library() if native is not False else None
 
 
 @lru_cache(maxsize=4)
@@ -59,6 +81,22 @@ def _kernels():
 
 def _spans(n_dirs: int) -> list[tuple[int, int]]:
     return [(d0, min(n_dirs, d0 + DIRS_PER_CHUNK)) for d0 in range(0, n_dirs, DIRS_PER_CHUNK)]
+
+
+def _encode_chunk_native(lib, words: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_encode_chunk` by ``voxcodec.c``."""
+    rows, per, row_word, row_nw, row_w0 = _tables(n)
+    words = np.ascontiguousarray(words, np.uint32)
+    dirs = len(words) // per
+    counts = np.empty(dirs * rows, np.uint16)
+    total = lib.vc_count(words.ctypes.data, dirs, row_word.ctypes.data, row_nw.ctypes.data, rows, per,
+                         counts.ctypes.data)
+    res = np.empty(total, np.uint16)
+    written = lib.vc_encode(words.ctypes.data, dirs, row_word.ctypes.data, row_nw.ctypes.data, row_w0.ctypes.data,
+                            rows, per, res.ctypes.data)
+    if written != total:
+        raise MemoryError("voxcodec: no memory for a row's chains")
+    return counts, res
 
 
 def _encode_chunk(words: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,13 +157,17 @@ def _unpack(data: np.ndarray, width: int) -> np.ndarray:
     return data.reshape(2, -1).T.copy().view("<u2").reshape(-1)
 
 
-def encode(words: np.ndarray, resolution: int) -> tuple[np.ndarray, dict]:
+def encode(words: np.ndarray, resolution: int, native: bool | None = None) -> tuple[np.ndarray, dict]:
     """The compact form of an array's ``words`` (``(directions * words_per_direction,)`` uint32) at
-    ``resolution``: ``(bytes, meta)``, ``bytes`` a uint8 array, ``meta`` what :func:`decode` needs."""
+    ``resolution``: ``(bytes, meta)``, ``bytes`` a uint8 array, ``meta`` what :func:`decode` needs.
+    ``native``: None the compiled coder where built, False the Warp kernels (the same bytes)."""
     _, per, *_ = _tables(resolution)
     n_dirs = len(words) // per
-    parts = run_parallel(lambda s: _encode_chunk(words[s[0] * per:s[1] * per], resolution), _spans(n_dirs),
-                         cpu_workers(), first_on_caller=True)
+    lib = _native(native)
+    chunk = (lambda w: _encode_chunk_native(lib, w, resolution)) if lib is not None else \
+        (lambda w: _encode_chunk(w, resolution))
+    parts = run_parallel(lambda s: chunk(words[s[0] * per:s[1] * per]), _spans(n_dirs), cpu_workers(),
+                         first_on_caller=True)
     counts = np.concatenate([c for c, _ in parts]) if parts else np.zeros(0, np.uint16)
     res = np.concatenate([r for _, r in parts]) if parts else np.zeros(0, np.uint16)
     c_bytes, c_width = _pack(counts)
@@ -135,9 +177,9 @@ def encode(words: np.ndarray, resolution: int) -> tuple[np.ndarray, dict]:
     return np.concatenate([c_bytes, r_bytes]), meta
 
 
-def decode(data: np.ndarray, meta: dict, resolution: int) -> np.ndarray:
+def decode(data: np.ndarray, meta: dict, resolution: int, native: bool | None = None) -> np.ndarray:
     """The dense words of an array from :func:`encode`'s ``(bytes, meta)``; ``ValueError`` when
-    they do not fit together."""
+    they do not fit together. ``native`` as :func:`encode`'s."""
     if meta.get("codec") != CODEC or int(meta.get("chunk_directions", 0)) != DIRS_PER_CHUNK:
         raise ValueError(f"codec {meta.get('codec')!r}, expected {CODEC!r}")
     rows, per, *_ = _tables(resolution)
@@ -146,12 +188,37 @@ def decode(data: np.ndarray, meta: dict, resolution: int) -> np.ndarray:
     if data.size != c_len + n_bits * int(meta["residual_width"]):
         raise ValueError(f"{data.size} bytes, expected {c_len + n_bits * int(meta['residual_width'])}")
     counts = _unpack(data[:c_len], int(meta["count_width"]))
-    res = _unpack(data[c_len:], int(meta["residual_width"]))
     per_dir = counts.reshape(-1, rows).sum(axis=1, dtype=np.int64)
     if per_dir.sum() != n_bits:
         raise ValueError(f"{per_dir.sum()} bits counted, {n_bits} stored")
     out = np.zeros(n_dirs * per, np.uint32)
     bounds = np.concatenate([[0], np.cumsum(per_dir)])
+    lib = _native(native)
+    if lib is not None:
+        planes = (data[:c_len], int(meta["count_width"])), (data[c_len:], int(meta["residual_width"]))
+        run_parallel(lambda s: _decode_chunk_native(lib, planes, s, bounds, resolution, out), _spans(n_dirs),
+                     cpu_workers(), first_on_caller=True)
+        return out
+    res = _unpack(data[c_len:], int(meta["residual_width"]))
     run_parallel(lambda s: _decode_chunk(counts[s[0] * rows:s[1] * rows], res[bounds[s[0]]:bounds[s[1]]], resolution,
                                          out[s[0] * per:s[1] * per]), _spans(n_dirs), cpu_workers(), first_on_caller=True)
     return out
+
+
+def _decode_chunk_native(lib, planes, span: tuple[int, int], bounds: np.ndarray, n: int, out: np.ndarray) -> None:
+    """Directions ``span`` of ``out`` (zero) by ``voxcodec.c``, read straight from the stored byte
+    ``planes`` ((counts, width), (residuals, width)): value ``i`` of a 2-byte plane of ``m`` values is
+    bytes ``i`` and ``m + i``."""
+    rows, per, row_word, row_nw, row_w0 = _tables(n)
+    d0, d1 = span
+    ptrs = []
+    for (data, width), first in (planes[0], d0 * rows), (planes[1], int(bounds[d0])):
+        m = data.size // width
+        base = data.ctypes.data
+        ptrs += [base + first, base + m + first if width == 2 else None]
+    bad = lib.vc_decode(*ptrs, d1 - d0, row_word.ctypes.data, row_nw.ctypes.data, row_w0.ctypes.data, rows, per,
+                        out[d0 * per:].ctypes.data)
+    if bad == 2:
+        raise MemoryError("voxcodec: no memory for a row's chains")
+    if bad:
+        raise ValueError("a decoded bit lies outside its row")
