@@ -29,6 +29,26 @@ def _shot(new_stage) -> str:
     return ground_stage(new_stage, scene)
 
 
+def test_frames_reach_the_job_as_floats(monkeypatch):
+    """Timecodes go to the RenderJob as floats (a FrameSpec string as it is), not through FrameSpec text."""
+    import usdml.render.sequence as sequence
+
+    jobs = []
+
+    def fake(job):
+        jobs.append(job)
+        return {"outputs": [], "frames": [], "skipped": [], "seconds": 0.0, "secondsPerFrame": 0.0,
+                "resolution": [1, 1], "stale": [], "previews": [], "skippedOutputs": []}
+    monkeypatch.setattr(sequence, "render_sequence", fake)
+    rec = usdml.Recorder()
+    rec.record_sequence("s.usda", [1, 12345.678], "o.####.exr")
+    rec.record("s.usda", 2, "o.exr")
+    rec.record_sequence("s.usda", "1:3x2", "o.####.exr")
+    assert [j.frames for j in jobs] == [[1.0, 12345.678], [2.0], "1:3x2"]
+    with pytest.raises(usdml.UsdmlError, match="give a FrameSpec"):
+        rec.record_sequence("s.usda", [True], "o.####.exr")
+
+
 def test_record_writes_what_the_command_line_writes(new_stage, tmp_path):
     path = _shot(new_stage)
     assert main(["render", path, str(tmp_path / "cli.exr"), "--imageWidth", "24", "--aovs", "color,shadow",

@@ -30,22 +30,18 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Callable
 from numbers import Number
 
 from usdml import params
+from usdml.aov.naming import timecodes
 from usdml.errors import UsdmlError
 
 __all__ = ["Recorder", "RecordResult", "RENDER_OPTIONS"]
 
-#: the options of a render beside the parameter table's fields, with their defaults
-RENDER_OPTIONS = {"image_width": None, "camera": None, "purposes": None, "aovs": None, "render_settings": None,
-                  "device": "cpu", "implicit_detail": 10, "camera_light": True, "preview": False,
-                  # frames on Dask (usdml.render.farm): a local cluster of ``workers``, or a ``scheduler``
-                  "workers": None, "scheduler": None, "chunk_size": 1, "retries": 2, "nthreads": None}
+#: the options of a render beside the parameter table's fields, with their defaults (:data:`usdml.params.OPTIONS`)
+RENDER_OPTIONS = {p.field: p.default for p in params.OPTIONS.values()}
 #: widest image a render takes
-MAX_WIDTH = 16384
-_WIDTH_RULE = f"an integer from 1 to {MAX_WIDTH} (pixels)"
+MAX_WIDTH = params.MAX_WIDTH
 
 
 @dataclass
@@ -71,37 +67,9 @@ class RecordResult:
 
 def check_width(width: int | None, name: str = "--imageWidth") -> None:
     """A one-line error for an image width outside ``1 .. MAX_WIDTH`` (``name``: how the user gave it)."""
-    if width is not None and not 1 <= width <= MAX_WIDTH:
-        raise UsdmlError(f"{name} {width}: give {_WIDTH_RULE}")
-
-
-def _names(value) -> bool:
-    """A name, or a list / tuple of names (``aovs``, ``purposes``)."""
-    return isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value))
-
-
-def _int_from(low: int, high: int | None = None) -> Callable[[object], bool]:
-    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= low and (high is None or v <= high)
-
-
-#: each render option: (its flag, what it accepts, that in words); None is always accepted (the default)
-_OPTION_RULES = {
-    "image_width": ("--imageWidth", _int_from(1, MAX_WIDTH), _WIDTH_RULE),
-    "camera": ("--camera", lambda v: isinstance(v, str), "a camera prim path or name"),
-    "purposes": ("--purposes", _names, "a list of purposes (render, proxy, guide)"),
-    "aovs": ("--aovs", _names, "a list of AOV names"),
-    "render_settings": ("--renderSettingsPrimPath", lambda v: isinstance(v, str), "a RenderSettings prim path"),
-    "device": ("--device", lambda v: v in ("cpu", "cuda"), "cpu or cuda"),
-    "implicit_detail": ("--implicit-detail", _int_from(3, params.MAX_IMPLICIT_DETAIL),
-                        f"an integer from 3 to {params.MAX_IMPLICIT_DETAIL} (segments)"),
-    "camera_light": ("--disableCameraLight", lambda v: isinstance(v, bool), "True or False"),
-    "preview": ("--preview", lambda v: isinstance(v, bool), "True or False"),
-    "workers": ("--workers", _int_from(1), "an integer of 1 or more"),
-    "scheduler": ("--scheduler", lambda v: isinstance(v, str), "a scheduler address (tcp://HOST:PORT)"),
-    "chunk_size": ("--chunk-size", _int_from(1), "an integer of 1 or more (frames)"),
-    "retries": ("--retries", _int_from(0), "an integer of 0 or more"),
-    "nthreads": ("--nthreads", _int_from(1), "an integer of 1 or more"),
-}
+    row = params.OPTIONS["image_width"]
+    if width is not None and not row.accepts(width):
+        raise UsdmlError(f"{name} {width}: give {row.rule}")
 
 
 def _unknown_keywords(unknown: list[str], known: list[str]) -> str:
@@ -116,17 +84,13 @@ def _unknown_keywords(unknown: list[str], known: list[str]) -> str:
             f"({', '.join(RENDER_OPTIONS)}) and the settings of usdml.params.PARAMS")
 
 
-def frames_text(frames) -> str | None:
-    """A FrameSpec string from ``frames``: a FrameSpec (``"101:148"``, ``"1:10x2"``), one timecode, a list of
-    them, or None (the stage's start frame)."""
+def job_frames(frames) -> str | list[float] | None:
+    """``frames`` as :class:`usdml.render.sequence.RenderJob` takes them: a FrameSpec (``"101:148"``,
+    ``"1:10x2"``) as it is, one timecode or a list of them as floats (never through FrameSpec text), or
+    None (the stage's start frame)."""
     if frames is None or isinstance(frames, str):
         return frames
-    if isinstance(frames, Number):
-        return f"{float(frames):g}"
-    items = list(frames)
-    if not items or not all(isinstance(f, Number) for f in items):
-        raise UsdmlError(f"frames {frames!r}: give a FrameSpec ('101:148'), a timecode or a list of timecodes")
-    return ",".join(f"{float(f):g}" for f in items)
+    return timecodes([frames] if isinstance(frames, Number) else frames)
 
 
 class _Collect(logging.Handler):
@@ -152,15 +116,16 @@ class Recorder:
             raise UsdmlError(_unknown_keywords(unknown, list(RENDER_OPTIONS) + list(params.PARAMS)))
         self.options = {k: settings.get(k, v) for k, v in RENDER_OPTIONS.items()}
         for name, value in self.options.items():
-            flag, accepts, rule = _OPTION_RULES[name]
-            if value is not None and not accepts(value):
-                raise UsdmlError(f"{flag if _flags else 'Recorder: ' + name} {value!r}: give {rule}")
+            row = params.OPTIONS[name]
+            if value is not None and not row.accepts(value):
+                raise UsdmlError(f"{row.flag if _flags else 'Recorder: ' + name} {value!r}: give {row.rule}")
         self.overrides = {k: v for k, v in settings.items() if k in params.PARAMS and v is not None}
         for name, value in self.overrides.items():
             params.check(name, value, keyword=not _flags)
-        aovs = self.options["aovs"]
-        if isinstance(aovs, str):
-            self.options["aovs"] = [a for a in aovs.split(",") if a]
+        aovs = self.options["aovs"]         # "a,b" or names, each of them comma-separated (--aovs a,b --aovs c)
+        if aovs is not None:
+            self.options["aovs"] = [a for spec in ([aovs] if isinstance(aovs, str) else aovs)
+                                    for a in spec.split(",") if a] or None
         if self.options["purposes"] is not None:
             self.options["purposes"] = list(self.options["purposes"])
 
@@ -179,17 +144,13 @@ class Recorder:
         (:mod:`usdml.render.identity`); one with other settings is rendered again and listed in ``stale``."""
         from usdml.render.sequence import RenderJob, render_sequence
 
-        o = self.options
-        job = RenderJob(stage=stage, output=output_path, frames=frames_text(frames), camera=o["camera"],
-                        image_width=o["image_width"], render_settings=o["render_settings"], aovs=o["aovs"],
-                        device=o["device"], resume=resume, preview=o["preview"], purposes=o["purposes"],
-                        implicit_detail=o["implicit_detail"], camera_light=o["camera_light"],
+        job = RenderJob(**self.options, stage=stage, output=output_path, frames=job_frames(frames), resume=resume,
                         overrides=dict(self.overrides), single_file=single_file)
         collect = _Collect()
         logger = logging.getLogger("usdml")
         logger.addHandler(collect)
         try:
-            if o["workers"] is not None or o["scheduler"] is not None:
+            if job.workers is not None or job.scheduler is not None:
                 summary = self._on_dask(job)
             else:
                 summary = render_sequence(job)
@@ -213,7 +174,5 @@ class Recorder:
         frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
         for f in frames:
             delegate.check_time(f)
-        o = self.options
-        return render_on_dask(job, frames, workers=o["workers"], scheduler=o["scheduler"], chunk_size=o["chunk_size"],
-                              retries=o["retries"], nthreads=o["nthreads"])
+        return render_on_dask(job, frames)
 

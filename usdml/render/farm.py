@@ -61,8 +61,7 @@ def render_chunk(job: dict, frames: list[float], nthreads: int) -> dict:
     from usdml.render.sequence import RenderJob, render_sequence
 
     os.environ[THREADS_ENV] = str(max(1, int(nthreads)))
-    spec = rerun_spec(frames)
-    rj = RenderJob(**dict(job, frames=spec))
+    rj = RenderJob(**dict(job, frames=[float(f) for f in frames]))
     t0 = _time.perf_counter()
     summary = render_sequence(rj)
     summary["chunkSeconds"] = _time.perf_counter() - t0
@@ -70,10 +69,12 @@ def render_chunk(job: dict, frames: list[float], nthreads: int) -> dict:
     return summary
 
 
-def render_on_dask(job, frames: list[float], *, workers: int | None = None, scheduler: str | None = None,
-                   chunk_size: int = 1, retries: int = 2, nthreads: int | None = None) -> dict:
+def render_on_dask(job, frames: list[float]) -> dict:
     """Render ``frames`` of ``job`` (a :class:`usdml.render.sequence.RenderJob` whose stage is a path) on
-    Dask (module doc); returns the summary."""
+    Dask (module doc) as its options ``workers``, ``scheduler``, ``chunk_size``, ``retries`` and
+    ``nthreads`` say; returns the summary."""
+    workers, scheduler, chunk_size, retries, nthreads = (job.workers, job.scheduler, job.chunk_size, job.retries,
+                                                         job.nthreads)
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:

@@ -25,11 +25,10 @@ from usdml.outputs import make_output_folder
 from usdml.params import DEFAULT_WIDTH, ignored
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
-from usdml.settings import UsdmlSettings
+from usdml.settings import RenderOptions, UsdmlSettings
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
 from usdml.stage.fingerprint import stage_fingerprint
-from usdml.visibility import backend_names
 
 
 @dataclass
@@ -41,21 +40,16 @@ class Product:
     source: str = "OUTPUT"      #: "OUTPUT" or the RenderProduct prim path
 
 
-@dataclass
-class RenderJob:
+@dataclass(kw_only=True)
+class RenderJob(RenderOptions):
+    """A render: the stage, where to, which frames, and the render options (:class:`usdml.settings.RenderOptions`,
+    from the parameter table)."""
+
     stage: object                       #: a path, or an open ``Usd.Stage``
     output: str | None = None
-    frames: str | None = None
-    camera: str | None = None
-    image_width: int | None = None
-    render_settings: str | None = None
-    aovs: list[str] | None = None
-    device: str = "cpu"
+    #: a FrameSpec (``--frames``), timecodes (the API's, a farm chunk's), or None: the stage's start frame
+    frames: str | list[float] | None = None
     resume: bool = False
-    preview: bool = False
-    purposes: list[str] | None = None
-    implicit_detail: int = 10
-    camera_light: bool = True
     overrides: dict = field(default_factory=dict)   #: UsdmlSettings fields set on the command line
     #: one frame (``frames``) written to ``output`` as it is: no frame placeholder needed (the API's record)
     single_file: bool = False
@@ -211,12 +205,10 @@ def render_sequence(job: RenderJob) -> dict:
     started = _time.perf_counter()
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
+    # validated here, once, by the parameter table (UsdmlSettings' construction: a backend name among the registry's)
     settings: UsdmlSettings = delegate.usdml_settings.updated(**job.overrides)
     for message in ignored(job.overrides, settings):
         log.warning(message)
-    if settings.visibility not in backend_names():
-        raise UsdmlError(f"visibility backend {settings.visibility!r} is not available yet; use --visibility "
-                         + " or ".join(backend_names()))
     check_device(job.device)
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
     for f in frames:
