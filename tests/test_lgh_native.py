@@ -105,6 +105,11 @@ def test_compiled_frame_matches_the_warp_frame(frame):
 def test_a_bad_cpu_kernel_is_a_one_line_error(frame):
     from usdml.errors import UsdmlError
 
+    from usdml.settings import UsdmlSettings
+
     snap, ex, gb, pts, nrm, alb, lgh, sources = frame
+    # a user's value is checked once, with the settings; the kernel layer refuses what no setting gives it
     with pytest.raises(UsdmlError, match="lgh-cpu-kernel|lgh:cpuKernel"):
+        UsdmlSettings().updated(lgh_cpu_kernel="avx")
+    with pytest.raises(ValueError, match="auto, native or warp"):
         m.LGHGather(lgh, 2.0, 4, cpu_kernel="avx")

@@ -117,10 +117,9 @@ def s0_cells(lgh, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 def _compiled(cpu_kernel: str) -> bool:
     """Whether the LGH's CPU kernels run compiled (``kernels/lghq.c``) for ``cpu_kernel`` (auto, native,
-    warp: ``--lgh-cpu-kernel``); native without the compiled library is an error."""
-    from usdml import params
-
-    params.check("lgh_cpu_kernel", cpu_kernel)
+    warp: ``--lgh-cpu-kernel``, validated with the settings); native without the compiled library is an error."""
+    if cpu_kernel not in ("auto", "native", "warp"):
+        raise ValueError(f"cpu_kernel {cpu_kernel!r}: auto, native or warp")
     if cpu_kernel == "warp":
         return False
     from usdml.lighting import lgh_native
