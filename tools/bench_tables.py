@@ -419,7 +419,7 @@ RENDERERS = {
 # A figure in prose: NAME -> (data file under docs/data/, path into its JSON, format). A path is keys and
 # list indexes joined by dots; ``[key=value,...]`` picks the first list item whose fields print as those
 # values. A format is a kind and its decimals: ``x2`` 11.65×, ``p1`` 8.2 % (of a fraction), ``s1`` 3.3 s,
-# ``n0`` 417, ``M0`` 149 M/s (of queries per second). Name each figure for what it measures, so that
+# ``n0`` 417, ``c0`` 7,348,425, ``M0`` 149 M/s (of queries per second). Name each figure for what it measures, so that
 # one quantity measured two ways reads as two names.
 _MATRIX = "voxel-matrix", "runs.0.output.[stage=stages/city.usda,voxel_resolution={},direction_step={}].{}"
 FIGURES: dict[str, tuple[str, str, str]] = {
@@ -461,6 +461,17 @@ FIGURES: dict[str, tuple[str, str, str]] = {
     "park-svo-256-eps-v": ("svo", "runs.4.output.eps_v", "p1"),
     "park-svo-256-eps-s": ("svo", "runs.4.output.eps_s", "p1"),
     "cornell-svo-128-eps-v": ("svo", "runs.6.output.eps_v", "p1"),
+    "city-svo-256-wrongly-visible": ("svo", "runs.1.output.wrongly_visible", "p2"),
+    "city-svo-256-hidden-far": ("svo", "runs.1.output.wrongly_hidden_far", "p2"),
+    "city-svo-256-hidden-near": ("svo", "runs.1.output.wrongly_hidden_near", "p2"),
+    "park-voxel-alg5-eps-v": ("voxel-alg5", "rows.3.compare.output.eps_v", "p1"),
+    "park-voxel-alg5-eps-s": ("voxel-alg5", "rows.3.compare.output.eps_s", "p1"),
+    "park-svo-bench-vs-exact": ("svo-rebuild", "runs.0.output.[backend=svo].speedup_vs_exact", "x2"),
+    "creature-svo-bench-vs-exact": ("svo-rebuild", "runs.1.output.[backend=svo].speedup_vs_exact", "x2"),
+    "city-svo-scalar-ns": ("svo-kernels", "runs.0.output.rows.[kernel=native-scalar].ns_per_query_one_thread", "n0"),
+    "city-svo-warp-ns": ("svo-kernels", "runs.0.output.rows.[kernel=warp].ns_per_query_one_thread", "n0"),
+    "city-svo-avx512-differing": ("svo-kernels", "runs.0.output.rows.[kernel=native-avx512].differing_answers", "c0"),
+    "city-svo-kernel-queries": ("svo-kernels", "runs.0.output.rows.[kernel=native-avx512].queries", "c0"),
     "park-svo-rebuild-s": ("svo-rebuild", "runs.0.output.[backend=svo].rebuild_seconds", "s2"),
     "creature-svo-rebuild-s": ("svo-rebuild", "runs.1.output.[backend=svo].rebuild_seconds", "s2"),
     # intermediate shadow maps at the paper's settings (K 10, w 128, S 512), and the city's frame
@@ -493,7 +504,7 @@ FIGURES: dict[str, tuple[str, str, str]] = {
 
 _FORMATS = {
     "x": lambda v, n: f"{v:.{n}f}×", "p": lambda v, n: f"{100 * v:.{n}f} %", "s": lambda v, n: f"{v:.{n}f} s",
-    "n": lambda v, n: f"{v:.{n}f}", "M": lambda v, n: f"{v / 1e6:.{n}f} M/s",
+    "n": lambda v, n: f"{v:.{n}f}", "c": lambda v, n: f"{v:,.{n}f}", "M": lambda v, n: f"{v / 1e6:.{n}f} M/s",
 }
 _STEP = re.compile(r"\[[^\]]*\]|[^.\[]+")
 
