@@ -60,6 +60,35 @@ def test_an_untied_figure_in_the_readme_fails_the_check(docs_copy):
     assert run.returncode == 1 and "README.md:" in run.stderr and "58 s" in run.stderr
 
 
+def test_an_untied_figure_in_a_design_page_fails_the_check(docs_copy):
+    """No page but the changelog may state a measured figure that docs/data does not hold."""
+    page = docs_copy / "docs" / "svo.md"
+    page.write_text(page.read_text().replace("## Traversal (Fig. 3)\n", "## Traversal (Fig. 3)\n\nA walk takes 9.5 ns.\n", 1))
+    run = bench_tables_check(docs_copy)
+    assert run.returncode == 1 and "docs/svo.md:" in run.stderr and "9.5 ns" in run.stderr
+
+
+def test_the_changelog_is_not_checked(docs_copy):
+    page = docs_copy / "docs" / "CHANGELOG.md"
+    page.write_text(page.read_text() + "\n## A run\n\nA walk took 9.5 ns.\n")
+    assert bench_tables_check(docs_copy).returncode == 0
+
+
+def test_a_paper_or_chosen_figure_is_marked_and_holds_one_figure(docs_copy):
+    """``<!-- paper -->``, ``<!-- set -->`` and ``<!-- calc -->`` exempt exactly one figure each: a marked
+    figure passes, a marker around two figures or none fails."""
+    page = docs_copy / "docs" / "svo.md"
+    text = page.read_text()
+    page.write_text(text.replace("## Traversal (Fig. 3)\n", "## Traversal (Fig. 3)\n\nThe paper's walk: "
+                                 "<!-- paper -->9.5 ns<!-- /paper -->.\n", 1))
+    assert bench_tables_check(docs_copy).returncode == 0
+    for body in ("9.5 ns and 3 ms", "fast"):
+        page.write_text(text.replace("## Traversal (Fig. 3)\n", "## Traversal (Fig. 3)\n\nThe paper's walk: "
+                                     f"<!-- paper -->{body}<!-- /paper -->.\n", 1))
+        run = bench_tables_check(docs_copy)
+        assert run.returncode == 1 and "must hold exactly one figure" in run.stderr, body
+
+
 def test_readme_is_an_entry_point():
     """The README stays short (what, the two commands, the commands, conventions); detail is in docs/."""
     assert len((ROOT / "README.md").read_text().splitlines()) <= 250
