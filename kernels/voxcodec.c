@@ -29,6 +29,16 @@ static int32_t max_bits(const int32_t *row_nw, int32_t rows) {
     return 32 * m;
 }
 
+/* The row just done becomes the row before: its chains' (depth, step) buffers swap with the current
+ * ones, and the bit counts shift (c1: the row before, c2: the one before that). */
+static inline void next_row(int32_t **pdepth, int32_t **pstep, int32_t **cdepth, int32_t **cstep, int32_t *c1,
+                            int32_t *c2, int32_t done) {
+    int32_t *t = *pdepth; *pdepth = *cdepth; *cdepth = t;
+    t = *pstep; *pstep = *cstep; *cstep = t;
+    *c2 = *c1;
+    *c1 = done;
+}
+
 /* counts[d * rows + r] = set bits of row r of direction d, d < dirs; returns the sum. */
 int64_t vc_count(const uint32_t *words, int64_t dirs, const int32_t *row_word, const int32_t *row_nw,
                  int32_t rows, int64_t per, uint16_t *counts) {
@@ -76,10 +86,7 @@ int64_t vc_encode(const uint32_t *words, int64_t dirs, const int32_t *row_word, 
                     x &= x - 1;
                 }
             }
-            int32_t *t = pdepth; pdepth = cdepth; cdepth = t;
-            t = pstep; pstep = cstep; cstep = t;
-            c2 = c1;
-            c1 = k;
+            next_row(&pdepth, &pstep, &cdepth, &cstep, &c1, &c2, k);
         }
     }
     free(buf);
@@ -119,10 +126,7 @@ int vc_decode(const uint8_t *c_lo, const uint8_t *c_hi, const uint8_t *r_lo, con
                 w[row_word[r] + q] |= 1u << (l % 32);
             }
             if (bad) break;
-            int32_t *t = pdepth; pdepth = cdepth; cdepth = t;
-            t = pstep; pstep = cstep; cstep = t;
-            c2 = c1;
-            c1 = c;
+            next_row(&pdepth, &pstep, &cdepth, &cstep, &c1, &c2, c);
         }
     }
     free(buf);

@@ -404,13 +404,32 @@ def _table_title(*header: str) -> str:
     return "\n".join(_table(list(header), []))
 
 
+def cache_rows(data: dict) -> list[str]:
+    """``tools/cache_bench.py --json``: each stage's array in memory and on disk, its coding and loading
+    against the raw words, and a first render with an empty cache, voxel against exact."""
+    rows = []
+    for run in _runs(data):
+        for st in run["output"]["stages"]:
+            first = st.get("first_render_seconds")
+            for a in st["arrays"]:
+                rows.append([_stage(st["stage"]), f"{a['set_bits'] / 1e6:.0f} M",
+                             f"{a['dense_bytes'] / 2 ** 20:.0f} MiB", f"{a['disk_bytes'] / 2 ** 20:.1f} MiB",
+                             f"{a['encode_seconds']:.2f}",
+                             f"{a['load_seconds']:.2f} ({a['read_inflate_seconds']:.2f} + {a['decode_seconds']:.2f})",
+                             f"{a['raw_load_seconds']:.2f}", f"{a['load_vs_raw']:.2f}×",
+                             f"{first['voxel']:.1f} / {first['exact']:.1f} ({st['first_render_voxel_vs_exact']:.1f}×)"
+                             if first else "–"])
+    return _table(["stage", "set bits", "in memory", "on disk", "encode s", "load s (read + inflate, decode)",
+                   "raw words s", "load vs raw", "first render s, voxel / exact"], rows)
+
+
 RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
     "anti-aliasing": anti_aliasing, "bench": bench, "dome-error": dome_error, "voxel-kernels": voxel_kernels,
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
-    "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame,
+    "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
 }
 
 
@@ -419,9 +438,15 @@ RENDERERS = {
 # A figure in prose: NAME -> (data file under docs/data/, path into its JSON, format). A path is keys and
 # list indexes joined by dots; ``[key=value,...]`` picks the first list item whose fields print as those
 # values. A format is a kind and its decimals: ``x2`` 11.65×, ``p1`` 8.2 % (of a fraction), ``s1`` 3.3 s,
-# ``n0`` 417, ``c0`` 7,348,425, ``M0`` 149 M/s (of queries per second). Name each figure for what it measures, so that
+# ``n0`` 417, ``c0`` 7,348,425, ``M0`` 149 M/s (of queries per second), ``B1`` 14.0 MiB (of bytes). Name each figure for what it measures, so that
 # one quantity measured two ways reads as two names.
 _MATRIX = "voxel-matrix", "runs.0.output.[stage=stages/city.usda,voxel_resolution={},direction_step={}].{}"
+# tools/cache_bench.py's fields by figure: (path in a stage's output, format)
+_CACHE = {"disk": ("arrays.0.disk_bytes", "B1"), "dense": ("arrays.0.dense_bytes", "B0"),
+          "load-s": ("arrays.0.load_seconds", "s2"), "raw-s": ("arrays.0.raw_load_seconds", "s2"),
+          "load-vs-raw": ("arrays.0.load_vs_raw", "x2"), "first-voxel-s": ("first_render_seconds.voxel", "s1"),
+          "first-exact-s": ("first_render_seconds.exact", "s1"), "first-vs-exact": ("first_render_voxel_vs_exact", "x1"),
+          "build-s": ("arrays.0.build_seconds", "s1")}
 FIGURES: dict[str, tuple[str, str, str]] = {
     # the city's voxel speed, three measures: bench queries, voxel_table's query set, a whole frame
     "city-voxel-bench-vs-exact": ("bench", "runs.0.output.[backend=voxel].speedup_vs_exact", "x2"),
@@ -505,14 +530,41 @@ FIGURES: dict[str, tuple[str, str, str]] = {
     "city-night-lgh-frame-s": ("direct-compare", "runs.0.output.seconds.lgh", "s1"),
     "city-night-all-frame-s": ("direct-compare", "runs.0.output.seconds.all", "s0"),
     "city-night-lgh-rel-rmse": ("direct-compare", "runs.0.output.rel_rmse", "p1"),
+    # LGH GI against brute force (gi-lgh), and against independent references (gi-reference)
+    "cornell-gi-lgh-96-k4-s0-rel-rmse": ("gi-lgh", "runs.0.output.rows.[start_level=0].rel_rmse", "p1"),
+    "cornell-gi-lgh-256-k4-rel-rmse": ("gi-lgh", "runs.1.output.rows.[shadow_samples=4].rel_rmse", "p1"),
+    "cornell-gi-lgh-256-k64-rel-rmse": ("gi-lgh", "runs.1.output.rows.[shadow_samples=64].rel_rmse", "p2"),
+    "city-gi-lgh-a4-k512-rel-rmse": ("gi-lgh", "runs.3.output.rows.[shadow_samples=512].rel_rmse", "p1"),
+    "city-gi-lgh-a3-k768-rel-rmse": ("gi-lgh", "runs.4.output.rows.[shadow_samples=768].rel_rmse", "p1"),
+    "city-gi-lgh-a3-k1024-rel-rmse": ("gi-lgh", "runs.4.output.rows.[shadow_samples=1024].rel_rmse", "p1"),
+    "city-gi-lgh-voxel-k64-rel-rmse": ("gi-lgh", "runs.5.output.rows.[shadow_samples=64].rel_rmse", "p1"),
+    "city-gi-lgh-voxel-k512-rel-rmse": ("gi-lgh", "runs.5.output.rows.[shadow_samples=512].rel_rmse", "p1"),
+    "box-bruteforce-energy": ("gi-reference", "runs.0.output.methods.vpl-bruteforce.indirect_ratio", "n3"),
+    "box-lgh-energy": ("gi-reference", "runs.0.output.methods.lgh.indirect_ratio", "n3"),
+    "city-gi-bruteforce-s": ("gi-lgh-city-compiled", "bruteforce_seconds", "s0"),
+    # --gi svo against brute force on cornell at 256 px, svo rays and exact rays
+    "cornell-gi-svo-512-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=512].rays.svo.rel_rmse", "p1"),
+    "cornell-gi-svo-1024-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=1024].rays.svo.rel_rmse", "p1"),
+    "cornell-gi-svo-2048-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=2048].rays.svo.rel_rmse", "p1"),
+    "cornell-gi-svo-512-exact-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=512].rays.exact.rel_rmse", "p1"),
+    "cornell-gi-svo-1024-exact-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=1024].rays.exact.rel_rmse", "p1"),
+    "cornell-gi-svo-2048-exact-rel-rmse": ("gi-svo", "runs.0.output.rows.[vpls=2048].rays.exact.rel_rmse", "p1"),
     # LGH GI on the city, compiled gather (100k VPLs, 256 px, alpha 4, k 512, brute force in the same run)
     "city-gi-lgh-compiled-speedup": ("gi-lgh-city-compiled", "rows.0.speedup", "x0"),
     "city-gi-lgh-compiled-rel-rmse": ("gi-lgh-city-compiled", "rows.0.rel_rmse", "p1"),
+    # the voxel cache at 128³ / 2° (tools/cache_bench.py)
+    **{f"{name}-cache-{what}": ("cache", f"runs.0.output.stages.[stage=stages/{name}.usda].{_CACHE[what][0]}",
+                                _CACHE[what][1])
+       for name, whats in (("cornell", ("dense", "disk", "load-s", "raw-s", "first-voxel-s", "first-exact-s",
+                                        "first-vs-exact", "build-s")),
+                           ("city", ("disk", "load-s", "raw-s", "load-vs-raw")))
+       for what in whats},
 }
 
 _FORMATS = {
     "x": lambda v, n: f"{v:.{n}f}×", "p": lambda v, n: f"{100 * v:.{n}f} %", "s": lambda v, n: f"{v:.{n}f} s",
     "n": lambda v, n: f"{v:.{n}f}", "c": lambda v, n: f"{v:,.{n}f}", "M": lambda v, n: f"{v / 1e6:.{n}f} M/s",
+    "B": lambda v, n: f"{v / 2 ** 20:.{n}f} MiB",
 }
 _STEP = re.compile(r"\[[^\]]*\]|[^.\[]+")
 
@@ -548,10 +600,9 @@ MEASURED = re.compile(r"(?<![\w.])\d[\d,.]*(?:\s?[–-]\s?\d[\d,.]*)?\s?"
                       r"(?:×(?!\s?\d)|%|(?:s|ms|µs|ns|M/s|minutes?|hours?)\b)")
 # A figure that is not a measurement: one a paper reports, a value chosen, one worked out (see above).
 GIVEN = re.compile(r"<!-- (paper|set|calc) -->(?P<body>[^<\n]*)<!-- /\1 -->")
-# The measured figures a section may state outside markers, (page, heading) -> count: the voxel page's
-# Cache section, whose author is tying its figures to a cache benchmark's data; every other section of
-# every page may state none.
-UNTIED = {("docs/voxel.md", "Cache"): 4}
+# The measured figures a section may state outside markers, (page, heading) -> count: none anywhere (a
+# section may be given a count here while its figures are being tied).
+UNTIED: dict[tuple[str, str], int] = {}
 
 
 def untied(text: str) -> list[tuple[int, str, str]]:
