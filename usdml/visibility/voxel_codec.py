@@ -143,11 +143,18 @@ def _decode_chunk(counts: np.ndarray, residuals: np.ndarray, n: int, out: np.nda
         raise ValueError("a decoded bit lies outside its row")
 
 
-def _pack(values: np.ndarray) -> tuple[np.ndarray, int]:
-    """``values`` (>= 0, < 2¹⁶) as bytes: uint8, or uint16 as a low and a high byte plane."""
-    if values.size == 0 or values.max() < 256:
-        return values.astype(np.uint8), 1
-    return values.astype("<u2").view(np.uint8).reshape(-1, 2).T.reshape(-1), 2
+def _width(values: np.ndarray) -> int:
+    """Bytes a value of ``values`` (>= 0, < 2¹⁶) takes in :func:`_pack`'s form: 1, or 2 as two byte planes."""
+    return 1 if values.size == 0 or values.max() < 256 else 2
+
+
+def _pack(values: np.ndarray, width: int, out: np.ndarray) -> None:
+    """``values`` as ``width``-byte values into ``out`` (``width * len(values)`` bytes): uint8, or a plane of
+    low bytes then one of high bytes (elementwise, contiguous: no strided copy of a transpose)."""
+    n = values.size
+    np.bitwise_and(values, 0xFF, out=out[:n], casting="unsafe")
+    if width == 2:
+        np.right_shift(values, 8, out=out[n:], casting="unsafe")
 
 
 def _unpack(data: np.ndarray, width: int) -> np.ndarray:
@@ -170,11 +177,13 @@ def encode(words: np.ndarray, resolution: int, native: bool | None = None) -> tu
                          first_on_caller=True)
     counts = np.concatenate([c for c, _ in parts]) if parts else np.zeros(0, np.uint16)
     res = np.concatenate([r for _, r in parts]) if parts else np.zeros(0, np.uint16)
-    c_bytes, c_width = _pack(counts)
-    r_bytes, r_width = _pack(res)
+    c_width, r_width = _width(counts), _width(res)
+    out = np.empty(c_width * counts.size + r_width * res.size, np.uint8)
+    _pack(counts, c_width, out[:c_width * counts.size])
+    _pack(res, r_width, out[c_width * counts.size:])
     meta = {"codec": CODEC, "directions": n_dirs, "set_bits": int(res.size), "count_width": c_width,
             "residual_width": r_width, "chunk_directions": DIRS_PER_CHUNK}
-    return np.concatenate([c_bytes, r_bytes]), meta
+    return out, meta
 
 
 def decode(data: np.ndarray, meta: dict, resolution: int, native: bool | None = None) -> np.ndarray:
