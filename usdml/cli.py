@@ -179,6 +179,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
           f"{summary['secondsPerFrame']:.2f} s/frame, {summary['seconds']:.1f} s in all"
           + (f"; {len(summary['skipped'])} frame(s) already complete, skipped" if summary["skipped"] else "")
           + (f"; {len(summary['stale'])} stale (other settings), rendered again" if summary["stale"] else ""))
+    for f, e in summary.get("estimates", {}).items():
+        print(f"frame {f}: estimated eps_v {100 * e['eps_v']:.2f} % [{100 * e['eps_v_lo']:.2f}, "
+              f"{100 * e['eps_v_hi']:.2f}], eps_s {100 * e['eps_s']:.2f} % [{100 * e['eps_s_lo']:.2f}, "
+              f"{100 * e['eps_s_hi']:.2f}] ({e['pixels']} pixels, {e['queries']:,} exact rays)")
     for path in summary["outputs"] + summary["previews"]:
         print(f"  {path}")
     return 0

@@ -239,6 +239,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     from dataclasses import replace
 
     from usdml.lighting.direct import facing_pairs
+    from usdml.render.estimate import estimate_visibility, frame_rng
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import LightType, diff
@@ -308,6 +309,9 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
             for key, sel in (("facing", slice(None)), ("blocked", ref), ("hidden", got & ~ref),
                              ("visible", ~got & ref)):
                 counts[key] += np.bincount(pixel[sel].astype(np.int64), minlength=n_px)
+        # the estimate a render of this frame reports, on the same G-buffer and lights
+        estimate = estimate_visibility(points, gb.normal.reshape(-1, 3)[hit], geometric, snap.lights, exact, approx,
+                                       frame_rng(settings.seed, frame)).as_dict()
     finally:
         exact.close()
         approx.close()
@@ -345,6 +349,9 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         "wrongly_hidden_far": float((wrong_hidden.sum() - hidden_near) / nq),
         "near_voxels": NEAR_VOXELS,
         "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
+        "estimated_eps_v": estimate["eps_v"], "estimated_eps_v_interval": [estimate["eps_v_lo"], estimate["eps_v_hi"]],
+        "estimated_eps_s": estimate["eps_s"], "estimated_eps_s_interval": [estimate["eps_s_lo"], estimate["eps_s_hi"]],
+        "estimate": estimate,
         "build_seconds": build, "heatmap": heatmap, "plot": None if not plot else [f"{plot}.heatmap.png", f"{plot}.hist.png"],
     }
     result.update(approx.describe())    # the backend's own fields (voxel: resolution, step, bytes, ...)
@@ -362,8 +369,13 @@ def format_visibility_comparison(r: dict) -> str:
             f"({r['queries']:,} facing pairs): eps_v {100 * r['eps_v']:.2f} %, eps_s {100 * r['eps_s']:.2f} %; "
             f"wrongly hidden {100 * r['wrongly_hidden']:.2f} % of pairs ({100 * r['wrongly_hidden_near']:.2f} % "
             f"near the start), wrongly visible {100 * r['wrongly_visible']:.2f} %; queries "
-            f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)"
+            f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x); estimated eps_v "
+            f"{_percent_interval(r['estimated_eps_v'], r['estimated_eps_v_interval'])}"
             + (f"; heat map {r['heatmap']}" if r["heatmap"] else ""))
+
+
+def _percent_interval(value: float, interval) -> str:
+    return f"{100 * value:.2f} % [{100 * interval[0]:.2f}, {100 * interval[1]:.2f}]"
 
 
 def format_gi_comparison(r: dict) -> str:

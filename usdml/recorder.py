@@ -63,6 +63,9 @@ class RecordResult:
     stale: list[float] = field(default_factory=list)
     previews: list[str] = field(default_factory=list)   #: the PNG previews this call wrote (``preview``)
     skipped_files: list[str] = field(default_factory=list)   #: the files of ``skipped``, left as they were
+    #: approximate visibility: each rendered frame's estimate of ε_v and ε_s with 95 % intervals
+    #: (:class:`usdml.render.estimate.VisibilityEstimate`'s fields), by timecode
+    estimates: dict[float, dict] = field(default_factory=dict)
 
 
 def check_width(width: int | None, name: str = "--imageWidth") -> None:
@@ -161,7 +164,8 @@ class Recorder:
                             seconds_per_frame=summary["secondsPerFrame"], resolution=list(summary["resolution"]),
                             warnings=collect.messages, failed=list(summary.get("failed", [])),
                             rerun=summary.get("rerun"), summary=summary, stale=list(summary["stale"]),
-                            previews=list(summary["previews"]), skipped_files=list(summary["skippedOutputs"]))
+                            previews=list(summary["previews"]), skipped_files=list(summary["skippedOutputs"]),
+                            estimates={float(f): e for f, e in summary.get("estimates", {}).items()})
 
     def _on_dask(self, job) -> dict:
         """The job's frames as chunks on Dask (:mod:`usdml.render.farm`)."""

@@ -110,6 +110,7 @@ def render_on_dask(job, frames: list[float]) -> dict:
     done, failed, skipped, stale, errors, seconds = [], [], [], [], {}, []
     files = {"outputs": [], "previews": [], "skippedOutputs": []}
     resolution, visibility = [0, 0], ""
+    estimates = {}
     try:
         futures = {}
         for part in chunks(list(frames), chunk_size):
@@ -140,6 +141,7 @@ def render_on_dask(job, frames: list[float]) -> dict:
             if summary["frames"]:
                 seconds.append(summary["chunkSeconds"] / len(summary["frames"]))
             resolution, visibility = summary["resolution"], summary["visibility"]
+            estimates.update(summary.get("estimates", {}))
     finally:
         client.close()
         if cluster is not None:
@@ -157,4 +159,5 @@ def render_on_dask(job, frames: list[float]) -> dict:
         "seconds": _time.perf_counter() - started, "startupSeconds": startup,
         "workers": workers, "scheduler": scheduler, "chunkSize": chunk_size, "retries": retries,
         "threadsPerWorker": threads, **{key: sorted(paths) for key, paths in files.items()},
+        "estimates": {f"{f:g}": estimates[f"{f:g}"] for f in done if f"{f:g}" in estimates},
     }

@@ -20,6 +20,7 @@ from usdml.aov.names import find_aov
 from usdml.errors import UsdmlError, log
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import Backends
+from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, pixel_offsets
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
@@ -99,6 +100,12 @@ class FrameRenderer:
     def close(self) -> None:
         self.backends.close()
 
+    def estimates(self, lights: Lights) -> bool:
+        """Whether a frame estimates its visibility error (:mod:`usdml.render.estimate`): approximate shadow
+        rays answered pair by pair (``--direct all``; ``--direct lgh`` samples its lights), and lights."""
+        return (self.backends.shadow is not self.backends.primary and self.settings.direct == "all"
+                and len(lights) > 0)
+
     def render(self, time: float, width: int, height: int, aovs: set[str],
                progress: Callable[[int], None] | None = None) -> FrameResult:
         """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels."""
@@ -112,7 +119,12 @@ class FrameRenderer:
         self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
-        for offsets, (gb, surface, direct) in zip(passes, self.direct.passes(frame, passes, stats, pixel_progress)):
+        for i, (offsets, (gb, surface, direct)) in enumerate(
+                zip(passes, self.direct.passes(frame, passes, stats, pixel_progress))):
+            if i == 0 and self.estimates(lights):
+                stats.estimate = estimate_visibility(
+                    surface.position, surface.normal, surface.geometric, lights, self.backends.primary,
+                    self.backends.shadow, frame_rng(self.settings.seed, time)).as_dict()
             if self.camera_light and len(lights) == 0:
                 t1 = _time.perf_counter()
                 self._light_by_camera(direct, surface, camera, snap.time, stats)

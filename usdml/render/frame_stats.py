@@ -25,6 +25,10 @@ class FrameStats:
     direct_lgh: dict | None = None
     camera_light: bool = False              #: lit by usdrecord's camera light (the stage had no lights)
     gi: dict | None = None                  #: ``--gi``: the last pass's gather (``GIResult.stats``, usdml.lighting.gi)
+    #: approximate ``--visibility`` with ``--direct all``: ε_v and ε_s estimated from a sample of the first
+    #: pass's pairs traced exactly, with 95 % intervals and the seconds it took
+    #: (:class:`usdml.render.estimate.VisibilityEstimate`)
+    estimate: dict | None = None
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel

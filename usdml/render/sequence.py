@@ -23,6 +23,7 @@ from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_
 from usdml.errors import UsdmlError, log
 from usdml.outputs import make_output_folder
 from usdml.params import DEFAULT_WIDTH, ignored
+from usdml.render.estimate import header as estimate_header
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.settings import RenderOptions, UsdmlSettings
@@ -230,6 +231,7 @@ def render_sequence(job: RenderJob) -> dict:
     identities = [frame_settings(settings.as_dict(), layers=p.layers, **common) for p in products]
     digests = [settings_digest(i) for i in identities]
     written, skipped, stale, recovered, seconds = [], [], [], [], []
+    estimates: dict[float, dict] = {}       # frame -> its visibility error estimate (usdml.render.estimate)
     since = job.resume_since
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
@@ -253,10 +255,14 @@ def render_sequence(job: RenderJob) -> dict:
                     write_exr(path, aovs, layers=product.layers, world_to_camera=w2c, world_to_ndc=w2n,
                               timecode=f, stage=stage_file, settings=settings_json(identity),
                               metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
-                                        "usdml:camera": result.camera.path or "(framing)"})
+                                        "usdml:camera": result.camera.path or "(framing)",
+                                        **(estimate_header(result.stats.estimate) if result.stats.estimate
+                                           else {})})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
+                if result.stats.estimate:
+                    estimates[f] = result.stats.estimate
                 written.append(f)
                 bar.update(1)
     finally:
@@ -274,6 +280,7 @@ def render_sequence(job: RenderJob) -> dict:
         if job.preview else [],
         "skippedOutputs": [p.paths[f] for f in skipped for p in products],
         "settingsDigest": digests,
+        "estimates": {f"{f:g}": e for f, e in estimates.items()},
     }
 
 

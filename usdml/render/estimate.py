@@ -1,0 +1,184 @@
+"""A frame's own error estimate for approximate visibility (issue 36 item 2).
+
+Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–light pair exactly
+(:func:`usdml.compare.compare_visibility`). A frame cannot afford that, so it traces a sample:
+
+* pixels: ``pixels`` of the frame's hit pixels, stratified over the image (the hit pixels in scan order cut
+  into that many equal runs, one pixel drawn in each), seeded by the render's seed and the timecode;
+* lights: at each of them, every light when the frame has at most ``lights``, else ``lights`` lights drawn
+  uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
+* each sampled pair is answered by the exact backend and by the shadow backend (``occluded``).
+
+Per sampled pixel ``p``, with ``h_p`` and ``v_p`` its wrongly hidden and wrongly visible pairs among its
+``k`` drawn lights, ``x_p = (h_p + v_p) / k`` and ``d_p = (h_p - v_p) / k``; ``ε_v`` is estimated by the mean
+of ``x_p`` (unbiased: the mean over pixels of each pixel's error fraction), ``ε_s`` by the mean of ``|d_p|``
+(exact per pixel when every light is drawn; otherwise biased upward, ``E|d_p| >= |E d_p|``).
+
+The 95 % interval treats the pixels as a simple random sample (stratification only narrows the true
+spread, so the interval errs wide): Student's t over the per-pixel values, with the finite-population
+correction when every light is drawn (so a sample of every hit pixel gives the measured value itself).
+Per-pixel values lie in [0, 1] and are mostly 0 on a good approximation, where the t interval is too
+narrow (a handful of nonzero pixels); while fewer than :data:`FEW_NONZERO` pixels are nonzero the interval
+is widened to hold Wilson's score interval with ``n`` the sampled pixels, which is honest for any [0, 1]
+variable (its variance is at most ``μ(1 - μ)``). ``ε_s``'s interval with drawn lights: the upper end is
+``mean |d_p|``'s (an upper bound of ``ε_s`` on average), the lower end ``|mean d_p|``'s (``ε_s >= |mean_p
+(h_p - v_p)| / n_l``).
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from usdml.lighting.direct import facing_pairs
+from usdml.scene import Lights
+from usdml.visibility.base import VisibilityBackend
+
+#: sampled pixels per frame
+PIXELS = 256
+#: lights per sampled pixel (every light when the frame has no more)
+LIGHTS = 1024
+#: fewer nonzero per-pixel values than this: the interval also holds Wilson's (module doc)
+FEW_NONZERO = 10
+#: two-sided 95 %
+Z95 = 1.959963984540054
+
+
+@dataclass
+class VisibilityEstimate:
+    """One frame's estimate of ``ε_v`` and ``ε_s`` (fractions, not %) with 95 % intervals (module doc)."""
+
+    eps_v: float
+    eps_v_lo: float
+    eps_v_hi: float
+    eps_s: float
+    eps_s_lo: float
+    eps_s_hi: float
+    pixels: int             #: sampled pixels
+    pairs: int              #: sampled pixel–light pairs (facing or not)
+    queries: int            #: facing pairs answered by both backends
+    exact_per_pixel: bool   #: every light drawn at each sampled pixel
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def t95(df: int) -> float:
+    """Student's t two-sided 95 % quantile for ``df`` degrees of freedom (Cornish–Fisher, 1e-3 at df 3)."""
+    if df <= 0:
+        return math.inf
+    z = Z95
+    return (z + (z ** 3 + z) / (4 * df) + (5 * z ** 5 + 16 * z ** 3 + 3 * z) / (96 * df ** 2)
+            + (3 * z ** 7 + 19 * z ** 5 + 17 * z ** 3 - 15 * z) / (384 * df ** 3))
+
+
+def wilson(mean: float, n: int, fpc: float = 1.0) -> tuple[float, float]:
+    """Wilson's score interval of a [0, 1] mean over ``n`` samples, ``fpc`` the finite-population
+    factor of the variance."""
+    z2 = Z95 ** 2 * fpc
+    centre = (mean + z2 / (2 * n)) / (1 + z2 / n)
+    half = math.sqrt(z2 * mean * (1 - mean) / n + z2 * z2 / (4 * n * n)) / (1 + z2 / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_interval(x: np.ndarray, fpc: float) -> tuple[float, float, float]:
+    """``(mean, lo, hi)`` of per-pixel values ``x`` in [0, 1] (module doc: t, widened by Wilson's when
+    few are nonzero); ``fpc`` = 1 - sampled / population, 0 when every pixel is in."""
+    n = len(x)
+    mean = float(x.mean()) if n else 0.0
+    if n == 0:
+        return 0.0, 0.0, 1.0
+    if fpc <= 0:
+        return mean, mean, mean
+    half = t95(n - 1) * float(x.std(ddof=1)) / math.sqrt(n) * math.sqrt(fpc) if n > 1 else math.inf
+    lo, hi = max(0.0, mean - half), min(1.0, mean + half)
+    if int((x > 0).sum()) < FEW_NONZERO:
+        wlo, whi = wilson(mean, n, fpc)
+        lo, hi = min(lo, wlo), max(hi, whi)
+    return mean, lo, hi
+
+
+def sample_pixels(n_hit: int, pixels: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices into ``n_hit`` hit pixels (scan order): ``pixels`` equal runs, one drawn in each; every
+    pixel when there are no more than ``pixels``."""
+    if n_hit <= pixels:
+        return np.arange(n_hit)
+    edges = np.linspace(0, n_hit, pixels + 1)
+    pick = np.floor(edges[:-1] + rng.random(pixels) * np.diff(edges)).astype(np.int64)
+    return np.minimum(pick, n_hit - 1)
+
+
+def frame_rng(seed: int, time: float) -> np.random.Generator:
+    """The estimate's generator for a frame: the render's seed and the timecode (to the millisecond)."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, int(round(time * 1000)) & 0xFFFFFFFF, 36])
+
+
+def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None, lights: Lights,
+                        exact: VisibilityBackend, approx: VisibilityBackend, rng: np.random.Generator,
+                        pixels: int = PIXELS, lights_per_pixel: int = LIGHTS) -> VisibilityEstimate:
+    """Estimate ``approx``'s ``ε_v`` and ``ε_s`` against ``exact`` at a frame's hit pixels (module doc).
+
+    Parameters
+    ----------
+    points, normals : (N, 3) every hit pixel's world position and shading normal, in scan order.
+    geometric : (N, 3) geometric normals, or None.
+    lights : the frame's lights.
+    exact, approx : backends brought to the frame.
+    rng : :func:`frame_rng`.
+    """
+    t0 = _time.perf_counter()
+    n_hit, n_l = len(points), len(lights)
+    pick = sample_pixels(n_hit, pixels, rng)
+    m = len(pick)
+    every = n_l <= lights_per_pixel
+    k = n_l if every else lights_per_pixel
+    pts, nrm = points[pick], normals[pick]
+    geo = None if geometric is None else geometric[pick]
+    blocks = []
+    if every:
+        for origin, target, normal, distant, px, _ in facing_pairs(pts, nrm, lights, geo):
+            blocks.append((origin, target, normal, distant, px))
+    else:
+        draws = rng.integers(0, n_l, (m, k))
+        for i in range(m):
+            sub = lights.subset(draws[i])
+            for origin, target, normal, distant, _, _ in facing_pairs(
+                    pts[i:i + 1], nrm[i:i + 1], sub, None if geo is None else geo[i:i + 1]):
+                blocks.append((origin, target, normal, distant, np.full(len(origin), i)))
+    hidden = np.zeros(m, np.int64)
+    visible = np.zeros(m, np.int64)
+    queries = 0
+    if blocks and k:
+        origin, target, normal, distant, px = (np.concatenate(a) for a in zip(*blocks))
+        kw = dict(normals=normal, distant=distant.astype(bool))
+        ref = exact.occluded(origin, target, **kw)
+        got = approx.occluded(origin, target, **kw)
+        hidden = np.bincount(px[got & ~ref].astype(np.int64), minlength=m)
+        visible = np.bincount(px[~got & ref].astype(np.int64), minlength=m)
+        queries = len(origin)
+    kk = max(k, 1)
+    x = (hidden + visible) / kk
+    d = (hidden - visible) / kk
+    fpc = (1.0 - m / n_hit) if (every and n_hit) else 1.0
+    eps_v, v_lo, v_hi = mean_interval(x, fpc)
+    eps_s, s_lo, s_hi = mean_interval(np.abs(d), fpc)
+    if not every and m > 1:
+        # |d_p| overstates |h - v| / n_l: the lower end from the signed mean instead (module doc)
+        signed = abs(float(d.mean())) - t95(m - 1) * float(d.std(ddof=1)) / math.sqrt(m)
+        s_lo = min(s_lo, max(0.0, signed))
+    return VisibilityEstimate(eps_v, v_lo, v_hi, eps_s, s_lo, s_hi, m, m * k, queries, every,
+                              _time.perf_counter() - t0)
+
+
+#: EXR header attributes of an estimate (:func:`header`)
+HEADER_KEYS = ("eps_v", "eps_v_lo", "eps_v_hi", "eps_s", "eps_s_lo", "eps_s_hi", "pixels", "pairs")
+
+
+def header(estimate: dict) -> dict:
+    """``usdml:estimate:<key>`` attributes of an estimate (:meth:`VisibilityEstimate.as_dict`) for the EXR."""
+    return {f"usdml:estimate:{k}": (int(estimate[k]) if k in ("pixels", "pairs") else float(estimate[k]))
+            for k in HEADER_KEYS}
