@@ -148,3 +148,20 @@ def test_estimator_pieces():
     x = np.zeros(256)
     assert mean_interval(x, 1.0)[2] == pytest.approx(hi)          # no nonzero pixel: Wilson's upper end
     assert mean_interval(x, 0.0) == (0.0, 0.0, 0.0)               # every pixel sampled: the value itself
+
+
+def test_which_frames_estimate():
+    """Approximate shadow rays with ``--direct all`` and lights: yes; exact, ``--direct lgh``, no lights: no."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.scene import Lights
+
+    d = StageDelegate(str(STAGES / "cornell.usda"))
+    lights = d.snapshot(1).lights
+    for settings, want in ((dict(visibility="voxel"), True), (dict(visibility="exact"), False),
+                           (dict(visibility="voxel", direct="lgh"), False)):
+        r = FrameRenderer(d, d.usdml_settings.updated(**settings))
+        try:
+            assert r.estimates(lights) is want
+            assert not r.estimates(Lights.empty())
+        finally:
+            r.close()
