@@ -9,6 +9,11 @@ Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–l
   uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
 * each sampled pair is answered by the exact backend and by the shadow backend (``occluded``).
 
+A ``LIGHT_MAJOR`` backend (``insm``: a map per light, built anew for every call) would build a map for
+nearly every light of the frame again; it answers the sampled pixels against :data:`SHARED_LIGHTS` lights
+drawn once (without replacement) instead, and the interval adds the light draw's variance (a
+delete-one-light jackknife) to the pixels'.
+
 Per sampled pixel ``p``, with ``h_p`` and ``v_p`` its wrongly hidden and wrongly visible pairs among its
 ``k`` drawn lights, ``x_p = (h_p + v_p) / k`` and ``d_p = (h_p - v_p) / k``; ``ε_v`` is estimated by the mean
 of ``x_p`` (unbiased: the mean over pixels of each pixel's error fraction), ``ε_s`` by the mean of ``|d_p|``
@@ -35,12 +40,14 @@ import numpy as np
 
 from usdml.lighting.direct import facing_pairs
 from usdml.scene import Lights
-from usdml.visibility.base import VisibilityBackend
+from usdml.visibility.base import LIGHT_MAJOR, VisibilityBackend
 
 #: sampled pixels per frame
 PIXELS = 256
 #: lights per sampled pixel (every light when the frame has no more)
 LIGHTS = 1024
+#: a ``LIGHT_MAJOR`` backend's lights, the same for every sampled pixel (module doc)
+SHARED_LIGHTS = 32
 #: fewer nonzero per-pixel values than this: the interval also holds Wilson's (module doc)
 FEW_NONZERO = 10
 #: two-sided 95 %
@@ -119,7 +126,8 @@ def frame_rng(seed: int, time: float) -> np.random.Generator:
 
 def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None, lights: Lights,
                         exact: VisibilityBackend, approx: VisibilityBackend, rng: np.random.Generator,
-                        pixels: int = PIXELS, lights_per_pixel: int = LIGHTS) -> VisibilityEstimate:
+                        pixels: int = PIXELS, lights_per_pixel: int = LIGHTS,
+                        shared_lights: int = SHARED_LIGHTS) -> VisibilityEstimate:
     """Estimate ``approx``'s ``ε_v`` and ``ε_s`` against ``exact`` at a frame's hit pixels (module doc).
 
     Parameters
@@ -134,6 +142,9 @@ def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.n
     n_hit, n_l = len(points), len(lights)
     pick = sample_pixels(n_hit, pixels, rng)
     m = len(pick)
+    if approx.supports(LIGHT_MAJOR) and n_l > shared_lights:
+        return _shared_lights(points[pick], normals[pick], None if geometric is None else geometric[pick], lights,
+                              exact, approx, rng, t0, shared_lights)
     every = n_l <= lights_per_pixel
     k = n_l if every else lights_per_pixel
     pts, nrm = points[pick], normals[pick]
@@ -172,6 +183,53 @@ def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.n
         s_lo = min(s_lo, max(0.0, signed))
     return VisibilityEstimate(eps_v, v_lo, v_hi, eps_s, s_lo, s_hi, m, m * k, queries, every,
                               _time.perf_counter() - t0)
+
+
+def _shared_lights(pts: np.ndarray, nrm: np.ndarray, geo: np.ndarray | None, lights: Lights,
+                   exact: VisibilityBackend, approx: VisibilityBackend, rng: np.random.Generator,
+                   t0: float, k: int) -> VisibilityEstimate:
+    """A ``LIGHT_MAJOR`` backend (paper 001: a map per light, built anew for each call) answers the sampled
+    pixels against ``k`` (:data:`SHARED_LIGHTS`) lights drawn once without replacement (module doc): pixels and
+    lights are then both samples, and each statistic's variance is its pixel part (over the per-pixel values)
+    plus its light part (delete-one-light jackknife)."""
+    m = len(pts)
+    drawn = np.sort(rng.choice(len(lights), k, replace=False))
+    hidden = np.zeros((m, k), np.int64)
+    visible = np.zeros((m, k), np.int64)
+    queries = 0
+    for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights.subset(drawn), geo):
+        kw = dict(normals=normal, distant=distant.astype(bool))
+        ref = exact.occluded(origin, target, **kw)
+        got = approx.occluded(origin, target, **kw)
+        np.add.at(hidden, (px[got & ~ref], li[got & ~ref]), 1)
+        np.add.at(visible, (px[~got & ref], li[~got & ref]), 1)
+        queries += len(origin)
+    wrong, signed = (hidden + visible).astype(np.float64), (hidden - visible).astype(np.float64)
+
+    def interval(z: np.ndarray, stat) -> tuple[float, float, float]:
+        value = stat(z.sum(1) / k)
+        rows = stat(z.sum(1, keepdims=True) / k, per_pixel=True)
+        loo = np.array([stat((z.sum(1) - z[:, j]) / (k - 1)) for j in range(k)])
+        var = rows.var(ddof=1) / m + (k - 1) / k * ((loo - loo.mean()) ** 2).sum()
+        half = t95(min(m, k) - 1) * var ** 0.5
+        return value, value - half, value + half
+
+    def mean(x, per_pixel=False):
+        return x.ravel() if per_pixel else float(x.mean())
+
+    def mean_abs(x, per_pixel=False):
+        return np.abs(x).ravel() if per_pixel else float(np.abs(x).mean())
+
+    eps_v, v_lo, v_hi = interval(wrong, mean)
+    if int((wrong.sum(1) > 0).sum()) < FEW_NONZERO:
+        wlo, whi = wilson(eps_v, m)
+        v_lo, v_hi = min(v_lo, wlo), max(v_hi, whi)
+    eps_s, _, s_hi = interval(signed, mean_abs)
+    d, d_lo, d_hi = interval(signed, mean)
+    s_lo = 0.0 if d_lo <= 0 <= d_hi else min(abs(d_lo), abs(d_hi))
+    s_hi = max(s_hi, v_hi) if int((wrong.sum(1) > 0).sum()) < FEW_NONZERO else s_hi
+    return VisibilityEstimate(eps_v, max(0.0, v_lo), min(1.0, v_hi), eps_s, s_lo, min(1.0, s_hi), m, m * k, queries,
+                              False, _time.perf_counter() - t0)
 
 
 #: EXR header attributes of an estimate (:func:`header`)
