@@ -311,7 +311,8 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
                 counts[key] += np.bincount(pixel[sel].astype(np.int64), minlength=n_px)
         # the estimate a render of this frame reports, on the same G-buffer and lights
         estimate = estimate_visibility(points, gb.normal.reshape(-1, 3)[hit], geometric, snap.lights, exact, approx,
-                                       frame_rng(settings.seed, frame)).as_dict()
+                                       frame_rng(settings.seed, frame),
+                                       frame_pairs=n_px * len(snap.lights) * settings.pixel_samples).as_dict()
     finally:
         exact.close()
         approx.close()

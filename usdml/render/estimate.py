@@ -3,8 +3,9 @@
 Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–light pair exactly
 (:func:`usdml.compare.compare_visibility`). A frame cannot afford that, so it traces a sample:
 
-* pixels: ``pixels`` of the frame's hit pixels, stratified over the image (the hit pixels in scan order cut
-  into that many equal runs, one pixel drawn in each), seeded by the render's seed and the timecode;
+* pixels: ``pixels`` (64 to 256, as the frame's own work allows: :data:`BUDGET`) of the frame's hit pixels,
+  stratified over the image (the hit pixels in scan order cut into that many equal runs, one pixel drawn
+  in each), seeded by the render's seed and the timecode;
 * lights: at each of them, every light when the frame has at most ``lights``, else ``lights`` lights drawn
   uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
 * each sampled pair is answered by the exact backend and by the shadow backend (``occluded``).
@@ -42,8 +43,13 @@ from usdml.lighting.direct import facing_pairs
 from usdml.scene import Lights
 from usdml.visibility.base import LIGHT_MAJOR, VisibilityBackend
 
-#: sampled pixels per frame
+#: sampled pixels per frame: at most, at least (when the frame has as many hit pixels)
 PIXELS = 256
+MIN_PIXELS = 64
+#: exact pairs traced per pair the frame shades (the shadow backend's answers: passes × hit pixels × lights);
+#: an exact ray costs about ten of an approximate backend's queries, so this keeps the estimate near 5 % of
+#: the frame's shading
+BUDGET = 1 / 300
 #: lights per sampled pixel (every light when the frame has no more)
 LIGHTS = 1024
 #: a ``LIGHT_MAJOR`` backend's lights, the same for every sampled pixel (module doc)
@@ -127,7 +133,7 @@ def frame_rng(seed: int, time: float) -> np.random.Generator:
 def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None, lights: Lights,
                         exact: VisibilityBackend, approx: VisibilityBackend, rng: np.random.Generator,
                         pixels: int = PIXELS, lights_per_pixel: int = LIGHTS,
-                        shared_lights: int = SHARED_LIGHTS) -> VisibilityEstimate:
+                        shared_lights: int = SHARED_LIGHTS, frame_pairs: int | None = None) -> VisibilityEstimate:
     """Estimate ``approx``'s ``ε_v`` and ``ε_s`` against ``exact`` at a frame's hit pixels (module doc).
 
     Parameters
@@ -137,9 +143,14 @@ def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.n
     lights : the frame's lights.
     exact, approx : backends brought to the frame.
     rng : :func:`frame_rng`.
+    pixels : the most pixels sampled; fewer when ``frame_pairs`` (the pairs the frame shades) times
+        :data:`BUDGET` is less than their pairs, never fewer than :data:`MIN_PIXELS`.
     """
     t0 = _time.perf_counter()
     n_hit, n_l = len(points), len(lights)
+    if frame_pairs is not None:
+        per_pixel = min(n_l, shared_lights if approx.supports(LIGHT_MAJOR) else lights_per_pixel)
+        pixels = int(np.clip(round(BUDGET * frame_pairs / max(per_pixel, 1)), MIN_PIXELS, pixels))
     pick = sample_pixels(n_hit, pixels, rng)
     m = len(pick)
     if approx.supports(LIGHT_MAJOR) and n_l > shared_lights:

@@ -124,7 +124,8 @@ class FrameRenderer:
             if i == 0 and self.estimates(lights):
                 stats.estimate = estimate_visibility(
                     surface.position, surface.normal, surface.geometric, lights, self.backends.primary,
-                    self.backends.shadow, frame_rng(self.settings.seed, time)).as_dict()
+                    self.backends.shadow, frame_rng(self.settings.seed, time),
+                    frame_pairs=len(surface.position) * len(lights) * samples).as_dict()
             if self.camera_light and len(lights) == 0:
                 t1 = _time.perf_counter()
                 self._light_by_camera(direct, surface, camera, snap.time, stats)
