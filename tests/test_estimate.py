@@ -39,7 +39,7 @@ def test_interval_holds_measured(stage, width, backend, capsys):
     assert main(args) == 0
     r = json.loads(capsys.readouterr().out)
     _contains(r)
-    assert min(64, r["pixels"]) <= r["estimate"]["pixels"] <= 256
+    assert min(128, r["pixels"]) <= r["estimate"]["pixels"] <= 256
 
 
 @pytest.mark.slow

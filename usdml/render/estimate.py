@@ -3,7 +3,7 @@
 Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–light pair exactly
 (:func:`usdml.compare.compare_visibility`). A frame cannot afford that, so it traces a sample:
 
-* pixels: ``pixels`` (64 to 256, as the frame's own work allows: :data:`BUDGET`) of the frame's hit pixels,
+* pixels: ``pixels`` (128 to 256, as the frame's own work allows: :data:`BUDGET`) of the frame's hit pixels,
   stratified over the image (the hit pixels in scan order cut into that many equal runs, one pixel drawn
   in each), seeded by the render's seed and the timecode;
 * lights: at each of them, every light when the frame has at most ``lights``, else ``lights`` lights drawn
@@ -45,7 +45,7 @@ from usdml.visibility.base import LIGHT_MAJOR, VisibilityBackend
 
 #: sampled pixels per frame: at most, at least (when the frame has as many hit pixels)
 PIXELS = 256
-MIN_PIXELS = 64
+MIN_PIXELS = 128
 #: exact pairs traced per pair the frame shades (the shadow backend's answers: passes × hit pixels × lights);
 #: an exact ray costs about ten of an approximate backend's queries, so this keeps the estimate near 5 % of
 #: the frame's shading
