@@ -319,24 +319,23 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     n_l = len(snap.lights)
     wrong_hidden, wrong_visible = counts["hidden"], counts["visible"]
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
-    eps_s = np.abs(wrong_hidden - wrong_visible) / max(n_l, 1)
-    n_queries = int(counts["facing"].sum())
     eps_s_signed = (wrong_hidden - wrong_visible) / max(n_l, 1)
-    signed = np.zeros(width * height)
-    signed[hit] = eps_s_signed
-    signed = signed.reshape(height, width)
-    shadow = np.zeros(width * height)
-    shadow[hit] = counts["blocked"] / np.maximum(counts["facing"], 1)
-    shadow = shadow.reshape(height, width)
+    eps_s = np.abs(eps_s_signed)
+    n_queries = int(counts["facing"].sum())
+    if heatmap or plot:
+        signed = np.zeros(width * height)
+        signed[hit] = eps_s_signed
+        shadow = np.zeros(width * height)
+        shadow[hit] = counts["blocked"] / np.maximum(counts["facing"], 1)
+        image = error_heatmap(signed.reshape(height, width), shadow.reshape(height, width), gb.hit, HEATMAP_SCALE)
     if heatmap:
         from usdml.outputs import write_image
 
-        write_image(heatmap, error_heatmap(signed, shadow, gb.hit, HEATMAP_SCALE))
+        write_image(heatmap, image)
     if plot:
         from usdml.plots import error_map, histogram
 
-        error_map(f"{plot}.heatmap.png", error_heatmap(signed, shadow, gb.hit, HEATMAP_SCALE), HEATMAP_SCALE,
-                  f"{backend} against {against}: blue darker, red brighter")
+        error_map(f"{plot}.heatmap.png", image, HEATMAP_SCALE, f"{backend} against {against}: blue darker, red brighter")
         histogram(f"{plot}.hist.png", {"ε_v (wrongly answered / lights)": 100 * eps_v,
                                        "signed ε_s (hidden − visible) / lights": 100 * eps_s_signed},
                   "per-pixel error (%)", f"{backend} against {against}, {n_px:,} pixels")
