@@ -288,6 +288,8 @@ def test_direct_lgh_over_lights_that_all_go_every_light_warns(new_stage, tmp_pat
     ({"workers": 0}, "Recorder: workers 0"),
     ({"aovs": 3}, "Recorder: aovs 3"),
     ({"implicit_detail": 2}, "Recorder: implicit_detail 2: give an integer from 3 to 1024"),
+    ({"purposes": ["render", "bogus"]}, "Recorder: purposes: unknown purpose(s) bogus; use render, proxy or guide"),
+    ({"purposes": "proxy,bogus"}, "Recorder: purposes: unknown purpose(s) bogus"),
     ({"voxel_resolutoin": 64}, "voxel_resolutoin (did you mean voxel_resolution?)"),
     ({"imageWidth": 64}, "imageWidth (did you mean image_width?)"),
 ])

@@ -13,7 +13,8 @@ import logging
 import sys
 import time
 
-from usdml.params import BAKE, BENCH, COMPARE, INFO, RENDER, add_cmdline_args, options_from_args, overrides_from_args
+from usdml.params import (BAKE, BENCH, COMPARE, INFO, RENDER, add_cmdline_args, options_from_args,
+                          overrides_from_args, purpose_list)
 from usdml.recorder import check_width
 
 
@@ -44,22 +45,9 @@ def _add_stage_args(p: argparse.ArgumentParser, command: str) -> None:
     add_cmdline_args(p, command, "camera", "render_settings", "purposes", "implicit_detail")
 
 
-#: imageable purposes besides 'default' (always drawn) that --purposes may name
-PURPOSES = ("render", "proxy", "guide", "default")
-
-
 def _purposes(args: argparse.Namespace) -> list[str] | None:
     """``--purposes`` as a list (comma or space separated), every name a UsdGeom purpose."""
-    if args.purposes is None:
-        return None
-    from usdml.errors import UsdmlError
-
-    names = args.purposes.replace(",", " ").split()
-    unknown = [n for n in names if n not in PURPOSES]
-    if unknown:
-        raise UsdmlError(f"--purposes: unknown purpose(s) {', '.join(unknown)}; use render, proxy or guide "
-                         "('default' is always drawn)")
-    return names
+    return purpose_list(args.purposes, "--purposes")
 
 
 def _delegate(args: argparse.Namespace):

@@ -25,7 +25,7 @@ import argparse
 import inspect
 import math
 import numbers
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable
 
 from usdml.errors import UsdmlError
@@ -210,6 +210,23 @@ _SQUARE_RULE = f"a square number from 1 to {MAX_PIXEL_SAMPLES} (1, 4, 9, 16, ...
 def _names(value) -> bool:
     """A name, or a list / tuple of names (``aovs``, ``purposes``)."""
     return isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value))
+
+
+#: imageable purposes besides 'default' (always drawn) that ``--purposes`` may name
+PURPOSES = ("render", "proxy", "guide", "default")
+
+
+def purpose_list(value, name: str) -> list[str] | None:
+    """``--purposes`` / ``purposes=`` as a list: a string (comma or space separated) or a list of names,
+    each a UsdGeom purpose; else a one-line :class:`UsdmlError` starting with ``name`` (how the user gave it)."""
+    if value is None:
+        return None
+    names = value.replace(",", " ").split() if isinstance(value, str) else list(value)
+    unknown = [str(n) for n in names if n not in PURPOSES]
+    if unknown:
+        raise UsdmlError(f"{name}: unknown purpose(s) {', '.join(unknown)}; use render, proxy or guide "
+                         "('default' is always drawn)")
+    return names
 
 
 def _or(names) -> str:

@@ -129,8 +129,8 @@ class Recorder:
         if aovs is not None:
             self.options["aovs"] = [a for spec in ([aovs] if isinstance(aovs, str) else aovs)
                                     for a in spec.split(",") if a] or None
-        if self.options["purposes"] is not None:
-            self.options["purposes"] = list(self.options["purposes"])
+        self.options["purposes"] = params.purpose_list(self.options["purposes"],
+                                                       "--purposes" if _flags else "Recorder: purposes")
 
     def record(self, stage, time_code: float, output_path: str | None) -> RecordResult:
         """Render ``time_code`` of ``stage`` (a path or an open ``Usd.Stage``) to ``output_path``: that
