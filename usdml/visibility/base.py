@@ -62,6 +62,11 @@ Optional capabilities
         it builds from the stage. Classmethod :meth:`~VisibilityBackend.bake_skip` says why some settings
         leave nothing to cache, and :meth:`~VisibilityBackend.baked`, after the updates over the frames,
         what was built or loaded. Default: ``None``; ``NotImplementedError``.
+    ``REFINE`` ("refine")
+        :meth:`~VisibilityBackend.occluded_uncertain`: each answer and whether it is *certain*, by a rule of
+        the method's own geometry, widened by ``level`` (1: the narrowest, up to ``refine_levels``);
+        :class:`usdml.visibility.refine.Refined` re-asks the uncertain ones of the exact backend
+        (``--error-budget``). Default: ``NotImplementedError``.
 
 Adding a backend
     One module with a :class:`VisibilityBackend` subclass (``name``, ``summary``, ``capabilities``, and
@@ -83,7 +88,7 @@ from usdml.scene import Changes, Snapshot
 from usdml.settings import UsdmlSettings
 
 __all__ = ["VisibilityBackend", "baked_entry", "baked_line", "settings_with", "CAPABILITIES", "SHADE_DIRECT", "HIT_DISTANCES", "STATS", "MEMORY_ESTIMATE",
-           "LIGHT_MAJOR", "DirectResult"]
+           "LIGHT_MAJOR", "REFINE", "DirectResult"]
 
 #: optional capabilities (module doc, "Optional capabilities")
 SHADE_DIRECT = "shade_direct"
@@ -92,7 +97,8 @@ STATS = "stats"
 MEMORY_ESTIMATE = "memory_estimate"
 LIGHT_MAJOR = "light_major"
 BAKE = "bake"
-CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR, BAKE)
+REFINE = "refine"
+CAPABILITIES = (SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, LIGHT_MAJOR, BAKE, REFINE)
 
 
 @dataclass
@@ -196,6 +202,8 @@ class VisibilityBackend(abc.ABC):
     summary: str = ""
     #: counters of the last update (``STATS``); backends that declare it set their own dict
     stats: Mapping = MappingProxyType({})
+    #: ``REFINE``: how many times :meth:`occluded_uncertain`'s rule can be widened (levels 1 .. this)
+    refine_levels: int = 0
     #: point-light pairs handed to one :meth:`occluded` call by :meth:`occluded_matrix`; bounds its
     #: temporary memory (about 200 bytes per pair, so ~200 MB at 2^20)
     matrix_chunk_pairs: int = 1 << 20
@@ -349,6 +357,14 @@ class VisibilityBackend(abc.ABC):
         backend's units; ``-1``: free), ``>= 0`` exactly where :meth:`occluded` is True. Arguments as
         :meth:`occluded`. Backends that do not declare it raise ``NotImplementedError``."""
         raise NotImplementedError(f"the {self.name or type(self).__name__} backend does not report hit distances")
+
+    def occluded_uncertain(self, origins: np.ndarray, targets: np.ndarray, *, normals: np.ndarray | None = None,
+                           distant: np.ndarray | None = None, level: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``REFINE``: ``(blocked, uncertain)``, two ``(N,) bool``: :meth:`occluded`'s answers (the same
+        booleans) and where each may be wrong by the backend's own rule at ``level`` (1 the narrowest, up to
+        ``refine_levels``; a higher level flags a superset). Arguments as :meth:`occluded`. Backends that do
+        not declare it raise ``NotImplementedError``."""
+        raise NotImplementedError(f"the {self.name or type(self).__name__} backend does not say which answers are uncertain")
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
