@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     delegate = StageDelegate(args.stage)
     frame = delegate.start_time if args.frame is None else args.frame
     snap, exact, _, resolution, _, queries = exact_queries(delegate, args.imageWidth, frame, "time")
-    origins, targets, normals, distant = queries
-    bare = BareEmbree(snap, exact, *queries)
+    origins, targets, normals, distant, _ = queries
+    bare = BareEmbree(snap, exact, *queries[:4])
     exact.occluded(origins[:WARMUP], targets[:WARMUP], normals=normals[:WARMUP], distant=distant[:WARMUP])
     times = {"exact": [], "bare": []}
     cpu = {"exact": [], "bare": []}

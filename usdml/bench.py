@@ -21,7 +21,9 @@ from usdml.scene import diff, world_geometry
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry, require_lights
 from usdml.visibility import ExactBackend, make_backend
-from usdml.visibility.base import all_members
+from usdml.render.budget import active, choose_level
+from usdml.visibility.base import REFINE, all_members
+from usdml.visibility.refine import Refined
 from usdml.visibility.voxel import SHADE_TILE
 from usdml.zorder import morton_order
 
@@ -154,7 +156,7 @@ class BareEmbree:
 def exact_queries(delegate: StageDelegate, image_width: int, frame: float, command: str = "bench"):
     """What ``usdml bench`` times, from the exact backend: ``(snapshot, exact backend (updated; the
     caller closes it), its build seconds, (width, height), G-buffer, (origins, targets, normals,
-    distant))``, the queries as :func:`query_set` gives them. ``command`` names the caller in errors."""
+    distant, point index))``, the queries as :func:`query_set` gives them. ``command`` names the caller in errors."""
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)
     require_lights(delegate, snap, command)
@@ -164,7 +166,7 @@ def exact_queries(delegate: StageDelegate, image_width: int, frame: float, comma
     exact.update(snap, diff(None, snap))
     build = _time.perf_counter() - t0
     gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
-    return snap, exact, build, (width, height), gb, query_set(snap, gb)[:4]
+    return snap, exact, build, (width, height), gb, query_set(snap, gb)
 
 
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
@@ -180,8 +182,8 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     stage = delegate.path
     frame = delegate.start_time if frame is None else frame
     snap, exact, exact_build, (width, height), gb, queries = exact_queries(delegate, image_width, frame)
-    origins, targets, normals, distant = queries
-    bare = BareEmbree(snap, exact, *queries)
+    origins, targets, normals, distant, point_index = queries
+    bare = BareEmbree(snap, exact, *queries[:4])
     built = {}
     for name in dict.fromkeys(["exact"] + list(backends)):
         if name == "exact":
@@ -195,10 +197,18 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     # passes taken in turn (bare embreex, exact, the others, again ...), so that a machine whose speed
     # drifts (shared cores, a CPU quota) slows every backend alike; each backend's median is reported
     runs = {"bare": bare.timed_run}
+    refined = {}
     for name, (backend, _) in built.items():
         # a few queries first: kernel modules load and caches fill outside the timing
         backend.occluded(origins[:WARMUP], targets[:WARMUP], normals=normals[:WARMUP], distant=distant[:WARMUP])
         runs[name] = (lambda b: lambda: b.occluded(origins, targets, normals=normals, distant=distant))(backend)
+        budget = (settings if settings is not None else delegate.usdml_settings).error_budget
+        if active(budget, backend, exact) and backend.supports(REFINE):
+            # --error-budget: each pass chooses the frame's level from its sample as a render does, then answers
+            # every query refined (usdml.render.budget): both timed
+            refined[name] = Refined(backend, exact)
+            runs[name] = _budgeted(refined[name], gb, snap, budget, delegate, frame, origins, targets, normals,
+                                   distant, point_index)
     timed = interleaved_passes(runs)
     bare_seconds, bare_blocked, _ = timed["bare"]
     results = []
@@ -224,6 +234,11 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
         # the backend's own fields (voxel: resolution, directions, arrays, bytes, ...) and what
         # rebuilding its per-frame structures costs (voxel: Alg. 5 and Alg. 1 rebuilds of this
         # frame's per-frame array, in place as a sequence render does)
+        if name in refined:
+            r = refined[name]
+            results[-1].update(error_budget=r.budget["budget"], refine_level=r.budget["level"],
+                               estimated_eps_v=r.budget["eps_v"],
+                               estimated_eps_v_interval=[r.budget["eps_v_lo"], r.budget["eps_v_hi"]], **r.fractions())
         results[-1].update(backend.describe())
         results[-1].update(backend.per_frame_rebuild_seconds(snap))
         if backend is not exact:
@@ -232,6 +247,19 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     if "exact" not in backends:
         results = [r for r in results if r["backend"] != "exact"] or results
     return results
+
+
+def _budgeted(refined: Refined, gb, snap, budget: float, delegate: StageDelegate, frame: float, origins, targets,
+              normals, distant, point_index):
+    """A timed pass of ``refined`` under ``budget``: the level chosen on the frame's sample, then every query."""
+    hit = gb.hit.ravel()
+    seed = delegate.usdml_settings.seed
+
+    def run():
+        refined.budget = choose_level(refined, gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                      gb.geometric.reshape(-1, 3)[hit], snap.lights, budget, seed, frame, delegate.path)
+        return refined.answer(origins, targets, normals=normals, distant=distant, starts=point_index)[0]
+    return run
 
 
 def format_bench(results: list[dict]) -> str:
@@ -245,6 +273,9 @@ def format_bench(results: list[dict]) -> str:
                      + (f"; bare embreex on the same rays {r['bare_embree_seconds']:.2f} s (exact "
                         f"{r['exact_overhead_vs_bare_embree']:.2f}x)"
                         if r["backend"] == "exact" and "bare_embree_seconds" in r else "")
+                     + (f"; --error-budget {r['error_budget']:g}: level {r['refine_level']}, "
+                        f"{100 * r['refined_fraction']:.1f} % re-asked of exact, disagreeing with exact on "
+                        f"{100 * r['disagreement_vs_exact']:.2f} % of queries" if "error_budget" in r else "")
                      + ("" if r["backend"] == "exact" else f"; {r['speedup_vs_exact']:.1f}x exact"
                         + (f", {r['speedup_vs_bare_embree']:.1f}x bare embreex" if "speedup_vs_bare_embree" in r else ""))
                      + (f"\n          per-frame array: Alg. 5 ({r['mapping']}) {r['rebuild_seconds']:.2f} s, Alg. 1 "

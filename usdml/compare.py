@@ -269,7 +269,11 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     width, height = snap.camera.resolution(image_width)
     exact = ExactBackend()
     approx = make_backend(backend, settings, device, **(backend_options or {}))
-    near_far = approx.supports(HIT_DISTANCES)
+    from usdml.render.budget import active, choose_level
+    from usdml.visibility.refine import Refined
+
+    refined = Refined(approx, exact) if active(settings.error_budget, approx, exact) else None
+    near_far = approx.supports(HIT_DISTANCES) and refined is None
     try:
         exact.update(snap, diff(None, snap))
         t0 = _time.perf_counter()
@@ -278,6 +282,16 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
         hit = gb.hit.ravel()
         n_px = int(hit.sum())
+        budget = None
+        if refined is not None:
+            # --error-budget: the frame's level from its own sample, as a render chooses it (usdml.render.budget);
+            # its seconds count as the approximation's
+            t0 = _time.perf_counter()
+            budget = choose_level(refined, gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit],
+                                  gb.geometric.reshape(-1, 3)[hit], snap.lights, settings.error_budget, settings.seed,
+                                  frame, delegate.path)
+            budget_s = _time.perf_counter() - t0
+            approx = refined
         # block by block (memory stays bounded on 10^8 pairs): per-pixel counts of facing, blocked,
         # wrongly hidden (near / far) and wrongly visible pairs, and each backend's query seconds
         counts = {k: np.zeros(n_px, np.int64) for k in ("facing", "blocked", "hidden", "visible")}
@@ -310,12 +324,17 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
                              ("visible", ~got & ref)):
                 counts[key] += np.bincount(pixel[sel].astype(np.int64), minlength=n_px)
         # the estimate a render of this frame reports, on the same G-buffer and lights
-        estimate = estimate_visibility(points, gb.normal.reshape(-1, 3)[hit], geometric, snap.lights, exact, approx,
+        estimate = budget if budget is not None else estimate_visibility(points, gb.normal.reshape(-1, 3)[hit], geometric, snap.lights, exact, approx,
                                        frame_rng(settings.seed, frame),
                                        frame_pairs=n_px * len(snap.lights) * settings.pixel_samples).as_dict()
+        refinement = {"error_budget": settings.error_budget, "refined_fraction": 0.0, "near_fraction": 0.0,
+                      "refine_level": 0}
+        if refined is not None:
+            got_s += budget_s
+            refinement.update(refined.fractions(), refine_level=budget["level"], budget_seconds=budget_s)
     finally:
         exact.close()
-        approx.close()
+        (refined.approx if refined is not None else approx).close()
     n_l = len(snap.lights)
     wrong_hidden, wrong_visible = counts["hidden"], counts["visible"]
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)
@@ -352,6 +371,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         "estimated_eps_v": estimate["eps_v"], "estimated_eps_v_interval": [estimate["eps_v_lo"], estimate["eps_v_hi"]],
         "estimated_eps_s": estimate["eps_s"], "estimated_eps_s_interval": [estimate["eps_s_lo"], estimate["eps_s_hi"]],
         "estimate": estimate,
+        **refinement,
         "build_seconds": build, "heatmap": heatmap, "plot": None if not plot else [f"{plot}.heatmap.png", f"{plot}.hist.png"],
     }
     result.update(approx.describe())    # the backend's own fields (voxel: resolution, step, bytes, ...)
@@ -369,7 +389,9 @@ def format_visibility_comparison(r: dict) -> str:
             f"({r['queries']:,} facing pairs): eps_v {100 * r['eps_v']:.2f} %, eps_s {100 * r['eps_s']:.2f} %; "
             f"wrongly hidden {100 * r['wrongly_hidden']:.2f} % of pairs ({100 * r['wrongly_hidden_near']:.2f} % "
             f"near the start), wrongly visible {100 * r['wrongly_visible']:.2f} %; queries "
-            f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x); estimated eps_v "
+            f"{s[r['visibility']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)"
+            + (f"; --error-budget {r['error_budget']:g}: level {r['refine_level']}, {100 * r['refined_fraction']:.1f} % "
+               f"re-asked of exact" if r.get("error_budget", 1.0) < 1.0 else "") + "; estimated eps_v "
             f"{_percent_interval(r['estimated_eps_v'], r['estimated_eps_v_interval'])}"
             + (f"; heat map {r['heatmap']}" if r["heatmap"] else ""))
 

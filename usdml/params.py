@@ -255,6 +255,7 @@ _GI_SVO = (("gi", ("svo",)),)
 _VOXEL = (("visibility", ("voxel",)),)
 _SVO = (("visibility", ("svo",)), ("gi", ("svo",)))      # --gi svo casts its rays through an octree
 _INSM = (("visibility", ("insm",)),)
+_APPROXIMATE = (("visibility", ("voxel", "svo", "insm")),)
 
 # a section's commands and help group
 _VIS = {"commands": VOXEL_COMMANDS, "group": VISIBILITY}
@@ -329,6 +330,12 @@ _SETTINGS = (
     Param("insm_cpu_kernel", str, "auto", "how the per-light maps run on a CPU: auto (the compiled maps when they "
           "were built, else Warp), native (the compiled maps; an error without them) or warp", **_VIS,
           choices=("auto", "native", "warp"), applies=_INSM, source="measured (usdml): docs/insm.md"),
+    # -- refinement of uncertain answers (issue 36)
+    Param("error_budget", float, 1.0, "bound on each frame's estimated error of an approximate visibility backend: "
+          "the fraction of facing pixel-light pairs answered wrongly (eps_v, 95 % upper bound), e.g. 0.003; "
+          "uncertain answers are re-asked of exact until it holds (0: every answer exact; 1: no bound, no "
+          "refinement)", commands=(RENDER, COMPARE, BENCH), group=VISIBILITY, range=Range(0, 1), metavar="E",
+          applies=_APPROXIMATE, attribute="usdml:errorBudget", source="off (1) unless asked for"),
     # -- direct light from many lights (paper 004 over the stage's own lights)
     Param("direct", str, "all", "direct light: every pixel against every light (all), or the stage's point, "
           "sphere, disk and rect lights through a lighting grid hierarchy with stochastic, filtered shadows (lgh, "
@@ -540,6 +547,14 @@ _DOCS = {
     the per-pixel error of edges and shadow boundaries for about 4x the
     shading time; 16 comes within about 3.5 percent of a pixel-integrated
     render.""",
+    "error_budget": """Bound on each frame's visibility error: the fraction of facing pixel-light pairs an approximate backend (voxel, svo, insm) may answer wrongly, as the frame's own estimate's 95 % upper bound (eps_v, usdml:estimate:eps_v_hi).
+
+    Each query of the backend says whether its answer is certain by a rule of
+    the method's geometry; uncertain ones are re-asked of the exact backend,
+    the rule widened step by step until the frame's estimate is under the
+    budget. 0: every answer exact (the exact backend's pixels); 1: no bound
+    and no refinement (the backend as it is). With the exact backend it does
+    nothing.""",
     "seed": """Seed of usdml's random number generators (VPLs, shadow samples), for reproducible renders.""",
 }
 

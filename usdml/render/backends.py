@@ -37,6 +37,22 @@ class Backends:
         self._roles["shadow"] = self._named(settings.visibility) or \
             make_backend(settings.visibility, settings, device, **(options or {}))
         self._roles["gi"] = None
+        #: ``--error-budget``: the shadow backend refined by the exact one (usdml.visibility.refine), which then
+        #: answers the shadow role; None without a budget
+        self.refined = None
+        from usdml.render.budget import active
+
+        if active(settings.error_budget, self._roles["shadow"], self._roles["primary"]):
+            from usdml.errors import log
+            from usdml.visibility.base import REFINE
+            from usdml.visibility.refine import Refined
+
+            shadow = self._roles["shadow"]
+            if shadow.supports(REFINE):
+                self.refined = Refined(shadow, self._roles["primary"])
+            else:
+                log.warning(f"--error-budget is ignored: the {shadow.name} backend does not say which of its answers "
+                            "are uncertain")
         if settings.gi == "svo":
             from usdml.lighting.interleaved import GI_VISIBILITY, gi_visibility_backend
 
@@ -49,6 +65,12 @@ class Backends:
 
     @property
     def shadow(self) -> VisibilityBackend:
+        """The direct light's shadow rays: the configured backend, refined under ``--error-budget``."""
+        return self.refined or self._roles["shadow"]
+
+    @property
+    def approximate(self) -> VisibilityBackend:
+        """The configured shadow backend itself (unrefined)."""
         return self._roles["shadow"]
 
     @property

@@ -54,6 +54,8 @@ BUDGET = 1 / 300
 LIGHTS = 1024
 #: a ``LIGHT_MAJOR`` backend's lights, the same for every sampled pixel (module doc)
 SHARED_LIGHTS = 32
+#: at most this many lights: a pixel's own draw of lights is picked from a dense (pixels, lights) table
+DENSE_LIGHTS = 4096
 #: fewer nonzero per-pixel values than this: the interval also holds Wilson's (module doc)
 FEW_NONZERO = 10
 #: two-sided 95 %
@@ -146,75 +148,108 @@ def estimate_visibility(points: np.ndarray, normals: np.ndarray, geometric: np.n
     pixels : the most pixels sampled; fewer when ``frame_pairs`` (the pairs the frame shades) times
         :data:`BUDGET` is less than their pairs, never fewer than :data:`MIN_PIXELS`.
     """
-    t0 = _time.perf_counter()
-    n_hit, n_l = len(points), len(lights)
     if frame_pairs is not None:
-        per_pixel = min(n_l, shared_lights if approx.supports(LIGHT_MAJOR) else lights_per_pixel)
+        per_pixel = min(len(lights), shared_lights if approx.supports(LIGHT_MAJOR) else lights_per_pixel)
         pixels = int(np.clip(round(BUDGET * frame_pairs / max(per_pixel, 1)), MIN_PIXELS, pixels))
-    pick = sample_pixels(n_hit, pixels, rng)
-    m = len(pick)
-    if approx.supports(LIGHT_MAJOR) and n_l > shared_lights:
-        return _shared_lights(points[pick], normals[pick], None if geometric is None else geometric[pick], lights,
-                              exact, approx, rng, t0, shared_lights)
-    every = n_l <= lights_per_pixel
-    k = n_l if every else lights_per_pixel
-    pts, nrm = points[pick], normals[pick]
-    geo = None if geometric is None else geometric[pick]
-    blocks = []
-    if every:
-        for origin, target, normal, distant, px, _ in facing_pairs(pts, nrm, lights, geo):
-            blocks.append((origin, target, normal, distant, px))
-    else:
-        draws = rng.integers(0, n_l, (m, k))
-        for i in range(m):
-            sub = lights.subset(draws[i])
-            for origin, target, normal, distant, _, _ in facing_pairs(
-                    pts[i:i + 1], nrm[i:i + 1], sub, None if geo is None else geo[i:i + 1]):
-                blocks.append((origin, target, normal, distant, np.full(len(origin), i)))
-    hidden = np.zeros(m, np.int64)
-    visible = np.zeros(m, np.int64)
-    queries = 0
-    if blocks and k:
-        origin, target, normal, distant, px = (np.concatenate(a) for a in zip(*blocks))
-        kw = dict(normals=normal, distant=distant.astype(bool))
-        ref = exact.occluded(origin, target, **kw)
-        got = approx.occluded(origin, target, **kw)
-        hidden = np.bincount(px[got & ~ref].astype(np.int64), minlength=m)
-        visible = np.bincount(px[~got & ref].astype(np.int64), minlength=m)
-        queries = len(origin)
-    kk = max(k, 1)
-    x = (hidden + visible) / kk
-    d = (hidden - visible) / kk
-    fpc = (1.0 - m / n_hit) if (every and n_hit) else 1.0
-    eps_v, v_lo, v_hi = mean_interval(x, fpc)
-    eps_s, s_lo, s_hi = mean_interval(np.abs(d), fpc)
-    if not every and m > 1:
-        # |d_p| overstates |h - v| / n_l: the lower end from the signed mean instead (module doc)
-        signed = abs(float(d.mean())) - t95(m - 1) * float(d.std(ddof=1)) / math.sqrt(m)
-        s_lo = min(s_lo, max(0.0, signed))
-    return VisibilityEstimate(eps_v, v_lo, v_hi, eps_s, s_lo, s_hi, m, m * k, queries, every,
-                              _time.perf_counter() - t0)
+    sample = PairSample(points, normals, geometric, lights, exact, rng, pixels, lights_per_pixel,
+                        shared_lights if approx.supports(LIGHT_MAJOR) else None)
+    return sample.estimate(approx.occluded)
 
 
-def _shared_lights(pts: np.ndarray, nrm: np.ndarray, geo: np.ndarray | None, lights: Lights,
-                   exact: VisibilityBackend, approx: VisibilityBackend, rng: np.random.Generator,
-                   t0: float, k: int) -> VisibilityEstimate:
+class PairSample:
+    """The sampled pixel–light pairs of one frame and the exact backend's answers to them (module doc), to
+    estimate any number of approximations of the same frame (``--error-budget`` tries its levels on one
+    sample: :mod:`usdml.render.budget`).
+
+    ``shared``: a ``LIGHT_MAJOR`` backend's light count (every sampled pixel against the same lights); None:
+    each pixel its own draw of ``lights_per_pixel`` lights (every light when there are no more).
+    """
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None, lights: Lights,
+                 exact: VisibilityBackend, rng: np.random.Generator, pixels: int = PIXELS,
+                 lights_per_pixel: int = LIGHTS, shared: int | None = None):
+        t0 = _time.perf_counter()
+        n_hit, n_l = len(points), len(lights)
+        pick = sample_pixels(n_hit, pixels, rng)
+        self.m = m = len(pick)
+        pts, nrm = points[pick], normals[pick]
+        geo = None if geometric is None else geometric[pick]
+        self.shared = shared is not None and n_l > shared
+        self.every = not self.shared and n_l <= lights_per_pixel
+        self.k = shared if self.shared else (n_l if self.every else lights_per_pixel)
+        self.fpc = (1.0 - m / n_hit) if (self.every and n_hit) else 1.0
+        blocks = []
+        if self.shared:
+            self.drawn = np.sort(rng.choice(n_l, shared, replace=False))
+            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights.subset(self.drawn), geo):
+                blocks.append((origin, target, normal, distant, px, li))
+        elif self.every:
+            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights, geo):
+                blocks.append((origin, target, normal, distant, px, li))
+        elif n_l <= DENSE_LIGHTS:
+            # each pixel its own ``k`` lights without replacement: every pair's facing test, the drawn kept
+            keys = rng.random((m, n_l))
+            chosen = np.zeros((m, n_l), bool)
+            np.put_along_axis(chosen, np.argpartition(keys, self.k - 1, axis=1)[:, :self.k], True, axis=1)
+            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights, geo):
+                keep = chosen[px, li]
+                blocks.append((origin[keep], target[keep], normal[keep], distant[keep], px[keep], li[keep]))
+        else:
+            draws = rng.integers(0, n_l, (m, self.k))
+            for i in range(m):
+                sub = lights.subset(draws[i])
+                for origin, target, normal, distant, _, li in facing_pairs(
+                        pts[i:i + 1], nrm[i:i + 1], sub, None if geo is None else geo[i:i + 1]):
+                    blocks.append((origin, target, normal, distant, np.full(len(origin), i), li))
+        self.queries = 0
+        if blocks and self.k:
+            self.origin, self.target, self.normal, distant, self.px, self.li = (np.concatenate(a) for a in zip(*blocks))
+            self.distant = distant.astype(bool)
+            self.px = self.px.astype(np.int64)
+            self.li = self.li.astype(np.int64)
+            self.ref = exact.occluded(self.origin, self.target, normals=self.normal, distant=self.distant)
+            self.queries = len(self.origin)
+        self.seconds = _time.perf_counter() - t0
+
+    def estimate(self, occluded) -> VisibilityEstimate:
+        """The estimate of the approximation answering ``occluded(origins, targets, normals=, distant=)``."""
+        t0 = _time.perf_counter()
+        m, k = self.m, self.k
+        if self.shared:
+            hidden = np.zeros((m, k), np.int64)
+            visible = np.zeros((m, k), np.int64)
+            if self.queries:
+                got = occluded(self.origin, self.target, normals=self.normal, distant=self.distant)
+                ref = self.ref
+                np.add.at(hidden, (self.px[got & ~ref], self.li[got & ~ref]), 1)
+                np.add.at(visible, (self.px[~got & ref], self.li[~got & ref]), 1)
+            return _shared_lights(hidden, visible, self.queries, self.seconds + _time.perf_counter() - t0)
+        hidden = np.zeros(m, np.int64)
+        visible = np.zeros(m, np.int64)
+        if self.queries:
+            got = occluded(self.origin, self.target, normals=self.normal, distant=self.distant)
+            ref = self.ref
+            hidden = np.bincount(self.px[got & ~ref], minlength=m)
+            visible = np.bincount(self.px[~got & ref], minlength=m)
+        kk = max(k, 1)
+        x = (hidden + visible) / kk
+        d = (hidden - visible) / kk
+        eps_v, v_lo, v_hi = mean_interval(x, self.fpc)
+        eps_s, s_lo, s_hi = mean_interval(np.abs(d), self.fpc)
+        if not self.every and m > 1:
+            # |d_p| overstates |h - v| / n_l: the lower end from the signed mean instead (module doc)
+            signed = abs(float(d.mean())) - t95(m - 1) * float(d.std(ddof=1)) / math.sqrt(m)
+            s_lo = min(s_lo, max(0.0, signed))
+        return VisibilityEstimate(eps_v, v_lo, v_hi, eps_s, s_lo, s_hi, m, m * k, self.queries, self.every,
+                                  self.seconds + _time.perf_counter() - t0)
+
+
+def _shared_lights(hidden: np.ndarray, visible: np.ndarray, queries: int, seconds: float) -> VisibilityEstimate:
     """A ``LIGHT_MAJOR`` backend (paper 001: a map per light, built anew for each call) answers the sampled
     pixels against ``k`` (:data:`SHARED_LIGHTS`) lights drawn once without replacement (module doc): pixels and
     lights are then both samples, and each statistic's variance is its pixel part (over the per-pixel values)
-    plus its light part (delete-one-light jackknife)."""
-    m = len(pts)
-    drawn = np.sort(rng.choice(len(lights), k, replace=False))
-    hidden = np.zeros((m, k), np.int64)
-    visible = np.zeros((m, k), np.int64)
-    queries = 0
-    for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights.subset(drawn), geo):
-        kw = dict(normals=normal, distant=distant.astype(bool))
-        ref = exact.occluded(origin, target, **kw)
-        got = approx.occluded(origin, target, **kw)
-        np.add.at(hidden, (px[got & ~ref], li[got & ~ref]), 1)
-        np.add.at(visible, (px[~got & ref], li[~got & ref]), 1)
-        queries += len(origin)
+    plus its light part (delete-one-light jackknife). ``hidden``, ``visible``: (pixels, k) counts."""
+    m, k = hidden.shape
     wrong, signed = (hidden + visible).astype(np.float64), (hidden - visible).astype(np.float64)
 
     def interval(z: np.ndarray, stat) -> tuple[float, float, float]:
@@ -240,7 +275,7 @@ def _shared_lights(pts: np.ndarray, nrm: np.ndarray, geo: np.ndarray | None, lig
     s_lo = 0.0 if d_lo <= 0 <= d_hi else min(abs(d_lo), abs(d_hi))
     s_hi = max(s_hi, v_hi) if int((wrong.sum(1) > 0).sum()) < FEW_NONZERO else s_hi
     return VisibilityEstimate(eps_v, max(0.0, v_lo), min(1.0, v_hi), eps_s, s_lo, min(1.0, s_hi), m, m * k, queries,
-                              False, _time.perf_counter() - t0)
+                              False, seconds)
 
 
 #: EXR header attributes of an estimate (:func:`header`)

@@ -83,6 +83,8 @@ class FrameRenderer:
         self.backends = Backends(settings, device, backend_options, gi_visibility)
         self.direct = direct_integrator(self.backends, settings, device, delegate.path)
         self.indirect = gi_integrator(self.backends, settings, device, delegate.path)
+        if self.backends.refined is not None:
+            self.direct.before_shading = self._choose_refinement
         self._previous: Snapshot | None = None
         self._told_camera_light = False
 
@@ -102,9 +104,21 @@ class FrameRenderer:
 
     def estimates(self, lights: Lights) -> bool:
         """Whether a frame estimates its visibility error (:mod:`usdml.render.estimate`): approximate shadow
-        rays answered pair by pair (``--direct all``; ``--direct lgh`` samples its lights), and lights."""
+        rays answered pair by pair (``--direct all``; ``--direct lgh`` samples its lights), and lights; under
+        ``--error-budget`` the estimate is the budget's (:meth:`_choose_refinement`)."""
         return (self.backends.shadow is not self.backends.primary and self.settings.direct == "all"
-                and len(lights) > 0)
+                and len(lights) > 0 and self.backends.refined is None)
+
+    def _choose_refinement(self, frame: FrameInputs, surface: Surface, stats: FrameStats) -> None:
+        """``--error-budget``: the frame's refinement level and estimate (:mod:`usdml.render.budget`), before its
+        first pass is shaded."""
+        from usdml.render.budget import choose_level
+
+        if self.settings.direct != "all":
+            return
+        stats.estimate = choose_level(self.backends.refined, surface.position, surface.normal, surface.geometric,
+                                      frame.lights, self.settings.error_budget, self.settings.seed, frame.snap.time,
+                                      self.delegate.path)
 
     def render(self, time: float, width: int, height: int, aovs: set[str],
                progress: Callable[[int], None] | None = None) -> FrameResult:
@@ -135,6 +149,8 @@ class FrameRenderer:
                 pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
             stats.shadow_queries += direct.queries
             image.add(self._buffers(gb, surface.hit, direct, indirect, camera, aovs), offsets)
+        if self.backends.refined is not None and stats.estimate is not None:
+            stats.estimate.update(self.backends.refined.fractions())
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples

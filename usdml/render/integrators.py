@@ -73,18 +73,26 @@ class EveryLight:
 
     def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
         self.backends, self.settings, self.device, self.where = backends, settings, device, where
+        #: called with ``(frame, surface, stats)`` on each frame's first pass before it is shaded (``--error-budget``
+        #: chooses the frame's refinement there: usdml.render.budget)
+        self.before_shading: Callable[[FrameInputs, "Surface", FrameStats], None] | None = None
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         """Once per frame, before its passes."""
+
+    def _before_shading(self, frame: FrameInputs, surface: "Surface", stats: FrameStats, first: bool) -> None:
+        if first and self.before_shading is not None:
+            self.before_shading(frame, surface, stats)
 
     def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         """``(G-buffer, its surface, direct light)`` of each pass through ``passes`` (sub-pixel offsets,
         :func:`usdml.render.gbuffer.pixel_offsets`), one at a time: the caller finishes a pass before the
         next is traced."""
-        for offsets in passes:
+        for i, offsets in enumerate(passes):
             gb = _gbuffer(frame, self.backends, offsets, stats)
             surface = Surface.of(gb)
+            self._before_shading(frame, surface, stats, i == 0)
             t0 = _time.perf_counter()
             direct = self.shade(frame, gb, surface, stats, progress)
             stats.shading_seconds += _time.perf_counter() - t0
@@ -103,6 +111,7 @@ class EveryLightFused(EveryLight):
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         gbs = [_gbuffer(frame, self.backends, offsets, stats) for offsets in passes]
         surfaces = [Surface.of(gb) for gb in gbs]
+        self._before_shading(frame, surfaces[0], stats, True)
         t0 = _time.perf_counter()
 
         def stacked(name: str) -> np.ndarray:

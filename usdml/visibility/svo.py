@@ -45,7 +45,7 @@ from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Snapshot, world_geometry
-from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, STATS, VisibilityBackend, as_flags,
+from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, REFINE, STATS, VisibilityBackend, as_flags,
                                    as_vectors, baked_entry, baked_line, members_changed, scene_sphere, settings_with,
                                    static_members)
 from usdml.visibility.svo_tree import (SvoTree, aligned_grid, cached_tree, cube_grid,
@@ -114,7 +114,8 @@ class SvoBackend(VisibilityBackend):
 
     name = "svo"
     summary = "sparse voxel octree, restart traversal (paper 003)"
-    capabilities = frozenset({HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE})
+    capabilities = frozenset({HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE, REFINE})
+    refine_levels = 4
     reads_settings = True
 
     def __init__(self, settings=None, *, device: str = "cpu", cache=None, normal_offset: float = NORMAL_OFFSET,
@@ -479,6 +480,24 @@ class SvoBackend(VisibilityBackend):
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         return self.hit_distances(origins, targets, normals=normals, distant=distant) >= 0.0
+
+    def occluded_uncertain(self, origins, targets, *, normals=None, distant=None, level: int = 1):
+        """``REFINE``: the voxel backend's rule at the octree's leaf voxels
+        (:meth:`usdml.visibility.voxel.VoxelBackend.occluded_uncertain`; the thick-ray rule over
+        :meth:`occluded`)."""
+        from usdml.visibility.refine import thick_ray
+        from usdml.visibility.voxel import THICK
+
+        width = THICK[min(max(level, 1), len(THICK)) - 1]
+        return thick_ray(self.occluded, origins, targets, normals, distant, width * self.reference_voxel)
+
+    def blind_reach(self, level: int) -> float:
+        """``REFINE``: the voxel backend's blind zone (:meth:`usdml.visibility.voxel.VoxelBackend.blind_reach`)
+        in leaf voxels."""
+        from usdml.visibility.voxel import BLIND
+
+        extra = BLIND[min(max(level, 1), len(BLIND)) - 1]
+        return (self.normal_offset + max(self.skip, self.max_skip) + extra) * self.reference_voxel
 
     def close(self) -> None:
         if self.trees:

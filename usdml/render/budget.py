@@ -1,0 +1,87 @@
+"""``--error-budget E`` (issue 36 item 3): each frame's refinement level, chosen so its estimated ε_v holds.
+
+Per frame, before the direct light is shaded, one sample of its pixel–light pairs is traced exactly
+(:class:`usdml.render.estimate.PairSample`), then answered by the approximate backend refined at level 0
+(no refinement), 1, 2, ... (:class:`usdml.visibility.refine.Refined`: its rule widened step by step); the
+frame is shaded at the first level whose estimated 95 % upper bound of ε_v is at most ``E``, and carries
+that level's estimate. When no level of the backend's rule gets there, every answer of the frame is exact
+(the limit, where ε_v is 0) and one warning line names the frame. ``E = 0`` is that limit at once: the exact
+backend's pixels. ``E = 1`` (the default) is no budget: the backend as it is.
+
+The sample is larger than a plain frame's estimate (:data:`PIXELS_PER_BUDGET` / ``E`` pixels, from
+:data:`MIN_PIXELS` to :data:`MAX_PIXELS`, :data:`LIGHTS` lights each): a bound on a mean of per-pixel
+fractions can only be as low as about 4 / pixels when the sampled pixels show no error (Wilson's interval,
+:func:`usdml.render.estimate.mean_interval`), so a budget of 0.003 needs over 1,300 pixels to be provable.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+
+import numpy as np
+
+from usdml.errors import log
+from usdml.render.estimate import PairSample, VisibilityEstimate, frame_rng
+from usdml.scene import Lights
+from usdml.visibility.base import LIGHT_MAJOR, VisibilityBackend
+from usdml.visibility.refine import EXACT, Refined
+
+#: sampled pixels per unit of 1 / budget, and their bounds
+PIXELS_PER_BUDGET = 8.0
+MIN_PIXELS = 1024
+MAX_PIXELS = 8192
+#: lights drawn per sampled pixel (a LIGHT_MAJOR backend: lights shared by every sampled pixel)
+LIGHTS = 32
+SHARED_LIGHTS = 32
+#: no budget: the default
+OFF = 1.0
+
+
+def active(budget: float, shadow: VisibilityBackend, primary: VisibilityBackend) -> bool:
+    """Whether a budget refines anything: under 1, and an approximate shadow backend."""
+    return budget < OFF and shadow is not primary
+
+
+def sample_pixels(budget: float) -> int:
+    """Pixels sampled per frame for ``budget`` (module doc)."""
+    if budget <= 0:
+        return MIN_PIXELS
+    return int(np.clip(math.ceil(PIXELS_PER_BUDGET / budget), MIN_PIXELS, MAX_PIXELS))
+
+
+def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None,
+                 lights: Lights, budget: float, seed: int, time: float, where: str) -> dict:
+    """Set ``refined.level`` for the frame at ``time`` (module doc) from its first pass's hit pixels; return the
+    frame's estimate (:class:`usdml.render.estimate.VisibilityEstimate`'s fields) with ``budget``, ``level``
+    (``"exact"`` at the limit), ``met`` (a level of the rule held the budget) and ``levels`` (each tried
+    level's ``eps_v_hi``). ``where`` starts the warning (the stage)."""
+    t0 = _time.perf_counter()
+    exact = refined.exact
+    if budget <= 0 or len(lights) == 0 or len(points) == 0:
+        refined.level = EXACT if budget <= 0 else 0
+        est = VisibilityEstimate(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, True)
+        return {**est.as_dict(), "budget": budget, "level": "exact" if budget <= 0 else 0, "met": True, "levels": {}}
+    shared = SHARED_LIGHTS if refined.approx.supports(LIGHT_MAJOR) else None
+    sample = PairSample(points, normals, geometric, lights, exact, frame_rng(seed, time), sample_pixels(budget),
+                        LIGHTS, shared)
+    tried: dict[str, float] = {}
+    chosen, est = None, None
+    for level in range(0, refined.approx.refine_levels + 1):
+        est = sample.estimate(lambda o, t, level=level, **kw: refined.answer(o, t, level=level, **kw)[0])
+        tried[str(level)] = est.eps_v_hi
+        if est.eps_v_hi <= budget:
+            chosen = level
+            break
+    met = chosen is not None
+    if not met:
+        chosen = EXACT
+        log.warning(f"{where}: frame {time:g}: --error-budget {budget:g} not met by {refined.approx.name}'s "
+                    f"refinement (estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule); every "
+                    "answer of the frame is exact")
+        est = VisibilityEstimate(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, est.pixels, est.pairs, est.queries, False)
+    refined.level = chosen
+    refined.reset()
+    est.seconds = _time.perf_counter() - t0
+    return {**est.as_dict(), "budget": budget, "level": "exact" if chosen == EXACT else chosen, "met": met,
+            "levels": tried}

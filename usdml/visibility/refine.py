@@ -1,0 +1,216 @@
+"""Refinement of uncertain answers (issue 36): an approximate backend's answers, the uncertain ones exact.
+
+An approximate backend that declares ``REFINE`` answers each shadow query and says whether the answer is
+*certain* by a rule of its own geometry (:meth:`usdml.visibility.base.VisibilityBackend.occluded_uncertain`),
+widened by a level (1 the narrowest, up to its ``refine_levels``). :class:`Refined` puts it in front of
+the exact backend (Embree, already built for the primary rays):
+
+1. the backend's answers and uncertain flags at the level;
+2. the *blind zone*: a voxel method cannot see an occluder within the first few voxels of a ray (it
+   skips them to leave its own surface, ``blind_reach``), where contact shadows are. Each distinct ray
+   start is probed with :data:`PROBES` short exact rays over that reach; where one hits (other geometry
+   within reach: a wall's foot, a sill), the rays answered *free* are traced exactly over that first
+   stretch (a hit there blocks the segment: exact's own answer for part of it);
+3. the uncertain answers re-asked of the exact backend, in one batch, on the same threads.
+
+Level 0 is the backend alone (no refinement); a level above ``refine_levels`` answers everything exactly
+(``EXACT``), which gives the exact backend's pixels. ``--error-budget`` picks the level per frame
+(:mod:`usdml.render.budget`).
+
+The thick-ray rule (:func:`thick_ray`) is the voxel methods' rule: an answer is uncertain when the rays
+shifted sideways by ``width`` voxels in four directions across the ray do not all give it. It catches
+rays that pass within that width of occupied voxels (thin geometry missed or voxels over-covering an edge,
+the direction bin's tilt over a long ray) and blocking voxels at a surface's edge. Measured on
+``stages/city.usda`` at 128 px (7.3 M facing pairs, voxel 128³ / 2°): width 1.5 flags 8.0 % of the pairs
+and holds 82 % of the wrong answers; what it misses lies almost all within two voxels of the ray's start
+(the blind zone: 2 above). Both together leave ε_v 0.09 %, from 1.85 %.
+"""
+
+from __future__ import annotations
+
+import threading
+from types import MappingProxyType
+
+import numpy as np
+
+from usdml.visibility.base import LIGHT_MAJOR, REFINE, VisibilityBackend, as_flags, as_vectors
+
+__all__ = ["Refined", "thick_ray", "EXACT", "PROBES"]
+
+#: the level at which every answer is exact
+EXACT = 1 << 20
+#: short exact rays probing the blind zone at each distinct ray start (a fixed pattern over the hemisphere)
+PROBES = 16
+
+
+def _across(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors across each unit direction ``d`` (N, 3), perpendicular to it and to each other."""
+    a = np.where(np.abs(d[:, :1]) < 0.6, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    u = np.cross(d, a)
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-30)
+    return u, np.cross(d, u)
+
+
+def thick_ray(occluded, origins: np.ndarray, targets: np.ndarray, normals, distant, width: float,
+              blocked: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(blocked, uncertain)`` by the thick-ray rule (module doc): ``occluded`` (a backend's) over the rays and
+    over the four rays shifted by ``width`` (world units) across each, both ends moved alike (a distant
+    ray's target is a direction: only its start moves). ``blocked``: the unshifted answers when known."""
+    origins = np.asarray(origins, np.float64)
+    targets = np.asarray(targets, np.float64)
+    n = len(origins)
+    distant = np.zeros(n, bool) if distant is None else np.asarray(distant, bool)
+    kw = dict(normals=normals, distant=distant)
+    if blocked is None:
+        blocked = occluded(origins, targets, **kw)
+    if n == 0 or width <= 0:
+        return blocked, np.zeros(n, bool)
+    d = np.where(distant[:, None], targets, targets - origins)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+    u, v = _across(d)
+    same = np.ones(n, bool)
+    moves_target = ~distant[:, None]
+    for s in (u, -u, v, -v):
+        shift = s * width
+        same &= occluded(origins + shift, targets + shift * moves_target, **kw) == blocked
+    return blocked, ~same
+
+
+def _hemisphere(k: int) -> np.ndarray:
+    """``k`` fixed directions over the +z hemisphere (a spiral, cosine-weighted), (k, 3)."""
+    i = np.arange(k) + 0.5
+    r = np.sqrt(i / k)
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
+
+
+def _runs(origins: np.ndarray, starts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One row of each distinct ray start and each row's start (an index into the first): by ``starts`` (each
+    row's point, equal for rows from one point) when given, else each run of equal consecutive ``origins``."""
+    if starts is not None:
+        starts = np.asarray(starts, np.int64)
+        if not len(starts):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        first = np.full(int(starts.max()) + 1, -1, np.int64)
+        first[starts[::-1]] = np.arange(len(starts) - 1, -1, -1)
+        used = np.flatnonzero(first >= 0)
+        slot = np.zeros(len(first), np.int64)
+        slot[used] = np.arange(len(used))
+        return first[used], slot[starts]
+    n = len(origins)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    new = np.ones(n, bool)
+    new[1:] = np.any(origins[1:] != origins[:-1], axis=1)
+    starts = np.flatnonzero(new)
+    return starts, np.cumsum(new) - 1
+
+
+class Refined(VisibilityBackend):
+    """``approx``'s answers with the uncertain ones re-asked of ``exact`` at :attr:`level` (module doc).
+
+    Neither backend is owned: the renderer updates and closes them. ``counts`` holds the queries answered
+    since :meth:`reset`, those re-asked of the exact backend (``refined``) and the rays traced over the
+    blind zone (``near``).
+    """
+
+    def __init__(self, approx: VisibilityBackend, exact: VisibilityBackend, level: int = 0):
+        if not approx.supports(REFINE):
+            raise ValueError(f"the {approx.name} backend does not say which answers are uncertain")
+        self.approx, self.exact, self.level = approx, exact, int(level)
+        self.name = approx.name
+        self.summary = approx.summary
+        self.capabilities = frozenset({LIGHT_MAJOR}) & approx.capabilities
+        self.counts = {"queries": 0, "refined": 0, "near": 0}
+        self._lock = threading.Lock()
+        if LIGHT_MAJOR in self.capabilities:
+            # a map per light, built anew for each call: few, large calls (about 200 bytes a pair)
+            self.matrix_chunk_pairs = 1 << 22
+
+    @property
+    def stats(self):
+        return MappingProxyType(dict(self.approx.stats))
+
+    def _count(self, key: str, n: int) -> None:
+        with self._lock:       # shading asks from several threads at once
+            self.counts[key] += n
+
+    def reset(self) -> None:
+        self.counts = {k: 0 for k in self.counts}
+
+    def describe(self) -> dict:
+        return self.approx.describe()
+
+    def update(self, snapshot, changes=None) -> None:
+        """Nothing: the renderer updates both backends."""
+
+    def fractions(self) -> dict:
+        """``refined`` (answers re-asked of the exact backend) and ``near`` (blind-zone rays), per query."""
+        q = max(self.counts["queries"], 1)
+        return {"refined_fraction": self.counts["refined"] / q, "near_fraction": self.counts["near"] / q}
+
+    def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        blocked, _ = self.answer(origins, targets, normals=normals, distant=distant)
+        return blocked
+
+    def answer(self, origins, targets, *, normals=None, distant=None, level: int | None = None,
+               starts: np.ndarray | None = None):
+        """``(blocked, refined)``: the answers at ``level`` (default :attr:`level`) and which were re-asked.
+        ``starts``: each row's ray start (point index; rows of one point alike), when rows of one start are not
+        consecutive."""
+        level = self.level if level is None else int(level)
+        origins = as_vectors(origins, "origins", dtype=None)
+        n = origins.shape[0]
+        targets = as_vectors(targets, "targets", n, dtype=None)
+        distant = np.zeros(n, bool) if distant is None else as_flags(distant, "distant", n)
+        self._count("queries", n)
+        kw = dict(normals=normals, distant=distant)
+        if level > self.approx.refine_levels:
+            self._count("refined", n)
+            return self.exact.occluded(origins, targets, **kw), np.ones(n, bool)
+        if level <= 0:
+            return self.approx.occluded(origins, targets, **kw), np.zeros(n, bool)
+        blocked, uncertain = self.approx.occluded_uncertain(origins, targets, level=level, **kw)
+        blocked = blocked.copy()
+        reach = float(getattr(self.approx, "blind_reach", lambda _: 0.0)(level))
+        if reach > 0 and normals is not None:
+            self._blind_zone(origins, targets, normals, distant, blocked, uncertain, reach, starts)
+        redo = np.flatnonzero(uncertain)
+        if len(redo):
+            blocked[redo] = self.exact.occluded(origins[redo], targets[redo],
+                                                normals=None if normals is None else np.asarray(normals)[redo],
+                                                distant=distant[redo])
+            self._count("refined", len(redo))
+        return blocked, uncertain
+
+    def _blind_zone(self, origins, targets, normals, distant, blocked, uncertain, reach: float, starts=None) -> None:
+        """Step 2 of the module doc, in place on ``blocked``: the certain free answers of ray starts with other
+        geometry within ``reach`` traced exactly over their first ``reach``."""
+        normals = as_vectors(normals, "normals", len(origins), dtype=np.float64)
+        first, run = _runs(origins, starts)
+        pts = np.asarray(origins, np.float64)[first]
+        nrm = normals[first]
+        d = np.where(distant[:, None], targets, targets - np.asarray(origins, np.float64))
+        side = np.sign(np.einsum("ij,ij->i", nrm, d[first]))
+        nrm = nrm * np.where(side < 0, -1.0, 1.0)[:, None]
+        length = np.linalg.norm(nrm, axis=1, keepdims=True)
+        has = length[:, 0] > 0
+        nrm = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
+        u, v = _across(np.where(has[:, None], nrm, np.array([[0.0, 0.0, 1.0]])))
+        near = np.zeros(len(first), bool)
+        for dx, dy, dz in _hemisphere(PROBES):
+            live = np.flatnonzero(has & ~near)
+            if not len(live):
+                break
+            direction = u[live] * dx + v[live] * dy + nrm[live] * dz
+            near[live] = self.exact.occluded(pts[live], pts[live] + direction * reach, normals=nrm[live])
+        rows = np.flatnonzero(near[run] & ~blocked & ~uncertain)
+        if not len(rows):
+            return
+        o = np.asarray(origins, np.float64)[rows]
+        dd = d[rows]
+        span = np.linalg.norm(dd, axis=1, keepdims=True)
+        dd = dd / np.maximum(span, 1e-30)
+        end = o + dd * np.where(distant[rows, None], reach, np.minimum(reach, span))
+        blocked[rows] = self.exact.occluded(o, end, normals=normals[rows])
+        self._count("near", len(rows))
