@@ -170,7 +170,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
     for f, e in summary.get("estimates", {}).items():
         print(f"frame {f}: estimated eps_v {100 * e['eps_v']:.2f} % [{100 * e['eps_v_lo']:.2f}, "
               f"{100 * e['eps_v_hi']:.2f}], eps_s {100 * e['eps_s']:.2f} % [{100 * e['eps_s_lo']:.2f}, "
-              f"{100 * e['eps_s_hi']:.2f}] ({e['pixels']} pixels, {e['queries']:,} exact rays)")
+              f"{100 * e['eps_s_hi']:.2f}] ({e['pixels']} pixels, {e['queries']:,} exact rays)"
+              + (f"; --error-budget {e['budget']:g}: level {e['level']}, {100 * e['refined_fraction']:.1f} % of "
+                 f"queries re-asked of exact" if "budget" in e else ""))
     for path in summary["outputs"] + summary["previews"]:
         print(f"  {path}")
     return 0

@@ -282,7 +282,18 @@ def _shared_lights(hidden: np.ndarray, visible: np.ndarray, queries: int, second
 HEADER_KEYS = ("eps_v", "eps_v_lo", "eps_v_hi", "eps_s", "eps_s_lo", "eps_s_hi", "pixels", "pairs")
 
 
+#: and of a frame under ``--error-budget`` (usdml.render.budget): the budget, the level (-1: every answer exact)
+#: and the fractions of the frame's queries re-asked of the exact backend
+BUDGET_KEYS = ("budget", "level", "refined_fraction", "near_fraction")
+
+
 def header(estimate: dict) -> dict:
-    """``usdml:estimate:<key>`` attributes of an estimate (:meth:`VisibilityEstimate.as_dict`) for the EXR."""
-    return {f"usdml:estimate:{k}": (int(estimate[k]) if k in ("pixels", "pairs") else float(estimate[k]))
-            for k in HEADER_KEYS}
+    """``usdml:estimate:<key>`` attributes of an estimate (:meth:`VisibilityEstimate.as_dict`, with
+    :data:`BUDGET_KEYS` under ``--error-budget``) for the EXR."""
+    out = {f"usdml:estimate:{k}": (int(estimate[k]) if k in ("pixels", "pairs") else float(estimate[k]))
+           for k in HEADER_KEYS}
+    for k in BUDGET_KEYS:
+        if k in estimate:
+            value = estimate[k]
+            out[f"usdml:estimate:{k}"] = (-1 if value == "exact" else int(value)) if k == "level" else float(value)
+    return out

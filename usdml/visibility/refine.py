@@ -54,8 +54,9 @@ def _across(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def thick_ray(occluded, origins: np.ndarray, targets: np.ndarray, normals, distant, width: float,
               blocked: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(blocked, uncertain)`` by the thick-ray rule (module doc): ``occluded`` (a backend's) over the rays and
-    over the four rays shifted by ``width`` (world units) across each, both ends moved alike (a distant
-    ray's target is a direction: only its start moves). ``blocked``: the unshifted answers when known."""
+    over the four rays shifted by ``width`` (world units) across each: the end moved by the shift, the start by
+    its part along the surface (``normals``; a distant ray's target is a direction and stays). ``blocked``: the
+    unshifted answers when known."""
     origins = np.asarray(origins, np.float64)
     targets = np.asarray(targets, np.float64)
     n = len(origins)
@@ -68,11 +69,17 @@ def thick_ray(occluded, origins: np.ndarray, targets: np.ndarray, normals, dista
     d = np.where(distant[:, None], targets, targets - origins)
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
     u, v = _across(d)
+    # a shifted ray still starts on its surface: its start moves along the tangent plane only (a start moved
+    # under a ground would see the ground block it)
+    if normals is not None:
+        nrm = np.asarray(normals, np.float64)
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
     same = np.ones(n, bool)
     moves_target = ~distant[:, None]
     for s in (u, -u, v, -v):
         shift = s * width
-        same &= occluded(origins + shift, targets + shift * moves_target, **kw) == blocked
+        start = shift if normals is None else shift - np.einsum("ij,ij->i", shift, nrm)[:, None] * nrm
+        same &= occluded(origins + start, targets + shift * moves_target, **kw) == blocked
     return blocked, ~same
 
 
