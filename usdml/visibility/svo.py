@@ -486,10 +486,10 @@ class SvoBackend(VisibilityBackend):
         (:meth:`usdml.visibility.voxel.VoxelBackend.occluded_uncertain`; the thick-ray rule over
         :meth:`occluded`)."""
         from usdml.visibility.refine import thick_ray
-        from usdml.visibility.voxel import THICK
+        from usdml.visibility.voxel import widened
 
-        width = THICK[min(max(level, 1), len(THICK)) - 1]
-        return thick_ray(self.occluded, origins, targets, normals, distant, width * self.reference_voxel)
+        h = self.reference_voxel
+        return widened(lambda width: thick_ray(self.occluded, origins, targets, normals, distant, width * h), level)
 
     def blind_reach(self, level: int) -> float:
         """``REFINE``: the voxel backend's blind zone (:meth:`usdml.visibility.voxel.VoxelBackend.blind_reach`)
