@@ -1,0 +1,126 @@
+#!/usr/bin/env python
+"""Approximations under ``--error-budget`` (issue 36): for each stage, backend and budget, what a frame gets.
+
+Per (stage, backend, budget), ``usdml compare`` on the stage's start frame (``usdml.compare.compare_visibility``):
+the measured ε_v and ε_s against ``exact`` over every facing pixel-light pair, the speed-up over ``exact``
+on those pairs in the same run (the budget's level choice and every refinement included), the level chosen,
+the fraction of queries re-asked of ``exact`` (``refined``) and traced over the blind zone (``near``), and the
+frame's own estimate of ε_v with its 95 % interval beside the measurement. A budget of 1 is no budget (the
+backend as it is), 0 every answer exact.
+
+With ``--bench``, also ``usdml bench`` (median of passes; refinement included) per (backend, budget); with
+``--frame-width W``, the seconds of whole frames rendered at W pixels wide, each budget against ``exact``
+(``usdml.bench.steady_frame``: the second of two frames, one primary ray per pixel).
+
+Usage::
+
+    python tools/budget_table.py /tmp/uc/unseen_city_1.usda --backends voxel,svo,insm \\
+        --budgets 1,0.01,0.003,0.001,0 --imageWidth 128 --json --plot docs/images/budget
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _numbers(text: str, kind=float) -> list:
+    return [kind(x) for x in text.split(",") if x.strip()]
+
+
+def _frame(delegate, settings, width: int, height: int) -> float:
+    from usdml.bench import steady_frame
+
+    with steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height) \
+            as (_, seconds, _r):
+        return seconds
+
+
+def measure(stage: str, backends: list[str], budgets: list[float], width: int, bench: bool,
+            frame_width: int | None) -> list[dict]:
+    from usdml.bench import bench_visibility
+    from usdml.compare import compare_visibility
+    from usdml.stage import StageDelegate
+
+    d = StageDelegate(stage)
+    rows = []
+    exact_frame = None
+    if frame_width:
+        w, h = d.snapshot(d.start_time).camera.resolution(frame_width)
+        exact_frame = _frame(d, d.usdml_settings.updated(visibility="exact"), w, h)
+    for backend in backends:
+        for budget in budgets:
+            r = compare_visibility(d, backend, image_width=width, overrides=dict(error_budget=budget))
+            est = r["estimate"]
+            row = {k: r.get(k) for k in ("stage", "frame", "resolution", "pixels", "lights", "queries", "visibility",
+                                         "eps_v", "eps_s", "speedup", "seconds", "refined_fraction", "near_fraction",
+                                         "refine_level", "estimated_eps_v", "estimated_eps_v_interval",
+                                         "build_seconds")}
+            row["budget"] = budget
+            lo, hi = r["estimated_eps_v_interval"]
+            row["interval_holds"] = bool(lo <= r["eps_v"] <= hi)
+            row["estimate_seconds"] = est.get("seconds", 0.0)
+            row["estimate_share"] = est.get("seconds", 0.0) / max(r["seconds"][backend], 1e-9)
+            if bench:
+                b = bench_visibility(d, [backend], image_width=width,
+                                     settings=d.usdml_settings.updated(visibility=backend, error_budget=budget))[0]
+                row["bench_speedup"] = b["speedup_vs_exact"]
+                row["bench_disagreement"] = b["disagreement_vs_exact"]
+            if frame_width:
+                s = d.usdml_settings.updated(visibility=backend, error_budget=budget)
+                row["frame_seconds"] = _frame(d, s, w, h)
+                row["exact_frame_seconds"] = exact_frame
+                row["frame_width"] = [w, h]
+            rows.append(row)
+            print(f"{stage} {backend} budget {budget:g}: eps_v {100 * r['eps_v']:.3f} % (estimate "
+                  f"{100 * r['estimated_eps_v']:.3f} % [{100 * lo:.3f}, {100 * hi:.3f}]), {r['speedup']:.2f}x exact, "
+                  f"level {r['refine_level']}, refined {100 * r['refined_fraction']:.1f} %"
+                  + (f", bench {row['bench_speedup']:.2f}x" if bench else "")
+                  + (f", frame {row['frame_seconds']:.1f} s vs {exact_frame:.1f} s" if frame_width else ""),
+                  file=sys.stderr)
+    return rows
+
+
+def chart(rows: list, path: str) -> None:
+    """ε_v and speed-up against the budget (``--plot``); budget 1 (none) drawn at 0.1, 0 at 1e-4."""
+    from usdml.plots import panels, series
+
+    def at(r):
+        return 0.1 if r["budget"] >= 1 else (1e-4 if r["budget"] <= 0 else r["budget"])
+
+    group = lambda r: f"{r['stage'].rsplit('/', 1)[-1].removesuffix('.usda')} {r['visibility']}"
+    panels(path, [
+        dict(title="measured ε_v against the budget (none at 0.1, 0 at 1e-4)", xlabel="--error-budget",
+             ylabel="ε_v (%)", series=series(rows, at, lambda r: max(100 * r["eps_v"], 1e-4), group), logx=True,
+             logy=True),
+        dict(title="speed-up over exact (compare's pairs)", xlabel="--error-budget", ylabel="× exact",
+             series=series(rows, at, "speedup", group), logx=True),
+        dict(title="queries re-asked of exact", xlabel="--error-budget", ylabel="refined (%)",
+             series=series(rows, at, lambda r: 100 * r["refined_fraction"], group), logx=True)])
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    p.add_argument("stages", nargs="+")
+    p.add_argument("--backends", default="voxel,svo,insm")
+    p.add_argument("--budgets", default="1,0.01,0.003,0.001,0")
+    p.add_argument("--imageWidth", type=int, default=128)
+    p.add_argument("--bench", action="store_true", help="also usdml bench per backend and budget")
+    p.add_argument("--frame-width", type=int, default=None, help="also time whole frames this wide")
+    p.add_argument("--plot", default=None, metavar="PREFIX", help="write PREFIX.png: ε_v and speed against the budget")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    rows = []
+    for stage in args.stages:
+        rows += measure(stage, args.backends.split(","), _numbers(args.budgets), args.imageWidth, args.bench,
+                        args.frame_width)
+    if args.plot:
+        chart(rows, args.plot + ".png")
+    if args.json:
+        print(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
