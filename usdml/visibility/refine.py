@@ -193,12 +193,15 @@ class Refined(VisibilityBackend):
     def _blind_zone(self, origins, targets, normals, distant, blocked, uncertain, reach: float, starts=None) -> None:
         """Step 2 of the module doc, in place on ``blocked``: the certain free answers of ray starts with other
         geometry within ``reach`` traced exactly over their first ``reach``."""
-        normals = as_vectors(normals, "normals", len(origins), dtype=np.float64)
+        origins = np.asarray(origins)
         first, run = _runs(origins, starts)
-        pts = np.asarray(origins, np.float64)[first]
-        nrm = normals[first]
-        d = np.where(distant[:, None], targets, targets - np.asarray(origins, np.float64))
-        side = np.sign(np.einsum("ij,ij->i", nrm, d[first]))
+        pts = origins[first].astype(np.float64)
+        nrm = np.asarray(normals)[first].astype(np.float64)
+
+        def toward(rows: np.ndarray, o: np.ndarray) -> np.ndarray:
+            tg = np.asarray(targets[rows], np.float64)
+            return np.where(distant[rows, None], tg, tg - o)
+        side = np.einsum("ij,ij->i", nrm, toward(first, pts))
         nrm = nrm * np.where(side < 0, -1.0, 1.0)[:, None]
         length = np.linalg.norm(nrm, axis=1, keepdims=True)
         has = length[:, 0] > 0
@@ -214,10 +217,10 @@ class Refined(VisibilityBackend):
         rows = np.flatnonzero(near[run] & ~blocked & ~uncertain)
         if not len(rows):
             return
-        o = np.asarray(origins, np.float64)[rows]
-        dd = d[rows]
+        o = origins[rows].astype(np.float64)
+        dd = toward(rows, o)
         span = np.linalg.norm(dd, axis=1, keepdims=True)
         dd = dd / np.maximum(span, 1e-30)
         end = o + dd * np.where(distant[rows, None], reach, np.minimum(reach, span))
-        blocked[rows] = self.exact.occluded(o, end, normals=normals[rows])
+        blocked[rows] = self.exact.occluded(o, end, normals=np.asarray(normals)[rows])
         self._count("near", len(rows))
