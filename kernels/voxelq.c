@@ -2,7 +2,9 @@
  * the rule of kernels/voxel.py and kernels/direct_shading.py, answering 32 queries at a time with
  * AVX-512 or 16 with AVX2 (two registers per vector, kernels/simd_x2.h; picked at run time) or one at a
  * time in plain C. Loaded with ctypes by usdml.visibility.voxel_native, which says what every table
- * below holds; called from a thread pool (ctypes releases the GIL).
+ * below holds; called from a thread pool (ctypes releases the GIL). vq_query_refine answers the same
+ * queries and says which answers are uncertain (the thick-ray rule: five rays per query, the row
+ * lookups of the query's own and of the rows ``thick`` voxels to either side; see there).
  *
  * Differences from the Warp kernels, none changing the rule:
  *   - one folded affine map per (array, direction bin), grid = F p + f, instead of world -> array then
@@ -55,6 +57,7 @@ typedef struct {
     const float *node_box;       /* per node: lo xyz, hi xyz */
     const int32_t *node_kids;    /* per node: (first, count) for a leaf (count > 0), (left, -right) inside */
     const int32_t *bvh_items;
+    float inst_voxel;            /* the largest world-space voxel over the instances (vq_query_refine's reach) */
 } VQScene;
 
 typedef struct {
@@ -64,6 +67,7 @@ typedef struct {
 } VQRule;
 
 
+#define VQ_INLINE static inline __attribute__((always_inline))
 #define DEG 57.29577951308232f
 #define BATCH 256
 #define PF_ROUNDS 2  /* the inputs are prefetched this many rounds of GROUPS groups ahead */
@@ -103,25 +107,34 @@ static inline void affine(const float *m, const float p[3], float out[3]) {
 
 static inline float len3(const float v[3]) { return sqrtf(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
 
-/* first occupied voxel of the segment xa -> xb in array a, in voxels from its trimmed start; -1: free.
- * ``tab``: the array's folded maps (from the space xa, xb are in); ``da``: the segment in array space. */
-static float array_hit(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
-                       const float da[3], float skip0, float skip1, int seg, int want_t) {
+/* one segment's walk through an array's bin grid (Alg. 2): the segment xa -> xb in the grid, clipped
+ * to the cube and trimmed by the skips, and its voxels lo .. hi along the grid's third axis */
+typedef struct {
+    float qa[3], dq[3], t0, t1, inv_dw, fn;
+    int n, lo, hi, forward, npieces;
+    int64_t dir_base;
+} Walk;
+
+/* the walk of the segment xa -> xb in array a (``tab``: the array's folded maps from the space xa, xb
+ * are in; ``da``: the segment in array space); its number of pieces of ``seg`` voxels, 0: none */
+VQ_INLINE int walk_start(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
+                         const float da[3], float skip0, float skip1, int seg, Walk *k) {
     int n = s->arr_n[a];
     float inv_h = s->arr_inv_h[a];
     float length = len3(da) * inv_h;
-    if (length <= skip0 + skip1 || length <= 0.0f) return -1.0f;
+    if (length <= skip0 + skip1 || length <= 0.0f) return 0;
     int d = direction_bin(s, da[0], da[1], da[2]);
     const float *F = tab + (size_t)d * 12;
-    float qa[3], qb[3], dq[3];
-    affine(F, xa, qa);
+    float qb[3];
+    affine(F, xa, k->qa);
     affine(F, xb, qb);
-    for (int i = 0; i < 3; i++) dq[i] = qb[i] - qa[i];
+    for (int i = 0; i < 3; i++) k->dq[i] = qb[i] - k->qa[i];
+    const float *qa = k->qa, *dq = k->dq;
     float t0 = skip0 / length, t1 = 1.0f - skip1 / length, fn = (float)n;
     for (int ax = 0; ax < 3; ax++) {
         int a_in = qa[ax] >= 0.0f && qa[ax] < fn, b_in = qb[ax] >= 0.0f && qb[ax] < fn;
         if (!(a_in && b_in)) {
-            if (fabsf(dq[ax]) < 1.0e-12f) return -1.0f;
+            if (fabsf(dq[ax]) < 1.0e-12f) return 0;
             float inv = 1.0f / dq[ax];
             float ta = (0.0f - qa[ax]) * inv, tb = (fn - qa[ax]) * inv;
             float lo_t = ta < tb ? ta : tb, hi_t = ta < tb ? tb : ta;
@@ -129,69 +142,127 @@ static float array_hit(const VQScene *s, int a, const float *tab, const float xa
             if (hi_t < t1) t1 = hi_t;
         }
     }
-    if (t0 > t1) return -1.0f;
+    if (t0 > t1) return 0;
     float wa = qa[2] + dq[2] * t0, wb = qa[2] + dq[2] * t1;
     int lo = (int)(wa < wb ? wa : wb), hi = (int)(wa < wb ? wb : wa);
-    lo = lo < 0 ? 0 : (lo > n - 1 ? n - 1 : lo);
-    hi = hi < 0 ? 0 : (hi > n - 1 ? n - 1 : hi);
-    int forward = dq[2] >= 0.0f;
-    int64_t dir_base = (int64_t)s->arr_base[a] + (int64_t)d * s->wpd;
-    float inv_dw = fabsf(dq[2]) > 1.0e-12f ? 1.0f / dq[2] : 0.0f;
-    int npieces = hi / seg - lo / seg + 1;
+    k->lo = lo < 0 ? 0 : (lo > n - 1 ? n - 1 : lo);
+    k->hi = hi < 0 ? 0 : (hi > n - 1 ? n - 1 : hi);
+    k->forward = dq[2] >= 0.0f;
+    k->dir_base = (int64_t)s->arr_base[a] + (int64_t)d * s->wpd;
+    k->inv_dw = fabsf(dq[2]) > 1.0e-12f ? 1.0f / dq[2] : 0.0f;
+    k->t0 = t0;
+    k->t1 = t1;
+    k->fn = fn;
+    k->n = n;
+    k->npieces = k->hi / seg - k->lo / seg + 1;
+    return k->npieces;
+}
+
+/* piece p (from the segment's start): its voxels st .. en and the segment's grid position at its middle */
+static inline void walk_piece(const Walk *k, int p, int seg, int *st, int *en, float *fu, float *fv) {
+    int ps = k->forward ? (k->lo / seg + p) * seg : (k->hi / seg - p) * seg;
+    *st = ps > k->lo ? ps : k->lo;
+    *en = ps + seg - 1 < k->hi ? ps + seg - 1 : k->hi;
+    float t = (0.5f * (float)(*st + *en + 1) - k->qa[2]) * k->inv_dw;
+    t = t < k->t0 ? k->t0 : (t > k->t1 ? k->t1 : t);
+    *fu = k->qa[0] + k->dq[0] * t;
+    *fv = k->qa[1] + k->dq[1] * t;
+}
+
+/* the occupied voxels st .. en of row (fu, fv), as bits of their word; 0 outside the grid */
+static inline uint32_t row_bits(const VQScene *s, const Walk *k, float fu, float fv, int st, int en) {
+    if (!(fu >= 0.0f && fu < k->fn && fv >= 0.0f && fv < k->fn)) return 0;
+    int r = (int)fu * k->n + (int)fv;
+    int w = st >> 5, span = s->row_span[r];
+    if (!(w >= (span & 0xFFFF) && w < (span >> 16))) return 0;
+    uint32_t word = s->words[k->dir_base + s->row_start[r] + w];
+    return word & (0xFFFFFFFFu >> (31 - (en & 31))) & (0xFFFFFFFFu << (st & 31));
+}
+
+/* first occupied voxel of the segment xa -> xb in array a, in voxels from its trimmed start; -1: free.
+ * ``tab``: the array's folded maps (from the space xa, xb are in); ``da``: the segment in array space. */
+static float array_hit(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
+                       const float da[3], float skip0, float skip1, int seg, int want_t) {
+    Walk k;
+    int npieces = walk_start(s, a, tab, xa, xb, da, skip0, skip1, seg, &k);
     for (int p = 0; p < npieces; p++) {
-        int ps = forward ? (lo / seg + p) * seg : (hi / seg - p) * seg;
-        int st = ps > lo ? ps : lo, en = ps + seg - 1 < hi ? ps + seg - 1 : hi;
-        float t = (0.5f * (float)(st + en + 1) - qa[2]) * inv_dw;
-        t = t < t0 ? t0 : (t > t1 ? t1 : t);
-        float fu = qa[0] + dq[0] * t, fv = qa[1] + dq[1] * t;
-        if (fu >= 0.0f && fu < fn && fv >= 0.0f && fv < fn) {
-            int r = (int)fu * n + (int)fv;
-            int w = st >> 5, span = s->row_span[r];
-            if (w >= (span & 0xFFFF) && w < (span >> 16)) {
-                uint32_t word = s->words[dir_base + s->row_start[r] + w];
-                uint32_t mask = (0xFFFFFFFFu >> (31 - (en & 31))) & (0xFFFFFFFFu << (st & 31));
-                uint32_t hit = word & mask;
-                if (hit) {
-                    if (!want_t) return 0.0f;
-                    int first = forward ? __builtin_ctz(hit) : 31 - __builtin_clz(hit);
-                    float vox = (float)((st >> 5) * 32 + first);
-                    float w_start = qa[2] + dq[2] * t0;
-                    float dist = forward ? vox - w_start : w_start - (vox + 1.0f);
-                    return dist > 0.0f ? dist : 0.0f;
-                }
-            }
+        int st, en;
+        float fu, fv;
+        walk_piece(&k, p, seg, &st, &en, &fu, &fv);
+        uint32_t hit = row_bits(s, &k, fu, fv, st, en);
+        if (hit) {
+            if (!want_t) return 0.0f;
+            int first = k.forward ? __builtin_ctz(hit) : 31 - __builtin_clz(hit);
+            float vox = (float)((st >> 5) * 32 + first);
+            float w_start = k.qa[2] + k.dq[2] * k.t0;
+            float dist = k.forward ? vox - w_start : w_start - (vox + 1.0f);
+            return dist > 0.0f ? dist : 0.0f;
         }
     }
     return -1.0f;
 }
 
-/* the segment o -> e through the moving instances whose world boxes it meets (Alg. 4) */
-static float instance_hits(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
-                           int want_t) {
+/* the refinement's five rays (vq_query_refine): the centre one and the rows ``thick`` voxels to either
+ * side along the grid's u and v axes, piece by piece, same voxels st .. en */
+#define RAYS 5
+#define ALL_RAYS ((1u << RAYS) - 1)
+static const float SHIFT_U[RAYS] = {0.0f, 1.0f, -1.0f, 0.0f, 0.0f}, SHIFT_V[RAYS] = {0.0f, 0.0f, 0.0f, 1.0f, -1.0f};
+
+/* array_hit for the five rays: the bits (1 << ray) of those in ``need`` meeting an occupied voxel */
+static unsigned array_refine(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
+                             const float da[3], float skip0, float skip1, int seg, float thick, unsigned need) {
+    Walk k;
+    int npieces = walk_start(s, a, tab, xa, xb, da, skip0, skip1, seg, &k);
+    unsigned got = 0;
+    for (int p = 0; p < npieces && (need & ~got); p++) {
+        int st, en;
+        float fu, fv;
+        walk_piece(&k, p, seg, &st, &en, &fu, &fv);
+        for (int j = 0; j < RAYS; j++)
+            if ((need & ~got) >> j & 1 && row_bits(s, &k, j ? fu + SHIFT_U[j] * thick : fu,
+                                                   j ? fv + SHIFT_V[j] * thick : fv, st, en))
+                got |= 1u << j;
+    }
+    return got;
+}
+
+/* whether the segment o -> o + dl (inv: 1 / dl) meets the box b (lo xyz, hi xyz) grown by ``grow`` */
+static inline int meets_box(const float *b, const float o[3], const float dl[3], const float inv[3], float grow) {
+    float tn = 0.0f, tf = 1.0f;
+    for (int i = 0; i < 3; i++) {
+        float lo = b[i] - grow, hi = b[3 + i] + grow;
+        if (dl[i] == 0.0f) {
+            if (o[i] < lo || o[i] > hi) return 0;
+            continue;
+        }
+        float ta = (lo - o[i]) * inv[i], tb = (hi - o[i]) * inv[i];
+        if (ta > tb) { float x = ta; ta = tb; tb = x; }
+        if (ta > tn) tn = ta;
+        if (tb < tf) tf = tb;
+        if (tn > tf) return 0;
+    }
+    return 1;
+}
+
+/* the segment o -> e through the moving instances whose world boxes it meets (Alg. 4): the first hit's
+ * distance (instance_hits), or with ``refine`` the five rays' (array_refine): ``*clear`` the rays still
+ * free, in and out. The shifted rays visit the boxes grown by ``grow`` (their reach, world units), the
+ * centre one those the plain query visits. */
+VQ_INLINE float instance_walk(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
+                              int want_t, int refine, float thick, float grow, unsigned *clear) {
     if (s->n_inst <= 0 || s->n_nodes <= 0) return -1.0f;
     float dl[3] = {e[0] - o[0], e[1] - o[1], e[2] - o[2]};
     if (len3(dl) <= 0.0f) return -1.0f;
     float inv[3];
     for (int i = 0; i < 3; i++) inv[i] = dl[i] != 0.0f ? 1.0f / dl[i] : (dl[i] >= 0.0f ? INFINITY : -INFINITY);
+    /* refine: node << 1 | whether the plain query visits it */
     int stack[128], top = 0;
-    stack[top++] = 0;
+    stack[top++] = refine ? 1 : 0;
     while (top > 0) {
-        int node = stack[--top];
+        int item = stack[--top], node = refine ? item >> 1 : item;
         const float *b = s->node_box + 6 * (size_t)node;
-        float tn = 0.0f, tf = 1.0f;
-        int miss = 0;
-        for (int i = 0; i < 3 && !miss; i++) {
-            if (dl[i] == 0.0f) {
-                if (o[i] < b[i] || o[i] > b[3 + i]) miss = 1;
-                continue;
-            }
-            float ta = (b[i] - o[i]) * inv[i], tb = (b[3 + i] - o[i]) * inv[i];
-            if (ta > tb) { float x = ta; ta = tb; tb = x; }
-            if (ta > tn) tn = ta;
-            if (tb < tf) tf = tb;
-            if (tn > tf) miss = 1;
-        }
-        if (miss) continue;
+        int centre = (!refine || (item & 1)) && meets_box(b, o, dl, inv, 0.0f);
+        if (!centre && !(refine && meets_box(b, o, dl, inv, grow))) continue;
         int first = s->node_kids[2 * node], count = s->node_kids[2 * node + 1];
         if (count > 0) {
             for (int k = first; k < first + count; k++) {
@@ -202,15 +273,33 @@ static float instance_hits(const VQScene *s, const float o[3], const float e[3],
                 affine(m, e, pb);
                 for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
                 int a = s->inst_array[inst];
-                float t = array_hit(s, a, s->fold + (size_t)a * s->n_bins * 12, pa, pb, da, skip0, skip1, seg, want_t);
+                const float *tab = s->fold + (size_t)a * s->n_bins * 12;
+                if (refine) {
+                    unsigned want = *clear & (centre ? ALL_RAYS : ALL_RAYS & ~1u);
+                    if (want) *clear &= ~array_refine(s, a, tab, pa, pb, da, skip0, skip1, seg, thick, want);
+                    if (!*clear) return 0.0f;
+                    continue;
+                }
+                float t = array_hit(s, a, tab, pa, pb, da, skip0, skip1, seg, want_t);
                 if (t >= 0.0f) return t;
             }
         } else if (top + 2 <= 128) {
-            stack[top++] = -count;
-            stack[top++] = first;
+            stack[top++] = refine ? -count * 2 + centre : -count;
+            stack[top++] = refine ? first * 2 + centre : first;
         }
     }
     return -1.0f;
+}
+
+static float instance_hits(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
+                           int want_t) {
+    return instance_walk(s, o, e, skip0, skip1, seg, want_t, 0, 0.0f, 0.0f, NULL);
+}
+
+/* the rays of ``*clear`` the instances block taken out of it (instance_walk) */
+static void instance_refine(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
+                            float thick, unsigned *clear) {
+    instance_walk(s, o, e, skip0, skip1, seg, 0, 1, thick, thick * s->inst_voxel, clear);
 }
 
 /* where the ray leaves its surface and ends, and the voxels skipped at its start and end */
@@ -244,19 +333,45 @@ static inline void ray_setup(const VQRule *r, const float p[3], const float tg[3
     }
 }
 
+/* the segment o -> e in world-space array w's space (da) */
+static inline void world_segment(const VQScene *s, int w, const float o[3], const float e[3], float da[3]) {
+    float pa[3], pb[3];
+    affine(s->world_inv[w], o, pa);
+    affine(s->world_inv[w], e, pb);
+    for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
+}
+
 static float shadow_scalar(const VQScene *s, const VQRule *r, const float p[3], const float tg[3], const float nm[3],
                            int distant, int want_t) {
     float o[3], e[3], s0, s1;
     ray_setup(r, p, tg, nm, distant, o, e, &s0, &s1);
     for (int w = 0; w < s->n_world; w++) {
-        float pa[3], pb[3], da[3];
-        affine(s->world_inv[w], o, pa);
-        affine(s->world_inv[w], e, pb);
-        for (int i = 0; i < 3; i++) da[i] = pb[i] - pa[i];
+        float da[3];
+        world_segment(s, w, o, e, da);
         float t = array_hit(s, s->world_array[w], s->world_fold[w], o, e, da, s0, s1, r->seg, want_t);
         if (t >= 0.0f) return t;
     }
     return instance_hits(s, o, e, s0, s1, r->seg, want_t);
+}
+
+/* a query's answer from its five rays' blocked bits: the centre ray's, and 2 where they disagree */
+static inline uint8_t refine_code(unsigned blocked) {
+    return (uint8_t)((blocked & 1u) | (blocked != 0 && blocked != ALL_RAYS) << 1);
+}
+
+/* shadow_scalar for the five rays (vq_query_refine): refine_code of their blocked bits */
+static uint8_t shadow_refine(const VQScene *s, const VQRule *r, const float p[3], const float tg[3], const float nm[3],
+                             int distant, float thick) {
+    float o[3], e[3], s0, s1;
+    ray_setup(r, p, tg, nm, distant, o, e, &s0, &s1);
+    unsigned clear = ALL_RAYS;
+    for (int w = 0; w < s->n_world && clear; w++) {
+        float da[3];
+        world_segment(s, w, o, e, da);
+        clear &= ~array_refine(s, s->world_array[w], s->world_fold[w], o, e, da, s0, s1, r->seg, thick, clear);
+    }
+    if (clear) instance_refine(s, o, e, s0, s1, r->seg, thick, &clear);
+    return refine_code(ALL_RAYS & ~clear);
 }
 
 /* a batch: p, target and normal either as 9 coordinate arrays (``stride`` 1) or as three (n, 3)
@@ -269,17 +384,30 @@ typedef struct {
     const uint8_t *distant8;     /* bool flags in place of distant (NULL: int32) */
 } SoA;
 
+/* query i of a batch: its point, target and normal, and whether it is distant */
+static inline int batch_ray(const SoA *b, int i, float p[3], float t[3], float nm[3]) {
+    float *dst[3] = {p, t, nm};
+    for (int a = 0; a < 3; a++)
+        for (int k = 0; k < 3; k++) {
+            int j = b->stride == 3 ? 3 * i + k : i, c = b->stride == 3 ? 3 * a : 3 * a + k;
+            dst[a][k] = b->stride == 3 && b->d[a] ? (float)b->d[a][j] : b->c[c][j];
+        }
+    return b->distant8 ? b->distant8[i] != 0 : b->distant[i] != 0;
+}
+
 static void batch_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, int want_t, float *out) {
     for (int i = 0; i < n; i++) {
         float p[3], t[3], nm[3];
-        float *dst[3] = {p, t, nm};
-        for (int a = 0; a < 3; a++)
-            for (int k = 0; k < 3; k++) {
-                int j = b->stride == 3 ? 3 * i + k : i, c = b->stride == 3 ? 3 * a : 3 * a + k;
-                dst[a][k] = b->stride == 3 && b->d[a] ? (float)b->d[a][j] : b->c[c][j];
-            }
-        int dist = b->distant8 ? b->distant8[i] != 0 : b->distant[i] != 0;
+        int dist = batch_ray(b, i, p, t, nm);
         out[i] = shadow_scalar(s, r, p, t, nm, dist, want_t);
+    }
+}
+
+static void refine_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, float thick, uint8_t *out) {
+    for (int i = 0; i < n; i++) {
+        float p[3], t[3], nm[3];
+        int dist = batch_ray(b, i, p, t, nm);
+        out[i] = shadow_refine(s, r, p, t, nm, dist, thick);
     }
 }
 
@@ -324,15 +452,23 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 #undef X2_TAG
 #endif
 
+typedef void (*RefineFn)(const VQScene *, const VQRule *, int, const SoA *, float, uint8_t *);
+
+/* one instruction set's batches: the queries' and vq_query_refine's */
+typedef struct {
+    BatchFn query;
+    RefineFn refine;
+} Kernels;
+
 /* kernel: 0 the widest this CPU has, 1 scalar, 2 at most AVX2 */
-static BatchFn pick(int kernel) {
+static Kernels pick(int kernel) {
 #ifdef VQ_X86
     switch (simd_lanes(kernel)) {
-    case 16: return batch_avx512x2;
-    case 8: return batch_avx2x2;
+    case 16: return (Kernels){batch_avx512x2, batch_refine_avx512x2};
+    case 8: return (Kernels){batch_avx2x2, batch_refine_avx2x2};
     }
 #endif
-    return batch_scalar;
+    return (Kernels){batch_scalar, refine_scalar};
 }
 
 /* ---------------------------------------------------------------- entry points */
@@ -347,6 +483,20 @@ int vq_simd_width(int32_t kernel) {
 /* the lanes of one register of the instruction set ``kernel`` runs: 16 (AVX-512), 8 (AVX2) or 1 */
 int vq_simd_isa(int32_t kernel) { return simd_lanes(kernel); }
 
+/* queries first .. of vq_query's inputs as a batch */
+static SoA query_inputs(int64_t first, const void *pts, const void *tgt, const void *nrm, const void *distant,
+                       int32_t f64_mask, int32_t distant_u8) {
+    SoA b = {{NULL}, NULL, 3, {NULL}, NULL};
+    const void *src[3] = {pts, tgt, nrm};
+    for (int a = 0; a < 3; a++) {
+        if (f64_mask >> a & 1) b.d[a] = (const double *)src[a] + 3 * first;
+        else b.c[3 * a] = (const float *)src[a] + 3 * first;
+    }
+    if (distant_u8) b.distant8 = (const uint8_t *)distant + first;
+    else b.distant = (const int32_t *)distant + first;
+    return b;
+}
+
 /* queries first .. first + count of (n, 3) float32 points, targets, normals and int32 distant flags;
  * out[i] = distance in voxels to the first occupied voxel (0 for any hit unless want_t), -1 free; or,
  * when blocked is not NULL, blocked[i] = 1 for a hit, 0 free (out unused: occluded() wants no more, and
@@ -357,15 +507,8 @@ int vq_simd_isa(int32_t kernel) { return simd_lanes(kernel); }
 void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const void *pts, const void *tgt,
               const void *nrm, const void *distant, int32_t want_t, int32_t kernel, float *out, int32_t f64_mask,
               int32_t distant_u8, uint8_t *blocked) {
-    BatchFn fn = pick(kernel);
-    SoA b = {{NULL}, NULL, 3, {NULL}, NULL};
-    const void *src[3] = {pts, tgt, nrm};
-    for (int a = 0; a < 3; a++) {
-        if (f64_mask >> a & 1) b.d[a] = (const double *)src[a] + 3 * first;
-        else b.c[3 * a] = (const float *)src[a] + 3 * first;
-    }
-    if (distant_u8) b.distant8 = (const uint8_t *)distant + first;
-    else b.distant = (const int32_t *)distant + first;
+    BatchFn fn = pick(kernel).query;
+    SoA b = query_inputs(first, pts, tgt, nrm, distant, f64_mask, distant_u8);
     if (!blocked) {
         fn(s, r, (int)count, &b, want_t, out + first);
         return;
@@ -385,12 +528,25 @@ void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, c
     }
 }
 
+/* vq_query's queries (its inputs and ``kernel``), each answered with whether its answer is certain:
+ * out[first + i] = blocked (vq_query's answer) | uncertain << 1. Uncertain: the five rays of the
+ * query disagree, the centre one and the rows ``thick`` voxels to either side of it along the bin
+ * grid's u and v axes, looked up for each of the centre ray's pieces over the same voxels (outside
+ * the grid: free), each ray blocked when any array blocks it. The shifted rays visit the instances
+ * whose world boxes grown by thick of the largest instance voxel (inst_voxel) the segment meets. */
+void vq_query_refine(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const void *pts, const void *tgt,
+                     const void *nrm, const void *distant, float thick, int32_t kernel, int32_t f64_mask,
+                     int32_t distant_u8, uint8_t *out) {
+    SoA b = query_inputs(first, pts, tgt, nrm, distant, f64_mask, distant_u8);
+    pick(kernel).refine(s, r, (int)count, &b, thick, out + first);
+}
+
 /* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
  * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
 void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
               int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
               int32_t *blocked, int32_t *facing) {
-    BatchFn fn = pick(kernel);
+    BatchFn fn = pick(kernel).query;
 #ifdef VQ_X86
     if (tile <= MAX_TILE && (fn == batch_avx512x2 || fn == batch_avx2x2)) {
         (fn == batch_avx512x2 ? shade_avx512x2 : shade_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,

@@ -41,39 +41,56 @@ TARGET static inline VI SUFFIX(vbin)(const VQScene *s, V dx, V dy, V dz) {
 typedef struct {
     V qa[3], dq[3], t0, t1, inv_dw;
     VI lo, hi, lo_p, hi_p, npieces, dir_base, idx, st, en, idx1, st1, en1;
-    M active, forward, ok, ok1;
+    M active, forward, ok, ok1, centre;
     int maxp, seg_shift, n;
 } SUFFIX(Group);
 
-/* piece p of every active lane (Alg. 2's row lookup): the index of the word it reads, its first and
- * last voxel and whether the row holds that word (``ok``) */
-TARGET static inline VI SUFFIX(piece)(const VQScene *s, const SUFFIX(Group) *g, int p, VI *st_out, VI *en_out,
-                                      M *ok_out) {
-    V zf = SET(0.0f), fn = SET((float)g->n);
+/* piece p of the group's lanes: its first and last voxel and the ray's grid position at its middle */
+TARGET static inline void SUFFIX(piece_at)(const SUFFIX(Group) *g, int p, VI *st, VI *en, V *fu, V *fv) {
     VI pv = ISET(p);
-    M live_p = MAND(g->active, IGT(g->npieces, pv));
     VI ps = SELI(g->forward, ISLL(IADD(g->lo_p, pv), g->seg_shift), ISLL(ISUB(g->hi_p, pv), g->seg_shift));
-    VI st = IMAX(ps, g->lo);
-    VI en = IMIN(IADD(ps, ISET((1 << g->seg_shift) - 1)), g->hi);
-    /* the ray's position at the middle of the piece */
-    V mid = MUL(SET(0.5f), CVTF(IADD(IADD(st, en), ISET(1))));
+    *st = IMAX(ps, g->lo);
+    *en = IMIN(IADD(ps, ISET((1 << g->seg_shift) - 1)), g->hi);
+    V mid = MUL(SET(0.5f), CVTF(IADD(IADD(*st, *en), ISET(1))));
     V t = MIN(MAX(MUL(SUB(mid, g->qa[2]), g->inv_dw), g->t0), g->t1);
-    V fu = FMA(g->dq[0], t, g->qa[0]), fv = FMA(g->dq[1], t, g->qa[1]);
-    M m = MAND(live_p, MAND(MAND(GE(fu, zf), LT(fu, fn)), MAND(GE(fv, zf), LT(fv, fn))));
+    *fu = FMA(g->dq[0], t, g->qa[0]);
+    *fv = FMA(g->dq[1], t, g->qa[1]);
+}
+
+/* Alg. 2's row lookup for the lanes of m: the index of the word of row (fu, fv) holding voxel st and
+ * whether the row holds that word (``ok``; not outside the grid) */
+TARGET static inline VI SUFFIX(row_word)(const VQScene *s, const SUFFIX(Group) *g, M m, V fu, V fv, VI st,
+                                         M *ok_out) {
+    V zf = SET(0.0f), fn = SET((float)g->n);
+    m = MAND(m, MAND(MAND(GE(fu, zf), LT(fu, fn)), MAND(GE(fv, zf), LT(fv, fn))));
     VI r = IADD(IMUL(CVTT(fu), ISET(g->n)), CVTT(fv));
     VI span = MGATHER_I(s->row_span, r, m);
     VI rst = MGATHER_I(s->row_start, r, m);
     VI w = ISRL(st, 5);
-    M ok = MAND(m, MAND(IGE(w, IAND(span, ISET(0xFFFF))), IGT(ISRL(span, 16), w)));
-    *st_out = st;
-    *en_out = en;
-    *ok_out = ok;
+    *ok_out = MAND(m, MAND(IGE(w, IAND(span, ISET(0xFFFF))), IGT(ISRL(span, 16), w)));
     return IADD(IADD(g->dir_base, rst), w);
 }
 
-/* stage 1: everything up to the first two pieces' words, which are prefetched */
-TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3], const V e[3],
-                                   V skip0, V skip1, int seg_shift) {
+/* piece p of every active lane: the index of the word it reads, its first and last voxel and whether
+ * the row holds that word (``ok``) */
+TARGET static inline VI SUFFIX(piece)(const VQScene *s, const SUFFIX(Group) *g, int p, VI *st_out, VI *en_out,
+                                      M *ok_out) {
+    V fu, fv;
+    SUFFIX(piece_at)(g, p, st_out, en_out, &fu, &fv);
+    return SUFFIX(row_word)(s, g, MAND(g->active, IGT(g->npieces, ISET(p))), fu, fv, *st_out, ok_out);
+}
+
+/* the bits of voxels st .. en in their word */
+TARGET static inline VI SUFFIX(span_bits)(VI st, VI en) {
+    return IAND(ISRLV(ISET(-1), ISUB(ISET(31), IAND(en, ISET(31)))), ISLLV(ISET(-1), IAND(st, ISET(31))));
+}
+
+/* stage 1 up to the row lookups: the lanes of ``live`` whose segments meet world-space array ``world``,
+ * their bin, grid map, clipped range and pieces; 0 when no lane is left. ``widen``: how far (array
+ * units) beyond the sphere holding the array's voxels a segment may pass and still be looked up (the
+ * refinement's shifted rows), ``g->centre`` the lanes within the sphere itself (with ``widen`` > 0) */
+TARGET VQ_INLINE int SUFFIX(clip)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3], const V e[3],
+                                  V skip0, V skip1, int seg_shift, float widen) {
     int a = s->world_array[world], n = s->arr_n[a];
     const float *A = s->world_inv[world];
     V inv_h = SET(s->arr_inv_h[a]), fn = SET((float)n), zf = SET(0.0f);
@@ -85,7 +102,7 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
     for (int i = 0; i < 3; i++) da[i] = FMA(SET(A[4 * i]), dl[0], FMA(SET(A[4 * i + 1]), dl[1], MUL(SET(A[4 * i + 2]), dl[2])));
     V length = MUL(SQRT(FMA(da[0], da[0], FMA(da[1], da[1], MUL(da[2], da[2])))), inv_h);
     M active = MAND(live, MAND(GT(length, ADD(skip0, skip1)), GT(length, zf)));
-    if (!MBITS(active)) return;
+    if (!MBITS(active)) return 0;
     {
         /* segments passing farther from the array's centre than its sphere cannot meet a voxel: they
          * leave before the direction bin (the per-frame array of a small deforming mesh, most rays) */
@@ -103,8 +120,9 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
             V x = SUB(q[i], MUL(da[i], t));
             d2 = FMA(x, x, d2);
         }
-        active = MAND(active, LE(d2, SET(sp[3] * sp[3])));
-        if (!MBITS(active)) return;
+        g->centre = widen > 0.0f ? MAND(active, LE(d2, SET(sp[3] * sp[3]))) : active;
+        active = MAND(active, LE(d2, SET((sp[3] + widen) * (sp[3] + widen))));
+        if (!MBITS(active)) return 0;
     }
     VI d = SUFFIX(vbin)(s, da[0], da[1], da[2]);
     /* the bins' folded maps, read per lane (neighbouring points' rays to one light meet 7 bins per 16
@@ -131,7 +149,7 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
         t1 = SEL(both, t1, MIN(t1, MAX(ta, tb)));
     }
     active = MANDN(GT(t0, t1), active);
-    if (!MBITS(active)) return;
+    if (!MBITS(active)) return 0;
     V wa = FMA(dq[2], t0, qa[2]), wb = FMA(dq[2], t1, qa[2]);
     g->lo = IMIN(IMAX(CVTT(MIN(wa, wb)), ISET(0)), ISET(n - 1));
     g->hi = IMIN(IMAX(CVTT(MAX(wa, wb)), ISET(0)), ISET(n - 1));
@@ -147,6 +165,13 @@ TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g
     g->t1 = t1;
     g->active = active;
     g->maxp = IREDUCE_MAX(SELI(active, g->npieces, ISET(0)));
+    return 1;
+}
+
+/* stage 1: everything up to the first two pieces' words, which are prefetched */
+TARGET static void SUFFIX(prepare)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3], const V e[3],
+                                   V skip0, V skip1, int seg_shift) {
+    if (!SUFFIX(clip)(s, world, g, live, o, e, skip0, skip1, seg_shift, 0.0f)) return;
     /* the first two pieces' rows, and their words prefetched (a prefetch retires at once; a gather here
      * would hold up the instructions behind it until its cache lines arrive). Every lane's words, without
      * a branch per lane: a lane that reads nothing still names a word of the array */
@@ -174,7 +199,7 @@ TARGET static void SUFFIX(finish)(const VQScene *s, SUFFIX(Group) *g, int want_t
     M ok = g->ok;
     VI word = MGATHER_I(s->words, g->idx, ok);
     for (int p = 0;;) {
-        VI mask = IAND(ISRLV(ISET(-1), ISUB(ISET(31), IAND(en, ISET(31)))), ISLLV(ISET(-1), IAND(st, ISET(31))));
+        VI mask = SUFFIX(span_bits)(st, en);
         M hm = MAND(ok, INZ(IAND(word, mask)));
         hit_any = MOR(hit_any, hm);
         if (want_t) {
@@ -251,6 +276,48 @@ TARGET static inline void SUFFIX(setup)(const VQRule *r, const V c[9], M dist, V
     *skip0 = SEL(use, MAX(SET(r->skip), k), SET(r->skip));
 }
 
+/* the inputs PF_ROUNDS rounds ahead of the round from query i0, streamed from memory while this round
+ * computes (on the city's bench rays: 21.5 -> 18.5 ns a query) */
+TARGET VQ_INLINE void SUFFIX(prefetch_inputs)(const SoA *b, int i0, int n) {
+    int ahead = i0 + PF_ROUNDS * GROUPS * W;
+    if (b->stride != 3 || ahead >= n) return;
+    int end = ahead + GROUPS * W < n ? ahead + GROUPS * W : n;
+    for (int a = 0; a < 3; a++) {
+        const char *base = b->d[a] ? (const char *)b->d[a] : (const char *)b->c[3 * a];
+        size_t triple = b->d[a] ? 3 * sizeof(double) : 3 * sizeof(float);
+        for (const char *q = base + triple * ahead; q < base + triple * end; q += 64) __builtin_prefetch(q);
+    }
+}
+
+/* queries j0 .. j0 + m - 1 (m <= W) of a batch as a group's rays (setup); returns the lanes holding one */
+TARGET VQ_INLINE M SUFFIX(load_group)(const VQRule *r, const SoA *b, int j0, int m, V o[3], V e[3], V *skip0,
+                                      V *skip1) {
+    M live = IGT(ISET(m), IOTA);
+    V c[9];
+    if (b->stride == 3) {
+        for (int a = 0; a < 3; a++) {
+            if (b->d[a]) {
+                /* float64 input: rounded to float on the way in */
+                LOAD_XYZ64(b->d[a] + 3 * j0, m, live, c + 3 * a);
+            } else {
+                LOAD_XYZ(b->c[3 * a] + 3 * j0, m, live, c + 3 * a);
+            }
+        }
+    } else {
+        for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live);
+    }
+    M dist;
+    if (b->distant8) {
+        int32_t tmp[W];
+        for (int q = 0; q < W; q++) tmp[q] = q < m ? b->distant8[j0 + q] : 0;
+        dist = INZ(ILOAD(tmp));
+    } else {
+        dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live));
+    }
+    SUFFIX(setup)(r, c, dist, o, e, skip0, skip1);
+    return live;
+}
+
 /* shadow rays of a batch (batch_scalar's), GROUPS groups of W at a time: every group's first words are
  * prefetched before the first group reads its own, so the groups' memory reads overlap */
 TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const SoA *b, int want_t, float *out) {
@@ -262,42 +329,10 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
         int ng = (n - i0 + W - 1) / W;
         ng = ng < GROUPS ? ng : GROUPS;
         float res[GROUPS][W];
-        int ahead = i0 + PF_ROUNDS * GROUPS * W;
-        if (b->stride == 3 && ahead < n) {
-            /* the inputs PF_ROUNDS rounds ahead, streamed from memory while this round computes (on
-             * the city's bench rays: 21.5 -> 18.5 ns a query) */
-            int end = ahead + GROUPS * W < n ? ahead + GROUPS * W : n;
-            for (int a = 0; a < 3; a++) {
-                const char *base = b->d[a] ? (const char *)b->d[a] : (const char *)b->c[3 * a];
-                size_t triple = b->d[a] ? 3 * sizeof(double) : 3 * sizeof(float);
-                for (const char *q = base + triple * ahead; q < base + triple * end; q += 64) __builtin_prefetch(q);
-            }
-        }
+        SUFFIX(prefetch_inputs)(b, i0, n);
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
-            live[h] = IGT(ISET(m), IOTA);
-            V c[9];
-            if (b->stride == 3) {
-                for (int a = 0; a < 3; a++) {
-                    if (b->d[a]) {
-                        /* float64 input: rounded to float on the way in */
-                        LOAD_XYZ64(b->d[a] + 3 * j0, m, live[h], c + 3 * a);
-                    } else {
-                        LOAD_XYZ(b->c[3 * a] + 3 * j0, m, live[h], c + 3 * a);
-                    }
-                }
-            } else {
-                for (int k = 0; k < 9; k++) c[k] = m == W ? LOAD(b->c[k] + j0) : MLOAD(b->c[k] + j0, live[h]);
-            }
-            M dist;
-            if (b->distant8) {
-                int32_t tmp[W];
-                for (int q = 0; q < W; q++) tmp[q] = q < m ? b->distant8[j0 + q] : 0;
-                dist = INZ(ILOAD(tmp));
-            } else {
-                dist = INZ(m == W ? ILOAD(b->distant + j0) : MILOAD(b->distant + j0, live[h]));
-            }
-            SUFFIX(setup)(r, c, dist, o[h], e[h], &skip0[h], &skip1[h]);
+            live[h] = SUFFIX(load_group)(r, b, j0, m, o[h], e[h], &skip0[h], &skip1[h]);
             STORE(res[h], SET(-1.0f));
         }
         /* the world-space arrays in turn (static, then per-frame), each for the lanes still free */
@@ -326,6 +361,109 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
                 }
             }
             memcpy(out + j0, res[h], sizeof(float) * m);
+        }
+    }
+}
+
+/* row_word for ray j of the refinement's five (centre, u + thick, u - thick, v + thick, v - thick) */
+TARGET static inline VI SUFFIX(ray_word)(const VQScene *s, const SUFFIX(Group) *g, int j, M m, V fu, V fv, V thick,
+                                         VI st, M *ok) {
+    V u = j == 1 ? ADD(fu, thick) : (j == 2 ? SUB(fu, thick) : fu);
+    V v = j == 3 ? ADD(fv, thick) : (j == 4 ? SUB(fv, thick) : fv);
+    return SUFFIX(row_word)(s, g, m, u, v, st, ok);
+}
+
+/* the refinement's stage 2 (finish's, for the five rays of vq_query_refine): every piece's five rows,
+ * read for a lane until each of its rays met an occupied voxel or its pieces end. clear[j]: the lanes
+ * whose ray j (centre, u + thick, u - thick, v + thick, v - thick) is still free, in and out */
+TARGET static void SUFFIX(finish_refine)(const VQScene *s, const SUFFIX(Group) *g, V thick, M clear[RAYS]) {
+    if (g->maxp == 0) return;
+    M need[RAYS];
+    need[0] = MAND(MAND(g->centre, g->active), clear[0]);
+    for (int j = 1; j < RAYS; j++) need[j] = MAND(g->active, clear[j]);
+    for (int p = 0; p < g->maxp; p++) {
+        M any = need[0];
+        for (int j = 1; j < RAYS; j++) any = MOR(any, need[j]);
+        M live_p = MAND(any, IGT(g->npieces, ISET(p)));
+        if (!MBITS(live_p)) break;
+        VI st, en;
+        V fu, fv;
+        SUFFIX(piece_at)(g, p, &st, &en, &fu, &fv);
+        VI bits = SUFFIX(span_bits)(st, en);
+        for (int j = 0; j < RAYS; j++) {
+            M m = MAND(need[j], live_p), ok;
+            if (!MBITS(m)) continue;
+            VI idx = SUFFIX(ray_word)(s, g, j, m, fu, fv, thick, st, &ok);
+            M hm = MAND(ok, INZ(IAND(MGATHER_I(s->words, idx, ok), bits)));
+            need[j] = MANDN(hm, need[j]);
+            clear[j] = MANDN(hm, clear[j]);
+        }
+    }
+}
+
+/* the refinement's stage 1 (prepare's): clip, and the first piece's five words prefetched */
+TARGET static void SUFFIX(prepare_refine)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3],
+                                          const V e[3], V skip0, V skip1, int seg_shift, float widen, V thick) {
+    if (!SUFFIX(clip)(s, world, g, live, o, e, skip0, skip1, seg_shift, widen)) return;
+    VI st, en;
+    V fu, fv;
+    SUFFIX(piece_at)(g, 0, &st, &en, &fu, &fv);
+    for (int j = 0; j < RAYS; j++) {
+        M ok;
+        int idx[W];
+        ISTORE(idx, SUFFIX(ray_word)(s, g, j, g->active, fu, fv, thick, st, &ok));
+        for (int l = 0; l < W; l++) __builtin_prefetch(s->words + idx[l]);
+    }
+}
+
+/* vq_query_refine's batch (batch's rays, five per query): out[i] = refine_code of the query's rays */
+TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n, const SoA *b, float thick,
+                                        uint8_t *out) {
+    int seg_shift = __builtin_ctz((unsigned)r->seg);
+    SUFFIX(Group) grp[GROUPS];
+    V o[GROUPS][3], e[GROUPS][3], skip0[GROUPS], skip1[GROUPS];
+    M live[GROUPS], clear[GROUPS][RAYS];
+    V tv = SET(thick);
+    for (int i0 = 0; i0 < n; i0 += GROUPS * W) {
+        int ng = (n - i0 + W - 1) / W;
+        ng = ng < GROUPS ? ng : GROUPS;
+        SUFFIX(prefetch_inputs)(b, i0, n);
+        for (int h = 0; h < ng; h++) {
+            int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
+            live[h] = SUFFIX(load_group)(r, b, j0, m, o[h], e[h], &skip0[h], &skip1[h]);
+            for (int j = 0; j < RAYS; j++) clear[h][j] = live[h];
+        }
+        for (int w = 0; w < s->n_world; w++) {
+            /* the shifted rows reach thick voxels beyond the centre ray */
+            float widen = thick / s->arr_inv_h[s->world_array[w]];
+            for (int h = 0; h < ng; h++)
+                SUFFIX(prepare_refine)(s, w, &grp[h], live[h], o[h], e[h], skip0[h], skip1[h], seg_shift, widen, tv);
+            for (int h = 0; h < ng; h++) {
+                SUFFIX(finish_refine)(s, &grp[h], tv, clear[h]);
+                live[h] = clear[h][0];
+                for (int j = 1; j < RAYS; j++) live[h] = MOR(live[h], clear[h][j]);
+            }
+        }
+        for (int h = 0; h < ng; h++) {
+            int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
+            unsigned fb[RAYS];
+            for (int j = 0; j < RAYS; j++) fb[j] = MBITS(clear[h][j]);
+            float ob[3][W], eb[3][W], s0b[W], s1b[W];
+            int inst = s->n_inst > 0 && MBITS(live[h]);
+            if (inst) {
+                for (int k = 0; k < 3; k++) { STORE(ob[k], o[h][k]); STORE(eb[k], e[h][k]); }
+                STORE(s0b, skip0[h]);
+                STORE(s1b, skip1[h]);
+            }
+            for (int l = 0; l < m; l++) {
+                unsigned f = 0;
+                for (int j = 0; j < RAYS; j++) f |= (fb[j] >> l & 1u) << j;
+                if (inst && f) {
+                    float ol[3] = {ob[0][l], ob[1][l], ob[2][l]}, el[3] = {eb[0][l], eb[1][l], eb[2][l]};
+                    instance_refine(s, ol, el, s0b[l], s1b[l], r->seg, thick, &f);
+                }
+                out[j0 + l] = refine_code(ALL_RAYS & ~f);
+            }
         }
     }
 }

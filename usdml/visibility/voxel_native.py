@@ -50,7 +50,7 @@ class _Scene(ctypes.Structure):
                 ("ring_count", _i), ("ring_start", _i), ("n_world", ctypes.c_int32),
                 ("world_array", ctypes.c_int32 * 2), ("world_inv", (ctypes.c_float * 12) * 2), ("n_inst", ctypes.c_int32), ("inst_inv", _f),
                 ("inst_array", _i), ("n_nodes", ctypes.c_int32), ("node_box", _f), ("node_kids", _i),
-                ("bvh_items", _i)]
+                ("bvh_items", _i), ("inst_voxel", ctypes.c_float)]
 
 
 class _Rule(ctypes.Structure):
@@ -94,6 +94,8 @@ EXTENSION = Extension("_voxelq", {
     "vq_simd_isa": (ctypes.c_int, [ctypes.c_int32]),
     "vq_query": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P, _P,
                         _P, ctypes.c_int32, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, _P]),
+    "vq_query_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P,
+                               _P, _P, ctypes.c_float, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P]),
     "vq_shade": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
                         ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P]),
     "vq_rotate_point": (None, [_P, _P, _P, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P,
@@ -234,6 +236,7 @@ class NativeScene:
             s.world_fold[i] = _ptr(world_fold[i], _f)
         s.n_inst, s.inst_inv, s.inst_array = k, _ptr(inv, _f), _ptr(ids, _i)
         s.n_nodes, s.node_box, s.node_kids, s.bvh_items = nodes, _ptr(box, _f), _ptr(kids, _i), _ptr(items, _i)
+        s.inst_voxel = self._instance_voxel(inv[:k], arr_inv_h[ids[:k]])
         self.scene = s
 
     @staticmethod
@@ -249,6 +252,16 @@ class NativeScene:
         return np.concatenate([F, f[:, :, None]], axis=2).reshape(len(frames), 12)
 
     @staticmethod
+    def _instance_voxel(inv: np.ndarray, inv_h: np.ndarray) -> float:
+        """The largest voxel edge in world units over instances with world -> array maps ``inv`` (K, 12)
+        into arrays of ``inv_h`` voxels per unit: how far :meth:`query_refine`'s shifted rows reach
+        per voxel of ``thick`` (an array's voxel stretched by at most 1 / the map's least singular value)."""
+        if len(inv) == 0:
+            return 0.0
+        least = np.linalg.svd(np.asarray(inv, np.float64).reshape(-1, 3, 4)[:, :, :3], compute_uv=False)[:, -1]
+        return float(np.max(1.0 / (np.maximum(least, 1e-30) * np.asarray(inv_h, np.float64))) * 1.001)
+
+    @staticmethod
     def rule(offset: float, skip: float, slab: float, max_skip: float, end_skip: float, far: float, far_center,
              seg: int) -> _Rule:
         r = _Rule()
@@ -257,18 +270,24 @@ class NativeScene:
         r.seg = int(seg)
         return r
 
-    def query(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
-              normals: np.ndarray, distant: np.ndarray, want_t: bool, out: np.ndarray) -> None:
-        """``out[first:first + count]``: queries ``first ..`` of the C-contiguous (n, 3) float32 or float64
-        inputs and (n,) int32 or bool flags (read as they are: no conversion pass). ``out`` float32: the
-        distances (-1 free); bool: whether each ray is blocked, written as it is (``want_t`` ignored)."""
+    @staticmethod
+    def _input_kinds(origins: np.ndarray, targets: np.ndarray, normals: np.ndarray, distant: np.ndarray) -> int:
+        """The kernel's ``f64_mask`` for the query inputs, checked (C-contiguous float32 or float64 vectors,
+        int32 or bool flags)."""
         arrays = (origins, targets, normals)
         for a in arrays:
             if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous:
                 raise TypeError("query inputs must be C-contiguous float32 or float64")
         if distant.dtype not in (np.int32, np.bool_) or not distant.flags.c_contiguous:
             raise TypeError("distant flags must be C-contiguous int32 or bool")
-        f64 = sum(1 << i for i, a in enumerate(arrays) if a.dtype == np.float64)
+        return sum(1 << i for i, a in enumerate(arrays) if a.dtype == np.float64)
+
+    def query(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
+              normals: np.ndarray, distant: np.ndarray, want_t: bool, out: np.ndarray) -> None:
+        """``out[first:first + count]``: queries ``first ..`` of the C-contiguous (n, 3) float32 or float64
+        inputs and (n,) int32 or bool flags (read as they are: no conversion pass). ``out`` float32: the
+        distances (-1 free); bool: whether each ray is blocked, written as it is (``want_t`` ignored)."""
+        f64 = self._input_kinds(origins, targets, normals, distant)
         flags = out.dtype == np.bool_
         if not flags and out.dtype != np.float32:
             raise TypeError("query output must be float32 or bool")
@@ -276,6 +295,19 @@ class NativeScene:
                           targets.ctypes.data, normals.ctypes.data, distant.ctypes.data, int(want_t), self.kernel,
                           None if flags else out.ctypes.data, f64, int(distant.dtype == np.bool_),
                           out.ctypes.data if flags else None)
+
+    def query_refine(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
+                     normals: np.ndarray, distant: np.ndarray, thick: float, out: np.ndarray) -> None:
+        """``out[first:first + count]`` (uint8), queries ``first ..`` of :meth:`query`'s inputs: bit 0 whether
+        each ray is blocked (:meth:`query`'s answer), bit 1 whether that answer is uncertain: the rays
+        through the rows ``thick`` voxels to either side of its own (along the direction bin's two grid
+        axes, over the same voxels; ``voxelq.c``'s ``vq_query_refine``) do not all answer as it does."""
+        f64 = self._input_kinds(origins, targets, normals, distant)
+        if out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise TypeError("query_refine output must be C-contiguous uint8")
+        self.lib.vq_query_refine(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count),
+                                 origins.ctypes.data, targets.ctypes.data, normals.ctypes.data, distant.ctypes.data,
+                                 float(thick), self.kernel, f64, int(distant.dtype == np.bool_), out.ctypes.data)
 
     def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
               first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
