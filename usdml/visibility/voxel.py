@@ -50,7 +50,7 @@ from usdml.parallel import cpu_workers, run_bands
 from usdml.scene import Changes, Lights, Snapshot, world_geometry
 from usdml.scene.light_table import LightTable
 from usdml.settings import VOXEL_REBUILDS
-from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, SHADE_DIRECT, STATS, DirectResult,
+from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, REFINE, SHADE_DIRECT, STATS, DirectResult,
                                    VisibilityBackend, as_flags, as_vectors, baked_entry, baked_line, members_changed,
                                    scene_sphere, settings_with)
 from usdml.visibility.voxel_array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
@@ -72,6 +72,19 @@ MAX_SKIP = 2.0
 CONSERVATIVE_MAX_SKIP = 4.0
 #: points per tile of the CPU shading kernel (kernels.direct_shading.shade_tiles)
 SHADE_TILE = 64
+#: ``REFINE``: per level (1, 2, ...), the thick-ray rule's sideways shift and the blind zone's reach beyond the
+#: ray's offset and skip, in voxels of the static array (usdml.visibility.refine)
+THICK = (1.0, 1.5, 2.5, 4.0)
+BLIND = (0.0, 0.5, 1.0, 2.0)
+
+
+def widened(rule: Callable[[float], tuple[np.ndarray, np.ndarray]], level: int) -> tuple[np.ndarray, np.ndarray]:
+    """``REFINE`` at ``level``: ``rule(width)``'s answers, uncertain where any width of ``THICK`` up to the
+    level's says so."""
+    blocked, uncertain = rule(THICK[0])
+    for width in THICK[1:min(max(level, 1), len(THICK))]:
+        uncertain = uncertain | rule(width)[1]
+    return blocked, uncertain
 
 
 @dataclass
@@ -140,8 +153,9 @@ class VoxelBackend(VisibilityBackend):
 
     name = "voxel"
     summary = "per-direction voxel arrays, shared by a prototype's instances (paper 000)"
-    capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE})
+    capabilities = frozenset({SHADE_DIRECT, HIT_DISTANCES, STATS, MEMORY_ESTIMATE, BAKE, REFINE})
     reads_settings = True
+    refine_levels = len(THICK)
 
     def __init__(self, settings=None, *, device: str = "cpu", cache=None, native_isa: str = "auto",
                  workers: int | None = None, report: Callable[[str], None] | None = None,
@@ -623,28 +637,72 @@ class VoxelBackend(VisibilityBackend):
         """:meth:`hit_distances` by the compiled kernel, which reads float64 inputs and bool flags as they
         are (converting 7 M float64 rays to float32 first cost about a third of the city's bench); with
         ``blocked``, :meth:`occluded`'s flags, written by the kernel as they are."""
-        origins = as_vectors(origins, "origins", dtype=None)
-        n = origins.shape[0]
-        targets = as_vectors(targets, "targets", n, dtype=None)
-        normals = None if normals is None else as_vectors(normals, "normals", n, dtype=None)
-        distant = None if distant is None else as_flags(distant, "distant", n)
+        origins, targets, normals, distant = self._native_inputs(origins, targets, normals, distant)
+        n = len(origins)
         res = np.empty(n, bool if blocked else np.float32)
         if n == 0 or self._gpu["n_arrays"] == 0:
             res[:] = False if blocked else -1.0
             return res
         rule = self._native_rule()
-        # read in place (float32 or float64, bool or int32 flags): no conversion pass over the inputs
-        origins, targets = np.ascontiguousarray(origins), np.ascontiguousarray(targets)
-        normals = np.zeros((n, 3), np.float32) if normals is None else np.ascontiguousarray(normals)
-        distant = np.zeros(n, bool) if distant is None else np.ascontiguousarray(distant)
         self._split(n, lambda first, count: self._native.query(rule, first, count, origins, targets, normals, distant,
                                                                want_distance, res), bands_per_worker=2)
         return res
+
+    @staticmethod
+    def _native_inputs(origins, targets, normals, distant) -> tuple:
+        """The compiled kernel's query inputs, checked and C-contiguous but read in place (float32 or
+        float64, bool or int32 flags): no conversion pass over them; zero normals, no distant flags when
+        not given."""
+        origins = np.ascontiguousarray(as_vectors(origins, "origins", dtype=None))
+        n = origins.shape[0]
+        targets = np.ascontiguousarray(as_vectors(targets, "targets", n, dtype=None))
+        normals = np.zeros((n, 3), np.float32) if normals is None else \
+            np.ascontiguousarray(as_vectors(normals, "normals", n, dtype=None))
+        distant = np.zeros(n, bool) if distant is None else np.ascontiguousarray(as_flags(distant, "distant", n))
+        return origins, targets, normals, distant
+
+    def _native_refine(self, origins, targets, normals, distant, thick: float) -> tuple[np.ndarray, np.ndarray]:
+        """``REFINE``'s thick-ray rule by the compiled kernel (``vq_query_refine``): ``(blocked, uncertain)``,
+        two ``(N,) bool``: :meth:`occluded`'s answers (the very same) and whether each is uncertain: the
+        rays through the rows ``thick`` voxels to either side of the query's own (along its direction bin's
+        two grid axes, over the same voxels, in every array it visits) and it do not all answer alike.
+        Arguments as :meth:`occluded`."""
+        origins, targets, normals, distant = self._native_inputs(origins, targets, normals, distant)
+        n = len(origins)
+        code = np.zeros(n, np.uint8)
+        if n and self._gpu["n_arrays"]:
+            rule = self._native_rule()
+            # the cost per ray varies more than a plain query's (a ray ends when all five are blocked)
+            self._split(n, lambda first, count: self._native.query_refine(rule, first, count, origins, targets,
+                                                                          normals, distant, thick, code),
+                        bands_per_worker=4)
+        return (code & 1) != 0, (code & 2) != 0
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         if self._native is not None:      # set by update() (hit_distances says when it was not called)
             return self._native_hits(origins, targets, normals, distant, False, blocked=True)
         return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
+
+    def occluded_uncertain(self, origins, targets, *, normals=None, distant=None, level: int = 1):
+        """``REFINE``: the thick-ray rule (:func:`usdml.visibility.refine.thick_ray`) at each width of ``THICK`` up
+        to ``level``'s (a wider rule alone can step over a thin occluder a narrower one meets: the union keeps
+        every level a superset of the one below)."""
+        refine = getattr(self, "_native_refine", None)
+        if self._native is not None and refine is not None:
+            def rule(width):
+                return refine(origins, targets, normals, distant, width)
+        else:
+            from usdml.visibility.refine import thick_ray
+
+            def rule(width):
+                return thick_ray(self.occluded, origins, targets, normals, distant, width * self.reference_voxel)
+        return widened(rule, level)
+
+    def blind_reach(self, level: int) -> float:
+        """``REFINE``: how far along a ray (world units) an occluder may go unseen: the offset, the longest
+        skip, and ``BLIND[level - 1]`` voxels more (usdml.visibility.refine)."""
+        extra = BLIND[min(max(level, 1), len(BLIND)) - 1]
+        return (self.normal_offset + max(self.skip, self.max_skip) + extra) * self.reference_voxel
 
     def _light_struct(self, lights: Lights, meters_per_unit: float, min_distance: float):
         """The lights as the shading kernel's ``LightTable`` (the constants of
