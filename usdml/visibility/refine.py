@@ -33,7 +33,8 @@ from types import MappingProxyType
 
 import numpy as np
 
-from usdml.visibility.base import LIGHT_MAJOR, REFINE, VisibilityBackend, as_flags, as_vectors
+from usdml.visibility.base import (LIGHT_MAJOR, REFINE, SHADE_DIRECT, DirectResult, VisibilityBackend, as_flags,
+                                   as_vectors)
 
 __all__ = ["Refined", "thick_ray", "EXACT", "PROBES"]
 
@@ -113,6 +114,32 @@ def _runs(origins: np.ndarray, starts: np.ndarray | None = None) -> tuple[np.nda
     return starts, np.cumsum(new) - 1
 
 
+def near_points(exact: VisibilityBackend, points: np.ndarray, normals: np.ndarray, reach: float) -> np.ndarray:
+    """``(P,) bool``: whether other geometry lies within ``reach`` of each point on its normal's side (the blind
+    zone, module doc): :data:`PROBES` short exact rays over the hemisphere, stopped at the first hit."""
+    points = np.asarray(points, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    has = length[:, 0] > 0
+    nrm = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
+    u, v = _across(np.where(has[:, None], nrm, np.array([[0.0, 0.0, 1.0]])))
+    near = np.zeros(len(points), bool)
+    for dx, dy, dz in _hemisphere(PROBES):
+        live = np.flatnonzero(has & ~near)
+        if not len(live):
+            break
+        direction = u[live] * dx + v[live] * dy + nrm[live] * dz
+        near[live] = exact.occluded(points[live], points[live] + direction * reach, normals=nrm[live])
+    return near
+
+
+def _short(origins: np.ndarray, targets: np.ndarray, distant: np.ndarray, reach: float) -> np.ndarray:
+    """The ends of the segments' first ``reach`` (the whole segment where it is shorter)."""
+    d = np.where(distant[:, None], targets, targets - origins)
+    span = np.linalg.norm(d, axis=1, keepdims=True)
+    return origins + d / np.maximum(span, 1e-30) * np.where(distant[:, None], reach, np.minimum(reach, span))
+
+
 class Refined(VisibilityBackend):
     """``approx``'s answers with the uncertain ones re-asked of ``exact`` at :attr:`level` (module doc).
 
@@ -127,7 +154,8 @@ class Refined(VisibilityBackend):
         self.approx, self.exact, self.level = approx, exact, int(level)
         self.name = approx.name
         self.summary = approx.summary
-        self.capabilities = frozenset({LIGHT_MAJOR}) & approx.capabilities
+        # SHADE_DIRECT: shade_direct picks the backend's fused kernel with refinement where it has one
+        self.capabilities = (frozenset({LIGHT_MAJOR}) & approx.capabilities) | {SHADE_DIRECT}
         self.counts = {"queries": 0, "refined": 0, "near": 0}
         self._lock = threading.Lock()
         if LIGHT_MAJOR in self.capabilities:
@@ -198,29 +226,81 @@ class Refined(VisibilityBackend):
         pts = origins[first].astype(np.float64)
         nrm = np.asarray(normals)[first].astype(np.float64)
 
-        def toward(rows: np.ndarray, o: np.ndarray) -> np.ndarray:
-            tg = np.asarray(targets[rows], np.float64)
-            return np.where(distant[rows, None], tg, tg - o)
-        side = np.einsum("ij,ij->i", nrm, toward(first, pts))
+        tg = np.asarray(targets[first], np.float64)
+        side = np.einsum("ij,ij->i", nrm, np.where(distant[first, None], tg, tg - pts))
         nrm = nrm * np.where(side < 0, -1.0, 1.0)[:, None]
-        length = np.linalg.norm(nrm, axis=1, keepdims=True)
-        has = length[:, 0] > 0
-        nrm = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
-        u, v = _across(np.where(has[:, None], nrm, np.array([[0.0, 0.0, 1.0]])))
-        near = np.zeros(len(first), bool)
-        for dx, dy, dz in _hemisphere(PROBES):
-            live = np.flatnonzero(has & ~near)
-            if not len(live):
-                break
-            direction = u[live] * dx + v[live] * dy + nrm[live] * dz
-            near[live] = self.exact.occluded(pts[live], pts[live] + direction * reach, normals=nrm[live])
+        near = near_points(self.exact, pts, nrm, reach)
         rows = np.flatnonzero(near[run] & ~blocked & ~uncertain)
         if not len(rows):
             return
         o = origins[rows].astype(np.float64)
-        dd = toward(rows, o)
-        span = np.linalg.norm(dd, axis=1, keepdims=True)
-        dd = dd / np.maximum(span, 1e-30)
-        end = o + dd * np.where(distant[rows, None], reach, np.minimum(reach, span))
+        end = _short(o, np.asarray(targets[rows], np.float64), distant[rows], reach)
         blocked[rows] = self.exact.occluded(o, end, normals=np.asarray(normals)[rows])
         self._count("near", len(rows))
+
+    def shade_direct(self, points, normals, albedo, lights, progress=None, meters_per_unit: float = 1.0,
+                     min_distance: float = 0.0, geometric=None, *, plain):
+        """Direct light with refined shadows: the backend's fused kernel with refinement (``shade_refined``: it
+        hands back the uncertain and blind-zone pairs, traced here) where it has one, every answer of a
+        ``LIGHT_MAJOR`` backend at once (a map per light), else :func:`usdml.lighting.direct.shade_direct` over
+        :meth:`occluded`."""
+        options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+        level = self.level
+        if level <= 0:
+            if self.approx.supports(SHADE_DIRECT):
+                return self.approx.shade_direct(points, normals, albedo, lights, progress, plain=plain, **options)
+            return plain(points, normals, albedo, lights, self.approx.occluded, progress, **options)
+        if level > self.approx.refine_levels:
+            result = plain(points, normals, albedo, lights, self.exact.occluded, progress, **options)
+            self._count("queries", result.queries)
+            self._count("refined", result.queries)
+            return result
+        fused = getattr(self.approx, "shade_refined", None)
+        if fused is not None and len(points) and len(lights):
+            geo = np.asarray(normals if geometric is None else geometric)
+            reach = float(getattr(self.approx, "blind_reach", lambda _: 0.0)(level))
+            near = near_points(self.exact, points, geo, reach) if reach > 0 else None
+            try:
+                result, counts = fused(points, normals, albedo, lights, progress, level=level, near=near,
+                                       resolve=self._resolver(points, geo, lights, reach), **options)
+            except NotImplementedError:
+                pass
+            else:
+                self._count("queries", counts["queries"])
+                self._count("refined", counts["uncertain"])
+                self._count("near", counts["near"])
+                return result
+        if LIGHT_MAJOR in self.capabilities:
+            from usdml.scene import LightType
+
+            answers = self.occluded_matrix(points, geometric if geometric is not None else normals, lights.position,
+                                           lights.type == LightType.DISTANT, lights.axis)
+            return plain(points, normals, albedo, lights, None, progress, answers=answers, **options)
+        return plain(points, normals, albedo, lights, self.occluded, progress, **options)
+
+    def _resolver(self, points: np.ndarray, normals: np.ndarray, lights, reach: float):
+        """``resolve(point, light, kind) -> free`` for a fused kernel's handed-back pairs: kind 0 (uncertain) traced
+        exactly, kind 1 (certain and free, from a point with geometry in its blind zone) over the blind zone."""
+        from usdml.scene import LightType
+
+        distant_light = np.asarray(lights.type == LightType.DISTANT)
+        axis = np.asarray(lights.axis, np.float64)
+        toward = np.where(distant_light[:, None], -axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True),
+                                                                     1e-30), np.asarray(lights.position, np.float64))
+        points = np.asarray(points)
+
+        def resolve(point: np.ndarray, light: np.ndarray, kind: np.ndarray) -> np.ndarray:
+            free = np.ones(len(point), bool)
+            for k in (0, 1):
+                rows = np.flatnonzero(kind == k)
+                if not len(rows):
+                    continue
+                o = points[point[rows]].astype(np.float64)
+                t = toward[light[rows]]
+                d = distant_light[light[rows]]
+                nrm = normals[point[rows]]
+                if k == 1:
+                    t, d = _short(o, t, d, reach), np.zeros(len(rows), bool)
+                free[rows] = ~self.exact.occluded(o, t, normals=nrm, distant=d)
+            return free
+        return resolve
