@@ -404,6 +404,27 @@ def _table_title(*header: str) -> str:
     return "\n".join(_table(list(header), []))
 
 
+def budget_rows(data: dict) -> list[str]:
+    """``tools/budget_table.py --json``: one row per stage, backend and ``--error-budget``."""
+    rows = []
+    for run in data["runs"]:
+        for r in run["output"]:
+            lo, hi = r["estimated_eps_v_interval"]
+            budget = "none" if r["budget"] >= 1 else f"{r['budget']:g}"
+            frame = (f"{r['frame_seconds']:.1f} ({r['exact_frame_seconds']:.1f})"
+                     if r.get("frame_seconds") is not None else "–")
+            rows.append([_stage(r["stage"]), r["visibility"], budget, str(r["refine_level"]), _pct3(r["eps_v"]),
+                         f"{_pct3(r['estimated_eps_v'])} [{100 * lo:.3g}, {100 * hi:.3g}]",
+                         "yes" if r["interval_holds"] else "**no**", _pct3(r["eps_s"]),
+                         f"{100 * r['refined_fraction']:.1f} / {100 * r['near_fraction']:.1f}",
+                         f"{r['speedup']:.2f}×",
+                         f"{r['bench_speedup']:.2f}×" if r.get("bench_speedup") is not None else "–", frame,
+                         f"{100 * r['estimate_share']:.1f} %"])
+    return _table(["stage", "backend", "budget", "level", "ε_v", "estimate [95 %]", "holds", "ε_s",
+                   "re-asked / blind zone (% queries)", "× exact (compare)", "× exact (bench)", "frame s (exact)",
+                   "estimate's share"], rows)
+
+
 def cache_rows(data: dict) -> list[str]:
     """``tools/cache_bench.py --json``: each stage's array in memory and on disk, its coding and loading
     against the raw words, and a first render with an empty cache, voxel against exact."""
@@ -430,6 +451,7 @@ RENDERERS = {
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
+    "budget": budget_rows,
 }
 
 
