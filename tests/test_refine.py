@@ -232,3 +232,14 @@ def test_budget_on_the_city():
     assert r["eps_v"] <= 0.003
     lo, hi = r["estimated_eps_v_interval"]
     assert lo <= r["eps_v"] <= hi
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stage", ["planes", "park", "creature", "dragon", "cornell", "boxes"])
+def test_budget_estimate_holds_on_every_sample_stage(stage):
+    """The budget's own estimate (its sample, the level it chose) holds the measured ε_v on each sample stage."""
+    r = compare_visibility(StageDelegate(str(STAGES / f"{stage}.usda")), "voxel", image_width=48,
+                           overrides=dict(voxel_resolution=32, direction_step=6.0, error_budget=0.01))
+    lo, hi = r["estimated_eps_v_interval"]
+    assert lo <= r["eps_v"] <= hi, (r["eps_v"], lo, hi, r["refine_level"])
+    assert hi <= 0.01 or r["refine_level"] == "exact"
