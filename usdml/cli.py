@@ -173,6 +173,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
               f"{100 * e['eps_s_hi']:.2f}] ({e['pixels']} pixels, {e['queries']:,} exact rays)"
               + (f"; --error-budget {e['budget']:g}: level {e['level']}, {100 * e['refined_fraction']:.1f} % of "
                  f"queries re-asked of exact" if "budget" in e else ""))
+    for f, kinds in summary.get("lightingEstimates", {}).items():
+        for kind, e in kinds.items():
+            print(f"frame {f}: {kind} LGH vs brute force: estimated rel. RMSE {100 * e['rel_rmse']:.2f} % "
+                  f"[{100 * e['rel_rmse_lo']:.2f}, {100 * e['rel_rmse_hi']:.2f}], bias {100 * e['rel_bias']:+.2f} % "
+                  f"({e['pixels']} pixels, {e['rays']:,} rays)")
     for path in summary["outputs"] + summary["previews"]:
         print(f"  {path}")
     return 0

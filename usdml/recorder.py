@@ -66,6 +66,10 @@ class RecordResult:
     #: approximate visibility: each rendered frame's estimate of ε_v and ε_s with 95 % intervals
     #: (:class:`usdml.render.estimate.VisibilityEstimate`'s fields), by timecode
     estimates: dict[float, dict] = field(default_factory=dict)
+    #: ``--gi lgh`` / ``--direct lgh``: each rendered frame's ``{"gi": ..., "direct": ...}`` estimates of the LGH's
+    #: relative RMSE and bias against brute force (:class:`usdml.render.lighting_estimate.LightingEstimate`'s
+    #: fields), by timecode
+    lighting_estimates: dict[float, dict] = field(default_factory=dict)
 
 
 def check_width(width: int | None, name: str = "--imageWidth") -> None:
@@ -165,7 +169,8 @@ class Recorder:
                             warnings=collect.messages, failed=list(summary.get("failed", [])),
                             rerun=summary.get("rerun"), summary=summary, stale=list(summary["stale"]),
                             previews=list(summary["previews"]), skipped_files=list(summary["skippedOutputs"]),
-                            estimates={float(f): e for f, e in summary.get("estimates", {}).items()})
+                            estimates={float(f): e for f, e in summary.get("estimates", {}).items()},
+                            lighting_estimates={float(f): e for f, e in summary.get("lightingEstimates", {}).items()})
 
     def _on_dask(self, job) -> dict:
         """The job's frames as chunks on Dask (:mod:`usdml.render.farm`)."""

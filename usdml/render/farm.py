@@ -110,7 +110,7 @@ def render_on_dask(job, frames: list[float]) -> dict:
     done, failed, skipped, stale, errors, seconds = [], [], [], [], {}, []
     files = {"outputs": [], "previews": [], "skippedOutputs": []}
     resolution, visibility = [0, 0], ""
-    estimates = {}
+    estimates, lighting = {}, {}
     try:
         futures = {}
         for part in chunks(list(frames), chunk_size):
@@ -142,6 +142,7 @@ def render_on_dask(job, frames: list[float]) -> dict:
                 seconds.append(summary["chunkSeconds"] / len(summary["frames"]))
             resolution, visibility = summary["resolution"], summary["visibility"]
             estimates.update(summary.get("estimates", {}))
+            lighting.update(summary.get("lightingEstimates", {}))
     finally:
         client.close()
         if cluster is not None:
@@ -160,4 +161,5 @@ def render_on_dask(job, frames: list[float]) -> dict:
         "workers": workers, "scheduler": scheduler, "chunkSize": chunk_size, "retries": retries,
         "threadsPerWorker": threads, **{key: sorted(paths) for key, paths in files.items()},
         "estimates": {f"{f:g}": estimates[f"{f:g}"] for f in done if f"{f:g}" in estimates},
+        "lightingEstimates": {f"{f:g}": lighting[f"{f:g}"] for f in done if f"{f:g}" in lighting},
     }

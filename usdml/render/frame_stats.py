@@ -29,6 +29,10 @@ class FrameStats:
     #: pass's pairs traced exactly, with 95 % intervals and the seconds it took
     #: (:class:`usdml.render.estimate.VisibilityEstimate`)
     estimate: dict | None = None
+    #: ``--gi lgh`` / ``--direct lgh``: the LGH's relative RMSE and bias against brute force estimated from a
+    #: sample of pixels, with 95 % intervals (:class:`usdml.render.lighting_estimate.LightingEstimate`)
+    estimate_gi: dict | None = None
+    estimate_direct: dict | None = None
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel

@@ -134,18 +134,28 @@ class LghDirect(EveryLight):
     def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
         super().__init__(backends, settings, device, where)
         self.field = None
+        self.estimate = None                    # the frame's error estimate (usdml.render.lighting_estimate)
         self._told_no_grid = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.lgh_direct import prepare_direct
+        from usdml.render.lighting_estimate import direct_estimator
 
         self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
         stats.direct_lgh = dict(self.field.stats)
+        self.estimate = direct_estimator(self.field, frame.snap, self.backends.shadow, self.settings)
         if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:
             log.warning(f"{self.where}: --direct lgh: none of its {len(self.field.rest)} light(s) at time "
                         f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
                         "cones or focus, shadows off, black): all are shaded every-light, as --direct all")
             self._told_no_grid = True
+
+    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+               progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
+        for gb, surface, direct in super().passes(frame, passes, stats, progress):
+            if self.estimate is not None:       # after the frame's last pass, its estimate
+                stats.estimate_direct = self.estimate.add_surface(surface, direct.radiance) or stats.estimate_direct
+            yield gb, surface, direct
 
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
@@ -197,14 +207,17 @@ class VplGI(NoGI):
         # --gi svo casts its rays with a backend of its own; the others with the shadow backend
         self.rays = backends.gi or backends.shadow
         self.field = None
+        self.estimate = None                    # --gi lgh: the frame's error estimate (usdml.render.lighting_estimate)
         self.target_lift = 0.0
         self._told_no_vpls = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.gi import prepare_vpls
         from usdml.lighting.interleaved import target_lift
+        from usdml.render.lighting_estimate import gi_estimator
 
         self.field = prepare_vpls(frame.snap, self.backends.primary, frame.lights, self.settings, device=self.device)
+        self.estimate = gi_estimator(self.field, frame.snap, self.rays.occluded, self.settings)
         stats.gi_seconds = self.field.stats["vpl_seconds"] + self.field.stats.get("lgh_seconds", 0.0)
         self.target_lift = target_lift(self.backends.gi) if self.backends.gi is not None else 0.0
 
@@ -222,6 +235,8 @@ class VplGI(NoGI):
                         "indirect is 0")
             self._told_no_vpls = True
         stats.gi_seconds += _time.perf_counter() - t0
+        if self.estimate is not None:           # after the frame's last pass, its estimate
+            stats.estimate_gi = self.estimate.add_surface(surface, gi.radiance) or stats.estimate_gi
         return gi.radiance
 
 

@@ -24,6 +24,7 @@ from usdml.errors import UsdmlError, log
 from usdml.outputs import make_output_folder
 from usdml.params import DEFAULT_WIDTH, ignored
 from usdml.render.estimate import header as estimate_header
+from usdml.render.lighting_estimate import frame_estimates, frame_headers
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.settings import RenderOptions, UsdmlSettings
@@ -232,6 +233,7 @@ def render_sequence(job: RenderJob) -> dict:
     digests = [settings_digest(i) for i in identities]
     written, skipped, stale, recovered, seconds = [], [], [], [], []
     estimates: dict[float, dict] = {}       # frame -> its visibility error estimate (usdml.render.estimate)
+    lighting: dict[float, dict] = {}        # frame -> {gi, direct}: its LGH error estimates (.lighting_estimate)
     since = job.resume_since
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
@@ -257,12 +259,14 @@ def render_sequence(job: RenderJob) -> dict:
                               metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
                                         "usdml:camera": result.camera.path or "(framing)",
                                         **(estimate_header(result.stats.estimate) if result.stats.estimate
-                                           else {})})
+                                           else {}), **frame_headers(result.stats)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
                 if result.stats.estimate:
                     estimates[f] = result.stats.estimate
+                if frame_estimates(result.stats):
+                    lighting[f] = frame_estimates(result.stats)
                 written.append(f)
                 bar.update(1)
     finally:
@@ -281,6 +285,7 @@ def render_sequence(job: RenderJob) -> dict:
         "skippedOutputs": [p.paths[f] for f in skipped for p in products],
         "settingsDigest": digests,
         "estimates": {f"{f:g}": e for f, e in estimates.items()},
+        "lightingEstimates": {f"{f:g}": e for f, e in lighting.items()},
     }
 
 
