@@ -4,7 +4,8 @@
  * time in plain C. Loaded with ctypes by usdml.visibility.voxel_native, which says what every table
  * below holds; called from a thread pool (ctypes releases the GIL). vq_query_refine answers the same
  * queries and says which answers are uncertain (the thick-ray rule: five rays per query, the row
- * lookups of the query's own and of the rows ``thick`` voxels to either side; see there).
+ * lookups of the query's own and of the rows ``thick`` voxels to either side; see there);
+ * vq_shade_refine is vq_shade with that rule, the uncertain answers listed for the caller.
  *
  * Differences from the Warp kernels, none changing the rule:
  *   - one folded affine map per (array, direction bin), grid = F p + f, instead of world -> array then
@@ -202,15 +203,40 @@ static float array_hit(const VQScene *s, int a, const float *tab, const float xa
     return -1.0f;
 }
 
-/* the refinement's five rays (vq_query_refine): the centre one and the rows ``thick`` voxels to either
- * side along the grid's u and v axes, piece by piece, same voxels st .. en */
-#define RAYS 5
-#define ALL_RAYS ((1u << RAYS) - 1)
-static const float SHIFT_U[RAYS] = {0.0f, 1.0f, -1.0f, 0.0f, 0.0f}, SHIFT_V[RAYS] = {0.0f, 0.0f, 0.0f, 1.0f, -1.0f};
+/* the refinement's rays (vq_query_refine, vq_shade_refine): the centre one and, for each width, the
+ * rows that many voxels to either side along the grid's u and v axes (u + w, u - w, v + w, v - w),
+ * piece by piece, same voxels st .. en */
+#define MAX_WIDTHS 4
+#define MAX_RAYS (1 + 4 * MAX_WIDTHS)
+typedef struct {
+    int n, n_widths;                 /* rays: 1 + 4 n_widths */
+    unsigned all;                    /* (1 << n) - 1 */
+    float du[MAX_RAYS], dv[MAX_RAYS]; /* each ray's shift (voxels) */
+    float reach;                     /* the widest width */
+} Rays;
 
-/* array_hit for the five rays: the bits (1 << ray) of those in ``need`` meeting an occupied voxel */
+/* the rays of ``n_widths`` (at most MAX_WIDTHS) widths */
+static Rays make_rays(const float *widths, int n_widths) {
+    static const float SU[4] = {1.0f, -1.0f, 0.0f, 0.0f}, SV[4] = {0.0f, 0.0f, 1.0f, -1.0f};
+    Rays R;
+    R.n_widths = n_widths < 0 ? 0 : (n_widths > MAX_WIDTHS ? MAX_WIDTHS : n_widths);
+    R.n = 1 + 4 * R.n_widths;
+    R.all = (1u << R.n) - 1;
+    R.du[0] = R.dv[0] = 0.0f;
+    R.reach = 0.0f;
+    for (int w = 0; w < R.n_widths; w++) {
+        for (int j = 0; j < 4; j++) {
+            R.du[1 + 4 * w + j] = SU[j] * widths[w];
+            R.dv[1 + 4 * w + j] = SV[j] * widths[w];
+        }
+        if (widths[w] > R.reach) R.reach = widths[w];
+    }
+    return R;
+}
+
+/* array_hit for the rays: the bits (1 << ray) of those in ``need`` meeting an occupied voxel */
 static unsigned array_refine(const VQScene *s, int a, const float *tab, const float xa[3], const float xb[3],
-                             const float da[3], float skip0, float skip1, int seg, float thick, unsigned need) {
+                             const float da[3], float skip0, float skip1, int seg, const Rays *R, unsigned need) {
     Walk k;
     int npieces = walk_start(s, a, tab, xa, xb, da, skip0, skip1, seg, &k);
     unsigned got = 0;
@@ -218,10 +244,8 @@ static unsigned array_refine(const VQScene *s, int a, const float *tab, const fl
         int st, en;
         float fu, fv;
         walk_piece(&k, p, seg, &st, &en, &fu, &fv);
-        for (int j = 0; j < RAYS; j++)
-            if ((need & ~got) >> j & 1 && row_bits(s, &k, j ? fu + SHIFT_U[j] * thick : fu,
-                                                   j ? fv + SHIFT_V[j] * thick : fv, st, en))
-                got |= 1u << j;
+        for (int j = 0; j < R->n; j++)
+            if ((need & ~got) >> j & 1 && row_bits(s, &k, fu + R->du[j], fv + R->dv[j], st, en)) got |= 1u << j;
     }
     return got;
 }
@@ -245,11 +269,12 @@ static inline int meets_box(const float *b, const float o[3], const float dl[3],
 }
 
 /* the segment o -> e through the moving instances whose world boxes it meets (Alg. 4): the first hit's
- * distance (instance_hits), or with ``refine`` the five rays' (array_refine): ``*clear`` the rays still
- * free, in and out. The shifted rays visit the boxes grown by ``grow`` (their reach, world units), the
- * centre one those the plain query visits. */
+ * distance (instance_hits), or with ``R`` the rays' (array_refine): ``*clear`` the rays still free, in
+ * and out. The shifted rays visit the boxes grown by ``grow`` (their reach, world units), the centre
+ * one those the plain query visits. */
 VQ_INLINE float instance_walk(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
-                              int want_t, int refine, float thick, float grow, unsigned *clear) {
+                              int want_t, const Rays *R, float grow, unsigned *clear) {
+    int refine = R != NULL;
     if (s->n_inst <= 0 || s->n_nodes <= 0) return -1.0f;
     float dl[3] = {e[0] - o[0], e[1] - o[1], e[2] - o[2]};
     if (len3(dl) <= 0.0f) return -1.0f;
@@ -275,8 +300,8 @@ VQ_INLINE float instance_walk(const VQScene *s, const float o[3], const float e[
                 int a = s->inst_array[inst];
                 const float *tab = s->fold + (size_t)a * s->n_bins * 12;
                 if (refine) {
-                    unsigned want = *clear & (centre ? ALL_RAYS : ALL_RAYS & ~1u);
-                    if (want) *clear &= ~array_refine(s, a, tab, pa, pb, da, skip0, skip1, seg, thick, want);
+                    unsigned want = *clear & (centre ? R->all : R->all & ~1u);
+                    if (want) *clear &= ~array_refine(s, a, tab, pa, pb, da, skip0, skip1, seg, R, want);
                     if (!*clear) return 0.0f;
                     continue;
                 }
@@ -293,13 +318,13 @@ VQ_INLINE float instance_walk(const VQScene *s, const float o[3], const float e[
 
 static float instance_hits(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
                            int want_t) {
-    return instance_walk(s, o, e, skip0, skip1, seg, want_t, 0, 0.0f, 0.0f, NULL);
+    return instance_walk(s, o, e, skip0, skip1, seg, want_t, NULL, 0.0f, NULL);
 }
 
 /* the rays of ``*clear`` the instances block taken out of it (instance_walk) */
 static void instance_refine(const VQScene *s, const float o[3], const float e[3], float skip0, float skip1, int seg,
-                            float thick, unsigned *clear) {
-    instance_walk(s, o, e, skip0, skip1, seg, 0, 1, thick, thick * s->inst_voxel, clear);
+                            const Rays *R, unsigned *clear) {
+    instance_walk(s, o, e, skip0, skip1, seg, 0, R, R->reach * s->inst_voxel, clear);
 }
 
 /* where the ray leaves its surface and ends, and the voxels skipped at its start and end */
@@ -354,24 +379,30 @@ static float shadow_scalar(const VQScene *s, const VQRule *r, const float p[3], 
     return instance_hits(s, o, e, s0, s1, r->seg, want_t);
 }
 
-/* a query's answer from its five rays' blocked bits: the centre ray's, and 2 where they disagree */
-static inline uint8_t refine_code(unsigned blocked) {
-    return (uint8_t)((blocked & 1u) | (blocked != 0 && blocked != ALL_RAYS) << 1);
+/* a query's answer from its rays' blocked bits: the centre ray's, and 2 where the centre ray and the
+ * four of any width disagree */
+static inline uint8_t refine_code(unsigned blocked, const Rays *R) {
+    unsigned c = blocked & 1u, unsure = 0;
+    for (int w = 0; w < R->n_widths; w++) {
+        unsigned five = c | (blocked >> (1 + 4 * w) & 15u) << 1;
+        unsure |= five != 0 && five != 31u;
+    }
+    return (uint8_t)(c | unsure << 1);
 }
 
-/* shadow_scalar for the five rays (vq_query_refine): refine_code of their blocked bits */
+/* shadow_scalar for the rays (vq_query_refine): refine_code of their blocked bits */
 static uint8_t shadow_refine(const VQScene *s, const VQRule *r, const float p[3], const float tg[3], const float nm[3],
-                             int distant, float thick) {
+                             int distant, const Rays *R) {
     float o[3], e[3], s0, s1;
     ray_setup(r, p, tg, nm, distant, o, e, &s0, &s1);
-    unsigned clear = ALL_RAYS;
+    unsigned clear = R->all;
     for (int w = 0; w < s->n_world && clear; w++) {
         float da[3];
         world_segment(s, w, o, e, da);
-        clear &= ~array_refine(s, s->world_array[w], s->world_fold[w], o, e, da, s0, s1, r->seg, thick, clear);
+        clear &= ~array_refine(s, s->world_array[w], s->world_fold[w], o, e, da, s0, s1, r->seg, R, clear);
     }
-    if (clear) instance_refine(s, o, e, s0, s1, r->seg, thick, &clear);
-    return refine_code(ALL_RAYS & ~clear);
+    if (clear) instance_refine(s, o, e, s0, s1, r->seg, R, &clear);
+    return refine_code(R->all & ~clear, R);
 }
 
 /* a batch: p, target and normal either as 9 coordinate arrays (``stride`` 1) or as three (n, 3)
@@ -403,11 +434,11 @@ static void batch_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b,
     }
 }
 
-static void refine_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, float thick, uint8_t *out) {
+static void refine_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b, const Rays *R, uint8_t *out) {
     for (int i = 0; i < n; i++) {
         float p[3], t[3], nm[3];
         int dist = batch_ray(b, i, p, t, nm);
-        out[i] = shadow_refine(s, r, p, t, nm, dist, thick);
+        out[i] = shadow_refine(s, r, p, t, nm, dist, R);
     }
 }
 
@@ -424,6 +455,67 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
         if (res[q] >= 0.0f) blocked[who[q]]++;
         else for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
     }
+    return 0;
+}
+
+typedef void (*RefineFn)(const VQScene *, const VQRule *, int, const SoA *, const Rays *, uint8_t *);
+
+/* vq_shade_refine's rays and list (the queries shading leaves to the caller); NULL in vq_shade */
+typedef struct {
+    Rays rays;
+    const uint8_t *near;          /* per point, whether its certain free answers are listed (NULL: none) */
+    int32_t *point, *light;       /* per entry: the point, the light, */
+    float *rgb;                   /* the light's term (3 floats) */
+    uint8_t *kind;                /* and 0 uncertain, 1 certain free at a near point */
+    int64_t capacity, count;      /* entries the list holds, entries written */
+    int64_t resume, queries;      /* the tile the caller resumes from, shadow queries answered */
+} Listing;
+
+/* vq_shade_refine's flush: the batch's answers by the refinement's rays (o->rays); the certain blocked
+ * counted, the certain free added but a near point's, which is listed as kind 1, and the uncertain
+ * listed as kind 0; returns 0 */
+static int flush_refine(RefineFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, uint8_t *code,
+                        float rgb_b[3][BATCH], const int32_t *who, const int32_t *light, float *radiance,
+                        int32_t *blocked, Listing *o) {
+    if (nb <= 0) return 0;
+    fn(s, r, nb, b, &o->rays, code);
+    o->queries += nb;
+    for (int q = 0; q < nb; q++) {
+        int32_t i = who[q];
+        uint8_t kind;
+        if (code[q] & 2) {
+            kind = 0;
+        } else if (code[q] & 1) {
+            blocked[i]++;
+            continue;
+        } else if (o->near && o->near[i]) {
+            kind = 1;
+        } else {
+            for (int k = 0; k < 3; k++) radiance[3 * i + k] += rgb_b[k][q];
+            continue;
+        }
+        int64_t c = o->count++;
+        o->point[c] = i;
+        o->light[c] = light[q];
+        for (int k = 0; k < 3; k++) o->rgb[3 * c + k] = rgb_b[k][q];
+        o->kind[c] = kind;
+    }
+    return 0;
+}
+
+/* a shading batch's flush: vq_shade's, or with a list vq_shade_refine's (the light of each ray in light) */
+VQ_INLINE int flush_shade(BatchFn fn, RefineFn rfn, Listing *o, const VQScene *s, const VQRule *r, int nb,
+                          const SoA *b, float *res, uint8_t *code, float rgb_b[3][BATCH], const int32_t *who,
+                          const int32_t *light, float *radiance, int32_t *blocked) {
+    return o ? flush_refine(rfn, s, r, nb, b, code, rgb_b, who, light, radiance, blocked, o)
+             : flush(fn, s, r, nb, b, res, rgb_b, who, radiance, blocked);
+}
+
+/* whether tile t of ``points`` points starts: always without a list, else when the list has room for
+ * all its pairs; where not, the tile is where the caller resumes */
+VQ_INLINE int tile_fits(Listing *o, int64_t t, int64_t points, int n_lights) {
+    if (!o || o->capacity - o->count >= points * (int64_t)n_lights) return 1;
+    o->resume = t;
     return 0;
 }
 
@@ -451,8 +543,6 @@ static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const So
 #include "simd_undef.h"
 #undef X2_TAG
 #endif
-
-typedef void (*RefineFn)(const VQScene *, const VQRule *, int, const SoA *, float, uint8_t *);
 
 /* one instruction set's batches: the queries' and vq_query_refine's */
 typedef struct {
@@ -538,29 +628,24 @@ void vq_query_refine(const VQScene *s, const VQRule *r, int64_t first, int64_t c
                      const void *nrm, const void *distant, float thick, int32_t kernel, int32_t f64_mask,
                      int32_t distant_u8, uint8_t *out) {
     SoA b = query_inputs(first, pts, tgt, nrm, distant, f64_mask, distant_u8);
-    pick(kernel).refine(s, r, (int)count, &b, thick, out + first);
+    Rays R = make_rays(&thick, 1);
+    pick(kernel).refine(s, r, (int)count, &b, &R, out + first);
 }
 
-/* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
- * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
-void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
-              int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
-              int32_t *blocked, int32_t *facing) {
-    BatchFn fn = pick(kernel).query;
-#ifdef VQ_X86
-    if (tile <= MAX_TILE && (fn == batch_avx512x2 || fn == batch_avx2x2)) {
-        (fn == batch_avx512x2 ? shade_avx512x2 : shade_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
-                                                         radiance, blocked, facing);
-        return;
-    }
-#endif
+/* Alg. 3 over tiles first_tile .. of ``tile`` points (vq_shade's, and with a list vq_shade_refine's),
+ * in plain C: the shadow rays in batches */
+VQ_INLINE void shade_scalar(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm,
+                            const float *geo, int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile,
+                            Kernels fns, Listing *o, float *radiance, int32_t *blocked, int32_t *facing) {
     float buf[9][BATCH], rgb_b[3][BATCH], res[BATCH];
-    int32_t dist_b[BATCH], who[BATCH];
+    int32_t dist_b[BATCH], who[BATCH], light_b[BATCH];
+    uint8_t code[BATCH];
     SoA b = {{NULL}, dist_b, 1, {NULL}, NULL};
     for (int k = 0; k < 9; k++) b.c[k] = buf[k];
     for (int64_t t = first_tile; t < first_tile + n_tiles; t++) {
         int64_t i0 = t * tile, i1 = i0 + tile < n_points ? i0 + tile : n_points;
         if (i0 >= i1) break;
+        if (!tile_fits(o, t, i1 - i0, L->n)) return;
         for (int64_t i = i0; i < i1; i++) {
             radiance[3 * i] = radiance[3 * i + 1] = radiance[3 * i + 2] = 0.0f;
             blocked[i] = facing[i] = 0;
@@ -569,10 +654,10 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
         for (int l = 0; l < L->n; l++) {
             for (int64_t i = i0; i < i1; i++) {
                 float rgb[3], tg[3];
-                int code = light_term(L, l, pts + 3 * i, nrm + 3 * i, geo + 3 * i, rgb, tg);
-                if (!code) continue;
+                int code_l = light_term(L, l, pts + 3 * i, nrm + 3 * i, geo + 3 * i, rgb, tg);
+                if (!code_l) continue;
                 facing[i]++;
-                if (code == 1) {
+                if (code_l == 1) {
                     for (int k = 0; k < 3; k++) radiance[3 * i + k] += rgb[k];
                     continue;
                 }
@@ -583,12 +668,66 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
                     rgb_b[k][nb] = rgb[k];
                 }
                 dist_b[nb] = L->flags[l] & DISTANT;
+                light_b[nb] = l;
                 who[nb++] = (int32_t)i;
-                if (nb == BATCH) nb = flush(fn, s, r, nb, &b, res, rgb_b, who, radiance, blocked);
+                if (nb == BATCH)
+                    nb = flush_shade(fns.query, fns.refine, o, s, r, nb, &b, res, code, rgb_b, who, light_b, radiance,
+                                     blocked);
             }
         }
-        flush(fn, s, r, nb, &b, res, rgb_b, who, radiance, blocked);
+        flush_shade(fns.query, fns.refine, o, s, r, nb, &b, res, code, rgb_b, who, light_b, radiance, blocked);
     }
+}
+
+/* vq_shade or, with a list, vq_shade_refine: the SIMD shading where ``kernel`` has it, else plain C */
+VQ_INLINE void shade_any(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm,
+                         const float *geo, int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile,
+                         int32_t kernel, Listing *o, float *radiance, int32_t *blocked, int32_t *facing) {
+    Kernels fns = pick(kernel);
+#ifdef VQ_X86
+    if (tile <= MAX_TILE && (fns.query == batch_avx512x2 || fns.query == batch_avx2x2)) {
+        int wide = fns.query == batch_avx512x2;
+        if (o)
+            (wide ? shade_refine_avx512x2 : shade_refine_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles,
+                                                               tile, radiance, blocked, facing, o);
+        else
+            (wide ? shade_avx512x2 : shade_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
+                                                 radiance, blocked, facing);
+        return;
+    }
+#endif
+    shade_scalar(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, fns, o, radiance, blocked, facing);
+}
+
+/* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/direct_shading.py's
+ * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
+void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
+              int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
+              int32_t *blocked, int32_t *facing) {
+    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, NULL, radiance, blocked, facing);
+}
+
+/* vq_shade with the refinement's rule (vq_query_refine's, over the ``n_widths`` widths ``widths``, at
+ * most 4: uncertain where the centre ray and the four rows of any width disagree; blocked the centre
+ * ray's, vq_shade's answer). Per shadow query: uncertain, it is listed (kind 0) and not counted;
+ * certain and blocked, blocked[i]++; certain and free, its light added, but at a point with near[i]
+ * (near NULL: none) it is listed (kind 1) instead. Lights without a shadow test are added. The list:
+ * entries *count .. (in and out) of list_point, list_light (int32), list_rgb (3 floats: the light's
+ * term) and list_kind, which hold ``capacity``; a tile starts only while the list has room for all its
+ * pairs (points x lights), else *resume_tile is that tile (the caller empties the list and calls again
+ * from it), and first_tile + n_tiles when every tile was shaded. *queries (when not NULL) is added the
+ * shadow queries answered. Point indices are those of pts. */
+void vq_shade_refine(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm,
+                     const float *geo, int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile,
+                     int32_t kernel, const float *widths, int32_t n_widths, const uint8_t *near, float *radiance,
+                     int32_t *blocked, int32_t *facing, int32_t *list_point, int32_t *list_light, float *list_rgb,
+                     uint8_t *list_kind, int64_t capacity, int64_t *count, int64_t *resume_tile, int64_t *queries) {
+    Listing o = {make_rays(widths, n_widths), near, list_point, list_light, list_rgb, list_kind, capacity, *count,
+                 first_tile + n_tiles, 0};
+    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, &o, radiance, blocked, facing);
+    *count = o.count;
+    *resume_tile = o.resume;
+    if (queries) *queries += o.queries;
 }
 
 /* ---------------------------------------------------------------- Alg. 5, point mapping */

@@ -365,35 +365,28 @@ TARGET static void SUFFIX(batch)(const VQScene *s, const VQRule *r, int n, const
     }
 }
 
-/* row_word for ray j of the refinement's five (centre, u + thick, u - thick, v + thick, v - thick) */
-TARGET static inline VI SUFFIX(ray_word)(const VQScene *s, const SUFFIX(Group) *g, int j, M m, V fu, V fv, V thick,
-                                         VI st, M *ok) {
-    V u = j == 1 ? ADD(fu, thick) : (j == 2 ? SUB(fu, thick) : fu);
-    V v = j == 3 ? ADD(fv, thick) : (j == 4 ? SUB(fv, thick) : fv);
-    return SUFFIX(row_word)(s, g, m, u, v, st, ok);
-}
-
-/* the refinement's stage 2 (finish's, for the five rays of vq_query_refine): every piece's five rows,
- * read for a lane until each of its rays met an occupied voxel or its pieces end. clear[j]: the lanes
- * whose ray j (centre, u + thick, u - thick, v + thick, v - thick) is still free, in and out */
-TARGET static void SUFFIX(finish_refine)(const VQScene *s, const SUFFIX(Group) *g, V thick, M clear[RAYS]) {
+/* the refinement's stage 2 (finish's, for the rays of vq_query_refine): every piece's rows, read for
+ * a lane until each of its rays met an occupied voxel or its pieces end. clear[j]: the lanes whose
+ * ray j (shifted by du[j], dv[j] voxels; Rays) is still free, in and out */
+TARGET VQ_INLINE void SUFFIX(finish_refine)(const VQScene *s, const SUFFIX(Group) *g, int nr, const V *du,
+                                            const V *dv, M *clear) {
     if (g->maxp == 0) return;
-    M need[RAYS];
+    M need[MAX_RAYS];
     need[0] = MAND(MAND(g->centre, g->active), clear[0]);
-    for (int j = 1; j < RAYS; j++) need[j] = MAND(g->active, clear[j]);
+    for (int j = 1; j < nr; j++) need[j] = MAND(g->active, clear[j]);
     for (int p = 0; p < g->maxp; p++) {
         M any = need[0];
-        for (int j = 1; j < RAYS; j++) any = MOR(any, need[j]);
+        for (int j = 1; j < nr; j++) any = MOR(any, need[j]);
         M live_p = MAND(any, IGT(g->npieces, ISET(p)));
         if (!MBITS(live_p)) break;
         VI st, en;
         V fu, fv;
         SUFFIX(piece_at)(g, p, &st, &en, &fu, &fv);
         VI bits = SUFFIX(span_bits)(st, en);
-        for (int j = 0; j < RAYS; j++) {
+        for (int j = 0; j < nr; j++) {
             M m = MAND(need[j], live_p), ok;
             if (!MBITS(m)) continue;
-            VI idx = SUFFIX(ray_word)(s, g, j, m, fu, fv, thick, st, &ok);
+            VI idx = SUFFIX(row_word)(s, g, m, ADD(fu, du[j]), ADD(fv, dv[j]), st, &ok);
             M hm = MAND(ok, INZ(IAND(MGATHER_I(s->words, idx, ok), bits)));
             need[j] = MANDN(hm, need[j]);
             clear[j] = MANDN(hm, clear[j]);
@@ -401,29 +394,34 @@ TARGET static void SUFFIX(finish_refine)(const VQScene *s, const SUFFIX(Group) *
     }
 }
 
-/* the refinement's stage 1 (prepare's): clip, and the first piece's five words prefetched */
-TARGET static void SUFFIX(prepare_refine)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3],
-                                          const V e[3], V skip0, V skip1, int seg_shift, float widen, V thick) {
+/* the refinement's stage 1 (prepare's): clip, and the first piece's words of the rays prefetched */
+TARGET VQ_INLINE void SUFFIX(prepare_refine)(const VQScene *s, int world, SUFFIX(Group) *g, M live, const V o[3],
+                                             const V e[3], V skip0, V skip1, int seg_shift, float widen, int nr,
+                                             const V *du, const V *dv) {
     if (!SUFFIX(clip)(s, world, g, live, o, e, skip0, skip1, seg_shift, widen)) return;
     VI st, en;
     V fu, fv;
     SUFFIX(piece_at)(g, 0, &st, &en, &fu, &fv);
-    for (int j = 0; j < RAYS; j++) {
+    for (int j = 0; j < nr; j++) {
         M ok;
         int idx[W];
-        ISTORE(idx, SUFFIX(ray_word)(s, g, j, g->active, fu, fv, thick, st, &ok));
+        ISTORE(idx, SUFFIX(row_word)(s, g, g->active, ADD(fu, du[j]), ADD(fv, dv[j]), st, &ok));
         for (int l = 0; l < W; l++) __builtin_prefetch(s->words + idx[l]);
     }
 }
 
-/* vq_query_refine's batch (batch's rays, five per query): out[i] = refine_code of the query's rays */
-TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n, const SoA *b, float thick,
-                                        uint8_t *out) {
+/* vq_query_refine's batch (batch's rays, nr = R->n per query): out[i] = refine_code of the query's rays */
+TARGET VQ_INLINE void SUFFIX(batch_refine_n)(const VQScene *s, const VQRule *r, int n, const SoA *b, const Rays *R,
+                                             int nr, uint8_t *out) {
     int seg_shift = __builtin_ctz((unsigned)r->seg);
     SUFFIX(Group) grp[GROUPS];
     V o[GROUPS][3], e[GROUPS][3], skip0[GROUPS], skip1[GROUPS];
-    M live[GROUPS], clear[GROUPS][RAYS];
-    V tv = SET(thick);
+    M live[GROUPS], clear[GROUPS][MAX_RAYS];
+    V du[MAX_RAYS], dv[MAX_RAYS];
+    for (int j = 0; j < nr; j++) {
+        du[j] = SET(R->du[j]);
+        dv[j] = SET(R->dv[j]);
+    }
     for (int i0 = 0; i0 < n; i0 += GROUPS * W) {
         int ng = (n - i0 + W - 1) / W;
         ng = ng < GROUPS ? ng : GROUPS;
@@ -431,23 +429,24 @@ TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
             live[h] = SUFFIX(load_group)(r, b, j0, m, o[h], e[h], &skip0[h], &skip1[h]);
-            for (int j = 0; j < RAYS; j++) clear[h][j] = live[h];
+            for (int j = 0; j < nr; j++) clear[h][j] = live[h];
         }
         for (int w = 0; w < s->n_world; w++) {
-            /* the shifted rows reach thick voxels beyond the centre ray */
-            float widen = thick / s->arr_inv_h[s->world_array[w]];
+            /* the shifted rows reach the widest width's voxels beyond the centre ray */
+            float widen = R->reach / s->arr_inv_h[s->world_array[w]];
             for (int h = 0; h < ng; h++)
-                SUFFIX(prepare_refine)(s, w, &grp[h], live[h], o[h], e[h], skip0[h], skip1[h], seg_shift, widen, tv);
+                SUFFIX(prepare_refine)(s, w, &grp[h], live[h], o[h], e[h], skip0[h], skip1[h], seg_shift, widen, nr,
+                                       du, dv);
             for (int h = 0; h < ng; h++) {
-                SUFFIX(finish_refine)(s, &grp[h], tv, clear[h]);
+                SUFFIX(finish_refine)(s, &grp[h], nr, du, dv, clear[h]);
                 live[h] = clear[h][0];
-                for (int j = 1; j < RAYS; j++) live[h] = MOR(live[h], clear[h][j]);
+                for (int j = 1; j < nr; j++) live[h] = MOR(live[h], clear[h][j]);
             }
         }
         for (int h = 0; h < ng; h++) {
             int j0 = i0 + h * W, m = n - j0 < W ? n - j0 : W;
-            unsigned fb[RAYS];
-            for (int j = 0; j < RAYS; j++) fb[j] = MBITS(clear[h][j]);
+            unsigned fb[MAX_RAYS];
+            for (int j = 0; j < nr; j++) fb[j] = MBITS(clear[h][j]);
             float ob[3][W], eb[3][W], s0b[W], s1b[W];
             int inst = s->n_inst > 0 && MBITS(live[h]);
             if (inst) {
@@ -457,25 +456,36 @@ TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n
             }
             for (int l = 0; l < m; l++) {
                 unsigned f = 0;
-                for (int j = 0; j < RAYS; j++) f |= (fb[j] >> l & 1u) << j;
+                for (int j = 0; j < nr; j++) f |= (fb[j] >> l & 1u) << j;
                 if (inst && f) {
                     float ol[3] = {ob[0][l], ob[1][l], ob[2][l]}, el[3] = {eb[0][l], eb[1][l], eb[2][l]};
-                    instance_refine(s, ol, el, s0b[l], s1b[l], r->seg, thick, &f);
+                    instance_refine(s, ol, el, s0b[l], s1b[l], r->seg, R, &f);
                 }
-                out[j0 + l] = refine_code(ALL_RAYS & ~f);
+                out[j0 + l] = refine_code(R->all & ~f, R);
             }
         }
     }
 }
 
-/* Alg. 3 over tiles (vq_shade's), W points of a tile against one light at a time: light_term's
- * arithmetic in SIMD, the casting lanes compressed into the batch of shadow rays */
-TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
-                                 const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
-                                 int64_t n_tiles, int tile, float *radiance, int32_t *blocked, int32_t *facing) {
+/* batch_refine_n, compiled apart for one width (its loops over the five rays unrolled: vq_query_refine
+ * and level 1) */
+TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n, const SoA *b, const Rays *R,
+                                        uint8_t *out) {
+    if (R->n == 5) SUFFIX(batch_refine_n)(s, r, n, b, R, 5, out);
+    else SUFFIX(batch_refine_n)(s, r, n, b, R, R->n, out);
+}
+
+/* Alg. 3 over tiles (vq_shade's, and with a list ``o`` vq_shade_refine's), W points of a tile against
+ * one light at a time: light_term's arithmetic in SIMD, the casting lanes compressed into the batch of
+ * shadow rays */
+TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
+                                          const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
+                                          int64_t n_tiles, int tile, float *radiance, int32_t *blocked,
+                                          int32_t *facing, Listing *o) {
     /* the batch of shadow rays (flushed while it has room for W more) and the tile in SoA form */
     float sbuf[9][BATCH], srgb[3][BATCH], res[BATCH];
-    int32_t sdist[BATCH], swho[BATCH];
+    int32_t sdist[BATCH], swho[BATCH], slight[BATCH];
+    uint8_t code[BATCH];
     float P[9][MAX_TILE + W], acc[3][MAX_TILE + W];
     int32_t fac[MAX_TILE + W];
     SoA b = {{NULL}, sdist, 1, {NULL}, NULL};
@@ -485,6 +495,7 @@ TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLigh
         int64_t i0 = t * tile, i1 = i0 + tile < n_points ? i0 + tile : n_points;
         if (i0 >= i1) break;
         int m = (int)(i1 - i0);
+        if (!tile_fits(o, t, m, L->n)) return;
         for (int j = 0; j < m + W; j++) {
             for (int k = 0; k < 3; k++) {
                 P[k][j] = j < m ? pts[3 * (i0 + j) + k] : 0.0f;
@@ -564,14 +575,32 @@ TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLigh
                 }
                 COMPRESS_I(swho + nb, ok, IADD(ISET((int)(i0 + j0)), IOTA));
                 COMPRESS_I(sdist + nb, ok, ISET(dist));
+                if (o)
+                    for (int q = nb; q < nb + c; q++) slight[q] = l;
                 nb += c;
-                if (nb > BATCH - W) nb = flush(SUFFIX(batch), s, r, nb, &b, res, srgb, swho, radiance, blocked);
+                if (nb > BATCH - W)
+                    nb = flush_shade(SUFFIX(batch), SUFFIX(batch_refine), o, s, r, nb, &b, res, code, srgb, swho,
+                                     slight, radiance, blocked);
             }
         }
-        flush(SUFFIX(batch), s, r, nb, &b, res, srgb, swho, radiance, blocked);
+        flush_shade(SUFFIX(batch), SUFFIX(batch_refine), o, s, r, nb, &b, res, code, srgb, swho, slight, radiance,
+                    blocked);
         for (int j = 0; j < m; j++) {
             for (int k = 0; k < 3; k++) radiance[3 * (i0 + j) + k] += acc[k][j];
             facing[i0 + j] = fac[j];
         }
     }
+}
+
+TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
+                                 const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
+                                 int64_t n_tiles, int tile, float *radiance, int32_t *blocked, int32_t *facing) {
+    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, radiance, blocked, facing, NULL);
+}
+
+TARGET static void SUFFIX(shade_refine)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
+                                        const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
+                                        int64_t n_tiles, int tile, float *radiance, int32_t *blocked,
+                                        int32_t *facing, Listing *o) {
+    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, radiance, blocked, facing, o);
 }

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import logging
+import threading
 import time
 from typing import Callable
 
@@ -785,6 +786,72 @@ class VoxelBackend(VisibilityBackend):
                 progress(min(n_p, (first_tile + count) * SHADE_TILE) - first_tile * SHADE_TILE)
         self._split(n_tiles, launch)
         return _direct_result(order, rad, blocked, facing, albedo, all_cast)
+
+    def shade_refined(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
+                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
+                      min_distance: float = 0.0, geometric: np.ndarray | None = None, *, level: int,
+                      near: np.ndarray | None,
+                      resolve: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> tuple[DirectResult, dict]:
+        """:meth:`shade_direct` with ``REFINE`` at ``level`` in the fused compiled kernel (``vq_shade_refine``):
+        every shadow query answered by the thick-ray rule at the widths ``THICK[:level]`` (uncertain at any,
+        blocked as :meth:`occluded`), the certain ones shaded in the kernel but the free ones of points with
+        ``near`` set ((P,) bool, or None: none). Those and the uncertain ones are handed, a band of tiles at a
+        time, to ``resolve(point_index, light_index, kind) -> (K,) bool`` free (indices into ``points`` and
+        ``lights``; kind 0 uncertain, 1 free at a near point; called from the thread pool, several bands at
+        once): the light of each it answers free is added, the others counted blocked. Returns the result and
+        ``{"uncertain": kind-0 entries, "near": kind-1 entries, "queries": shadow queries}``. Without the
+        compiled kernel: NotImplementedError (the caller shades by :meth:`occluded`-style queries instead)."""
+        if self._native is None:
+            raise NotImplementedError("the fused refined shading needs the compiled voxel kernel")
+        from usdml.visibility.voxel_native import ShadeList
+        n_p, n_l = len(points), len(lights)
+        stats = {"uncertain": 0, "near": 0, "queries": 0}
+        rad = np.zeros((n_p, 3), np.float32)
+        blocked = np.zeros(n_p, np.int32)
+        facing = np.zeros(n_p, np.int32)
+        if n_p == 0 or n_l == 0:
+            return _direct_result(np.arange(n_p), rad, blocked, facing, albedo, True), stats
+        lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
+        pts = np.asarray(points, np.float32)
+        order = morton_order(pts)
+        p = np.ascontiguousarray(pts[order])
+        nm = np.ascontiguousarray(np.asarray(normals, np.float32)[order])
+        g = nm if geometric is None else np.ascontiguousarray(np.asarray(geometric, np.float32)[order])
+        near_u8 = None if near is None else np.ascontiguousarray(as_flags(near, "near", n_p)[order], np.uint8)
+        widths = np.asarray(THICK[:max(int(level), 0)], np.float32)
+        rule = self._native_rule()
+        n_tiles = -(-n_p // SHADE_TILE)
+        tile_pairs = SHADE_TILE * n_l
+        lock = threading.Lock()
+
+        def launch(first_tile, count):
+            end = first_tile + count
+            # a tile starts while the list holds all its pairs: at least one tile's, at most about 4 M entries
+            listing = ShadeList(max(tile_pairs, min(tile_pairs * count, 1 << 22)))
+            kinds = np.zeros(2, np.int64)
+            t = first_tile
+            while t < end:
+                listing.count = 0
+                nxt = self._native.shade_refine(rule, lt, p, nm, g, t, end - t, SHADE_TILE, widths, near_u8, rad,
+                                                blocked, facing, listing)
+                pi, li, rgb, kind = listing.entries()
+                if len(pi):
+                    free = np.asarray(resolve(order[pi], li.copy(), kind.copy()), bool)
+                    lo, span = t * SHADE_TILE, min(n_p, nxt * SHADE_TILE) - t * SHADE_TILE
+                    local = pi - lo
+                    for k in range(3):
+                        rad[lo:lo + span, k] += np.bincount(local[free], rgb[free, k], span).astype(np.float32)
+                    blocked[lo:lo + span] += np.bincount(local[~free], minlength=span).astype(np.int32)
+                    kinds += np.bincount(kind, minlength=2)[:2]
+                t = nxt
+            with lock:
+                stats["uncertain"] += int(kinds[0])
+                stats["near"] += int(kinds[1])
+                stats["queries"] += listing.queries
+            if progress is not None:
+                progress(min(n_p, end * SHADE_TILE) - first_tile * SHADE_TILE)
+        self._split(n_tiles, launch)
+        return _direct_result(order, rad, blocked, facing, albedo, all_cast), stats
 
     def close(self) -> None:
         self._gpu = {}

@@ -35,8 +35,8 @@ from usdml.errors import UsdmlError
 from usdml.native import ISAS, Extension, path_line
 from usdml.scene.light_table import LightTable
 
-__all__ = ["EXTENSION", "NativeScene", "compiled_lights", "library", "describe", "isa_width", "packed_rows",
-           "rotate_point", "simd_width"]
+__all__ = ["EXTENSION", "NativeScene", "ShadeList", "compiled_lights", "library", "describe", "isa_width",
+           "packed_rows", "rotate_point", "simd_width"]
 
 _f = ctypes.POINTER(ctypes.c_float)
 _i = ctypes.POINTER(ctypes.c_int32)
@@ -98,6 +98,9 @@ EXTENSION = Extension("_voxelq", {
                                _P, _P, ctypes.c_float, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P]),
     "vq_shade": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
                         ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P]),
+    "vq_shade_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
+                               ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P,
+                               ctypes.c_int32, _P, _P, _P, _P, _P, _P, _P, _P, ctypes.c_int64, _P, _P, _P]),
     "vq_rotate_point": (None, [_P, _P, _P, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P,
                                ctypes.c_int32, ctypes.c_int64, _P]),
     "vq_build_bvh": (ctypes.c_int32, [ctypes.c_int32, _P, _P, _P, _P, _P]),
@@ -316,3 +319,53 @@ class NativeScene:
         self.lib.vq_shade(ctypes.byref(self.scene), ctypes.byref(rule), ctypes.byref(lights), points.ctypes.data,
                           normals.ctypes.data, geometric.ctypes.data, len(points), int(first_tile), int(n_tiles),
                           int(tile), self.kernel, radiance.ctypes.data, blocked.ctypes.data, facing.ctypes.data)
+
+    def shade_refine(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray,
+                     geometric: np.ndarray, first_tile: int, n_tiles: int, tile: int, widths: np.ndarray,
+                     near: np.ndarray | None, radiance: np.ndarray, blocked: np.ndarray, facing: np.ndarray,
+                     listing: ShadeList) -> int:
+        """:meth:`shade` with the refinement's rule at ``widths`` (float32, at most 4: :meth:`query_refine`'s
+        ``thick``, uncertain at any of them) from tile ``first_tile`` (``voxelq.c``'s ``vq_shade_refine``): each
+        uncertain shadow query, and each certain free one at a point with ``near`` set (uint8 per point, or
+        None), is appended to ``listing`` (kind 0 and 1) instead of being counted or added. Returns the tile
+        to resume from once ``listing`` is emptied (``first_tile + n_tiles``: all shaded); a tile starts only
+        while the list has room for all its pairs."""
+        widths = _c(widths, np.float32)
+        if len(widths) > 4:
+            raise ValueError("vq_shade_refine takes at most 4 widths")
+        if near is not None and (near.dtype != np.uint8 or not near.flags.c_contiguous or len(near) != len(points)):
+            raise TypeError("near flags must be C-contiguous uint8, one per point")
+        count = np.array([listing.count], np.int64)
+        resume = np.zeros(1, np.int64)
+        queries = np.zeros(1, np.int64)
+        self.lib.vq_shade_refine(ctypes.byref(self.scene), ctypes.byref(rule), ctypes.byref(lights),
+                                 points.ctypes.data, normals.ctypes.data, geometric.ctypes.data, len(points),
+                                 int(first_tile), int(n_tiles), int(tile), self.kernel, widths.ctypes.data,
+                                 len(widths), None if near is None else near.ctypes.data, radiance.ctypes.data,
+                                 blocked.ctypes.data, facing.ctypes.data, listing.point.ctypes.data,
+                                 listing.light.ctypes.data, listing.rgb.ctypes.data, listing.kind.ctypes.data,
+                                 listing.capacity, count.ctypes.data, resume.ctypes.data, queries.ctypes.data)
+        listing.count = int(count[0])
+        listing.queries += int(queries[0])
+        return int(resume[0])
+
+
+class ShadeList:
+    """:meth:`NativeScene.shade_refine`'s list of the shadow queries it leaves to the caller, ``capacity``
+    entries: per entry the point (``point``, int32), the light (``light``, int32), the light's unshadowed
+    term (``rgb``, (capacity, 3) float32) and the kind (0 uncertain, 1 certain free at a near point);
+    ``count`` entries written, ``queries`` shadow queries answered in all."""
+
+    def __init__(self, capacity: int):
+        self.capacity = int(capacity)
+        self.point = np.empty(self.capacity, np.int32)
+        self.light = np.empty(self.capacity, np.int32)
+        self.rgb = np.empty((self.capacity, 3), np.float32)
+        self.kind = np.empty(self.capacity, np.uint8)
+        self.count = 0
+        self.queries = 0
+
+    def entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(point, light, rgb, kind)`` of the entries written (views)."""
+        c = self.count
+        return self.point[:c], self.light[:c], self.rgb[:c], self.kind[:c]
