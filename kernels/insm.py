@@ -37,6 +37,12 @@ Lookup (Alg. 3 with a map in place of the ray)
     texels around it, weighted bilinearly (2 × 2 percentage-closer filtering): blocked when more than
     half of the weight is nearer. A point outside every view (beyond a spot light's cone, where it is
     unlit anyway) is not blocked.
+
+Grades (``REFINE``)
+    :func:`lookup_points` with ``levels`` > 0 also grades each answer by the Warp path's rule
+    (:mod:`usdml.visibility.insm`, "Refinement"): silhouettes (:func:`edge_between`) within a fixed
+    footprint per level, a seam, the bias band; the compiled maps (``kernels/insmr.c``) grade by the full
+    rule, whose reach follows the occluder's depth and sample spacing.
 """
 
 import warp as wp
@@ -411,37 +417,16 @@ def receiver_tiles(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.v
             wp.atomic_max(tile_z, (local * tiles + cj) * tiles + ci, at[3])
 
 
-@wp.kernel
-def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
-                  light_pos: wp.array(dtype=wp.vec3), light_cube: wp.array(dtype=wp.int32),
-                  light_view: wp.array(dtype=wp.int32), view_origin: wp.array(dtype=wp.vec3),
-                  view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
-                  view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
-                  size: int, depth: wp.array(dtype=float), offset: float, bias: float, first_light: int,
-                  out: wp.array(dtype=wp.uint8)):
-    """Thread (b, i): whether point ``i`` is blocked from light ``l = first_light + b`` (its views from
-    ``light_view[l]``, a cube when ``light_cube[l]``; ``depth`` holds the maps of views ``first_view``
-    on), into ``out[b P + i]``."""
-    b, pi = wp.tid()
-    n_points = points.shape[0]
-    at = locate(points[pi], normals[pi], first_light + b, light_pos, light_cube, light_view, view_origin,
-                view_rot, view_proj, view_kind, view_near, first_view, size, offset, bias)
-    if at[0] < 0.0:
-        out[b * n_points + pi] = wp.uint8(0)
-        return
-    local = int(at[0])
-    sx = at[1]
-    sy = at[2]
-    z = -at[3]
-    if view_kind[first_view + local] == PERSPECTIVE:
-        z = 1.0 / at[3]
+@wp.func
+def pcf_blocked(depth: wp.array(dtype=float), base: int, size: int, sx: float, sy: float, z: float) -> wp.uint8:
+    """Whether a lookup at pixel ``(sx, sy)`` comparing nearness ``z`` is blocked in the map at ``depth[base:]``:
+    the 2 × 2 texels around it weighted bilinearly, more than half nearer (module doc, "Lookup")."""
     fx = sx - 0.5
     fy = sy - 0.5
     i0 = int(wp.floor(fx))
     j0 = int(wp.floor(fy))
     tx = fx - float(i0)
     ty = fy - float(j0)
-    base = local * size * size
     f = (1.0 - tx) * (1.0 - ty) * texel_blocked(depth, base, size, i0, j0, z) \
         + tx * (1.0 - ty) * texel_blocked(depth, base, size, i0 + 1, j0, z) \
         + (1.0 - tx) * ty * texel_blocked(depth, base, size, i0, j0 + 1, z) \
@@ -449,4 +434,154 @@ def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.ve
     blocked = wp.uint8(0)
     if f > 0.5:
         blocked = wp.uint8(1)
-    out[b * n_points + pi] = blocked
+    return blocked
+
+
+@wp.func
+def edge_between(depth: wp.array(dtype=float), base: int, size: int, tile_z: wp.array(dtype=float), tile_base: int,
+                 tiles: int, i: int, j: int, key: float, key_far: float, persp: int, a: float, jump: float) -> int:
+    """1 where texel ``(i, j)`` of the view at ``depth[base:]`` is a silhouette between a lookup's sides: in front
+    of its compared nearness ``key``, with a neighbour not in front of ``key_far`` (the compared depth less
+    ``jump`` texels) that lies farther than the plane through the texel and the one opposite by more than
+    ``jump`` texels of depth (an empty neighbour: at least its receiver tile's farthest compared depth; one in a
+    tile without receivers is no evidence), as ``kernels/insmr.c`` finds them."""
+    m = depth[base + j * size + i]
+    if m <= key:
+        return 0
+    for d in range(4):
+        di = 0
+        dj = 0
+        if d == 0:
+            di = 1
+        elif d == 1:
+            di = -1
+        elif d == 2:
+            dj = 1
+        else:
+            dj = -1
+        ni = i + di
+        nj = j + dj
+        if ni < 0 or nj < 0 or ni >= size or nj >= size:
+            continue
+        tzn = tile_z[tile_base + (nj // TILE) * tiles + ni // TILE]
+        if tzn <= -0.5 * BIG:
+            continue
+        mn = depth[base + nj * size + ni]
+        if mn >= key_far:
+            continue
+        bi = i - di
+        bj = j - dj
+        mb = m
+        if bi >= 0 and bj >= 0 and bi < size and bj < size:
+            mo = depth[base + bj * size + bi]
+            if mo > -0.5 * BIG:
+                mb = mo
+        pred = 2.0 * m - mb
+        step = 0
+        if persp != 0:
+            if pred > 0.0:
+                if mn > -0.5 * BIG:
+                    if (pred - mn) * a * m > jump * mn * pred:
+                        step = 1
+                elif (tzn * pred - 1.0) * a * m > jump * pred:
+                    step = 1
+        else:
+            zn = tzn
+            if mn > -0.5 * BIG:
+                zn = -mn
+            if (zn + pred) * a > jump:
+                step = 1
+        if step != 0:
+            return 1
+    return 0
+
+
+@wp.kernel
+def lookup_points(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3),
+                  light_pos: wp.array(dtype=wp.vec3), light_cube: wp.array(dtype=wp.int32),
+                  light_view: wp.array(dtype=wp.int32), view_origin: wp.array(dtype=wp.vec3),
+                  view_rot: wp.array(dtype=wp.mat33), view_proj: wp.array(dtype=wp.vec4),
+                  view_kind: wp.array(dtype=wp.int32), view_near: wp.array(dtype=float), first_view: int,
+                  size: int, depth: wp.array(dtype=float), offset: float, bias: float, first_light: int,
+                  out: wp.array(dtype=wp.uint8), tiles: int, tile_z: wp.array(dtype=float),
+                  footprint: wp.array(dtype=wp.int32), band: wp.array(dtype=float), levels: int, jump: float,
+                  grade: wp.array(dtype=wp.uint8)):
+    """Thread (b, i): whether point ``i`` is blocked from light ``l = first_light + b`` (its views from
+    ``light_view[l]``, a cube when ``light_cube[l]``; ``depth`` holds the maps of views ``first_view``
+    on), into ``out[b P + i]``.
+
+    With ``levels`` > 0 (``REFINE``) also the answer's grade into ``grade[b P + i]`` by the Warp path's rule
+    (:mod:`usdml.visibility.insm`, "Refinement"): the first level ``k`` (1 ..) whose footprint of
+    ``2 footprint[k] × 2 footprint[k]`` texels around the lookup holds a silhouette between its sides
+    (:func:`edge_between`), or reaches past the view's side (a seam), or whose ``band[k]`` holds the depth
+    of one of its 2 × 2 texels (within that many texels of the compared depth); 0 where none does.
+    Outside every view: 1. ``tile_z`` (``tiles`` a side per view) as :func:`receiver_tiles` left it."""
+    b, pi = wp.tid()
+    n_points = points.shape[0]
+    at = locate(points[pi], normals[pi], first_light + b, light_pos, light_cube, light_view, view_origin,
+                view_rot, view_proj, view_kind, view_near, first_view, size, offset, bias)
+    if at[0] < 0.0:
+        out[b * n_points + pi] = wp.uint8(0)
+        if levels > 0:
+            grade[b * n_points + pi] = wp.uint8(1)
+        return
+    local = int(at[0])
+    sx = at[1]
+    sy = at[2]
+    z = -at[3]
+    persp = int(0)
+    if view_kind[first_view + local] == PERSPECTIVE:
+        persp = 1
+        z = 1.0 / at[3]
+    base = local * size * size
+    out[b * n_points + pi] = pcf_blocked(depth, base, size, sx, sy, z)
+    if levels == 0:
+        return
+    i0 = int(wp.floor(sx - 0.5))
+    j0 = int(wp.floor(sy - 0.5))
+    # the depth band: the 2 x 2 texels' depths against the compared one, in texels (perspective: a texel's
+    # size at the compared depth)
+    a = view_proj[first_view + local][0]
+    texel = 1.0 / a
+    if persp != 0:
+        texel = at[3] / a
+    near_band = float(BIG)
+    for dj in range(2):
+        for di in range(2):
+            m = depth[base + wp.clamp(j0 + dj, 0, size - 1) * size + wp.clamp(i0 + di, 0, size - 1)]
+            if m > -0.5 * BIG:
+                zt = -m
+                if persp != 0:
+                    zt = 1.0 / m
+                near_band = wp.min(near_band, wp.abs(at[3] - zt) / texel)
+    # the footprint: ring r of a texel = the least half-width whose 2r x 2r footprint holds it; the least ring
+    # with a silhouette between the lookup's sides, and the least past the view's side
+    widest = footprint[levels - 1]
+    ring_edge = int(1 << 20)
+    ring_out = int(1 << 20)
+    tile_base = local * tiles * tiles
+    key_far = -(at[3] - jump * texel)
+    if persp != 0:
+        key_far = 1.0 / (at[3] - jump * texel)
+    for dj in range(-widest + 1, widest + 1):
+        rj = dj
+        if dj <= 0:
+            rj = 1 - dj
+        for di in range(-widest + 1, widest + 1):
+            ri = di
+            if di <= 0:
+                ri = 1 - di
+            ring = wp.max(ri, rj)
+            ii = i0 + di
+            jj = j0 + dj
+            if ii < 0 or jj < 0 or ii >= size or jj >= size:
+                ring_out = wp.min(ring_out, ring)
+            elif ring < ring_edge:
+                if edge_between(depth, base, size, tile_z, tile_base, tiles, ii, jj, z, key_far, persp, a, jump) != 0:
+                    ring_edge = ring
+    need = wp.min(ring_edge, ring_out)
+    g = int(0)
+    for k in range(levels):
+        if g == 0 and (footprint[k] >= need or near_band < band[k]):
+            g = k + 1
+    grade[b * n_points + pi] = wp.uint8(g)

@@ -15,6 +15,7 @@
 
 #define BIG 1.0e30f
 #define TILE 16
+#define TILE_LEVEL 4   /* TILE = 2^TILE_LEVEL */
 #define PERSPECTIVE 0
 
 typedef struct {
@@ -75,6 +76,8 @@ typedef struct {
     int size, tiles;
     float *depth;          /* this view's S x S */
     const float *tile_z;   /* this view's tiles x tiles */
+    float *hmap;           /* refining: this view's S x S sample spacing of the nearest triangle; else NULL */
+    float h;               /* refining: the triangle being rasterized's sample spacing (world) */
 } Target;
 
 static void raster_triangle(const float *q0, const float *q1, const float *q2, const float *proj, int kind,
@@ -127,6 +130,19 @@ static void raster_triangle(const float *q0, const float *q1, const float *q2, c
         for (int tx = i0 / TILE; tx <= i1 / TILE; tx++) {
             if (tile_row[tx] <= zmin) continue;
             int s0 = imax(i0, tx * TILE), s1 = imin(i1, tx * TILE + TILE - 1);
+            if (tg->hmap) {
+                /* refining: the winning triangle's sample spacing beside its depth (the same depths) */
+                float *hrow = tg->hmap + (int64_t)j * size;
+                const float h = tg->h;
+                for (int i = s0; i <= s1; i++) {   /* selects, not branches: the loop vectorizes */
+                    float key = sign * (float)(w_start + dw * (double)(i - i0));
+                    float old = row[i], hold = hrow[i];
+                    int nearer = key > old;
+                    row[i] = nearer ? key : old;
+                    hrow[i] = nearer ? h : hold;
+                }
+                continue;
+            }
             /* each texel's value from the span's start (no chain of adds: the loop vectorizes) */
             for (int i = s0; i <= s1; i++) {
                 float key = sign * (float)(w_start + dw * (double)(i - i0));   /* nearer is larger */
@@ -250,9 +266,11 @@ static inline int face_passes(const float *lo, const float *hi, int face, const 
     return nearest < view_z[face];
 }
 
-/* Where a lookup of p reads the light's maps: returns the local view (-1: none), x, y, depth. */
+/* Where a lookup of p reads the light's maps: returns the local view (-1: none), x, y, depth compared; with
+ * texel_out the texel's world size there, with moved the point as compared (offset along its normal), world. */
 static int locate(const float *p, const float *nrm, int cube, const float *light, const Views *v, int first_view,
-                  int size, float offset, float bias, float *sx, float *sy, float *zc) {
+                  int size, float offset, float bias, float *sx, float *sy, float *zc, float *texel_out,
+                  float *moved) {
     int local = 0;
     if (cube) {
         float d[3] = {p[0] - light[0], p[1] - light[1], p[2] - light[2]};
@@ -284,6 +302,8 @@ static int locate(const float *p, const float *nrm, int cube, const float *light
     if (kind == PERSPECTIVE) texel = q[2] / proj[0];
     float step = offset * texel;
     for (int c = 0; c < 3; c++) q[c] = q[c] + qn[c] * step;
+    if (moved)   /* the point as it is compared, in world space: o + R^T q */
+        for (int c = 0; c < 3; c++) moved[c] = o[c] + r[c] * q[0] + r[3 + c] * q[1] + r[6 + c] * q[2];
     float x = proj[0] * q[0] + proj[1], y = proj[2] * q[1] + proj[3];
     if (kind == PERSPECTIVE) {
         if (q[2] <= v->near[view]) return -1;
@@ -295,14 +315,289 @@ static int locate(const float *p, const float *nrm, int cube, const float *light
     *sx = x;
     *sy = y;
     *zc = q[2] - bias * texel;
+    if (texel_out) *texel_out = texel;
     return local;
+}
+
+/* ---- refinement (REFINE): which answers may be wrong, by the reconstruction's own geometry ----
+ *
+ * The maps are rasterized from triangles reconstructed from depth images whose samples lie h apart (a
+ * triangle's h: its sample spacing, world units, kept per texel as the map is rasterized), so an
+ * occluder's outline in a map can be off by about h. A lookup is uncertain where an outline lies between
+ * its sides within c h of its ray at the outline's depth: a *silhouette texel* (nearer than a neighbour by
+ * more than `jump` texels of depth, against the plane through the texel and the one opposite, so that a
+ * plane at any slope has none) in front of the lookup's compared depth, whose neighbour is not in front of
+ * it by more than `jump` texels, within c h a / z texels (perspective; h a orthographic) of the lookup,
+ * plus r0 texels of the lookup's own footprint. Each answer gets the first level whose c reaches it
+ * (least_level: a search of a per-view pyramid of the silhouettes' nearness, far sides and reach), on a
+ * cube map the four faces beside its own searched too (the point projected into each: the seam), or
+ * whose depth band (|compared depth - a 2 x 2 texel's depth| in texels under band[k]) holds it. A lookup
+ * outside every view is uncertain at every level.
+ *
+ * Texels of tiles with no receiver were never rasterized: a neighbour there is no evidence, and the
+ * pyramid's blocks there are empty. An empty texel of a receiver tile is at least as far as that tile's
+ * farthest compared depth (what the tile test culled lies beyond it). */
+
+typedef struct {
+    int levels;
+    float jump, r0;
+    const float *c;      /* (levels,) non-decreasing */
+    const float *band;   /* (levels,) non-decreasing */
+} Rule;
+
+/* levels of the pyramid above the S x S texels: ceil(S / 2^L) blocks a side, L = 1 .. until one */
+static int pyramid_levels(int size, int64_t *offsets) {
+    int n = 0;
+    int64_t at = 0;
+    for (int side = size; side > 1;) {
+        side = (side + 1) / 2;
+        if (offsets) offsets[n] = at;
+        at += (int64_t)side * side;
+        n++;
+    }
+    if (offsets) offsets[n] = at;
+    return n;
+}
+
+/* depth of a nearness (perspective 1 / z, orthographic -z) */
+static inline float depth_of(float m, int persp) { return persp ? 1.0f / m : -m; }
+
+/* One view's silhouettes, in place of its spacing map: reach[t] = h a / z (perspective; h a orthographic)
+ * texels per unit of c where texel t is a silhouette, else 0, and far[t] the nearness of its farthest
+ * stepped-to neighbour (-BIG: an empty one); then the pyramid's block maxima of the silhouettes' nearness
+ * (emax) and reach (pmax), and minima of their far sides (fmin). */
+static void silhouettes(const float *m, float *reach, float *far, const float *tz, int size, int tiles, float a,
+                        int persp, float jump, float *emax, float *fmin, float *pmax) {
+    const float empty = -0.5f * BIG;
+    for (int j = 0; j < size; j++) {
+        const float *tz_row = tz + (j / TILE) * tiles;
+        for (int i = 0; i < size; i++) {
+            if (!(tz_row[i / TILE] > empty)) {       /* a tile without receivers: nothing was rasterized */
+                i = (i / TILE) * TILE + TILE - 1;
+                continue;
+            }
+            int64_t t = (int64_t)j * size + i;
+            float mt = m[t];
+            if (!(mt > empty)) {
+                reach[t] = 0.0f;
+                continue;
+            }
+            int sil = 0;
+            float fs = BIG;
+            for (int d = 0; d < 4; d++) {
+                int di = d == 0 ? 1 : (d == 1 ? -1 : 0), dj = d == 2 ? 1 : (d == 3 ? -1 : 0);
+                int ni = i + di, nj = j + dj;
+                if (ni < 0 || nj < 0 || ni >= size || nj >= size) continue;
+                float tzn = tz[(nj / TILE) * tiles + ni / TILE];
+                if (!(tzn > empty)) continue;                 /* a tile without receivers: unknown */
+                float mn = m[(int64_t)nj * size + ni];
+                int bi = i - di, bj = j - dj;
+                float mb = mt;
+                if (bi >= 0 && bj >= 0 && bi < size && bj < size && m[(int64_t)bj * size + bi] > empty)
+                    mb = m[(int64_t)bj * size + bi];
+                float pred = 2.0f * mt - mb;                  /* the plane through t - d and t, at t + d */
+                int step;
+                if (persp) {
+                    if (!(pred > 0.0f)) continue;             /* the plane runs off to infinity: no step */
+                    /* (1 / mn - 1 / pred) texels of depth at t (a texel: z / a) over jump, without a division */
+                    step = mn > empty ? (pred - mn) * a * mt > jump * mn * pred
+                                      : (tzn * pred - 1.0f) * a * mt > jump * pred;
+                } else {
+                    step = ((mn > empty ? -mn : tzn) + pred) * a > jump;
+                }
+                if (step) {
+                    sil = 1;
+                    fs = fmn(fs, mn);         /* an empty neighbour: -BIG, behind anything */
+                }
+            }
+            reach[t] = sil ? reach[t] * (persp ? a * mt : a) : 0.0f;
+            far[t] = fs;
+        }
+    }
+    /* level 1 from the texels, each next level from the one below; below level TILE_LEVEL (a block a
+     * receiver tile) the blocks of tiles without receivers are skipped, never searched (their tile's block
+     * is empty) */
+    int64_t off[40];
+    int levels = pyramid_levels(size, off);
+    int below = size;
+    for (int l = 0; l < levels; l++) {
+        int side = (below + 1) / 2, level = l + 1;
+        float *e = emax + off[l], *f = fmin + off[l], *p = pmax + off[l];
+        const float *eb = l ? emax + off[l - 1] : NULL, *fb = l ? fmin + off[l - 1] : NULL;
+        const float *pb = l ? pmax + off[l - 1] : NULL;
+        for (int by = 0; by < side; by++) {
+            for (int bx = 0; bx < side; bx++) {
+                float ev = -BIG, fv = BIG, pv = 0.0f;
+                if (level <= TILE_LEVEL) {
+                    int sh = TILE_LEVEL - level;
+                    if (!(tz[(by >> sh) * tiles + (bx >> sh)] > empty)) {
+                        if (level == TILE_LEVEL || level == levels) {
+                            e[(int64_t)by * side + bx] = -BIG;
+                            f[(int64_t)by * side + bx] = BIG;
+                            p[(int64_t)by * side + bx] = 0.0f;
+                        }
+                        continue;
+                    }
+                }
+                for (int k = 0; k < 4; k++) {
+                    int ci = 2 * bx + (k & 1), cj = 2 * by + (k >> 1);
+                    if (ci >= below || cj >= below) continue;
+                    int64_t c = (int64_t)cj * below + ci;
+                    float ce, cf, cp;
+                    if (l) {
+                        ce = eb[c];
+                        cf = fb[c];
+                        cp = pb[c];
+                    } else {
+                        cp = reach[c];
+                        ce = cp > 0.0f ? m[c] : -BIG;
+                        cf = cp > 0.0f ? far[c] : BIG;
+                    }
+                    ev = fmx(ev, ce);
+                    fv = fmn(fv, cf);
+                    pv = fmx(pv, cp);
+                }
+                e[(int64_t)by * side + bx] = ev;
+                f[(int64_t)by * side + bx] = fv;
+                p[(int64_t)by * side + bx] = pv;
+            }
+        }
+        below = side;
+    }
+}
+
+/* Chebyshev distance from (x, y) to the texel centres of block (bx, by) of level l (2^l texels a side) */
+static inline float block_distance(float x, float y, int bx, int by, int level, int size) {
+    int w = 1 << level;
+    float lo_x = (float)(bx * w) + 0.5f, hi_x = (float)(imin((bx + 1) * w, size) - 1) + 0.5f;
+    float lo_y = (float)(by * w) + 0.5f, hi_y = (float)(imin((by + 1) * w, size) - 1) + 0.5f;
+    float dx = fmx(0.0f, fmx(lo_x - x, x - hi_x)), dy = fmx(0.0f, fmx(lo_y - y, y - hi_y));
+    return fmx(dx, dy);
+}
+
+typedef struct {
+    int level, bx, by;
+    float bound;    /* the least c any texel of the block could need */
+} Block;
+
+/* Whether block (bx, by) of level l (0: a texel) may hold a silhouette between the lookup's sides (its near
+ * side in front of nearness `key`, its far side not in front of `key_far`) reaching (x, y) within `limit`:
+ * its bound (the least c it could need, exact for a texel), or -1. */
+static inline float block_bound(const float *m, const float *reach, const float *far, const float *emax,
+                                const float *fmin, const float *pmax, int size, const int64_t *off, const int *sides,
+                                int l, int bx, int by, float x, float y, float key, float key_far, float r0,
+                                float limit) {
+    float e, f, p;
+    if (l == 0) {
+        int64_t t = (int64_t)by * size + bx;
+        p = reach[t];
+        if (!(p > 0.0f)) return -1.0f;
+        e = m[t];
+        f = far[t];
+    } else {
+        int64_t at = off[l - 1] + (int64_t)by * sides[l] + bx;
+        p = pmax[at];
+        e = emax[at];
+        f = fmin[at];
+    }
+    if (!(e > key) || !(f < key_far) || !(p > 0.0f)) return -1.0f;
+    float d = fmx(0.0f, block_distance(x, y, bx, by, l, size) - r0);
+    if (d > limit * p) return -1.0f;
+    return d / p;
+}
+
+/* The first level (0-based; r->levels: none; at most `found`) whose c lets a silhouette between the
+ * lookup's sides reach (x, y): its near side in front of the compared nearness `key`, its far side not in
+ * front of `key_far` (the compared depth less `jump` texels: the receiver's own surface beyond an outline
+ * may lie a little in front of it), so that, moved, the outline would change the answer. A silhouette
+ * reaches at c = max(0, distance - r0) / reach. A search of the pyramid (levels' offsets off, sides, top),
+ * started at the level whose blocks are as wide as the farthest reach, the most promising block first,
+ * pruning blocks that cannot beat the level found so far. */
+static int least_level(const float *m, const float *reach, const float *far, const float *emax, const float *fmin,
+                       const float *pmax, int size, const int64_t *off, const int *sides, int top, float x, float y,
+                       float key, float key_far, const Rule *r, int found) {
+    if (found <= 0) return found;
+    float limit = r->c[found - 1];         /* a block must be reached within this to matter */
+    Block stack[4 * 40];
+    int n = 0;
+    /* start at the level whose blocks are as wide as the farthest reach in the view: the blocks around (x, y) */
+    float far_reach;
+    if (top) {
+        int64_t at = off[top - 1];
+        if (!(emax[at] > key) || !(fmin[at] < key_far)) return found;
+        far_reach = limit * pmax[at] + r->r0;
+    } else {
+        far_reach = (float)size;
+    }
+    int l0 = 0;
+    while (l0 < top && (float)(1 << l0) < far_reach) l0++;
+    int w = 1 << l0, side = sides[l0];
+    int bx0 = iclamp(ifloor((x - far_reach) / (float)w), 0, side - 1), bx1 = iclamp(ifloor((x + far_reach) / (float)w), 0, side - 1);
+    int by0 = iclamp(ifloor((y - far_reach) / (float)w), 0, side - 1), by1 = iclamp(ifloor((y + far_reach) / (float)w), 0, side - 1);
+    for (int by = by0; by <= by1; by++)
+        for (int bx = bx0; bx <= bx1; bx++) {
+            float bound = block_bound(m, reach, far, emax, fmin, pmax, size, off, sides, l0, bx, by, x, y, key, key_far,
+                                      r->r0, limit);
+            if (bound < 0.0f) continue;
+            if (l0 == 0) {
+                int lv = 0;
+                while (lv < found && bound > r->c[lv]) lv++;
+                found = lv;
+                limit = lv ? r->c[lv - 1] : -1.0f;
+            } else if (n < (int)(sizeof stack / sizeof stack[0])) {
+                stack[n++] = (Block){l0, bx, by, bound};
+            }
+        }
+    while (n && found > 0) {
+        Block b = stack[--n];
+        if (b.bound > limit) continue;
+        int l = b.level - 1;
+        Block kids[4];
+        int count = 0;
+        for (int k = 0; k < 4; k++) {
+            int ci = 2 * b.bx + (k & 1), cj = 2 * b.by + (k >> 1);
+            if (ci >= sides[l] || cj >= sides[l]) continue;
+            float bound = block_bound(m, reach, far, emax, fmin, pmax, size, off, sides, l, ci, cj, x, y, key, key_far,
+                                      r->r0, limit);
+            if (bound < 0.0f) continue;
+            if (l == 0) {               /* a texel: its bound is its need */
+                int lv = 0;
+                while (lv < found && bound > r->c[lv]) lv++;
+                found = lv;
+                limit = lv ? r->c[lv - 1] : -1.0f;
+                continue;
+            }
+            kids[count++] = (Block){l, ci, cj, bound};
+        }
+        /* the most promising (least bound) on top */
+        for (int a = 0; a < count; a++)
+            for (int c = a + 1; c < count; c++)
+                if (kids[c].bound > kids[a].bound) {
+                    Block t = kids[a];
+                    kids[a] = kids[c];
+                    kids[c] = t;
+                }
+        for (int k = 0; k < count && n < (int)(sizeof stack / sizeof stack[0]); k++) stack[n++] = kids[k];
+    }
+    return found;
+}
+
+/* the grade of an answer: the first level (1 ..) whose c reaches it (`reached`, 0-based, from
+ * least_level) or whose band holds its band distance `band` (texels), 0 where none does */
+static inline uint8_t grade_of(const Rule *r, int reached, float band) {
+    for (int k = 0; k < r->levels; k++)
+        if (k >= reached || band < r->band[k]) return (uint8_t)(k + 1);
+    return 0;
 }
 
 /* One light: receiver tiles, its views rasterized from the triangles, every point looked up.
  * seconds[0..2] += receivers, rasterization, lookups. Without L: each point's answer into out (1:
  * blocked). With L (light l of the table; shading normals, two scratch arrays of P): Alg. 3 for this
  * light, fused: a point it faces (light_term) counts in facing; casting, it is looked up (queries)
- * and counts in blocked or adds its light to radiance (3 per point); only those points are receivers. */
+ * and counts in blocked or adds its light to radiance (3 per point); only those points are receivers.
+ * With grade (refining, without L): each answer's grade too (the refinement's rule above; tri_h the
+ * triangles' sample spacings, hmap n_views S^2 floats, emax and pmax n_views times the pyramid's blocks,
+ * rule = levels, jump, r0, c[levels], band[levels]); the answers are the same. */
 void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, const float *cl_box, int64_t n_clusters,
                 const float *origin, const float *rot, const float *proj,
                 const int32_t *kind, const float *near, int32_t first_view, int32_t n_views, int32_t cube,
@@ -310,9 +605,21 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                 const float *points, const float *normals, int64_t n_points, float offset, float bias,
                 uint8_t *out, double *seconds, const VQLights *L, int32_t l, const float *shading,
                 float *scratch_rgb, uint8_t *scratch_code, float *radiance, int32_t *blocked, int32_t *facing,
-                int64_t *queries) {
+                int64_t *queries, const float *tri_h, float *scratch, const float *rule, uint8_t *grade) {
     Views v = {origin, rot, proj, kind, near};
     const int64_t plane = (int64_t)size * size, tplane = (int64_t)tiles * tiles;
+    if (L || !out || !tri_h || !scratch || !rule) grade = NULL;
+    /* refining: scratch holds the views' spacing / reach maps and far sides (S^2 each), then the views'
+     * pyramids of emax, fmin and pmax (pyr blocks each) */
+    int64_t pyr_off[40];
+    int pyr_side[40], pyr_top = pyramid_levels(size, pyr_off);
+    const int64_t pyr = pyr_off[pyr_top];
+    pyr_side[0] = size;
+    for (int k = 1; k <= pyr_top; k++) pyr_side[k] = (pyr_side[k - 1] + 1) / 2;
+    float *hmap = grade ? scratch : NULL, *farm = grade ? scratch + n_views * plane : NULL;
+    float *emax = grade ? scratch + 2 * n_views * plane : NULL;
+    float *fmin = grade ? emax + n_views * pyr : NULL, *pmax = grade ? emax + 2 * n_views * pyr : NULL;
+    float *hm = hmap;
     double t0 = now();
     for (int64_t i = 0; i < n_views * tplane; i++) tile_z[i] = -BIG;
     for (int i = 0; i < n_views; i++) view_z[i] = -BIG;
@@ -324,7 +631,7 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
             if (code != 2) continue;
         }
         float sx, sy, z;
-        int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z);
+        int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z, NULL, NULL);
         if (local < 0) continue;
         if (z > view_z[local]) view_z[local] = z;
         int i0 = ifloor(sx - 0.5f), j0 = ifloor(sy - 0.5f);
@@ -353,7 +660,7 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
             for (int face = 0; face < 6; face++) {
                 if (!face_passes(blo, bhi, face, view_z)) continue;
                 int view = first_view + face;
-                Target tg = {size, tiles, depth + face * plane, tile_z + face * tplane};
+                Target tg = {size, tiles, depth + face * plane, tile_z + face * tplane, NULL, 0.0f};
                 if (cluster_wanted(rel, rot + 9 * view, proj + 4 * view, PERSPECTIVE, near[view], &tg)) faces |= 1 << face;
             }
             if (!faces) continue;
@@ -374,7 +681,8 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                     mat_vec(rot + 9 * view, d[0], q0);
                     mat_vec(rot + 9 * view, d[1], q1);
                     mat_vec(rot + 9 * view, d[2], q2);
-                    Target tg = {size, tiles, depth + face * plane, tile_z + face * tplane};
+                    Target tg = {size, tiles, depth + face * plane, tile_z + face * tplane,
+                                 hm ? hm + face * plane : NULL, hm ? tri_h[t] : 0.0f};
                     view_triangle(q0, q1, q2, proj + 4 * view, PERSPECTIVE, near[view], &tg);
                 }
             }
@@ -383,7 +691,7 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
         for (int vi = 0; vi < n_views; vi++) {
             int view = first_view + vi;
             const float *o = origin + 3 * view, *r = rot + 9 * view;
-            Target tg = {size, tiles, depth + vi * plane, tile_z + vi * tplane};
+            Target tg = {size, tiles, depth + vi * plane, tile_z + vi * tplane, hm ? hm + vi * plane : NULL, 0.0f};
             for (int64_t ci = 0; ci < n_clusters; ci++) {
                 float rel[8][3];
                 box_corners(cl_box + 6 * ci, cl_box + 6 * ci + 3, o, rel);
@@ -396,8 +704,30 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                         mat_vec(r, rl, q[k]);
                     }
                     if (fmn(fmn(q[0][2], q[1][2]), q[2][2]) >= view_z[vi]) continue;
+                    if (hm) tg.h = tri_h[t];
                     view_triangle(q[0], q[1], q[2], proj + 4 * view, kind[view], near[view], &tg);
                 }
+            }
+        }
+    }
+    Rule rl = {0, 0.0f, 0.0f, NULL, NULL};
+    float top_e[6] = {-BIG, -BIG, -BIG, -BIG, -BIG, -BIG}, top_f[6] = {BIG, BIG, BIG, BIG, BIG, BIG};
+    float top_p[6] = {0, 0, 0, 0, 0, 0};
+    if (grade) {
+        rl.levels = (int)rule[0];
+        rl.jump = rule[1];
+        rl.r0 = rule[2];
+        rl.c = rule + 3;
+        rl.band = rule + 3 + rl.levels;
+        for (int vi = 0; vi < n_views; vi++) {
+            int view = first_view + vi;
+            silhouettes(depth + vi * plane, hmap + vi * plane, farm + vi * plane, tile_z + vi * tplane, size, tiles,
+                        proj[4 * view], kind[view] == PERSPECTIVE, rl.jump, emax + vi * pyr, fmin + vi * pyr,
+                        pmax + vi * pyr);
+            if (vi < 6 && pyr_top) {
+                top_e[vi] = emax[vi * pyr + pyr_off[pyr_top - 1]];
+                top_f[vi] = fmin[vi * pyr + pyr_off[pyr_top - 1]];
+                top_p[vi] = pmax[vi * pyr + pyr_off[pyr_top - 1]];
             }
         }
     }
@@ -414,17 +744,20 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
             }
             asked++;
         }
-        float sx, sy, z;
+        float sx, sy, z, texel, moved[3];
         int hidden = 0;
-        int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z);
+        int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z,
+                           &texel, grade ? moved : NULL);
         if (local < 0) {
             if (L) {
                 for (int k = 0; k < 3; k++) radiance[3 * i + k] += scratch_rgb[3 * i + k];
             } else {
                 out[i] = 0;
+                if (grade) grade[i] = 1;     /* outside every view: uncertain at every level */
             }
             continue;
         }
+        float zc = z;
         float fx = sx - 0.5f, fy = sy - 0.5f;
         int i0 = ifloor(fx), j0 = ifloor(fy);
         float tx = fx - (float)i0, ty = fy - (float)j0;
@@ -437,6 +770,45 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                   (1.0f - tx) * ty * (m[jb * size + ia] > z ? 1.0f : 0.0f) +
                   tx * ty * (m[jb * size + ib] > z ? 1.0f : 0.0f);
         hidden = f > 0.5f;
+        if (grade) {
+            int persp = kind[first_view + local] == PERSPECTIVE;
+            /* the depth band: each texel's occluder depth against the compared one, in texels */
+            float band = BIG;
+            const int ix[4] = {ia, ib, ia, ib}, jx[4] = {ja, ja, jb, jb};
+            for (int k = 0; k < 4; k++) {
+                float mk = m[jx[k] * size + ix[k]];
+                if (mk > -0.5f * BIG) band = fmn(band, fabsf(zc - depth_of(mk, persp)) / texel);
+            }
+            int reached = least_level(m, hmap + local * plane, farm + local * plane, emax + local * pyr,
+                                      fmin + local * pyr, pmax + local * pyr, size, pyr_off, pyr_side, pyr_top, sx, sy,
+                                      z, persp ? 1.0f / (zc - rl.jump * texel) : -(zc - rl.jump * texel), &rl,
+                                      rl.levels);
+            if (cube && reached > 0) {
+                /* the seam: the four neighbouring faces' silhouettes, the point projected into each (beyond its
+                 * edge; the faces' texels meet there) and its compared depth along the same ray */
+                float zq = zc + bias * texel;
+                for (int f2 = 0; f2 < 6 && reached > 0; f2++) {
+                    if (f2 == local || f2 == (local ^ 1) || !(top_p[f2] > 0.0f)) continue;
+                    int view = first_view + f2;
+                    const float *r2 = rot + 9 * view;
+                    float rel[3] = {moved[0] - light[0], moved[1] - light[1], moved[2] - light[2]}, q2[3];
+                    mat_vec(r2, rel, q2);
+                    if (!(q2[2] > near[view])) continue;
+                    float key2 = 1.0f / (q2[2] * (zc / zq)), key2_far = 1.0f / (q2[2] * ((zc - rl.jump * texel) / zq));
+                    if (!(top_e[f2] > key2) || !(top_f[f2] < key2_far)) continue;
+                    const float *pj = proj + 4 * view;
+                    float x2 = pj[0] * q2[0] / q2[2] + pj[1], y2 = pj[2] * q2[1] / q2[2] + pj[3];
+                    float fs = (float)size;
+                    float out_x = fmx(0.0f, fmx(0.5f - x2, x2 - (fs - 0.5f)));
+                    float out_y = fmx(0.0f, fmx(0.5f - y2, y2 - (fs - 0.5f)));
+                    if (fmx(out_x, out_y) - rl.r0 > rl.c[reached - 1] * top_p[f2]) continue;
+                    reached = least_level(depth + f2 * plane, hmap + f2 * plane, farm + f2 * plane, emax + f2 * pyr,
+                                          fmin + f2 * pyr, pmax + f2 * pyr, size, pyr_off, pyr_side, pyr_top, x2, y2,
+                                          key2, key2_far, &rl, reached);
+                }
+            }
+            grade[i] = grade_of(&rl, reached, band);
+        }
         if (!L) {
             out[i] = (uint8_t)hidden;
         } else if (hidden) {
