@@ -243,3 +243,38 @@ def test_budget_estimate_holds_on_every_sample_stage(stage):
     lo, hi = r["estimated_eps_v_interval"]
     assert lo <= r["eps_v"] <= hi, (r["eps_v"], lo, hi, r["refine_level"])
     assert hi <= 0.01 or r["refine_level"] == "exact"
+
+
+def test_fused_refined_shading_matches_refined_queries(new_stage):
+    """A frame under a budget shades in the voxel backend's fused kernel (uncertain and blind-zone pairs handed
+    back and traced exactly): the same light as NumPy shading over the refined queries."""
+    from dataclasses import replace
+
+    from usdml.lighting.direct import shade_direct, shade_with
+    from usdml.render.frame import conform_camera
+    from usdml.render.gbuffer import build_gbuffer
+    from usdml.scene import diff
+    from usdml.visibility import ExactBackend, make_backend
+
+    d = StageDelegate(_square_stage(new_stage))
+    snap = d.snapshot(1)
+    w, h = snap.camera.resolution(64)
+    ex = ExactBackend()
+    vox = make_backend("voxel", d.usdml_settings.updated(voxel_resolution=64, direction_step=6.0), "cpu")
+    try:
+        ex.update(snap, diff(None, snap))
+        vox.update(snap, diff(None, snap))
+        gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
+        hit = gb.hit.ravel()
+        p, n, a, g = (getattr(gb, k).reshape(-1, 3)[hit] for k in ("position", "normal", "albedo", "geometric"))
+        refined = Refined(vox, ex, level=2)
+        assert refined.supports("shade_direct")
+        fused = shade_with(refined, p, n, a, snap.lights, geometric=g)
+        counts = dict(refined.counts)
+        plain = shade_direct(p, n, a, snap.lights, refined.occluded, geometric=g)
+    finally:
+        ex.close()
+        vox.close()
+    assert counts["queries"] == fused.queries > 0 and counts["refined"] > 0
+    np.testing.assert_allclose(fused.radiance, plain.radiance, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(fused.shadow, plain.shadow, atol=1e-6)

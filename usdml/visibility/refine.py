@@ -162,6 +162,9 @@ class Refined(VisibilityBackend):
             # a map per light, built anew for each call: few, large calls (about 200 bytes a pair)
             self.matrix_chunk_pairs = 1 << 22
 
+    def supports(self, capability: str) -> bool:       # per instance: LIGHT_MAJOR as the wrapped backend
+        return super().supports(capability) or capability in self.capabilities
+
     @property
     def stats(self):
         return MappingProxyType(dict(self.approx.stats))
