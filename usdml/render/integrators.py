@@ -143,7 +143,7 @@ class LghDirect(EveryLight):
 
         self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
         stats.direct_lgh = dict(self.field.stats)
-        self.estimate = direct_estimator(self.field, frame.snap, self.backends.shadow, self.settings)
+        self.estimate = direct_estimator(self.field, frame, self.backends.shadow, self.settings)
         if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:
             log.warning(f"{self.where}: --direct lgh: none of its {len(self.field.rest)} light(s) at time "
                         f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
@@ -217,7 +217,7 @@ class VplGI(NoGI):
         from usdml.render.lighting_estimate import gi_estimator
 
         self.field = prepare_vpls(frame.snap, self.backends.primary, frame.lights, self.settings, device=self.device)
-        self.estimate = gi_estimator(self.field, frame.snap, self.rays.occluded, self.settings)
+        self.estimate = gi_estimator(self.field, frame, self.rays.occluded, self.settings)
         stats.gi_seconds = self.field.stats["vpl_seconds"] + self.field.stats.get("lgh_seconds", 0.0)
         self.target_lift = target_lift(self.backends.gi) if self.backends.gi is not None else 0.0
 

@@ -4,40 +4,43 @@
 error by shading every pixel by every light (VPL) with a shadow ray each: on the city at night (100,000
 lamps) about 80,000 rays per pixel, a thousand times what the frame traces. A frame estimates it from a sample:
 
-* **pixels**: :data:`PIXELS` of the first pass's hit pixels, stratified over the image as the visibility
-  estimate draws them (:func:`usdml.render.estimate.sample_pixels`), seeded by the render's seed, the
-  timecode and the kind (``gi``, ``direct``). The error is the written AOV's, whose pixel is the mean over
-  the passes (``usdml:pixelSamples``) of each pass's point: at each sampled pixel two passes are drawn (the
-  only one with a single pass) and compared there, the frame's side ``a`` being what the pass's LGH gave
-  (the frame's own numbers, not recomputed).
+* **pixels**: :data:`PIXELS` draws among the first pass's hit pixels and their neighbours (a silhouette
+  pixel may be hit by a later pass only), seeded by the render's seed, the timecode and the kind (``gi``,
+  ``direct``), each pixel with probability :data:`UNIFORM` / N plus the rest in proportion to its ``|a|²``
+  in the first pass (the error is mostly where the light is), systematically along the image's scan order
+  (:func:`sample_pixels`), each draw weighed by ``1 / (N p)``. The error is the written AOV's, whose pixel is
+  the mean over the passes (``usdml:pixelSamples``) of each pass's point: at each drawn pixel
+  :data:`COMPARED_PASSES` of its passes (every pass for GI, two for direct light) are compared, the frame's
+  side ``a`` being what the pass's LGH gave there (the frame's own numbers, not recomputed).
 * **brute force, sampled**: at each compared point, ``b = Σ_l f_l V_l`` over the hierarchy's lights
   (``--gi``: the frame's VPLs as ``vpl-bruteforce`` gathers them, one-sided cosine emitters with the clamped
   geometry term; ``--direct``: its grid lights as ``--direct all`` shades them; the every-light rest of
   ``--direct lgh`` is shaded here as the frame shades it and added to the reference) with the frame's shadow
-  backend, estimated without bias from :data:`RAYS` light draws per pixel (half at each of its two points).
+  backend, estimated without bias from :data:`RAYS` light draws per pixel (split over its compared points).
   The draws come from a grid over the lights built per frame (:class:`LightGrid`, :class:`Proposal`): the
   lights of the cells near the point each by its luminous intensity times ``n·ω / d²``, every other cell by
   an upper bound of its lights' light (their summed intensity over the squared distance to the cell's
-  bounding sphere, times the most ``n·ω`` can be over its box), then one of its lights by intensity; in
-  :data:`REPLICATES` independent systematic sets (evenly spaced along the cumulative weights from a random
-  offset). ``f`` is evaluated exactly at each drawn light and a shadow ray traced to it (once per distinct
-  pair); ``b̂ = mean_k f_k V_k / q_k``, and its variance ``v`` is estimated from the sets' spread.
+  bounding sphere, times the most ``n·ω`` can be over its box; shared by a pixel's points), then one of its
+  lights by intensity; in :data:`REPLICATES` independent systematic sets (evenly spaced along the cumulative
+  weights from a random offset). ``f`` is evaluated exactly at each drawn light and a shadow ray traced to it
+  (once per distinct pair); ``b̂ = mean_k f_k V_k / q_k``, and its variance ``v`` is estimated from the sets'
+  spread.
 
-Errors are RGB: ``|x|²`` sums the squares of the three channels; ``e = a - b̂``. Per sampled pixel, with
-``S`` passes and two of them ``s ≠ t`` compared (the pixel's value is their mean, so ``|mean_s x_s|² =
-(1/S) mean_s |x_s|² + (1 - 1/S) mean_(s≠t) x_s·x_t``, each mean unbiased from the two)::
+Errors are RGB: ``|x|²`` sums the squares of the three channels; ``e = a - b̂``. Per drawn pixel, with ``S``
+passes and ``k`` of them compared (the pixel's value is their mean, so ``|mean_s x_s|² = (1/S) mean_s |x_s|²
++ (1 - 1/S) mean_(s≠t) x_s·x_t``, each mean unbiased from the ``k``; :func:`per_pixel`)::
 
-    D_p = (1/S) (|e_s|² - v_s + |e_t|² - v_t) / 2 + (1 - 1/S) e_s·e_t     (S = 1: |e|² - v)
+    D_p = (1/S) mean_i (|e_i|² - v_i) + (1 - 1/S) mean_(i≠j) e_i·e_j     (k = 1: |e|² - v)
     B_p = the same of b̂
-    rel_rmse = sqrt(Σ_p D_p / Σ_p B_p)        (estimates sqrt(Σ_p,c (a - b)²) / sqrt(Σ_p,c b²))
-    rel_bias = Σ_p Σ_c (a_p - b̂_p) / Σ_p Σ_c b̂_p
+    rel_rmse = sqrt(Σ_p w_p D_p / Σ_p w_p B_p)    (estimates sqrt(Σ_p,c (a - b)²) / sqrt(Σ_p,c b²))
+    rel_bias = Σ_p w_p Σ_c (a_p - b̂_p) / Σ_p w_p Σ_c b̂_p
 
 each term unbiased for its noiseless value (the reference's noise taken out). Note ``compare``'s
 ``rel_rmse`` divides the RMSE by the reference's *mean* rather than its RMS, so it is larger by the
-reference's RMS over its mean. The 95 % intervals are the ratios' delta-method intervals over the sampled
-pixels (:func:`ratio_interval`; the pixels taken as a simple random sample, which their stratification only
-makes conservative); the relative RMSE's on the log scale, as the error of a frame is skewed (a few pixels,
-on shadow edges, hold much of it). The reference's noise is inside each ``D_p``, so the interval holds it.
+reference's RMS over its mean. The 95 % intervals are the ratios' delta-method intervals over the drawn
+pixels (:func:`ratio_interval`; the draws taken as independent, which their stratification only makes
+conservative); the relative RMSE's upper end on the log scale, as the error of a frame is skewed (a few
+pixels hold much of it). The reference's noise is inside each ``D_p``, so the interval holds it.
 """
 
 from __future__ import annotations
@@ -59,6 +62,15 @@ RAYS = 192
 #: pass (the error is mostly where the light is: on park at 48 px the brightest 1 % of the pixels hold 65 % of
 #: the squared error, and drawn uniformly the relative RMSE's spread was 4.5 times as wide)
 UNIFORM = 0.5
+#: passes compared at each sampled pixel, by kind (at most the frame's; two are the fewest its value's square
+#: needs): every pass for GI, whose error changes from pass to pass (on park at 48 px the spread of the estimate
+#: 0.108 with two, 0.063 with four), two for direct light, where the reference needs the draws (city at night,
+#: 64 px: 0.018 with two, 0.042 with four)
+COMPARED_PASSES = {"gi": 4, "direct": 2}
+#: a sampled pixel's points share their far cells' bounds unless they spread over more than this many cells
+#: or their normals differ by more than this (then each has its own)
+GROUP_RADIUS = 0.25
+GROUP_SPREAD = 0.5
 #: light draws per pass point, at least
 MIN_DRAWS = 8
 #: independent systematic sets the draws of a point are made in (their spread gives the variance)
@@ -250,47 +262,76 @@ def _row_keys(weights: np.ndarray, row: np.ndarray, rows: int) -> tuple[np.ndarr
 
 # ------------------------------------------------------------------------------------- sampled brute force
 
+def _groups(group: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple:
+    """``(groups, centre, mean normal, radius, the normals' spread about their mean)`` of points in groups."""
+    g = int(group.max()) + 1 if len(group) else 0
+    count = np.maximum(np.bincount(group, minlength=g), 1)[:, None]
+    centre = np.stack([np.bincount(group, points[:, a], minlength=g) for a in range(3)], 1) / count
+    mean_n = np.stack([np.bincount(group, normals[:, a], minlength=g) for a in range(3)], 1) / count
+    radius, spread = np.zeros(g), np.zeros(g)
+    np.maximum.at(radius, group, np.linalg.norm(points - centre[group], axis=1))
+    np.maximum.at(spread, group, np.linalg.norm(normals - mean_n[group], axis=1))
+    return g, centre, mean_n, radius, spread
+
+
 class Proposal:
     """Where a point's light draws come from (module doc): the lights of the cells near it each by its
     luminous intensity times ``n·ω / d²``, every far cell by a bound of its lights' (their luminous intensity
     over the squared distance to the cell's bounding sphere, times the most ``n·ω`` can be over the cell's
-    box), then one of its lights by intensity. ``live``: points with any weight."""
+    box), then one of its lights by intensity. The far cells' bounds are shared by the points of a ``group``
+    (a sampled pixel's passes: the bound holds for every point within the group's sphere whose normal is
+    within the group's spread of its mean normal). ``live``: points with any weight."""
 
     def __init__(self, emitters: Emitters, grid: LightGrid, points: np.ndarray, normals: np.ndarray,
-                 geometric: np.ndarray | None):
+                 geometric: np.ndarray | None, group: np.ndarray | None = None):
         m, c = len(points), len(grid)
         self.emitters, self.grid = emitters, grid
         self.p = np.ascontiguousarray(points.T, np.float64)
         self.nrm = np.ascontiguousarray(normals.T, np.float64)
         self.geo = None if geometric is None else np.ascontiguousarray(geometric.T, np.float64)
-        # the far cells in float32, about the cells' mean (a cell is near when its sphere comes within half a
-        # cell of the point; n·x is largest over a box at a corner)
+        pts, nrm = points.astype(np.float64), normals.astype(np.float64)
+        group = np.arange(m) if group is None else np.asarray(group, np.int64)
+        g, centre, mean_n, radius, spread = _groups(group, pts, nrm)
+        wide = (radius > GROUP_RADIUS * grid.size) | (spread > GROUP_SPREAD)
+        if wide[group].any():           # a pixel over an edge or a wide footprint: its points on their own
+            split = np.flatnonzero(wide[group])
+            group = group.copy()
+            group[split] = g + np.arange(len(split))
+            group = np.unique(group, return_inverse=True)[1]
+            g, centre, mean_n, radius, spread = _groups(group, pts, nrm)
+        self.group = group
+        # the far cells in float32, about the cells' mean: a lower bound of the distance from a group's point
+        # to a cell's light (a cell is near when it is under half a cell), the most n·(x - p) can be
         origin = grid.centre.mean(0) if c else np.zeros(3)
-        p = (points - origin).astype(np.float32)
-        nrm = normals.astype(np.float32)
-        centre = (grid.centre - origin).astype(np.float32)
+        q = (centre - origin).astype(np.float32)
+        n32 = mean_n.astype(np.float32)
+        cells = (grid.centre - origin).astype(np.float32)
         half = np.float32(0.5 * grid.size)
-        dist = p @ centre.T
+        dist = q @ cells.T
         dist *= -2.0
-        dist += (p * p).sum(1)[:, None]
-        dist += (centre * centre).sum(1)[None, :]
+        dist += (q * q).sum(1)[:, None]
+        dist += (cells * cells).sum(1)[None, :]
         np.maximum(dist, 0.0, out=dist)
         np.sqrt(dist, out=dist)
-        dist -= grid.radius.astype(np.float32)[None, :]
+        radii = grid.radius.astype(np.float32)[None, :]
+        far = n32 @ cells.T
+        far += np.abs(n32) @ grid.half.astype(np.float32).T
+        far -= ((n32 * q).sum(1) - radius.astype(np.float32))[:, None]
+        if spread.any():                # (n - mean n)·(x - centre) <= spread (distance + the cell's radius)
+            far += spread.astype(np.float32)[:, None] * (dist + radii)
+        dist -= radii
+        dist -= radius.astype(np.float32)[:, None]
         near = dist < half
         np.maximum(dist, half, out=dist)
-        far = nrm @ centre.T
-        far += np.abs(nrm) @ grid.half.astype(np.float32).T
-        far -= (nrm * p).sum(1)[:, None]
         far /= dist
         np.clip(far, 0.0, 1.0, out=far)
         dist *= dist
         far /= dist
         far *= grid.weight.astype(np.float32)[None, :]
         np.putmask(far, near, 0.0)
-        # the near cells' lights, each by its luminous intensity times max(0, n·ω) / d² (without the emitter's
-        # profile and the geometric normal: nonzero wherever the light is)
-        pi, ci = np.nonzero(near)
+        # the near cells' lights, each by its luminous intensity times max(0, n·ω) / d² at the point (without
+        # the emitter's profile and the geometric normal: nonzero wherever the light is)
+        pi, ci = np.nonzero(near[group])
         counts = grid.count[ci]
         self.pair_point = np.repeat(pi, counts)
         offsets = np.arange(len(self.pair_point)) - np.repeat(np.cumsum(counts) - counts, counts)
@@ -299,11 +340,16 @@ class Proposal:
         self.pair_keys, near_sum = _row_keys(self.pair_w, self.pair_point, m)
         self.pair_first = np.searchsorted(self.pair_point, np.arange(m + 1))
         self.far_w = far.ravel()
-        self.far_keys, far_sum = _row_keys(self.far_w, np.repeat(np.arange(m), c), m)
-        total = far_sum + near_sum
+        cum = np.cumsum(far, axis=1, dtype=np.float64)
+        far_sum = cum[:, -1].copy() if c else np.zeros(g)
+        cum /= np.where(far_sum > 0, far_sum, 1.0)[:, None]
+        cum += np.arange(g)[:, None]
+        self.far_keys = cum.ravel()                 # row g's keys from g to g + 1 (see _row_keys)
+        self.far_sum = far_sum[group]
+        self.near_sum = near_sum
+        total = self.far_sum + near_sum
         self.live = total > 0
-        self.far_sum, self.near_sum = far_sum, near_sum
-        self.far_share = far_sum / np.where(self.live, total, 1.0)      # draws below it: a far cell
+        self.far_share = self.far_sum / np.where(self.live, total, 1.0)      # draws below it: a far cell
 
     def _near_weight(self, point: np.ndarray, light: np.ndarray) -> np.ndarray:
         """A near light's weight at a point: luminous intensity times ``max(0, n·ω) / max(d², d_min²)``."""
@@ -340,9 +386,10 @@ class Proposal:
         f_idx = np.flatnonzero((t < share) & live)
         if len(f_idx):
             pt = point[f_idx]
-            flat = np.searchsorted(self.far_keys, pt + t[f_idx] / share[f_idx], side="right")
-            flat = np.clip(flat, pt * len(self.grid), (pt + 1) * len(self.grid) - 1)
-            cell = flat - pt * len(self.grid)
+            row = self.group[pt]
+            flat = np.searchsorted(self.far_keys, row + t[f_idx] / share[f_idx], side="right")
+            flat = np.clip(flat, row * len(self.grid), (row + 1) * len(self.grid) - 1)
+            cell = flat - row * len(self.grid)
             lf = self.grid.draw_member(cell, u[f_idx])
             light[f_idx] = lf
             q[f_idx] = self.far_w[flat] / total[pt] * self.emitters.luminance[lf] / self.grid.weight[cell]
@@ -378,14 +425,15 @@ def _seen(proposal: Proposal, point: np.ndarray, light: np.ndarray, e: np.ndarra
 
 def sampled_brute_force(emitters: Emitters, grid: LightGrid, points: np.ndarray, normals: np.ndarray,
                         geometric: np.ndarray | None, albedo: np.ndarray, occluded, draws: int,
-                        rng: np.random.Generator, replicates: int = REPLICATES) -> tuple[np.ndarray, np.ndarray, int]:
+                        rng: np.random.Generator, replicates: int = REPLICATES,
+                        group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Brute force's outgoing radiance at ``points`` (every emitter, its shadow ray by ``occluded``),
     estimated without bias from ``draws`` light draws per point in ``replicates`` independent systematic
     sets (module doc): ``(b̂ (M, 3), its variance summed over the channels (M,), shadow rays traced)``."""
     m = len(points)
     if m == 0 or len(grid) == 0:
         return np.zeros((m, 3)), np.zeros(m), 0
-    prop = Proposal(emitters, grid, points, normals, geometric)
+    prop = Proposal(emitters, grid, points, normals, geometric, group)
     reps = max(int(replicates), 1)
     k = max(1, draws // reps)
     point = np.repeat(np.arange(m), k * reps)
@@ -462,12 +510,14 @@ class FrameEstimator:
     ``occluded`` the frame's shadow query; ``exact_part(points, normals, albedo, geometric) -> (P, 3)``, when
     given, what the frame adds exactly to both sides (``--direct lgh``'s every-light rest)."""
 
-    def __init__(self, kind: str, emitters: Emitters, occluded, seed: int, time: float, passes: int,
-                 exact_part=None, pixels: int = PIXELS, rays: int = RAYS, cells: int | None = None):
+    def __init__(self, kind: str, emitters: Emitters, occluded, seed: int, time: float, passes: int, width: int,
+                 exact_part=None, pixels: int = PIXELS, rays: int = RAYS, cells: int | None = None,
+                 compared: int | None = None):
         t0 = _time.perf_counter()
+        self.width = int(width)
         self.kind, self.emitters, self.occluded, self.exact_part = kind, emitters, occluded, exact_part
         self.passes, self.pixels = max(int(passes), 1), pixels
-        self.slots = min(self.passes, 2)
+        self.slots = min(self.passes, COMPARED_PASSES[kind] if compared is None else compared)
         self.draws = max(MIN_DRAWS, rays // self.slots)
         self.rng = lighting_rng(seed, time, kind)
         self.grid = LightGrid(emitters.position, emitters.luminance, cells)
@@ -487,13 +537,20 @@ class FrameEstimator:
         Returns the estimate (:meth:`LightingEstimate.as_dict`) after the frame's last pass, else None."""
         t0 = _time.perf_counter()
         if self.pick is None:
-            hits = np.flatnonzero(hit)
-            rows, self.weight = sample_pixels(np.einsum("ij,ij->i", approx, approx), self.pixels, self.rng)
-            self.pick = hits[rows]
+            # the first pass's hit pixels and those next to them (a later pass may hit them: silhouettes)
+            image = hit.reshape(-1, self.width)
+            near = image.copy()
+            near[1:] |= image[:-1]
+            near[:-1] |= image[1:]
+            near[:, 1:] |= near[:, :-1].copy()
+            near[:, :-1] |= near[:, 1:].copy()
+            candidates = np.flatnonzero(near)
+            size = np.zeros(len(hit))
+            size[hit] = np.einsum("ij,ij->i", approx, approx)
+            rows, self.weight = sample_pixels(size[candidates], self.pixels, self.rng)
+            self.pick = candidates[rows]
             n = len(self.pick)
-            first = self.rng.integers(0, self.passes, n)
-            other = (first + 1 + self.rng.integers(0, max(self.passes - 1, 1), n)) % self.passes
-            self.chosen = np.stack([first, other], 1)[:, :self.slots]
+            self.chosen = np.argsort(self.rng.random((n, self.passes)), axis=1)[:, :self.slots]
         pixel, slot = np.nonzero(self.chosen == self.done)
         there = hit[self.pick[pixel]]
         pixel, slot = pixel[there], slot[there]
@@ -512,7 +569,7 @@ class FrameEstimator:
             None if any(part[i] is None for part in self.parts) else np.concatenate([part[i] for part in self.parts])
             for i in range(7))
         ref, var, rays = sampled_brute_force(self.emitters, self.grid, pts, nrm, geo, alb, self.occluded,
-                                             self.draws, self.rng)
+                                             self.draws, self.rng, group=pixel)
         if self.exact_part is not None and len(pts):
             ref = ref + self.exact_part(pts, nrm, alb, geo)
         # per pixel and slot (a pass where the pixel saw nothing: 0 on both sides)
@@ -526,32 +583,34 @@ class FrameEstimator:
 
 def per_pixel(e: np.ndarray, b: np.ndarray, v: np.ndarray, passes: int) -> tuple[np.ndarray, ...]:
     """``(D_p, B_p, Σ_c e_p, Σ_c b_p)`` of each sampled pixel (module doc) from its error ``e = a - b̂``, reference
-    ``b̂`` (``(n, slots, 3)``) and the reference's variance ``v`` (``(n, slots)``) in one pass (slots 1) or in two
-    distinct passes of ``passes`` drawn at random: the pixel's value is the mean over its passes, so
-    ``|mean_s x_s|² = (1/S) mean_s |x_s|² + (1 - 1/S) mean_{s≠t} x_s·x_t``, each mean estimated from the two."""
-    if e.shape[1] == 1:
-        e, b, v = e[:, 0], b[:, 0], v[:, 0]
-        return (e * e).sum(1) - v, (b * b).sum(1) - v, e.sum(1), b.sum(1)
+    ``b̂`` (``(n, k, 3)``) and the reference's variance ``v`` (``(n, k)``) in ``k`` distinct passes of ``passes``
+    drawn at random: the pixel's value is the mean over its passes, so ``|mean_s x_s|² = (1/S) mean_s |x_s|² +
+    (1 - 1/S) mean_(s≠t) x_s·x_t``, each mean estimated from the ``k`` (``k = 1``: one pass, ``|x|²``)."""
+    k = e.shape[1]
     s = float(passes)
 
     def square(x):
         own = ((x * x).sum(2) - v).mean(1)
-        cross = (x[:, 0] * x[:, 1]).sum(1)
+        if k == 1:
+            return own
+        total = x.sum(1)
+        cross = ((total * total).sum(1) - (x * x).sum((1, 2))) / (k * (k - 1))
         return own / s + (1.0 - 1.0 / s) * cross
-    return square(e), square(b), e.sum((1, 2)) / 2, b.sum((1, 2)) / 2
+    return square(e), square(b), e.sum((1, 2)) / k, b.sum((1, 2)) / k
 
 
-def gi_estimator(field, snap, occluded, settings) -> FrameEstimator | None:
+def gi_estimator(field, frame, occluded, settings) -> FrameEstimator | None:
     """``--gi lgh``: the estimator of a frame's indirect light from its :class:`usdml.lighting.gi.VPLField`
     (the VPLs, as ``vpl-bruteforce`` gathers them, through ``occluded``); None for another ``--gi`` or
     without VPLs."""
     if settings.gi != "lgh" or field is None or field.lgh is None or len(field.vpls) == 0:
         return None
+    snap = frame.snap
     return FrameEstimator("gi", Emitters.of_vpls(field.vpls, snap.meters_per_unit, field.clamp), occluded,
-                          settings.seed, snap.time, settings.pixel_samples)
+                          settings.seed, snap.time, settings.pixel_samples, frame.width)
 
 
-def direct_estimator(field, snap, shadow, settings) -> FrameEstimator | None:
+def direct_estimator(field, frame, shadow, settings) -> FrameEstimator | None:
     """``--direct lgh``: the estimator of a frame's direct light from its
     :class:`usdml.lighting.lgh_direct.DirectField` (the grid lights against every-light shading with the
     ``shadow`` backend, the every-light rest shaded alike on both sides); None without grid lights."""
@@ -559,6 +618,7 @@ def direct_estimator(field, snap, shadow, settings) -> FrameEstimator | None:
         return None
     from usdml.lighting.direct import shade_with
 
+    snap = frame.snap
     mpu, rest = snap.meters_per_unit, field.rest
 
     def exact_part(points, normals, albedo, geometric):
@@ -566,4 +626,5 @@ def direct_estimator(field, snap, shadow, settings) -> FrameEstimator | None:
                           geometric=geometric).radiance.astype(np.float64)
 
     return FrameEstimator("direct", Emitters.of_lights(field.grid, mpu), shadow.occluded,
-                          settings.seed, snap.time, settings.pixel_samples, exact_part if len(rest) else None)
+                          settings.seed, snap.time, settings.pixel_samples, frame.width,
+                          exact_part if len(rest) else None)
