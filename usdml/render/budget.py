@@ -4,8 +4,9 @@ Per frame, before the direct light is shaded, one sample of its pixel–light pa
 (:class:`usdml.render.estimate.PairSample`), then answered by the approximate backend refined at level 0
 (no refinement), 1, 2, ... (:class:`usdml.visibility.refine.Refined`: its rule widened step by step); the
 frame is shaded at the first level whose estimated 95 % upper bound of ε_v is at most ``E``, and carries
-that level's estimate. When no level of the backend's rule gets there, every answer of the frame is exact
-(the limit, where ε_v is 0) and one warning line names the frame. ``E = 0`` is that limit at once: the exact
+that level's estimate. When no level of the backend's rule gets there, or a level would re-ask
+more than :data:`MAX_REFINED` of the sample's answers of the exact backend (slower than exact alone), every
+answer of the frame is exact (the limit, where ε_v is 0) and one warning line names the frame. ``E = 0`` is that limit at once: the exact
 backend's pixels. ``E = 1`` (the default) is no budget: the backend as it is.
 
 The sample is larger than a plain frame's estimate (:data:`PIXELS_PER_BUDGET` / ``E`` pixels, from
@@ -36,6 +37,9 @@ LIGHTS = 32
 SHARED_LIGHTS = 32
 #: no budget: the default
 OFF = 1.0
+#: a level re-asking more than this share of the sample's answers of the exact backend (uncertain and blind
+#: zone) is slower than exact alone (an exact ray costs several approximate queries): the frame goes exact
+MAX_REFINED = 0.5
 
 
 def active(budget: float, shadow: VisibilityBackend, primary: VisibilityBackend) -> bool:
@@ -66,19 +70,24 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
     sample = PairSample(points, normals, geometric, lights, exact, frame_rng(seed, time), sample_pixels(budget),
                         LIGHTS, shared)
     tried: dict[str, float] = {}
-    chosen, est = None, None
+    chosen, est, share = None, None, 0.0
     for level in range(0, refined.approx.refine_levels + 1):
+        refined.reset()
         est = sample.estimate(lambda o, t, level=level, **kw: refined.answer(o, t, level=level, **kw)[0])
         tried[str(level)] = est.eps_v_hi
+        share = refined.fractions()["refined_fraction"] + refined.fractions()["near_fraction"]
+        if share > MAX_REFINED:
+            break
         if est.eps_v_hi <= budget:
             chosen = level
             break
     met = chosen is not None
     if not met:
         chosen = EXACT
+        why = (f"it re-asks {100 * share:.0f} % of the answers at level {level} (exact alone is faster)"
+               if share > MAX_REFINED else f"estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule")
         log.warning(f"{where}: frame {time:g}: --error-budget {budget:g} not met by {refined.approx.name}'s "
-                    f"refinement (estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule); every "
-                    "answer of the frame is exact")
+                    f"refinement ({why}); every answer of the frame is exact")
         est = VisibilityEstimate(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, est.pixels, est.pairs, est.queries, False)
     refined.level = chosen
     refined.reset()
