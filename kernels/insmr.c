@@ -362,13 +362,19 @@ static int pyramid_levels(int size, int64_t *offsets) {
 /* depth of a nearness (perspective 1 / z, orthographic -z) */
 static inline float depth_of(float m, int persp) { return persp ? 1.0f / m : -m; }
 
-/* One view's silhouettes, in place of its spacing map: reach[t] = h a / z (perspective; h a orthographic)
- * texels per unit of c where texel t is a silhouette, else 0, and far[t] the nearness of its farthest
- * stepped-to neighbour (-BIG: an empty one); then the pyramid's block maxima of the silhouettes' nearness
- * (emax) and reach (pmax), and minima of their far sides (fmin). */
-static void silhouettes(const float *m, float *reach, float *far, const float *tz, int size, int tiles, float a,
-                        int persp, float jump, float *emax, float *fmin, float *pmax) {
+/* One view's silhouettes from its nearness map m and spacing map h (its receiver tiles' farthest compared
+ * depths tz, the view's `farthest`): per texel of a receiver tile the triple
+ * leaf[3t ..] = (its nearness, the nearness of its farthest stepped-to neighbour (-BIG: an empty one), its
+ * reach h a / z (perspective; h a orthographic) in texels per unit of c) where it is a silhouette, else
+ * (-BIG, BIG, 0); then per block of the pyramid (pyr, offsets off in blocks) the triple of the silhouettes'
+ * greatest nearness, least far side and greatest reach. Each triple's three values in one place: a search
+ * reads a block's at once. */
+static void silhouettes(const float *m, const float *h, float *leaf, const float *tz, int size, int tiles, float a,
+                        int persp, float jump, float farthest, float *pyr) {
     const float empty = -0.5f * BIG;
+    /* a texel no nearer than the view's farthest compared depth is in front of no lookup: never a silhouette
+     * that matters */
+    const float front = farthest > empty ? (persp ? 1.0f / farthest : -farthest) : BIG;
     for (int j = 0; j < size; j++) {
         const float *tz_row = tz + (j / TILE) * tiles;
         for (int i = 0; i < size; i++) {
@@ -377,11 +383,11 @@ static void silhouettes(const float *m, float *reach, float *far, const float *t
                 continue;
             }
             int64_t t = (int64_t)j * size + i;
-            float mt = m[t];
-            if (!(mt > empty)) {
-                reach[t] = 0.0f;
-                continue;
-            }
+            float mt = m[t], *out = leaf + 3 * t;
+            out[0] = -BIG;
+            out[1] = BIG;
+            out[2] = 0.0f;
+            if (!(mt > empty) || !(mt > front)) continue;
             int sil = 0;
             float fs = BIG;
             for (int d = 0; d < 4; d++) {
@@ -410,8 +416,11 @@ static void silhouettes(const float *m, float *reach, float *far, const float *t
                     fs = fmn(fs, mn);         /* an empty neighbour: -BIG, behind anything */
                 }
             }
-            reach[t] = sil ? reach[t] * (persp ? a * mt : a) : 0.0f;
-            far[t] = fs;
+            if (sil) {
+                out[0] = mt;
+                out[1] = fs;
+                out[2] = h[t] * (persp ? a * mt : a);
+            }
         }
     }
     /* level 1 from the texels, each next level from the one below; below level TILE_LEVEL (a block a
@@ -422,19 +431,18 @@ static void silhouettes(const float *m, float *reach, float *far, const float *t
     int below = size;
     for (int l = 0; l < levels; l++) {
         int side = (below + 1) / 2, level = l + 1;
-        float *e = emax + off[l], *f = fmin + off[l], *p = pmax + off[l];
-        const float *eb = l ? emax + off[l - 1] : NULL, *fb = l ? fmin + off[l - 1] : NULL;
-        const float *pb = l ? pmax + off[l - 1] : NULL;
+        float *here = pyr + 3 * off[l];
+        const float *under = l ? pyr + 3 * off[l - 1] : leaf;
         for (int by = 0; by < side; by++) {
             for (int bx = 0; bx < side; bx++) {
-                float ev = -BIG, fv = BIG, pv = 0.0f;
+                float ev = -BIG, fv = BIG, pv = 0.0f, *out = here + 3 * ((int64_t)by * side + bx);
                 if (level <= TILE_LEVEL) {
                     int sh = TILE_LEVEL - level;
                     if (!(tz[(by >> sh) * tiles + (bx >> sh)] > empty)) {
                         if (level == TILE_LEVEL || level == levels) {
-                            e[(int64_t)by * side + bx] = -BIG;
-                            f[(int64_t)by * side + bx] = BIG;
-                            p[(int64_t)by * side + bx] = 0.0f;
+                            out[0] = -BIG;
+                            out[1] = BIG;
+                            out[2] = 0.0f;
                         }
                         continue;
                     }
@@ -442,24 +450,14 @@ static void silhouettes(const float *m, float *reach, float *far, const float *t
                 for (int k = 0; k < 4; k++) {
                     int ci = 2 * bx + (k & 1), cj = 2 * by + (k >> 1);
                     if (ci >= below || cj >= below) continue;
-                    int64_t c = (int64_t)cj * below + ci;
-                    float ce, cf, cp;
-                    if (l) {
-                        ce = eb[c];
-                        cf = fb[c];
-                        cp = pb[c];
-                    } else {
-                        cp = reach[c];
-                        ce = cp > 0.0f ? m[c] : -BIG;
-                        cf = cp > 0.0f ? far[c] : BIG;
-                    }
-                    ev = fmx(ev, ce);
-                    fv = fmn(fv, cf);
-                    pv = fmx(pv, cp);
+                    const float *c = under + 3 * ((int64_t)cj * below + ci);
+                    ev = fmx(ev, c[0]);
+                    fv = fmn(fv, c[1]);
+                    pv = fmx(pv, c[2]);
                 }
-                e[(int64_t)by * side + bx] = ev;
-                f[(int64_t)by * side + bx] = fv;
-                p[(int64_t)by * side + bx] = pv;
+                out[0] = ev;
+                out[1] = fv;
+                out[2] = pv;
             }
         }
         below = side;
@@ -483,23 +481,11 @@ typedef struct {
 /* Whether block (bx, by) of level l (0: a texel) may hold a silhouette between the lookup's sides (its near
  * side in front of nearness `key`, its far side not in front of `key_far`) reaching (x, y) within `limit`:
  * its bound (the least c it could need, exact for a texel), or -1. */
-static inline float block_bound(const float *m, const float *reach, const float *far, const float *emax,
-                                const float *fmin, const float *pmax, int size, const int64_t *off, const int *sides,
+static inline float block_bound(const float *leaf, const float *pyr, int size, const int64_t *off, const int *sides,
                                 int l, int bx, int by, float x, float y, float key, float key_far, float r0,
                                 float limit) {
-    float e, f, p;
-    if (l == 0) {
-        int64_t t = (int64_t)by * size + bx;
-        p = reach[t];
-        if (!(p > 0.0f)) return -1.0f;
-        e = m[t];
-        f = far[t];
-    } else {
-        int64_t at = off[l - 1] + (int64_t)by * sides[l] + bx;
-        p = pmax[at];
-        e = emax[at];
-        f = fmin[at];
-    }
+    const float *b = l ? pyr + 3 * (off[l - 1] + (int64_t)by * sides[l] + bx) : leaf + 3 * ((int64_t)by * size + bx);
+    float e = b[0], f = b[1], p = b[2];
     if (!(e > key) || !(f < key_far) || !(p > 0.0f)) return -1.0f;
     float d = fmx(0.0f, block_distance(x, y, bx, by, l, size) - r0);
     if (d > limit * p) return -1.0f;
@@ -513,9 +499,8 @@ static inline float block_bound(const float *m, const float *reach, const float 
  * reaches at c = max(0, distance - r0) / reach. A search of the pyramid (levels' offsets off, sides, top),
  * started at the level whose blocks are as wide as the farthest reach, the most promising block first,
  * pruning blocks that cannot beat the level found so far. */
-static int least_level(const float *m, const float *reach, const float *far, const float *emax, const float *fmin,
-                       const float *pmax, int size, const int64_t *off, const int *sides, int top, float x, float y,
-                       float key, float key_far, const Rule *r, int found) {
+static int least_level(const float *leaf, const float *pyr, int size, const int64_t *off, const int *sides, int top,
+                       float x, float y, float key, float key_far, const Rule *r, int found) {
     if (found <= 0) return found;
     float limit = r->c[found - 1];         /* a block must be reached within this to matter */
     Block stack[4 * 40];
@@ -523,21 +508,21 @@ static int least_level(const float *m, const float *reach, const float *far, con
     /* start at the level whose blocks are as wide as the farthest reach in the view: the blocks around (x, y) */
     float far_reach;
     if (top) {
-        int64_t at = off[top - 1];
-        if (!(emax[at] > key) || !(fmin[at] < key_far)) return found;
-        far_reach = limit * pmax[at] + r->r0;
+        const float *b = pyr + 3 * off[top - 1];
+        if (!(b[0] > key) || !(b[1] < key_far)) return found;
+        far_reach = limit * b[2] + r->r0;
     } else {
         far_reach = (float)size;
     }
-    int l0 = 0;
+    /* no lower than a receiver tile's level: below it the blocks of tiles without receivers are not made */
+    int l0 = top < TILE_LEVEL ? top : TILE_LEVEL;
     while (l0 < top && (float)(1 << l0) < far_reach) l0++;
     int w = 1 << l0, side = sides[l0];
     int bx0 = iclamp(ifloor((x - far_reach) / (float)w), 0, side - 1), bx1 = iclamp(ifloor((x + far_reach) / (float)w), 0, side - 1);
     int by0 = iclamp(ifloor((y - far_reach) / (float)w), 0, side - 1), by1 = iclamp(ifloor((y + far_reach) / (float)w), 0, side - 1);
     for (int by = by0; by <= by1; by++)
         for (int bx = bx0; bx <= bx1; bx++) {
-            float bound = block_bound(m, reach, far, emax, fmin, pmax, size, off, sides, l0, bx, by, x, y, key, key_far,
-                                      r->r0, limit);
+            float bound = block_bound(leaf, pyr, size, off, sides, l0, bx, by, x, y, key, key_far, r->r0, limit);
             if (bound < 0.0f) continue;
             if (l0 == 0) {
                 int lv = 0;
@@ -557,8 +542,7 @@ static int least_level(const float *m, const float *reach, const float *far, con
         for (int k = 0; k < 4; k++) {
             int ci = 2 * b.bx + (k & 1), cj = 2 * b.by + (k >> 1);
             if (ci >= sides[l] || cj >= sides[l]) continue;
-            float bound = block_bound(m, reach, far, emax, fmin, pmax, size, off, sides, l, ci, cj, x, y, key, key_far,
-                                      r->r0, limit);
+            float bound = block_bound(leaf, pyr, size, off, sides, l, ci, cj, x, y, key, key_far, r->r0, limit);
             if (bound < 0.0f) continue;
             if (l == 0) {               /* a texel: its bound is its need */
                 int lv = 0;
@@ -595,9 +579,11 @@ static inline uint8_t grade_of(const Rule *r, int reached, float band) {
  * blocked). With L (light l of the table; shading normals, two scratch arrays of P): Alg. 3 for this
  * light, fused: a point it faces (light_term) counts in facing; casting, it is looked up (queries)
  * and counts in blocked or adds its light to radiance (3 per point); only those points are receivers.
- * With grade (refining, without L): each answer's grade too (the refinement's rule above; tri_h the
- * triangles' sample spacings, hmap n_views S^2 floats, emax and pmax n_views times the pyramid's blocks,
- * rule = levels, jump, r0, c[levels], band[levels]); the answers are the same. */
+ * With grade (refining; tri_h the triangles' sample spacings, scratch the views' maps and pyramids, rule =
+ * levels, jump, r0, c[levels], band[levels]): without L, each answer's grade too (the refinement's rule
+ * above), the answers the same; with L, the looked-up points whose grade is 1 .. hand_level are handed back:
+ * counted in facing and queries but neither blocked nor lit, their grade in grade (0 for every other point),
+ * for the caller to answer exactly. */
 void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, const float *cl_box, int64_t n_clusters,
                 const float *origin, const float *rot, const float *proj,
                 const int32_t *kind, const float *near, int32_t first_view, int32_t n_views, int32_t cube,
@@ -605,20 +591,20 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                 const float *points, const float *normals, int64_t n_points, float offset, float bias,
                 uint8_t *out, double *seconds, const VQLights *L, int32_t l, const float *shading,
                 float *scratch_rgb, uint8_t *scratch_code, float *radiance, int32_t *blocked, int32_t *facing,
-                int64_t *queries, const float *tri_h, float *scratch, const float *rule, uint8_t *grade) {
+                int64_t *queries, const float *tri_h, float *scratch, const float *rule, uint8_t *grade,
+                int32_t hand_level) {
     Views v = {origin, rot, proj, kind, near};
     const int64_t plane = (int64_t)size * size, tplane = (int64_t)tiles * tiles;
-    if (L || !out || !tri_h || !scratch || !rule) grade = NULL;
-    /* refining: scratch holds the views' spacing / reach maps and far sides (S^2 each), then the views'
-     * pyramids of emax, fmin and pmax (pyr blocks each) */
+    if ((!L && !out) || !tri_h || !scratch || !rule) grade = NULL;
+    /* refining: scratch holds the views' spacing maps (S^2 each), their silhouettes' triples (3 S^2 each),
+     * then their pyramids' triples (3 pyr each) */
     int64_t pyr_off[40];
     int pyr_side[40], pyr_top = pyramid_levels(size, pyr_off);
     const int64_t pyr = pyr_off[pyr_top];
     pyr_side[0] = size;
     for (int k = 1; k <= pyr_top; k++) pyr_side[k] = (pyr_side[k - 1] + 1) / 2;
-    float *hmap = grade ? scratch : NULL, *farm = grade ? scratch + n_views * plane : NULL;
-    float *emax = grade ? scratch + 2 * n_views * plane : NULL;
-    float *fmin = grade ? emax + n_views * pyr : NULL, *pmax = grade ? emax + 2 * n_views * pyr : NULL;
+    float *hmap = grade ? scratch : NULL, *leaves = grade ? scratch + n_views * plane : NULL;
+    float *pyrs = grade ? scratch + 4 * n_views * plane : NULL;
     float *hm = hmap;
     double t0 = now();
     for (int64_t i = 0; i < n_views * tplane; i++) tile_z[i] = -BIG;
@@ -721,19 +707,20 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
         rl.band = rule + 3 + rl.levels;
         for (int vi = 0; vi < n_views; vi++) {
             int view = first_view + vi;
-            silhouettes(depth + vi * plane, hmap + vi * plane, farm + vi * plane, tile_z + vi * tplane, size, tiles,
-                        proj[4 * view], kind[view] == PERSPECTIVE, rl.jump, emax + vi * pyr, fmin + vi * pyr,
-                        pmax + vi * pyr);
+            silhouettes(depth + vi * plane, hmap + vi * plane, leaves + 3 * vi * plane, tile_z + vi * tplane, size,
+                        tiles, proj[4 * view], kind[view] == PERSPECTIVE, rl.jump, view_z[vi], pyrs + 3 * vi * pyr);
             if (vi < 6 && pyr_top) {
-                top_e[vi] = emax[vi * pyr + pyr_off[pyr_top - 1]];
-                top_f[vi] = fmin[vi * pyr + pyr_off[pyr_top - 1]];
-                top_p[vi] = pmax[vi * pyr + pyr_off[pyr_top - 1]];
+                const float *b = pyrs + 3 * (vi * pyr + pyr_off[pyr_top - 1]);
+                top_e[vi] = b[0];
+                top_f[vi] = b[1];
+                top_p[vi] = b[2];
             }
         }
     }
     double t2 = now();
     int64_t asked = 0;
     for (int64_t i = 0; i < n_points; i++) {
+        if (L && grade) grade[i] = 0;
         if (L) {
             int code = scratch_code[i];
             if (!code) continue;
@@ -749,11 +736,12 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
         int local = locate(points + 3 * i, normals + 3 * i, cube, light, &v, first_view, size, offset, bias, &sx, &sy, &z,
                            &texel, grade ? moved : NULL);
         if (local < 0) {
+            if (grade) grade[i] = 1;         /* outside every view: uncertain at every level */
+            if (L && grade) continue;        /* handed back */
             if (L) {
                 for (int k = 0; k < 3; k++) radiance[3 * i + k] += scratch_rgb[3 * i + k];
             } else {
                 out[i] = 0;
-                if (grade) grade[i] = 1;     /* outside every view: uncertain at every level */
             }
             continue;
         }
@@ -779,9 +767,8 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                 float mk = m[jx[k] * size + ix[k]];
                 if (mk > -0.5f * BIG) band = fmn(band, fabsf(zc - depth_of(mk, persp)) / texel);
             }
-            int reached = least_level(m, hmap + local * plane, farm + local * plane, emax + local * pyr,
-                                      fmin + local * pyr, pmax + local * pyr, size, pyr_off, pyr_side, pyr_top, sx, sy,
-                                      z, persp ? 1.0f / (zc - rl.jump * texel) : -(zc - rl.jump * texel), &rl,
+            int reached = least_level(leaves + 3 * local * plane, pyrs + 3 * local * pyr, size, pyr_off, pyr_side,
+                                      pyr_top, sx, sy, z, persp ? 1.0f / (zc - rl.jump * texel) : -(zc - rl.jump * texel), &rl,
                                       rl.levels);
             if (cube && reached > 0) {
                 /* the seam: the four neighbouring faces' silhouettes, the point projected into each (beyond its
@@ -802,12 +789,15 @@ void insm_light(const float *tris, int64_t n_tris, const int64_t *cl_first, cons
                     float out_x = fmx(0.0f, fmx(0.5f - x2, x2 - (fs - 0.5f)));
                     float out_y = fmx(0.0f, fmx(0.5f - y2, y2 - (fs - 0.5f)));
                     if (fmx(out_x, out_y) - rl.r0 > rl.c[reached - 1] * top_p[f2]) continue;
-                    reached = least_level(depth + f2 * plane, hmap + f2 * plane, farm + f2 * plane, emax + f2 * pyr,
-                                          fmin + f2 * pyr, pmax + f2 * pyr, size, pyr_off, pyr_side, pyr_top, x2, y2,
-                                          key2, key2_far, &rl, reached);
+                    reached = least_level(leaves + 3 * f2 * plane, pyrs + 3 * f2 * pyr, size, pyr_off, pyr_side,
+                                          pyr_top, x2, y2, key2, key2_far, &rl, reached);
                 }
             }
             grade[i] = grade_of(&rl, reached, band);
+            if (L) {
+                if (grade[i] && grade[i] <= hand_level) continue;    /* handed back, its grade kept */
+                grade[i] = 0;
+            }
         }
         if (!L) {
             out[i] = (uint8_t)hidden;

@@ -152,3 +152,42 @@ def test_rows_the_exact_backend_answers_are_certain(kernel):
         assert not uncertain[4000:].any()
         np.testing.assert_array_equal(uncertain[:4000], alone)
     backend.close()
+
+
+@native_only
+def test_fused_refined_shading_hands_back_the_uncertain_pairs():
+    """:meth:`shade_refined` (the compiled shading, graded): answering the handed-back pairs by the maps' own
+    answers gives :meth:`shade_direct`'s pixels; answering them exactly gives the closed form's shadow on the
+    ground at level 3 (every wrong answer there is uncertain) but on one point in 6,000, where the maps alone
+    miss it on 11 % of the points; each handed-back pair is a facing pair of the frame's lights, counted."""
+    backend, o, t, n, truth, *_ = _scene("native")
+    backend.workers = 1                                  # one thread: the same sums in the same order
+    lights = _lights(LIGHTS)
+    p, nrm = o[::len(LIGHTS)], n[::len(LIGHTS)]
+    albedo = np.full((len(p), 3), 0.5, np.float32)
+    maps = backend.blocked_lights(lights, p, nrm)        # (L, P) the maps' answers
+    handed = []
+
+    def own(point, light, kind):
+        assert not kind.any()
+        handed.append((point.copy(), light.copy()))
+        return maps[light, point] == 0
+
+    plain = backend.shade_direct(p, nrm, albedo, lights, plain=None)
+    got, counts = backend.shade_refined(p, nrm, albedo, lights, level=3, near=None, resolve=own)
+    np.testing.assert_allclose(got.radiance, plain.radiance, rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(got.shadow, plain.shadow)
+    np.testing.assert_array_equal(got.facing, plain.facing)
+    point = np.concatenate([h[0] for h in handed])
+    assert counts["uncertain"] == len(point) > 0 and counts["queries"] == plain.queries
+    assert np.all(got.facing[point] > 0)
+
+    def exact(point, light, kind):
+        return ~backend.exact.occluded(p[point], LIGHTS[light], normals=nrm[point])
+
+    refined, _ = backend.shade_refined(p, nrm, albedo, lights, level=3, near=None, resolve=exact)
+    closed = truth.reshape(len(p), len(LIGHTS)).mean(1)  # every light faces the ground
+    assert np.all(plain.facing == len(LIGHTS))
+    assert (np.abs(plain.shadow - closed) > 1e-6).mean() > 0.05
+    assert (np.abs(refined.shadow - closed) > 1e-6).mean() < 0.002
+    backend.close()

@@ -58,7 +58,9 @@ Refinement (``REFINE``: :meth:`InsmBackend.occluded_uncertain`)
     superset). The compiled maps grade every answer in the pass that answers it, one map build for all
     levels: the triangles' ``h`` is kept per texel beside the depth as the map is rasterized, the
     silhouettes go into a max/min pyramid per view, and each lookup searches it (``kernels/insmr.c``). The
-    answers are the same as :meth:`InsmBackend.occluded`'s. Rows the exact backend answers are certain.
+    answers are the same as :meth:`InsmBackend.occluded`'s. Rows the exact backend answers are certain. The
+    fused shading grades too (:meth:`InsmBackend.shade_refined`, what :class:`usdml.visibility.refine.Refined`
+    calls): a map per light for every pixel, the pairs uncertain at the level handed back a light at a time.
 
     The Warp kernels (``--insm-cpu-kernel warp``, and CUDA) grade by a simpler rule: the same silhouettes
     and bias band, but no sample spacings and no pyramid: a silhouette counts within a fixed footprint of
@@ -115,8 +117,8 @@ from usdml.visibility.voxel_array import warp_module
 
 log = logging.getLogger("usdml")
 
-__all__ = ["InsmBackend", "LightViews", "light_views", "triangle_spacing", "SPOT_MAX_DEG", "REFINE_C", "REFINE_BAND",
-           "REFINE_FOOTPRINT"]
+__all__ = ["InsmBackend", "LightViews", "light_views", "triangle_spacing", "refine_rule", "SPOT_MAX_DEG", "REFINE_C",
+           "REFINE_BAND", "REFINE_FOOTPRINT"]
 
 #: a spot light whose cone is at most this half-angle gets one map of its cone, wider ones a cube map
 SPOT_MAX_DEG = 60.0
@@ -140,6 +142,11 @@ REFINE_FOOTPRINT = (1, 2, 3, 5, 8)
 REFINE_JUMP = 4.0
 #: the lookup's own footprint, in texels, added to every reach
 REFINE_R0 = 1.0
+
+
+def refine_rule() -> np.ndarray:
+    """The compiled maps' rule (``kernels/insmr.c``): ``levels, jump, r0, c[levels], band[levels]``, float32."""
+    return np.array([len(REFINE_C), REFINE_JUMP, REFINE_R0, *REFINE_C, *REFINE_BAND], np.float32)
 
 
 def kernels():
@@ -485,7 +492,7 @@ class InsmBackend(VisibilityBackend):
         if native:
             from usdml.visibility import insm_native
             tris, cl, views = self._native_inputs(lv)
-            rule = np.array([self.refine_levels, REFINE_JUMP, REFINE_R0, *REFINE_C, *REFINE_BAND], np.float32)
+            rule = refine_rule()
 
             def buffers(n_views: int) -> tuple:
                 return self._native_buffers(max(n_views, most))
@@ -687,11 +694,38 @@ class InsmBackend(VisibilityBackend):
             specs.append(spec)
         return inverse.reshape(-1), known, specs
 
+    def shade_refined(self, points, normals, albedo, lights: Lights, progress=None, meters_per_unit: float = 1.0,
+                      min_distance: float = 0.0, geometric=None, *, level: int, near=None,
+                      resolve: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> tuple[DirectResult, dict]:
+        """``REFINE`` in the fused shading (:class:`usdml.visibility.refine.Refined`'s hook): :meth:`shade_direct`'s
+        compiled pass, a map per light for every point, with each looked-up pair graded (module doc,
+        "Refinement"); the pairs uncertain at ``level`` are neither lit nor blocked there but handed, a light at
+        a time, to ``resolve(point_index, light_index, kind) -> (K,) bool`` free (kind 0; called from the thread
+        pool, several lights at once) and shaded by its answers. The maps have no blind zone: ``near`` is not
+        used. Returns the result and ``{"uncertain": pairs handed back, "near": 0, "queries": shadow queries}``.
+        Without the compiled maps: ``NotImplementedError`` (the caller asks :meth:`occluded_uncertain`)."""
+        if not self.native:
+            raise NotImplementedError("the fused refined shading needs the compiled insm maps")
+        level = int(level)
+        if not 1 <= level <= self.refine_levels:
+            raise ValueError(f"level must be in [1, {self.refine_levels}], got {level}")
+        self._remember(lights)
+        n_p = len(points)
+        if not n_p or not len(lights):
+            return DirectResult(np.zeros((n_p, 3), np.float32), np.zeros(n_p, np.float32), np.zeros(n_p, np.int32),
+                                0), {"uncertain": 0, "near": 0, "queries": 0}
+        result, handed = self._shade_native(points, normals, albedo, lights, meters_per_unit, min_distance, geometric,
+                                            refine=(level, resolve))
+        if progress is not None:
+            progress(n_p)
+        return result, {"uncertain": handed, "near": 0, "queries": result.queries}
+
     def _shade_native(self, points, normals, albedo, lights: Lights, meters_per_unit: float, min_distance: float,
-                      geometric):
+                      geometric, refine: tuple | None = None):
         """:meth:`shade_direct` in the compiled maps: each light's map, lookups and share of Alg. 3 in one
         call (``kernels/light_term.h``'s UsdLux rules, the voxel kernel's), per-thread sums added at the
-        end; nothing of (points x lights) is held."""
+        end; nothing of (points x lights) is held. With ``refine`` = ``(level, resolve)`` (:meth:`shade_refined`):
+        the result and the number of pairs handed back."""
         from usdml.visibility import insm_native
         from usdml.visibility.voxel_native import compiled_lights
 
@@ -709,37 +743,57 @@ class InsmBackend(VisibilityBackend):
         held_all: list = []
         lock = threading.Lock()
 
+        level, resolve = refine if refine is not None else (0, None)
+        rule = refine_rule()
+
         def run(li: int) -> None:
             try:
                 held = pool.get_nowait()
             except queue.Empty:
+                graded = None if resolve is None else \
+                    (np.empty(insm_native.refine_floats(size, most), np.float32), np.zeros(n_p, np.uint8),
+                     np.zeros(1, np.int64))
                 held = (self._native_buffers(most),
                         (np.empty((n_p, 3), np.float32), np.empty(n_p, np.uint8), np.zeros((n_p, 3), np.float32),
-                         np.zeros(n_p, np.int32), np.zeros(n_p, np.int32), np.zeros(1, np.int64)), np.zeros(3))
+                         np.zeros(n_p, np.int32), np.zeros(n_p, np.int32), np.zeros(1, np.int64)), np.zeros(3), graded)
                 with lock:
                     held_all.append(held)
-            buffers, acc, seconds = held
+            buffers, acc, seconds, graded = held
             insm_native.light(tris, cl, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
                               bool(lv.cube[li]), lv.position[li], size, buffers, pts, geo, self.offset, self.bias,
-                              None, seconds, (table, li, shading, *acc))
+                              None, seconds, (table, li, shading, *acc),
+                              refine=None if graded is None else (self._spacings(), graded[0], rule, graded[1]),
+                              hand_level=level)
+            if graded is not None:
+                # the handed-back pairs answered exactly: lit where free, else blocked
+                rows = np.flatnonzero(graded[1])
+                if len(rows):
+                    free = np.asarray(resolve(rows, np.full(len(rows), li, np.int64), np.zeros(len(rows), np.int8)),
+                                      bool)
+                    rgb, _, rad, blk = acc[:4]
+                    rad[rows[free]] += rgb[rows[free]]
+                    blk[rows[~free]] += 1
+                    graded[2][0] += len(rows)
             pool.put(held)
 
         run_parallel(run, range(len(lights)), self.workers)
         radiance = np.zeros((n_p, 3), np.float32)
         blocked = np.zeros(n_p, np.int64)
         facing = np.zeros(n_p, np.int64)
-        queries, seconds = 0, np.zeros(3)
-        for _, (_, _, rad, blk, fac, q), sec in held_all:
+        queries, seconds, handed = 0, np.zeros(3), 0
+        for _, (_, _, rad, blk, fac, q), sec, graded in held_all:
             radiance += rad
             blocked += blk
             facing += fac
             queries += int(q[0])
             seconds += sec
+            handed += 0 if graded is None else int(graded[2][0])
         radiance *= np.asarray(albedo, np.float32) / np.float32(np.pi)
         shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0).astype(np.float32)
         self._count_maps(len(lights), seconds)
         self.stats["map_queries"] += queries
-        return DirectResult(radiance, shadow, facing.astype(np.int32), queries)
+        result = DirectResult(radiance, shadow, facing.astype(np.int32), queries)
+        return result if refine is None else (result, handed)
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         """Segments to one of the frame's lights from its map, the others by the exact backend (module doc)."""

@@ -25,7 +25,7 @@ _P, _i32, _i64, _f32 = ctypes.c_void_p, ctypes.c_int32, ctypes.c_int64, ctypes.c
 EXTENSION = Extension("_insmr", {
     "insm_light": (None, [_P, _i64, _P, _P, _i64, _P, _P, _P, _P, _P, _i32, _i32, _i32, _P, _i32, _P, _i32, _P, _P,
                           _P, _P, _i64, _f32, _f32, _P, _P, _P, _i32, _P, _P, _P, _P, _P, _P, _P,
-                          _P, _P, _P, _P]),
+                          _P, _P, _P, _P, _i32]),
 })
 
 
@@ -53,14 +53,15 @@ def pyramid_blocks(size: int) -> int:
 
 def refine_floats(size: int, n_views: int) -> int:
     """Floats of the scratch a refining call (:func:`light`'s ``refine``) needs for ``n_views`` views of
-    ``size``² texels: per view two maps and three pyramids."""
-    return int(n_views) * (2 * int(size) ** 2 + 3 * pyramid_blocks(size))
+    ``size``² texels: per view a map of the triangles' spacings, a triple per texel and a triple per block of
+    its pyramid."""
+    return int(n_views) * (4 * int(size) ** 2 + 3 * pyramid_blocks(size))
 
 
 def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_views: int, cube: bool,
           position: np.ndarray, size: int, buffers: tuple, points: np.ndarray, normals: np.ndarray, offset: float,
           bias: float, out: np.ndarray | None, seconds: np.ndarray, shade: tuple | None = None,
-          refine: tuple | None = None) -> None:
+          refine: tuple | None = None, hand_level: int = 0) -> None:
     """One light's maps and lookups (``insm_light``): ``tris`` (3T, 3) float32 and their
     :func:`usdml.visibility.insm_mesh.clusters` (first triangles, boxes), ``views`` the C-contiguous
     (origin, rot, proj, kind, near) arrays of every view, ``buffers`` (depth, tile_z, view_z) float32 of
@@ -69,9 +70,11 @@ def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_vi
     ``shade`` = (light table (:func:`usdml.visibility.voxel_native.compiled_lights`), this light's row,
     (P, 3) float32 shading normals, (P, 3) float32 and (P,) uint8 scratch, (P, 3) float32 radiance,
     (P,) int32 blocked and facing, (1,) int64 queries) accumulated: the light's share of Alg. 3.
-    ``refine`` (with ``out`` only) = (triangles' (T,) float32 sample spacings, float32 scratch of at least
-    :func:`refine_floats`, the float32 rule ``levels, jump, r0, c[levels], band[levels]``, (P,) uint8 grades):
-    each answer's grade too (:mod:`usdml.visibility.insm`, "Refinement"), the answers unchanged."""
+    ``refine`` = (triangles' (T,) float32 sample spacings, float32 scratch of at least :func:`refine_floats`,
+    the float32 rule ``levels, jump, r0, c[levels], band[levels]``, (P,) uint8 grades): with ``out``, each
+    answer's grade too (:mod:`usdml.visibility.insm`, "Refinement"), the answers unchanged; with ``shade``,
+    the looked-up points graded ``1 .. hand_level`` are handed back (counted facing and asked, neither blocked
+    nor lit; their grade kept, 0 for every other point) for the caller to answer."""
     origin, rot, proj, kind, near = views
     depth, tile_z, view_z = buffers
     pos = np.ascontiguousarray(position, np.float32)
@@ -89,4 +92,4 @@ def light(tris: np.ndarray, clusters: tuple, views: tuple, first_view: int, n_vi
                          depth.ctypes.data, tiles, tile_z.ctypes.data, view_z.ctypes.data, points.ctypes.data,
                          normals.ctypes.data, len(points), float(offset), float(bias),
                          None if out is None else out.ctypes.data, seconds.ctypes.data, *extra,
-                         *([None] * 6 if refine is None else [a.ctypes.data for a in refine]))
+                         *([None] * 4 if refine is None else [a.ctypes.data for a in refine]), int(hand_level))
