@@ -12,7 +12,7 @@ With ``--bench``, also ``usdml bench`` (median of passes; refinement included) p
 ``--frame-width W``, the seconds of whole frames rendered at W pixels wide, each budget against ``exact``
 (``usdml.bench.steady_frame``: the second of two frames, one primary ray per pixel).
 
-Usage::
+Usage (``--from docs/data/budget.json --plot docs/images/budget`` redraws the docs' chart from its data)::
 
     python tools/budget_table.py /tmp/uc/unseen_city_1.usda --backends voxel,svo,insm \\
         --budgets 1,0.01,0.003,0.001,0 --imageWidth 128 --json --plot docs/images/budget
@@ -91,10 +91,10 @@ def chart(rows: list, path: str) -> None:
 
     group = lambda r: f"{r['stage'].rsplit('/', 1)[-1].removesuffix('.usda')} {r['visibility']}"
     panels(path, [
-        dict(title="measured ε_v against the budget (none at 0.1, 0 at 1e-4)", xlabel="--error-budget",
-             ylabel="ε_v (%)", series=series(rows, at, lambda r: max(100 * r["eps_v"], 1e-4), group), logx=True,
-             logy=True),
-        dict(title="speed-up over exact (compare's pairs)", xlabel="--error-budget", ylabel="× exact",
+        dict(title="measured ε_v", xlabel="--error-budget (none at 0.1, 0 at 1e-4)",
+             ylabel="ε_v (%; 0 at 1e-4)", series=series(rows, at, lambda r: max(100 * r["eps_v"], 1e-4), group),
+             logx=True, logy=True),
+        dict(title="speed-up over exact", xlabel="--error-budget", ylabel="× exact (compare's pairs)",
              series=series(rows, at, "speedup", group), logx=True),
         dict(title="queries re-asked of exact", xlabel="--error-budget", ylabel="refined (%)",
              series=series(rows, at, lambda r: 100 * r["refined_fraction"], group), logx=True)])
@@ -102,7 +102,7 @@ def chart(rows: list, path: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    p.add_argument("stages", nargs="+")
+    p.add_argument("stages", nargs="*")
     p.add_argument("--backends", default="voxel,svo,insm")
     p.add_argument("--budgets", default="1,0.01,0.003,0.001,0")
     p.add_argument("--imageWidth", type=int, default=128)
@@ -110,8 +110,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frame-width", type=int, default=None, help="also time whole frames this wide")
     p.add_argument("--plot", default=None, metavar="PREFIX", help="write PREFIX.png: ε_v and speed against the budget")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--from", dest="saved", action="append", default=[], metavar="JSON",
+                   help="rows of an earlier --json run (a list, or a docs/data file's runs) to plot with these")
     args = p.parse_args(argv)
     rows = []
+    for path in args.saved:
+        data = json.load(open(path))
+        rows += data if isinstance(data, list) else [r for run in data["runs"] for r in run["output"]]
     for stage in args.stages:
         rows += measure(stage, args.backends.split(","), _numbers(args.budgets), args.imageWidth, args.bench,
                         args.frame_width)
