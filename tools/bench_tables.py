@@ -419,10 +419,13 @@ def budget_rows(data: dict) -> list[str]:
                          f"{100 * r['refined_fraction']:.1f} / {100 * r['near_fraction']:.1f}",
                          f"{r['speedup']:.2f}×",
                          f"{r['bench_speedup']:.2f}×" if r.get("bench_speedup") is not None else "–", frame,
-                         f"{100 * r['estimate_share']:.1f} %"])
+                         f"{r['shadow_mean_abs']:.4f}" if r.get("shadow_mean_abs") is not None else "–",
+                         f"{r['estimate_seconds']:.2f}"
+                         + (f" ({100 * r['frame_estimate_share']:.1f} %)" if r.get("frame_estimate_share") is not None
+                            else "")])
     return _table(["stage", "backend", "budget", "level", "ε_v", "estimate [95 %]", "holds", "ε_s",
                    "re-asked / blind zone (% queries)", "× exact (compare)", "× exact (bench)", "frame s (exact)",
-                   "estimate's share"], rows)
+                   "shadow AOV vs exact (mean abs.)", "estimate s (share of the frame)"], rows)
 
 
 def cache_rows(data: dict) -> list[str]:

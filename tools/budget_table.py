@@ -29,16 +29,36 @@ def _numbers(text: str, kind=float) -> list:
     return [kind(x) for x in text.split(",") if x.strip()]
 
 
-def _frame(delegate, settings, width: int, height: int) -> float:
+def _frame(delegate, settings, width: int, height: int):
+    """Seconds of the second of two frames, its ``shadow`` AOV and the seconds of its estimate (with a budget:
+the level's choice, sample and sweep)."""
     from usdml.bench import steady_frame
 
-    with steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height) \
-            as (_, seconds, _r):
-        return seconds
+    with steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height,
+                      frozenset({"color", "shadow"})) as (result, seconds, _r):
+        estimate = result.stats.estimate or {}
+        return seconds, result.buffers["shadow"], estimate.get("seconds", 0.0)
+
+
+def cold_render(stage: str, width: int, frames: str, flags: list[str]) -> float:
+    """Seconds of a whole ``usdml render`` of ``frames`` as a user runs it, with an empty cache (the voxel arrays
+    built first), one primary ray per pixel."""
+    import os
+    import subprocess
+    import tempfile
+    import time
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as folder:
+        argv = [sys.executable, "-m", "usdml.cli", "render", stage, str(Path(folder) / "f.####.exr"), "--frames", frames,
+                "--imageWidth", str(width), "--pixel-samples", "1", "-q", *flags]
+        t0 = time.perf_counter()
+        subprocess.run(argv, check=True, env={**os.environ, "USDML_CACHE_DIR": cache}, stdout=subprocess.DEVNULL)
+        return time.perf_counter() - t0
 
 
 def measure(stage: str, backends: list[str], budgets: list[float], width: int, bench: bool,
-            frame_width: int | None) -> list[dict]:
+            frame_width: int | None, cold: str | None = None) -> list[dict]:
     from usdml.bench import bench_visibility
     from usdml.compare import compare_visibility
     from usdml.stage import StageDelegate
@@ -48,7 +68,8 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
     exact_frame = None
     if frame_width:
         w, h = d.snapshot(d.start_time).camera.resolution(frame_width)
-        exact_frame = _frame(d, d.usdml_settings.updated(visibility="exact"), w, h)
+        exact_frame, exact_shadow, _ = _frame(d, d.usdml_settings.updated(visibility="exact"), w, h)
+    exact_cold = cold_render(stage, frame_width, cold, ["--visibility", "exact"]) if cold and frame_width else None
     for backend in backends:
         for budget in budgets:
             r = compare_visibility(d, backend, image_width=width, overrides=dict(error_budget=budget))
@@ -69,15 +90,28 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
                 row["bench_disagreement"] = b["disagreement_vs_exact"]
             if frame_width:
                 s = d.usdml_settings.updated(visibility=backend, error_budget=budget)
-                row["frame_seconds"] = _frame(d, s, w, h)
+                row["frame_seconds"], shadow, row["frame_estimate_seconds"] = _frame(d, s, w, h)
+                row["frame_estimate_share"] = row["frame_estimate_seconds"] / max(row["frame_seconds"], 1e-9)
+                row["frame_speedup"] = exact_frame / max(row["frame_seconds"], 1e-9)
+            if exact_cold is not None:
+                # a user's first render: arrays built, every frame of ``cold`` (--frames)
+                row["cold_frames"] = cold
+                row["cold_seconds"] = cold_render(stage, frame_width, cold, ["--visibility", backend,
+                                                                             "--error-budget", f"{budget:g}"])
+                row["exact_cold_seconds"] = exact_cold
+                row["cold_speedup"] = exact_cold / row["cold_seconds"]
                 row["exact_frame_seconds"] = exact_frame
+                # the shadow AOV against the exact backend's, over the frame's pixels (0 where nothing is hit)
+                row["shadow_mean_abs"] = float(abs(shadow - exact_shadow).mean())
+                row["shadow_bias"] = float((shadow - exact_shadow).mean())
                 row["frame_width"] = [w, h]
             rows.append(row)
             print(f"{stage} {backend} budget {budget:g}: eps_v {100 * r['eps_v']:.3f} % (estimate "
                   f"{100 * r['estimated_eps_v']:.3f} % [{100 * lo:.3f}, {100 * hi:.3f}]), {r['speedup']:.2f}x exact, "
                   f"level {r['refine_level']}, refined {100 * r['refined_fraction']:.1f} %"
                   + (f", bench {row['bench_speedup']:.2f}x" if bench else "")
-                  + (f", frame {row['frame_seconds']:.1f} s vs {exact_frame:.1f} s" if frame_width else ""),
+                  + (f", frame {row['frame_seconds']:.1f} s vs {exact_frame:.1f} s, shadow AOV off by "
+                     f"{row['shadow_mean_abs']:.4f}" if frame_width else ""),
                   file=sys.stderr)
     return rows
 
@@ -108,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imageWidth", type=int, default=128)
     p.add_argument("--bench", action="store_true", help="also usdml bench per backend and budget")
     p.add_argument("--frame-width", type=int, default=None, help="also time whole frames this wide")
+    p.add_argument("--cold", default=None, metavar="FRAMES",
+                   help="with --frame-width: also time whole `usdml render --frames FRAMES` runs with an empty cache")
     p.add_argument("--plot", default=None, metavar="PREFIX", help="write PREFIX.png: ε_v and speed against the budget")
     p.add_argument("--json", action="store_true")
     p.add_argument("--from", dest="saved", action="append", default=[], metavar="JSON",
@@ -119,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += data if isinstance(data, list) else [r for run in data["runs"] for r in run["output"]]
     for stage in args.stages:
         rows += measure(stage, args.backends.split(","), _numbers(args.budgets), args.imageWidth, args.bench,
-                        args.frame_width)
+                        args.frame_width, args.cold)
     if args.plot:
         chart(rows, args.plot + ".png")
     if args.json:
