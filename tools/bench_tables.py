@@ -472,7 +472,13 @@ _CACHE = {"disk": ("arrays.0.disk_bytes", "B1"), "dense": ("arrays.0.dense_bytes
           "load-vs-raw": ("arrays.0.load_vs_raw", "x2"), "first-voxel-s": ("first_render_seconds.voxel", "s1"),
           "first-exact-s": ("first_render_seconds.exact", "s1"), "first-vs-exact": ("first_render_voxel_vs_exact", "x1"),
           "build-s": ("arrays.0.build_seconds", "s1")}
+_UNSEEN = "runs.{}.output.[stage=/tmp/uc/unseen_city_1.usda,{}].{}"
 FIGURES: dict[str, tuple[str, str, str]] = {
+    # --error-budget on a generated city (tools/make_city.py --seed 1): voxel alone and under 0.003
+    "unseen-voxel-eps-v": ("budget", _UNSEEN.format(0, "visibility=voxel,budget=1.0", "eps_v"), "p1"),
+    "unseen-voxel-budget-eps-v": ("budget", _UNSEEN.format(0, "visibility=voxel,budget=0.003", "eps_v"), "p2"),
+    "unseen-voxel-budget-frame-vs-exact": ("budget", _UNSEEN.format(2, "budget=0.003", "frame_speedup"), "x1"),
+    "unseen-voxel-budget-cold-vs-exact": ("budget", _UNSEEN.format(3, "budget=0.003", "cold_speedup"), "x1"),
     # the city's voxel speed, three measures: bench queries, voxel_table's query set, a whole frame
     "city-voxel-bench-vs-exact": ("bench", "runs.0.output.[backend=voxel].speedup_vs_exact", "x2"),
     "city-voxel-bench-vs-embree": ("bench", "runs.0.output.[backend=voxel].speedup_vs_bare_embree", "x2"),

@@ -157,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         rows += measure(stage, args.backends.split(","), _numbers(args.budgets), args.imageWidth, args.bench,
                         args.frame_width, args.cold)
     if args.plot:
-        chart(rows, args.plot + ".png")
+        seen = {}
+        for r in rows:      # one point per stage, backend and budget: the first run's
+            seen.setdefault((r["stage"], r["visibility"], r["budget"]), r)
+        chart(list(seen.values()), args.plot + ".png")
     if args.json:
         print(json.dumps(rows, indent=2))
     return 0
