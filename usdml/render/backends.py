@@ -69,11 +69,6 @@ class Backends:
         return self.refined or self._roles["shadow"]
 
     @property
-    def approximate(self) -> VisibilityBackend:
-        """The configured shadow backend itself (unrefined)."""
-        return self._roles["shadow"]
-
-    @property
     def gi(self) -> VisibilityBackend | None:
         return self._roles["gi"]
 

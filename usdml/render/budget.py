@@ -75,7 +75,7 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
         refined.reset()
         est = sample.estimate(lambda o, t, level=level, **kw: refined.answer(o, t, level=level, **kw)[0])
         tried[str(level)] = est.eps_v_hi
-        share = refined.fractions()["refined_fraction"] + refined.fractions()["near_fraction"]
+        share = sum(refined.fractions().values())          # re-asked and blind-zone rays, per query
         if share > MAX_REFINED:
             break
         if est.eps_v_hi <= budget:

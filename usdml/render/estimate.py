@@ -179,13 +179,9 @@ class PairSample:
         self.k = shared if self.shared else (n_l if self.every else lights_per_pixel)
         self.fpc = (1.0 - m / n_hit) if (self.every and n_hit) else 1.0
         blocks = []
-        if self.shared:
-            self.drawn = np.sort(rng.choice(n_l, shared, replace=False))
-            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights.subset(self.drawn), geo):
-                blocks.append((origin, target, normal, distant, px, li))
-        elif self.every:
-            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights, geo):
-                blocks.append((origin, target, normal, distant, px, li))
+        if self.shared or self.every:
+            drawn = lights.subset(np.sort(rng.choice(n_l, shared, replace=False))) if self.shared else lights
+            blocks = list(facing_pairs(pts, nrm, drawn, geo))
         elif n_l <= DENSE_LIGHTS:
             # each pixel its own ``k`` lights without replacement: every pair's facing test, the drawn kept
             keys = rng.random((m, n_l))
