@@ -1927,7 +1927,20 @@ def main(argv=None):
     parser.add_argument("--out", default=default_out, help="output directory (default: <repo>/stages)")
     parser.add_argument("--check", action="store_true",
                         help="regenerate into a scratch folder and compare with --out; exit 1 listing what differs")
+    parser.add_argument("--suite", action="store_true",
+                        help="write the seeded GI / many-light suite (tools/stage_suite.py) to --out instead")
+    parser.add_argument("--kinds", default="open,canyon,interior", help="--suite: stage kinds")
+    parser.add_argument("--lights", default="64,1024", help="--suite: light counts (64, 1024, 100000, ...)")
+    parser.add_argument("--seeds", default="0-3", help="--suite: seeds, e.g. 0-5 or 1,3 (even tune, odd report)")
     args = parser.parse_args(argv)
+    if args.suite:
+        from stage_suite import make_suite, parse_seeds
+        if args.out == default_out:
+            parser.error("--suite needs --out DIR (the suite is not written into stages/)")
+        for info in make_suite(os.path.abspath(args.out), args.kinds.split(","),
+                               [int(n) for n in args.lights.split(",")], parse_seeds(args.seeds)):
+            print(os.path.basename(info["path"]), ", ".join(f"{k}={v}" for k, v in info.items() if k != "path"))
+        return 0
     if args.check:
         with tempfile.TemporaryDirectory() as scratch:
             skipped = generate(scratch)
