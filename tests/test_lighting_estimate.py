@@ -40,10 +40,12 @@ def frame(path, width, **settings):
 
 
 def measured(test, reference, aov: str) -> float:
-    """Relative RMSE over every pixel and channel: sqrt(Σ (a - b)²) / sqrt(Σ b²) (the estimate's definition)."""
-    a = test.buffers[aov].astype(np.float64)
-    b = reference.buffers[aov].astype(np.float64)
-    return float(np.sqrt(((a - b) ** 2).sum() / (b ** 2).sum()))
+    """Relative RMSE as ``usdml compare`` measures it (the estimate's definition): the RMSE over the pixels that
+    see geometry and the channels, over the reference's mean there."""
+    hit = np.isfinite(reference.buffers["depth"])
+    a = test.buffers[aov][hit].astype(np.float64)
+    b = reference.buffers[aov][hit].astype(np.float64)
+    return float(np.sqrt(((a - b) ** 2).mean()) / b.mean())
 
 
 # ------------------------------------------------------------------------------------------------ pieces
@@ -148,15 +150,15 @@ def test_interval_holds_the_error_measured_over_every_pixel(case, lamp_path):
 def test_an_exact_lgh_estimates_about_zero(new_stage):
     """One lamp is reproduced exactly by the hierarchy (tests/test_lgh_direct.py): the estimate is 0; 16 VPLs
     gathered from the finest level (the VPLs themselves) everywhere, with 1,024 unfiltered shadow rays a
-    pixel, are within 0.2 % of brute force: the estimate is under 2 % (the reference's noise, clipped at 0),
-    where the default LGH's is 13 %."""
+    pixel, are within 0.2 % of brute force: the estimate is under 3 %, its upper end under 5 % (the reference's
+    noise, clipped at 0; over the reference's mean, compare's definition), where the default LGH's is about 19 %."""
     one = lamp_stage(new_stage, lamps(1))
     e = frame(one, 32, direct="lgh").stats.estimate_direct
     assert e["rel_rmse_hi"] < 1e-4 and abs(e["rel_bias"]) < 1e-4
     exact = dict(vpl_count=16, lgh_start_level=0, lgh_alpha=1000.0, shadow_samples=1024, shadow_filter_iterations=0)
     got = frame(STAGES / "cornell.usda", 32, gi="lgh", **exact)
     assert measured(got, frame(STAGES / "cornell.usda", 32, gi="vpl-bruteforce", **exact), "indirect") < 0.002
-    assert got.stats.estimate_gi["rel_rmse"] < 0.02 and got.stats.estimate_gi["rel_rmse_hi"] < 0.03
+    assert got.stats.estimate_gi["rel_rmse"] < 0.03 and got.stats.estimate_gi["rel_rmse_hi"] < 0.05
 
 
 # ------------------------------------------------------------------------------------------- the outputs

@@ -40,6 +40,26 @@ def indirect_error(test: dict, reference: dict) -> tuple[float, float]:
     return rmse, float(b.mean()) if b.size else 0.0
 
 
+def _estimate_fields(stats, kind: str, measured: float) -> dict:
+    """The frame's own estimate of its error (``usdml:estimate:<kind>:*``, :mod:`usdml.render.lighting_estimate`)
+    beside the measured ``rel_rmse``: ``estimated_rel_rmse``, its 95 % interval and whether it holds the
+    measurement; empty where the method reports none (brute force, ``--gi svo``)."""
+    from usdml.render.lighting_estimate import frame_estimates
+
+    e = frame_estimates(stats).get(kind)
+    if not e:
+        return {}
+    lo, hi = float(e["rel_rmse_lo"]), float(e["rel_rmse_hi"])
+    return {"estimated_rel_rmse": float(e["rel_rmse"]), "estimated_rel_rmse_interval": [lo, hi],
+            "estimate_holds": bool(lo <= measured <= hi), "estimate": dict(e)}
+
+
+def _estimate_text(r: dict) -> str:
+    if "estimated_rel_rmse" not in r:
+        return ""
+    return "; estimated " + _percent_interval(r["estimated_rel_rmse"], r["estimated_rel_rmse_interval"])
+
+
 def _warn_ignored(overrides: dict | None, settings) -> None:
     """A warning for each given setting the comparison does not read (:func:`usdml.params.ignored`)."""
     from usdml.errors import log
@@ -96,12 +116,13 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     gi_ref = ref.stats.gi_seconds or 0.0
     _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "indirect": test.buffers["indirect"],
                                   "color": test.buffers["color"][..., :3], "indirect_reference": ref.buffers["indirect"]})
+    rel = rmse / mean if mean > 0 else 0.0
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "gi": gi, "against": against, "vpls": (test.stats.gi or {}).get("vpls", 0),
         "lgh_alpha": base.lgh_alpha, "shadow_samples": base.shadow_samples, "interleave": base.interleave,
         "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets,
-        "rel_rmse": rmse / mean if mean > 0 else 0.0, "rmse": rmse, "reference_mean": mean,
+        "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "gi", rel),
         "seconds": {gi: gi_test, against: gi_ref},
         "frame_seconds": {gi: test_s, against: ref_s},
         "speedup": gi_ref / gi_test if gi_test > 0 else float("inf"),
@@ -183,13 +204,14 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
     mean = float(b.mean()) if b.size else 0.0
     _write_pngs(png_prefix, hit, {"direct": test.buffers["direct"], "direct_reference": ref_img})
     test_shading = test.stats.shading_seconds
+    rel = rmse / mean if mean > 0 else 0.0
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "compared_pixels": compared, "reference_extrapolated": bool(reference_pixels > 0 and against == "all"),
         "direct": direct, "against": against, "lights": test.stats.lights,
         "visibility": base.visibility, "direct_shadow_samples": base.direct_shadow_samples,
         "direct_alpha": base.direct_alpha,
-        "rel_rmse": rmse / mean if mean > 0 else 0.0, "rmse": rmse, "reference_mean": mean,
+        "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "direct", rel),
         "seconds": {direct: test_s, against: ref_s},
         "direct_seconds": {direct: test_shading, against: ref_shading},
         "speedup": ref_s / test_s if test_s > 0 else float("inf"),
@@ -204,7 +226,7 @@ def format_direct_comparison(r: dict) -> str:
     extra = f", reference on {r['compared_pixels']:,} pixels, its time extrapolated" if r["reference_extrapolated"] else ""
     return (f"--direct {r['direct']} vs {r['against']} on {r['pixels']:,} pixels, {r['lights']:,} lights "
             f"({r['visibility']} visibility{extra}): direct rel. RMSE {100 * r['rel_rmse']:.2f} %, "
-            f"{s[r['direct']]:.2f} s vs {s[r['against']]:.2f} s per frame ({r['speedup']:.1f}x)")
+            f"{s[r['direct']]:.2f} s vs {s[r['against']]:.2f} s per frame ({r['speedup']:.1f}x){_estimate_text(r)}")
 
 
 # ---------------------------------------------------------------------------------------- visibility
@@ -405,4 +427,4 @@ def format_gi_comparison(r: dict) -> str:
     s = r["seconds"]
     return (f"{r['gi']} vs {r['against']} on {r['pixels']:,} pixels, {r['vpls']:,} VPLs: "
             f"relative RMSE of indirect {100 * r['rel_rmse']:.2f} %; indirect pass "
-            f"{s[r['gi']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x)")
+            f"{s[r['gi']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x){_estimate_text(r)}")

@@ -31,14 +31,15 @@ passes and ``k`` of them compared (the pixel's value is their mean, so ``|mean_s
 + (1 - 1/S) mean_(s≠t) x_s·x_t``, each mean unbiased from the ``k``; :func:`per_pixel`)::
 
     D_p = (1/S) mean_i (|e_i|² - v_i) + (1 - 1/S) mean_(i≠j) e_i·e_j     (k = 1: |e|² - v)
-    B_p = the same of b̂
-    rel_rmse = sqrt(Σ_p w_p D_p / Σ_p w_p B_p)    (estimates sqrt(Σ_p,c (a - b)²) / sqrt(Σ_p,c b²))
+    rel_rmse = sqrt(3 mean_p w_p D_p) / mean_p w_p Σ_c b̂_p   (estimates sqrt(mean_p,c (a - b)²) / mean_p,c b)
     rel_bias = Σ_p w_p Σ_c (a_p - b̂_p) / Σ_p w_p Σ_c b̂_p
 
-each term unbiased for its noiseless value (the reference's noise taken out). Note ``compare``'s
-``rel_rmse`` divides the RMSE by the reference's *mean* rather than its RMS, so it is larger by the
-reference's RMS over its mean. The 95 % intervals are the ratios' delta-method intervals over the drawn
-pixels (:func:`ratio_interval`; the draws taken as independent, which their stratification only makes
+``D_p`` unbiased for its noiseless value (the reference's noise taken out). ``rel_rmse`` is what
+``usdml compare`` measures: the RMSE over the reference's *mean* over the pixels that see geometry and the
+channels (until issue 37 it was over the reference's RMS, smaller by the image's RMS over its mean, so a
+frame's estimate and ``compare``'s measurement were not the same number). The 95 % intervals are
+delta-method intervals over the drawn pixels (:func:`mean_square_interval`, :func:`ratio_interval`; the
+draws taken as independent, which their stratification only makes
 conservative); the relative RMSE's upper end on the log scale, as the error of a frame is skewed (a few
 pixels hold much of it). The reference's noise is inside each ``D_p``, so the interval holds it.
 """
@@ -499,11 +500,34 @@ def ratio_interval(num: np.ndarray, den: np.ndarray, log: bool = False) -> tuple
     return q, lo, hi
 
 
+def mean_square_interval(d: np.ndarray, r: np.ndarray, channels: int = 3) -> tuple[float, float, float]:
+    """``(Q, lo, hi)``: ``Q = channels · mean d / (mean r)²``, the squared RMSE over the squared mean when ``d_p`` is a
+    pixel's squared error summed over its ``channels`` and ``r_p`` its reference summed over them (so ``√Q`` is
+    ``usdml compare``'s ``rel_rmse``, the RMSE over the reference's *mean*), with its 95 % interval by the delta
+    method (Student's t over each pixel's influence on ``Q``); the upper end on the log scale as
+    :func:`ratio_interval`'s."""
+    n = len(d)
+    mean_r = float(r.mean()) if n else 0.0
+    if n == 0 or mean_r == 0.0:
+        return 0.0, -math.inf, math.inf
+    mean_d = float(d.mean())
+    q = channels * mean_d / mean_r ** 2
+    if n < 2:
+        return q, -math.inf, math.inf
+    z = channels * ((d - mean_d) / mean_r ** 2 - 2.0 * mean_d * (r - mean_r) / mean_r ** 3)
+    half = t95(n - 1) * float(z.std(ddof=1)) / math.sqrt(n)
+    lo, hi = q - half, q + half
+    if q > 0:
+        hi = min(q * math.exp(half / q), q + 2.0 * half)
+    return q, lo, hi
+
+
 def interval_stats(d: np.ndarray, b: np.ndarray, e: np.ndarray, r: np.ndarray) -> tuple[float, ...]:
     """``(rel_rmse, lo, hi, rel_bias, lo, hi)`` from per-pixel ``D_p``, ``B_p``, ``Σ_c (a - b̂)``, ``Σ_c b̂``
-    (module doc): the relative RMSE from the ratio ``Σ D / Σ B`` (:func:`ratio_interval` on the log scale),
-    square-rooted; the bias from ``Σ e / Σ r``."""
-    q, lo, hi = ratio_interval(d, b, log=True)
+    (module doc): the relative RMSE, over the reference's mean as ``usdml compare`` measures it, from ``D`` and
+    ``Σ_c b̂`` (:func:`mean_square_interval`), square-rooted; the bias from ``Σ e / Σ r``. (``B_p``, the
+    reference's own square, is not needed for it.)"""
+    q, lo, hi = mean_square_interval(d, r)
     bias, blo, bhi = ratio_interval(e, r)
     return (math.sqrt(max(q, 0.0)), math.sqrt(max(lo, 0.0)), math.sqrt(max(hi, 0.0)), bias, blo, bhi)
 
