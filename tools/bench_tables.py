@@ -428,6 +428,32 @@ def budget_rows(data: dict) -> list[str]:
                    "shadow AOV vs exact (mean abs.)", "estimate s (share of the frame)"], rows)
 
 
+#: issue 37's targets: (relative RMSE at most, speed-up at least) by mode
+LGH_SUITE_TARGETS = {"gi": (0.10, 50.0), "direct": (0.05, 30.0)}
+
+
+def lgh_suite_rows(data: dict) -> list[str]:
+    """``tools/lgh_suite.py --json``: one row per suite stage and mode (``--gi lgh`` at a VPL count, ``--direct
+    lgh``), the error against brute force, the speed-up, the frame's own estimate and issue 37's target."""
+    rows = []
+    for run in data["runs"]:
+        for r in sorted(run["output"], key=lambda r: (r["mode"] != "gi", r["kind"], r["lights"], r.get("vpls", 0),
+                                                      r["seed"])):
+            lo, hi = r["estimated_interval"]
+            err, speed = LGH_SUITE_TARGETS[r["mode"]]
+            met = r["rel_rmse"] <= err and r["speedup"] >= speed
+            what = f"{r['vpls']:,} VPLs" if r["mode"] == "gi" else f"{r['lights']:,} lights"
+            est = "–" if r["estimated_rel_rmse"] is None else \
+                f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]"
+            holds = "–" if r["estimate_holds"] is None else ("yes" if r["estimate_holds"] else "**no**")
+            rows.append([run.get("label", "–"), _stage(r["stage"]), r["split"], f"{r['scale']:g}", f"--{r['mode']} lgh",
+                         what,
+                         "×".join(map(str, r["resolution"])), _pct3(r["rel_rmse"]), f"{r['speedup']:.1f}×", est, holds,
+                         f"≤ {100 * err:g} %, ≥ {speed:g}×: " + ("yes" if met else "**no**")])
+    return _table(["defaults", "stage", "split", "scale", "method", "lights", "pixels", "rel. RMSE", "speed-up",
+                   "estimate [95 %]", "holds", "target met"], rows)
+
+
 def cache_rows(data: dict) -> list[str]:
     """``tools/cache_bench.py --json``: each stage's array in memory and on disk, its coding and loading
     against the raw words, and a first render with an empty cache, voxel against exact."""
@@ -454,7 +480,7 @@ RENDERERS = {
     "frame-speed": frame_speed, "svo": svo_rows, "svo-rebuild": svo_rebuild, "svo-kernels": voxel_kernels,
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
-    "budget": budget_rows,
+    "budget": budget_rows, "lgh-suite": lgh_suite_rows,
 }
 
 
