@@ -5,9 +5,10 @@ read again from USD, triangulated, placed and lit by its own code, and Mitsuba's
 variant traces it (the LLVM variants abort on some CPUs). What it understands is what the
 comparison stages use: ``UsdGeom.Mesh`` (fan-triangulated, faceted: Mitsuba's ``face_normals``),
 constant or uniform ``primvars:displayColor`` as a two-sided diffuse albedo (0.18 otherwise),
-``SphereLight`` as a point light at its centre with radiant intensity ``L·π·r²`` (UsdLux's
-convention as the README states it: ``L = intensity · 2^exposure · color``, divided by ``4πr²``
-with ``normalize``), and one perspective ``UsdGeom.Camera``; anything else raises ``ValueError``.
+``SphereLight`` (authored, or instanced by a ``PointInstancer``) as a point light at its centre with
+radiant intensity ``L·π·r²`` (UsdLux's convention as the README states it: ``L = intensity ·
+2^exposure · color``, divided by ``4πr²`` with ``normalize``), and one perspective ``UsdGeom.Camera``;
+anything else raises ``ValueError``.
 
 * :func:`render` — a pixel-integrated image (box filter, ``spp`` samples per pixel) of direct light
   (``path`` with ``max_depth = 2``) or of ``bounces`` diffuse bounces (``max_depth = bounces + 2``).
@@ -28,6 +29,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
 
 DEFAULT_ALBEDO = 0.18
+LUMA = np.array([0.2126, 0.7152, 0.0722])     #: Rec. 709 luminance weights
 
 
 def mitsuba():
@@ -48,14 +50,28 @@ class ReferenceScene:
     height: int
     diagonal: float                 #: of the geometry's bounds, scene units
 
-    def scene(self, lights=None):
-        """The loaded ``mitsuba.Scene`` with the point lights ``lights`` (indices; default all)."""
+    def scene(self, lights=None, weighted: bool = False):
+        """The loaded ``mitsuba.Scene`` with the point lights ``lights`` (indices; default all);
+        ``weighted``: a path picks a light in proportion to its intensity's luminance, not uniformly."""
         mi = mitsuba()
         scene = dict(self.definition)
         for i in range(len(self.lights)) if lights is None else lights:
             scene[f"light{i}"] = {"type": "point", "position": self.lights[i].tolist(),
                                   "intensity": {"type": "rgb", "value": self.intensity[i].tolist()}}
+            if weighted:
+                scene[f"light{i}"]["sampling_weight"] = max(float(self.intensity[i] @ LUMA), 1e-12)
         return mi.load_dict(scene)
+
+    def light_groups(self, count: int) -> list[list[int]]:
+        """The lights in at most ``count`` groups of neighbours (recursive halving of the positions
+        along their longest axis), for renders made group by group."""
+        groups = [np.arange(len(self.lights))]
+        while len(groups) < count and max(len(g) for g in groups) > 1:
+            g = groups.pop(int(np.argmax([len(g) for g in groups])))
+            p = self.lights[g]
+            order = g[np.argsort(p[:, int(np.argmax(np.ptp(p, axis=0)))], kind="stable")]
+            groups += [order[: len(g) // 2], order[len(g) // 2:]]
+        return [sorted(map(int, g)) for g in groups]
 
 
 def _world(cache: UsdGeom.XformCache, prim: Usd.Prim) -> np.ndarray:
@@ -87,12 +103,38 @@ def _face_albedo(mesh: UsdGeom.Mesh, time: Usd.TimeCode, faces: int) -> np.ndarr
     raise ValueError(f"{mesh.GetPath()}: displayColor interpolation {interp!r} is not supported by the reference")
 
 
+def _light_prims(stage: Usd.Stage, time: Usd.TimeCode, cache: UsdGeom.XformCache):
+    """``(prim, (4, 4) world matrix)`` of every light: authored ones, and one per instance of a light a
+    ``PointInstancer`` instances (its prototype's transform below the instancer, then the instance's,
+    then the instancer's; the prototypes themselves are not lights)."""
+    out, prototypes = [], set()
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.PointInstancer):
+            pi = UsdGeom.PointInstancer(prim)
+            roots = [stage.GetPrimAtPath(p) for p in pi.GetPrototypesRel().GetTargets()]
+            prototypes.update(r.GetPath() for r in roots)
+            xforms = pi.ComputeInstanceTransformsAtTime(time, time, UsdGeom.PointInstancer.ExcludeProtoXform)
+            indices = list(pi.GetProtoIndicesAttr().Get(time) or [])
+            world = _world(cache, prim)
+            for j, root in enumerate(roots):
+                for light in Usd.PrimRange(root):
+                    if not light.HasAPI(UsdLux.LightAPI):
+                        continue
+                    local = np.array(cache.ComputeRelativeTransform(light, root.GetParent())[0], np.float64)
+                    out += [(light, local @ np.array(xforms[k], np.float64) @ world)
+                            for k, i in enumerate(indices) if i == j]
+    for prim in stage.Traverse():
+        if any(prim.GetPath().HasPrefix(p) for p in prototypes):
+            continue
+        if prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) \
+                or prim.IsA(UsdLux.NonboundableLightBase):
+            out.append((prim, _world(cache, prim)))
+    return out
+
+
 def _lights(stage: Usd.Stage, time: Usd.TimeCode, cache: UsdGeom.XformCache, to_metres: float):
     positions, intensities = [], []
-    for prim in stage.Traverse():
-        if not prim.HasAPI(UsdLux.LightAPI) and not prim.IsA(UsdLux.BoundableLightBase) \
-                and not prim.IsA(UsdLux.NonboundableLightBase):
-            continue
+    for prim, m in _light_prims(stage, time, cache):
         if not prim.IsA(UsdLux.SphereLight):
             raise ValueError(f"{prim.GetPath()}: only SphereLights are supported by the reference")
         light = UsdLux.SphereLight(prim)
@@ -100,7 +142,6 @@ def _lights(stage: Usd.Stage, time: Usd.TimeCode, cache: UsdGeom.XformCache, to_
             raise ValueError(f"{prim.GetPath()}: shaping and colour temperature are not supported by the reference")
         radiance = (light.GetIntensityAttr().Get(time) * 2.0 ** light.GetExposureAttr().Get(time)
                     * np.asarray(light.GetColorAttr().Get(time), np.float64))
-        m = _world(cache, prim)
         r = light.GetRadiusAttr().Get(time) * float(np.linalg.norm(m[0, :3])) * to_metres
         if light.GetNormalizeAttr().Get(time):
             radiance = radiance / (4.0 * math.pi * r * r)
@@ -183,7 +224,7 @@ def load(stage_path: str, time: float | None, width: int, folder: str | None = N
 
 
 def render(ref: ReferenceScene, spp: int, bounces: int = 0, seed: int = 0,
-           by_light: bool | None = None) -> np.ndarray:
+           by_light: bool | None = None, groups: list[list[int]] | None = None) -> np.ndarray:
     """``(H, W, 3)`` float32 linear radiance, box-filtered over each pixel with ``spp`` stratified
     samples: direct light only (``bounces = 0``) or up to ``bounces`` diffuse bounces after it.
 
@@ -191,16 +232,22 @@ def render(ref: ReferenceScene, spp: int, bounces: int = 0, seed: int = 0,
     noise left in direct light is where in the pixel a sample lands (a path tracer picking one of
     many lights per sample is far noisier); without it, two renders of one seed share their samples,
     so their difference (indirect = all bounces − direct) cancels the direct part sample by sample.
+    ``groups`` (lists of light indices, e.g. :meth:`ReferenceScene.light_groups`) renders group by group
+    instead, each path picking a light of its group by intensity: far less light-selection noise than
+    one render of thousands of lights, in far fewer renders than one per light.
     """
     mi = mitsuba()
     integrator = mi.load_dict({"type": "path", "max_depth": bounces + 2, "hide_emitters": True})
     sampler = {"type": "stratified", "sample_count": spp, "jitter": True}
     ref.definition["sensor"]["sampler"] = sampler
     by_light = bounces == 0 if by_light is None else by_light
-    groups = [[i] for i in range(len(ref.lights))] if by_light else [None]
+    weighted = groups is not None
+    if groups is None:
+        groups = [[i] for i in range(len(ref.lights))] if by_light else [None]
     image = np.zeros((ref.height, ref.width, 3), np.float64)
     for k, lights in enumerate(groups):
-        image += np.array(mi.render(ref.scene(lights), integrator=integrator, spp=spp, seed=seed + k), np.float64)
+        image += np.array(mi.render(ref.scene(lights, weighted), integrator=integrator, spp=spp, seed=seed + k),
+                          np.float64)
     return image.astype(np.float32)
 
 
