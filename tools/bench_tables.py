@@ -454,6 +454,40 @@ def lgh_suite_rows(data: dict) -> list[str]:
                    "estimate [95 %]", "holds", "target met"], rows)
 
 
+def lgh_pathtrace_rows(data: dict) -> list[str]:
+    """``tools/lgh_pathtrace.py --json``: per suite stage, ``--gi lgh`` against Mitsuba (issue 37 item 4: ``color``
+    and ``indirect``, the reference's own noise) and, where a run measured it, the frame's estimate of its error
+    against the error measured against brute force (item 5)."""
+    rows: dict = {}
+    for run in data["runs"]:
+        for r in run["output"]["rows"]:
+            rows.setdefault(r["stage"], {}).update(r)
+    tol = data["runs"][0]["output"]
+    out = []
+    for name, r in sorted(rows.items(), key=lambda kv: (int(_stage(kv[0]).rsplit("_s", 1)[1]) % 2 == 0, kv[0])):
+        seed = int(_stage(name).rsplit("_s", 1)[1])
+        row = [_stage(name), "report" if seed % 2 else "tune"]
+        if "color_ratio" in r:
+            met = abs(r["color_ratio"] - 1) <= tol["mean_tolerance"] \
+                and r["color_block_error"] <= tol["block_tolerance"]
+            row += ["×".join(map(str, r["resolution"])), f"{r['color_ratio']:.3f}", _pct(r["color_block_error"]),
+                    f"{r['indirect_ratio']:.3f}", _pct(r["indirect_block_error"]),
+                    f"{_pct(r['color_ref_noise'])} / {_pct(r['color_ref_block_noise'])}", "yes" if met else "**no**"]
+        else:
+            row += ["–"] * 7
+        if "measured_rel_rmse" in r:
+            lo, hi = r["estimated_interval"]
+            row += [f"{r['vpls']:,}", _pct3(r["measured_rel_rmse"]),
+                    f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]",
+                    "yes" if r["interval_holds"] else "**no**"]
+        else:
+            row += ["–"] * 4
+        out.append(row)
+    return _table(["stage", "split", "pixels", "color mean", "color block error", "indirect mean",
+                   "indirect block error", "reference noise", "color target met", "VPLs", "measured rel. RMSE",
+                   "estimate [95 %]", "holds"], out)
+
+
 def cache_rows(data: dict) -> list[str]:
     """``tools/cache_bench.py --json``: each stage's array in memory and on disk, its coding and loading
     against the raw words, and a first render with an empty cache, voxel against exact."""
@@ -481,6 +515,7 @@ RENDERERS = {
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
     "budget": budget_rows, "lgh-suite": lgh_suite_rows,
+    "lgh-suite-pt": lgh_pathtrace_rows,
 }
 
 
