@@ -166,10 +166,9 @@ __all__ = ["Gf", "add_quad", "add_cube_mesh", "world_points", "instance_world_po
            "render_aovs", "assert_direct"]
 
 
-@pytest.fixture(scope="module")
-def cornell():
-    """cornell.usda's frame 1 at 48 px for indirect light: ``(snapshot, exact backend, G-buffer, hit points,
-    normals, albedo, 3,000 VPLs)``."""
+def gi_frame(stage, width: int, vpl_count: int, time=None):
+    """A stage's frame (default: its start) at ``width`` px for indirect light: ``(snapshot, exact backend,
+    G-buffer, hit points, normals, albedo, VPLs)``."""
     from dataclasses import replace
 
     from usdml.lighting.vpl import generate_vpls
@@ -179,13 +178,20 @@ def cornell():
     from usdml.stage import StageDelegate
     from usdml.visibility import ExactBackend
 
-    d = StageDelegate(STAGES / "cornell.usda")
-    snap = d.snapshot(1)
+    d = StageDelegate(str(stage))
+    snap = d.snapshot(d.start_time if time is None else time)
     ex = ExactBackend()
     ex.update(snap, diff(None, snap))
-    w, h = snap.camera.resolution(48)
+    w, h = snap.camera.resolution(width)
     gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
     hit = gb.hit.ravel()
     pts, nrm, alb = (gb.position.reshape(-1, 3)[hit], gb.normal.reshape(-1, 3)[hit], gb.albedo.reshape(-1, 3)[hit])
-    vpls = generate_vpls(snap, ex, snap.lights, 3000, 3, seed=0)
+    vpls = generate_vpls(snap, ex, snap.lights, vpl_count, 3, seed=0)
     return snap, ex, gb, pts, nrm, alb, vpls
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    """cornell.usda's frame 1 at 48 px for indirect light: ``(snapshot, exact backend, G-buffer, hit points,
+    normals, albedo, 3,000 VPLs)``."""
+    return gi_frame(STAGES / "cornell.usda", 48, 3000, time=1)

@@ -69,7 +69,8 @@ def test_compare_gi_json(capsys):
     assert {"rel_rmse", "seconds", "speedup", "vpls", "pixels"} <= set(out)
     assert out["vpls"] == 1000 and out["seconds"]["lgh"] > 0 and out["seconds"]["vpl-bruteforce"] > 0
     assert 0 < out["rel_rmse"] < 0.35           # measured 0.260 (1000 VPLs, 32 px)
-    assert out["lgh_start_level"] == 1 and out["breakdown"]["lgh"]["filter_iterations"] == 3
+    assert out["lgh_start_level"] == 0 and out["breakdown"]["lgh"]["filter_iterations"] == 3
+    assert out["lgh_alpha"] in (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)        # auto: as the frame chose it
 
 
 def test_compare_gi_with_s0_and_more_samples(capsys):

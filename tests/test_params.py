@@ -190,7 +190,7 @@ def test_a_stage_value_of_the_wrong_type(new_stage):
 @pytest.mark.parametrize("name,value,message", [
     ("voxel_segment", 3, "voxel segment must be one of 1, 2, 4, 8, 16, 32, got 3"),
     ("pixel_samples", 8, "square number"),
-    ("lgh_alpha", math.inf, "LGH alpha must be finite and > 0"),
+    ("lgh_alpha", math.inf, "LGH alpha must be finite and >= 0"),
     ("fully_dynamic", "yes", "fully dynamic must be true or false"),
     ("voxel_rebuild", "peel", "unknown voxel rebuild 'peel'; use one of rotate, geometry"),
     ("interleave", 3, "interleave must be one of 1, 2, 4"),

@@ -5,7 +5,7 @@ Usage::
 
     python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--lgh-alpha 1,2]
         [--shadow-samples 1,4] [--lgh-start-level 1,0] [--shadow-filter-iterations -1] [--frame F]
-        [--visibility exact] [--reference-visibility exact] [--reference FILE.npz] [--json]
+        [--visibility exact] [--reference-visibility exact] [--reference FILE.npz] [--hierarchy] [--json]
 
 The G-buffer and the VPLs (same seed) are made once; ``vpl-bruteforce`` (every VPL, exact
 visibility) runs once and every LGH setting is timed against it, so the table costs one brute-force
@@ -20,6 +20,11 @@ cache, before anything is timed), ``--reference-visibility`` that of brute force
 reference). ``--reference FILE.npz`` keeps the brute-force radiance and its seconds: written on the
 first run, read on later runs with the same stage, frame, VPLs, width and visibility (checked), so
 that trying LGH settings does not repeat an expensive brute-force pass.
+
+``--hierarchy`` splits each row's error: the same LGH setting and brute force both without shadows
+(``hierarchy_rel_rmse``: the grid lights, their blending and lobes, against every VPL), one more
+brute-force pass without rays. An ``--lgh-alpha`` or ``--shadow-samples`` of 0 is usdml's automatic
+choice; the rows give what the frame chose.
 """
 
 from __future__ import annotations
@@ -68,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference", help="brute-force result to read (.npz), written first if missing")
     p.add_argument("--check-rays", type=int, default=0, metavar="N",
                    help="with --visibility other than exact: test N of each row's LGH shadow rays with exact too")
+    p.add_argument("--hierarchy", action="store_true",
+                   help="also each row's error without shadows, against brute force without shadows")
     p.add_argument("--json", action="store_true")
     p.add_argument("--plot", metavar="PNG", help="also write the table's chart as a PNG")
     args = p.parse_args(argv)
@@ -104,10 +111,11 @@ def main(argv: list[str] | None = None) -> int:
             return got
         return both
 
-    def run(settings, visibility, check=False):
-        occluded = backends[visibility].occluded
+    def run(settings, visibility, check=False, shadows=True):
+        occluded = backends[visibility].occluded if shadows else None
         t0 = time.perf_counter()
-        r = indirect_lighting(snap, renderer.backends.primary, checking(occluded) if check else occluded, lights,
+        r = indirect_lighting(snap, renderer.backends.primary, checking(occluded) if check and shadows else occluded,
+                              lights,
                               points, normals, albedo, settings, image=(gb.hit, gb.position))
         return r, time.perf_counter() - t0
 
@@ -126,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     if len(b) != len(points):
         raise SystemExit(f"{args.reference} has {len(b)} pixels, this frame {len(points)}")
     mean = float(b.mean())
+    unshadowed = run(base.updated(gi="vpl-bruteforce"), args.reference_visibility, shadows=False)[0] \
+        if args.hierarchy else None
     rows = []
     target_choices = args.shadow_targets.split(",") if args.shadow_targets else [base.shadow_targets]
     for alpha in map(float, args.lgh_alpha.split(",")):
@@ -134,25 +144,32 @@ def main(argv: list[str] | None = None) -> int:
                                                for i in _ints(args.shadow_filter_iterations) for t in target_choices):
                 r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
                                         shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility)
-                rays_check = {}
+                extra = {}
                 if args.check_rays > 0 and args.visibility != "exact":     # after the timed run, on its rays
                     checked.clear()
                     run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
                                      shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility,
                         check=True)
                     n_rays, wrongly_visible, wrongly_blocked = map(sum, zip(*checked))
-                    rays_check = {"checked_rays": n_rays, "wrongly_visible": wrongly_visible / max(n_rays, 1),
+                    extra = {"checked_rays": n_rays, "wrongly_visible": wrongly_visible / max(n_rays, 1),
                                   "wrongly_blocked": wrongly_blocked / max(n_rays, 1)}
+                if unshadowed is not None:
+                    u = unshadowed.radiance.astype(np.float64)
+                    got = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start),
+                              args.visibility, shadows=False)[0].radiance.astype(np.float64)
+                    extra["hierarchy_rel_rmse"] = float(np.sqrt(np.mean((got - u) ** 2)) / u.mean())
                 rmse = float(np.sqrt(np.mean((r.radiance.astype(np.float64) - b) ** 2)))
                 split = {key: r.stats.get(key, 0.0) for key in
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
-                rows.append({"alpha": alpha, "shadow_samples": k, "start_level": start, "shadow_targets": targets,
+                rows.append({"alpha": r.stats.get("lgh_alpha", alpha),
+                             "shadow_samples": r.stats.get("shadow_samples", k),
+                             "start_level": start, "shadow_targets": targets,
                              "filter_iterations": r.stats.get("filter_iterations"),
                              "rel_rmse": rmse / mean if mean > 0 else 0.0,
                              "mean_ratio": float(r.radiance.mean()) / mean if mean > 0 else 0.0, "seconds": s,
                              "speedup": ref_s / s if s > 0 else float("inf"), **split,
                              "lgh_levels": r.stats.get("lgh_levels"), "shadow_rays": r.stats.get("shadow_rays"),
-                             **rays_check})
+                             **extra})
     for name, backend in backends.items():
         if name != "exact":
             backend.close()
@@ -176,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{100 * r['rel_rmse']:.1f} % ({r['mean_ratio']:.2f}) | "
               f"{r['seconds']:.3f} | {r['speedup']:.0f}× | {r['vpl_seconds']:.3f} | {r['lgh_seconds']:.3f} | "
               f"{r['lighting_seconds']:.3f} | {r['shadow_seconds']:.3f} | {r['filter_seconds']:.3f} |"
+              + (f" without shadows {100 * r['hierarchy_rel_rmse']:.1f} %" if "hierarchy_rel_rmse" in r else "")
               + (f" rays against exact: {100 * r['wrongly_visible']:.1f} % wrongly visible, "
                  f"{100 * r['wrongly_blocked']:.1f} % wrongly blocked of {r['checked_rays']:,}" if "checked_rays" in r
                  else ""))

@@ -120,7 +120,10 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
     return {
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "gi": gi, "against": against, "vpls": (test.stats.gi or {}).get("vpls", 0),
-        "lgh_alpha": base.lgh_alpha, "shadow_samples": base.shadow_samples, "interleave": base.interleave,
+        # auto (0): as the frame chose them
+        "lgh_alpha": (test.stats.gi or {}).get("lgh_alpha", base.lgh_alpha),
+        "shadow_samples": (test.stats.gi or {}).get("shadow_samples", base.shadow_samples),
+        "interleave": base.interleave,
         "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets,
         "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "gi", rel),
         "seconds": {gi: gi_test, against: gi_ref},

@@ -362,16 +362,19 @@ _SETTINGS = (
           label="VPL count", metavar="N", applies=_GI, source="paper 004"),
     Param("vpl_bounces", int, 3, "diffuse bounces of the light paths that place VPLs", **_LIT, range=Range(1),
           label="VPL bounces", metavar="N", applies=_GI, source="paper 004"),
-    Param("lgh_alpha", float, 1.0, "LGH blending radius factor alpha, r_l = alpha h_l", **_LIT,
-          range=Range(0, low_open=True), label="LGH alpha", metavar="ALPHA", applies=_GI_LGH, source="paper 004"),
+    Param("lgh_alpha", float, 0.0, "LGH blending radius factor alpha, r_l = alpha h_l; 0 = automatic per frame: "
+          "the largest of 1-4 whose gather visits few enough lights per pixel for the VPL count", **_LIT,
+          range=Range(0), label="LGH alpha", metavar="ALPHA", applies=_GI_LGH,
+          source="paper 004 uses 1; automatic: measured on the suite's tuning stages (docs/gi.md)"),
     Param("lgh_cpu_kernel", str, "auto", "how the LGH's gather and shadow-ray targets run on a CPU: auto (the "
           "compiled kernels when they were built, else Warp), native (compiled; an error without them) or warp",
           **_LIT, choices=("auto", "native", "warp"), applies=_ANY_LGH, source="measured (usdml): docs/gi.md"),
     Param("lgh_levels", int, 0, "LGH levels; 0 = the paper's rule (the most whose S1 has under half as many "
           "lights as VPLs)", **_LIT, range=Range(0), label="LGH levels", metavar="N", applies=_ANY_LGH,
           source="paper 004"),
-    Param("lgh_start_level", int, 1, "finest LGH level lit from: 1 = S1 as the paper, 0 = the VPLs themselves (S0)",
-          **_LIT, choices=(0, 1), label="LGH start level", applies=_GI_LGH, source="paper 004, Sec. 4.1"),
+    Param("lgh_start_level", int, 0, "finest LGH level lit from: 1 = S1 as the paper, 0 = the VPLs themselves (S0)",
+          **_LIT, choices=(0, 1), label="LGH start level", applies=_GI_LGH,
+          source="paper 004 starts from S1 (Sec. 4.1); S0 measured better on every tuning stage (docs/gi.md)"),
     Param("gi_svo_skip", float, 0.5, "--gi svo: pairs whose light is below this fraction of the pixel's mean cast "
           "no shadow ray and count as seen as much as the pixel's traced light (0 = trace every pair with G > 0)",
           **_LIT, range=Range(0), metavar="FRACTION", applies=_GI_SVO,
@@ -379,8 +382,9 @@ _SETTINGS = (
     Param("interleave", int, 1, "interleaved sampling tile size: each pixel of an n x n tile gathers 1/n^2 of the "
           "grid lights (1 = off)", **_LIT, attribute="usdml:lgh:interleave", choices=(1, 2, 4), applies=_GI_LGH,
           source="paper 004, Sec. 4 (off by default)"),
-    Param("shadow_samples", int, 4, "stochastic shadow samples per pixel", **_LIT, range=Range(1), metavar="N",
-          applies=_GI_LGH, source="paper 004"),
+    Param("shadow_samples", int, 0, "stochastic shadow samples per pixel; 0 = automatic per frame: 4, 16 or 64, "
+          "more for more VPLs", **_LIT, range=Range(0), metavar="N", applies=_GI_LGH,
+          source="paper 004 uses 4; automatic: measured on the suite's tuning stages (docs/gi.md)"),
     Param("shadow_filter_iterations", int, -1, "a-trous iterations over the stochastic shadows; 0 = unfiltered, "
           "-1 = by the samples (3 at 4 per pixel, one fewer per 4x more, none from 256)", **_LIT, range=Range(-1, 10),
           metavar="N", applies=_ANY_LGH, source="paper 004, Sec. 3.3; -1: the best measured on cornell and city"),
@@ -526,18 +530,23 @@ _DOCS = {
     512 to 2,048 first-bounce VPLs: usdml:vpl:count 1024, usdml:vpl:bounces 1.""",
     "vpl_count": """Virtual point lights generated per frame (paper 004 uses 100K).""",
     "vpl_bounces": """Diffuse bounces of the light paths that place VPLs (paper 004 traces up to three).""",
-    "lgh_alpha": """Lighting grid hierarchy blending radius factor alpha, r_l = alpha h_l (paper 004 uses 1).
+    "lgh_alpha": """Lighting grid hierarchy blending radius factor alpha, r_l = alpha h_l (paper 004 uses 1); 0 chooses it per frame.
 
     h_l is the grid size of level l. Larger alpha widens the blending
     functions: more grid lights per shading point, more accurate and
-    slower.""",
+    slower. 0 (automatic): the largest alpha from 1 to 4 whose gather
+    visits at most a fixed share of the VPL count per pixel (counted on a
+    few pixels of the frame), so that it stays a small part of what
+    brute force costs: more VPLs buy a larger alpha (docs/gi.md).""",
     "lgh_levels": """Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
 
     Any positive value forces that number of levels.""",
     "lgh_start_level": """Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
 
     S0 makes the near field exact (each pixel visits the VPLs within
-    alpha h_1) at some extra lighting cost.""",
+    alpha h_1) at some extra lighting cost. Default 0: on the stages
+    usdml was not tuned on, starting from S1 left most of the error
+    (docs/gi.md).""",
     "gi_svo_skip": """--gi svo: (pixel, VPL) pairs whose unshadowed light is below this fraction of the mean of the pixel's pairs cast no shadow ray (paper 003 skips the V term for faint VPLs).
 
     Their light counts as visible in the proportion the pixel's traced
@@ -545,10 +554,12 @@ _DOCS = {
     "interleave": """Interleaved sampling tile size n (1, 2 or 4): each pixel of an n x n tile gathers a different 1/n^2 of the grid lights (paper 004, Sec. 4).
 
     1 disables it.""",
-    "shadow_samples": """Stochastic shadow samples per pixel (paper 004 uses 4).
+    "shadow_samples": """Stochastic shadow samples per pixel (paper 004 uses 4); 0 chooses them per frame.
 
     Shadow rays are importance-sampled from the lights that contribute to
-    the pixel and filtered before being used as shadow ratio estimators.""",
+    the pixel and filtered before being used as shadow ratio estimators.
+    0 (automatic): 4, 16 or 64, the most within one ray per 1,000 VPLs, so
+    that they stay a small part of what brute force costs (docs/gi.md).""",
     "shadow_filter_iterations": """Iterations of the edge-avoiding a-trous filter applied to the stochastic shadows before they are used as shadow ratio estimators (paper 004, Sec. 3.3); 0 leaves them unfiltered, -1 picks by the shadow samples.
 
     Each iteration doubles the filter's reach (3 iterations: +-14 pixels).

@@ -21,7 +21,7 @@ import numpy as np
 
 from usdml.lighting.direct import shade_direct
 from usdml.lighting.lgh import build_lgh, s1_spacing
-from usdml.lighting.lgh_lighting import lgh_indirect
+from usdml.lighting.lgh_lighting import auto_alpha, auto_shadow_samples, cluster_sampler, lgh_indirect
 from usdml.lighting.vpl import generate_vpls
 from usdml.scene import Lights, Snapshot
 from usdml.settings import UsdmlSettings
@@ -55,6 +55,10 @@ class VPLField:
     intensity: np.ndarray | None    #: (V, 3) float32 isotropic-equivalent intensity Φ/4π
     stats: dict = field(default_factory=dict)
     clamp: float = 0.0              #: geometry-term clamp distance d_c, scene units: half the S1 spacing
+    #: ``--gi lgh``, made by the frame's first pass for the rest: the resolved ``--lgh-alpha`` (auto:
+    #: :func:`usdml.lighting.lgh_lighting.auto_alpha`) and the shadow rays' ``ClusterSampler`` (with the
+    #: settings they were made for)
+    frame_choices: dict = field(default_factory=dict)
 
 
 def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings, device: str = "cpu") -> VPLField:
@@ -140,14 +144,28 @@ def _gather_svo(field: VPLField, snap: Snapshot, occluded, points, normals, albe
 def _gather_lgh(field: VPLField, snap: Snapshot, occluded, points, normals, albedo, settings, *, image, device,
                 geometric, target_lift) -> tuple[np.ndarray, dict]:
     """The lighting grid hierarchy over the VPLs, stochastic filtered shadows (paper 004)."""
-    r = lgh_indirect(points, normals, albedo, field.lgh, occluded, alpha=settings.lgh_alpha,
-                     samples=settings.shadow_samples, seed=settings.seed,
+    t0 = _time.perf_counter()
+    sources = (field.vpls.position, field.intensity, field.vpls.normal)
+    s0 = settings.lgh_start_level == 0
+    key = (settings.lgh_alpha, s0, settings.shadow_targets, settings.lgh_cpu_kernel)
+    if field.frame_choices.get("key") != key:           # the frame's first pass (or other settings)
+        alpha = settings.lgh_alpha if settings.lgh_alpha > 0 else \
+            auto_alpha(field.lgh, points, len(field.vpls), sources[0] if s0 else None)
+        sampler = cluster_sampler(field.lgh, sources, settings.shadow_targets, snap.meters_per_unit, field.clamp,
+                                  settings.lgh_cpu_kernel)
+        field.frame_choices = {"key": key, "alpha": alpha, "sampler": sampler}
+    choices_s = _time.perf_counter() - t0
+    samples = settings.shadow_samples if settings.shadow_samples > 0 else auto_shadow_samples(len(field.vpls))
+    r = lgh_indirect(points, normals, albedo, field.lgh, occluded, alpha=field.frame_choices["alpha"],
+                     samples=samples, seed=settings.seed,
                      meters_per_unit=snap.meters_per_unit, clamp_distance=field.clamp, image=image,
-                     interleave=settings.interleave, device=device,
-                     sources=(field.vpls.position, field.intensity, field.vpls.normal),
+                     interleave=settings.interleave, device=device, sources=sources,
                      start_level=settings.lgh_start_level, filter_iterations=settings.shadow_filter_iterations,
                      shadow_targets=settings.shadow_targets, geometric=geometric,
-                     cpu_kernel=settings.lgh_cpu_kernel)
+                     sampler=field.frame_choices["sampler"], cpu_kernel=settings.lgh_cpu_kernel)
+    r.stats["choice_seconds"] = choices_s
+    r.stats["lgh_alpha"] = field.frame_choices["alpha"]
+    r.stats["shadow_samples"] = samples
     return r.radiance, r.stats
 
 

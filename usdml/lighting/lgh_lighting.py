@@ -606,6 +606,108 @@ def filter_iterations_for(samples: int) -> int:
     return int(max(0, 3 - np.floor(np.log(max(samples, 1) / 4.0) / np.log(4.0) + 1e-9)))
 
 
+#: the alphas ``--lgh-alpha auto`` chooses from (paper 004's 1 up to 4, where the error had stopped falling)
+AUTO_ALPHAS = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
+
+#: ``--lgh-alpha auto``: the most lights a point's gather may visit, as a fraction of the VPLs (each of
+#: which brute force traces a ray to). A visit cost 24-36 ns and a brute-force ray 170-310 ns on the
+#: suite's tuning stages (CHANGELOG, issue 37), so at this fraction the gather costs about a hundredth
+#: of brute force's rays, half of a 50x budget (VPLs, construction, shadow rays and filter the rest)
+AUTO_VISIT_FRACTION = 0.06
+
+
+#: ``--shadow-samples auto`` (0): the choices, paper 004's 4 and 4x more at a time (the filter's iterations
+#: follow, :func:`filter_iterations_for`), and the VPLs per shadow ray a pixel may take: a ray cost about
+#: as much as 8 visited lights (CHANGELOG, issue 37), so a ray per 1,000 VPLs is under 1 % of brute force
+AUTO_SHADOW_SAMPLES = (4, 16, 64)
+AUTO_VPLS_PER_RAY = 1000
+
+
+def auto_shadow_samples(vpl_count: int) -> int:
+    """``--shadow-samples auto`` for a frame of ``vpl_count`` VPLs: the most of :data:`AUTO_SHADOW_SAMPLES`
+    within one ray per :data:`AUTO_VPLS_PER_RAY` VPLs (at least the fewest). At a large alpha most of what
+    is left is the stochastic shadows' (CHANGELOG, issue 37), which fall as one over the root of the
+    samples; brute force's cost grows with the VPLs, so more VPLs buy more samples for the same speed-up."""
+    fit = [k for k in AUTO_SHADOW_SAMPLES if k * AUTO_VPLS_PER_RAY <= int(vpl_count)]
+    return fit[-1] if fit else AUTO_SHADOW_SAMPLES[0]
+
+
+def lights_visited(lgh, points: np.ndarray, alphas, s0_positions: np.ndarray | None = None, sample: int = 16,
+                   seed: int = 0) -> np.ndarray:
+    """Mean lights the gather visits per point for each of ``alphas``: ``(len(alphas),)`` float64.
+
+    Counted as the compiled gather walks them (``kernels/lghq.c``, ``collect``) on ``sample`` of
+    ``points`` ((P, 3), scene units) drawn with ``seed``: each level's occupied vertices within
+    ``2 alpha + sqrt 3`` cells (the top level: all of them), and with ``s0_positions`` ((V, 3), the
+    VPLs of level S0) the VPLs in the S1 cells within ``ceil(alpha)`` cells of the point's.
+    """
+    alphas = np.asarray(alphas, np.float64)
+    rng = np.random.default_rng(seed)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) > sample:
+        p = p[rng.choice(len(p), sample, replace=False)]
+    visits = np.zeros(len(alphas))
+    if len(p) == 0:
+        return visits
+    top = len(lgh.levels) - 1
+    reach2 = (2.0 * alphas + 1.7321) ** 2
+    for i, lv in enumerate(lgh.levels):
+        if i == top:
+            visits += len(lv.vertex)
+            continue
+        vertex, share = _some(np.asarray(lv.vertex, np.int64), rng)
+        ijk = np.stack(np.unravel_index(vertex, tuple(int(d) for d in lv.dims)), axis=1).astype(np.float32)
+        rel = ((p - np.asarray(lv.origin)) / lv.spacing).astype(np.float32)
+        d2 = ((ijk[None, :, :] - rel[:, None, :]) ** 2).sum(axis=2).ravel()
+        visits += _within(d2, reach2) / (len(p) * share)
+    if s0_positions is not None and len(s0_positions):
+        s1 = lgh.levels[0]
+        positions, share = _some(np.asarray(s0_positions, np.float64), rng)
+        cell = np.floor((positions - np.asarray(s1.origin)) / s1.spacing).astype(np.float32)
+        at = np.floor((p - np.asarray(s1.origin)) / s1.spacing).astype(np.float32)
+        cheb = np.abs(cell[None, :, :] - at[:, None, :]).max(axis=2).ravel()
+        visits += _within(cheb, np.ceil(alphas)) / (len(p) * share)
+    return visits
+
+
+def _some(rows: np.ndarray, rng, most: int = 4096) -> tuple[np.ndarray, float]:
+    """At most ``most`` of ``rows`` drawn without replacement, and the share of them drawn (counts over the
+    draw divided by it estimate counts over all)."""
+    if len(rows) <= most:
+        return rows, 1.0
+    return rows[rng.choice(len(rows), most, replace=False)], most / len(rows)
+
+
+def _within(values: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """How many of ``values`` are at most each of the increasing ``bounds``: ``(len(bounds),)`` float64."""
+    bins = np.searchsorted(bounds, values, side="left")        # the first bound each value is within
+    return np.cumsum(np.bincount(bins, minlength=len(bounds) + 1)[:len(bounds)]).astype(np.float64)
+
+
+def auto_alpha(lgh, points: np.ndarray, vpl_count: int, s0_positions: np.ndarray | None = None,
+               fraction: float = AUTO_VISIT_FRACTION) -> float:
+    """``--lgh-alpha auto`` for a frame: the largest of :data:`AUTO_ALPHAS` whose gather visits at most
+    ``fraction`` of the ``vpl_count`` VPLs per point (:func:`lights_visited` on ``points``), else the
+    smallest. The hierarchy's error falls with alpha on every tuning stage of the suite, and what alpha
+    costs (lights visited) grows with the stage's VPL layout while brute force's grows with the VPL
+    count: so more VPLs, or VPLs spread over less of the grid, buy a larger alpha for the same speed-up."""
+    visits = lights_visited(lgh, points, AUTO_ALPHAS, s0_positions)
+    ok = np.nonzero(visits <= fraction * max(int(vpl_count), 1))[0]
+    return float(AUTO_ALPHAS[ok[-1]] if len(ok) else AUTO_ALPHAS[0])
+
+
+def cluster_sampler(lgh, sources: tuple, shadow_targets: str, meters_per_unit: float = 1.0,
+                    clamp_distance: float | None = None, cpu_kernel: str = "auto") -> "ClusterSampler | None":
+    """The :class:`ClusterSampler` :func:`lgh_indirect` draws ``shadow_targets`` ("member", "cluster") from,
+    over ``sources = (positions, intensities[, normals])``; None for "jitter" (no member draws). Made once
+    for a frame and passed to each of its passes' :func:`lgh_indirect` (``sampler=``)."""
+    if shadow_targets not in ("member", "cluster"):
+        return None
+    return ClusterSampler(lgh, sources[0], sources[1], sources[2] if len(sources) > 2 else None,
+                          reweight=shadow_targets == "member", meters_per_unit=meters_per_unit,
+                          clamp_distance=clamp_distance, stratify=STRATIFY_MEMBERS, cpu_kernel=cpu_kernel)
+
+
 def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lgh,
                  occluded: Callable[..., np.ndarray] | None, *, alpha: float = 1.0, samples: int = 4,
                  seed: int = 0, meters_per_unit: float = 1.0, clamp_distance: float | None = None,
@@ -652,13 +754,10 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats, shading.count)
     lighting_seconds = _time.perf_counter() - t0
     t1 = _time.perf_counter()
-    cluster = sources is not None and shadow_targets in ("member", "cluster")
-    if cluster and sampler is None:
-        sampler = ClusterSampler(lgh, sources[0], sources[1], sources[2] if len(sources) > 2 else None,
-                                 reweight=shadow_targets == "member", meters_per_unit=meters_per_unit,
-                                 clamp_distance=clamp_distance, stratify=STRATIFY_MEMBERS, cpu_kernel=cpu_kernel)
-    elif not cluster:
+    if sources is None or shadow_targets not in ("member", "cluster"):
         sampler = None
+    elif sampler is None:
+        sampler = cluster_sampler(lgh, sources, shadow_targets, meters_per_unit, clamp_distance, cpu_kernel)
     shadow_seconds = _time.perf_counter() - t1
     # gather and shadow rays block by block of points (SHADOW_BLOCK samples): the samples of a frame
     # (18.9 M on the city at 256 px, k = 512) never exist at once, so their arrays stay a few MiB that
