@@ -319,6 +319,7 @@ def test_direct_from_the_stage_and_the_command_line(new_stage, tmp_path, capsys)
     assert main(["compare", path, "--direct", "lgh", "--against", "all", "--imageWidth", "32", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["lights"] == 600 and 0 < r["rel_rmse"] < 0.1 and set(r["seconds"]) == {"lgh", "all"}
+    assert r["direct_shadow_samples"] == 64         # chosen by the frame (under 6,400 lights: 64, no pilot)
     assert r["speedup"] == pytest.approx(r["seconds"]["all"] / r["seconds"]["lgh"])
     assert main(["compare", path, "--direct", "lgh", "--imageWidth", "32", "--reference-pixels", "100",
                  "--json"]) == 0

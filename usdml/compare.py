@@ -212,7 +212,9 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
         "stage": delegate.path, "frame": frame, "resolution": [width, height], "pixels": int(hit.sum()),
         "compared_pixels": compared, "reference_extrapolated": bool(reference_pixels > 0 and against == "all"),
         "direct": direct, "against": against, "lights": test.stats.lights,
-        "visibility": base.visibility, "direct_shadow_samples": base.direct_shadow_samples,
+        "visibility": base.visibility,
+        # auto (0): as the frame chose them
+        "direct_shadow_samples": (test.stats.direct_lgh or {}).get("shadow_samples", base.direct_shadow_samples),
         "direct_alpha": base.direct_alpha,
         "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "direct", rel),
         "seconds": {direct: test_s, against: ref_s},
