@@ -347,10 +347,13 @@ class ClusterSampler:
         # with stratify, a group's members in Z-order along their positions (stratified draws then spread
         # over the group's extent), else in input order
         place = np.arange(n, dtype=np.int64)
+        at_place = place            # the light at each place
         if self.stratify and n:
             from usdml.zorder import morton_order
 
-            place[morton_order(self.positions)] = np.arange(n, dtype=np.int64)
+            at_place = morton_order(self.positions)
+            place = np.empty(n, np.int64)
+            place[at_place] = np.arange(n, dtype=np.int64)
         members, groups, weights = [], [], []
         base = 0
         for lv in lgh.levels:
@@ -361,10 +364,12 @@ class ClusterSampler:
             light_of_vertex[np.asarray(lv.vertex, np.int64)] = base + np.arange(len(lv.position))
             group = light_of_vertex[flat]
             keep = np.flatnonzero(group >= 0)
-            key = group[keep] * n + place[keep]
-            order = keep[np.argsort(key)]
+            # the keys are unique and hold their light's place: sorting them (twice as fast as an argsort)
+            # orders the lights as keep[np.argsort(key)] does
+            key = np.sort(group[keep] * n + place[keep])
+            order = at_place[key % n]
             members.append(order)
-            groups.append(group[order])
+            groups.append(key // n)
             weights.append(lum[order])
             base += len(lv.position)
         self.member = np.concatenate(members) if members else np.zeros(0, np.int64)

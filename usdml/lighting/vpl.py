@@ -299,7 +299,22 @@ def _epsilon(snapshot: Snapshot, backend) -> float:
 
 def _offset(p: np.ndarray, eps: float) -> np.ndarray:
     """(N,) ``eps(P) = max(eps, |P|_max · 2^-20)``."""
-    return np.maximum(eps, np.abs(p).max(axis=1) * FLOAT_MARGIN)
+    return np.maximum(eps, _max_abs(p) * FLOAT_MARGIN)
+
+
+# NumPy reduces an (N, 3) array along its rows element by element (an inner loop of 3); the same
+# maximum and comparisons column by column are the same values, several times sooner at 100k rays
+
+
+def _max_abs(v: np.ndarray) -> np.ndarray:
+    """(N,) ``np.abs(v).max(axis=1)`` of (N, 3) ``v`` (NaN where a row has one)."""
+    a = np.abs(v)
+    return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+
+
+def _any_positive(v: np.ndarray) -> np.ndarray:
+    """(N,) bool ``(v > 0).any(axis=1)`` of (N, 3) ``v``."""
+    return (v[:, 0] > 0) | (v[:, 1] > 0) | (v[:, 2] > 0)
 
 
 # ------------------------------------------------------------------------------------------ cylinder lights
@@ -406,7 +421,7 @@ def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounce
            rng: np.random.Generator) -> _Round:
     origins, dirs, flux = _emit(em, prob, cdf, n, eps, rng)
     path = np.arange(n, dtype=np.int64)
-    live = (flux > 0).any(axis=1)
+    live = _any_positive(flux)
     origins, dirs, flux, path = origins[live], dirs[live], flux[live], path[live]
     out: list[tuple] = []
     for b in range(1, bounces + 1):
@@ -416,7 +431,7 @@ def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounce
         hit = h.hit
         d = dirs[hit]
         nrm = h.normal[hit]
-        missing = ~(np.abs(nrm).max(axis=1) > 0)
+        missing = ~(_max_abs(nrm) > 0)
         if missing.any():
             nrm[missing] = -d[missing]
         flip = np.einsum("ij,ij->i", nrm, d) > 0
@@ -424,7 +439,7 @@ def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounce
         flux = flux[hit] * h.albedo[hit].astype(np.float64)
         pos = h.position[hit]
         path = path[hit]
-        keep = (flux > 0).any(axis=1)
+        keep = _any_positive(flux)
         pos, nrm, flux, path = pos[keep], nrm[keep], flux[keep], path[keep]
         out.append((pos, nrm, flux, np.full(len(path), b, np.int8), path))
         if b == bounces or not len(path):
