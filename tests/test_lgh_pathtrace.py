@@ -53,3 +53,21 @@ def test_the_reference_reads_pointinstancer_lights_where_usdml_does(tmp_path):
     assert np.allclose(ref.intensity[mine], np.asarray(lights.intensity)[theirs], rtol=1e-5)
     groups = ref.light_groups(32)
     assert len(groups) == 32 and sorted(i for g in groups for i in g) == list(range(1024))
+
+
+def test_a_kept_compare_is_reused_only_by_the_code_that_made_it(tmp_path, monkeypatch):
+    """``--compare-cache``: the same arguments and code reuse the kept result; other code runs the compare again."""
+    import json
+
+    stage = str(tmp_path / "suite_open_64_s1.usda")
+    args = ["compare", stage, "--gi", "lgh", "--against", "vpl-bruteforce", "--imageWidth", "16", "--json", "-q"]
+    result = {"rel_rmse": 0.1, "estimated_rel_rmse": 0.1, "estimated_rel_rmse_interval": [0.05, 0.2], "vpls": 1,
+              "speedup": 2.0}
+    kept = tmp_path / "cache" / "suite_open_64_s1.w16.json"
+    kept.parent.mkdir()
+    ran = []
+    monkeypatch.setattr(lgh_pathtrace, "_usdml", lambda a: ran.append(a) or dict(result, rel_rmse=0.3))
+    kept.write_text(json.dumps({"args": args, "code": lgh_pathtrace.code_digest(), "result": result}))
+    assert lgh_pathtrace.compare_estimate(stage, 16, (), str(kept.parent))["measured_rel_rmse"] == 0.1 and not ran
+    kept.write_text(json.dumps({"args": args, "code": "older code", "result": result}))
+    assert lgh_pathtrace.compare_estimate(stage, 16, (), str(kept.parent))["measured_rel_rmse"] == 0.3 and ran

@@ -23,7 +23,8 @@ For each stage, with usdml's and the stage's defaults (plus any ``usdml render``
 * **The estimate** (item 5): ``usdml compare STAGE --gi lgh --against vpl-bruteforce --json`` at
   ``--estimate-width`` on the same VPLs and seed: the measured relative RMSE of ``indirect``, the frame's own
   estimate (``usdml:estimate:gi:*``) and its 95 % interval, and whether the interval holds the measurement.
-  ``--compare-cache DIR`` keeps each compare's JSON with its arguments and reuses it when they match.
+  ``--compare-cache DIR`` keeps each compare's JSON with its arguments and reuses it when they and the
+  renderer's code (:func:`code_digest`) match.
 """
 
 from __future__ import annotations
@@ -117,6 +118,20 @@ def against_reference(got: dict, ref: dict) -> dict:
     return row
 
 
+def code_digest() -> str:
+    """A digest of the renderer's code (``usdml/`` and ``kernels/`` sources): a kept compare is reused only by the
+    code that made it."""
+    import hashlib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha1()
+    for f in sorted([*root.glob("usdml/**/*.py"), *root.glob("kernels/*.[ch]"), *root.glob("kernels/*.py")]):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def compare_estimate(stage: str, width: int, flags=(), cache: str | None = None) -> dict:
     """``usdml compare --gi lgh --against vpl-bruteforce --json``: measured and estimated relative RMSE of
     ``indirect``, the estimate's interval, whether it holds the measurement, the speed-up."""
@@ -124,14 +139,15 @@ def compare_estimate(stage: str, width: int, flags=(), cache: str | None = None)
             "-q", *flags]
     path = cache and os.path.join(cache, os.path.splitext(os.path.basename(stage))[0] + f".w{width}.json")
     kept = json.load(open(path)) if path and os.path.exists(path) else {}
-    if kept.get("args") == args:
+    code = code_digest() if path else ""
+    if kept.get("args") == args and kept.get("code") == code:
         r = kept["result"]
     else:
         r = _usdml(args)
         if path:
             os.makedirs(cache, exist_ok=True)
             with open(path, "w") as f:
-                json.dump({"args": args, "result": r}, f, indent=1)
+                json.dump({"args": args, "code": code, "result": r}, f, indent=1)
     lo, hi = r["estimated_rel_rmse_interval"]
     return {"estimate_width": width, "vpls": r["vpls"], "measured_rel_rmse": r["rel_rmse"],
             "estimated_rel_rmse": r["estimated_rel_rmse"], "estimated_interval": [lo, hi],
