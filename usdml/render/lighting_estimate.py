@@ -522,11 +522,10 @@ def mean_square_interval(d: np.ndarray, r: np.ndarray, channels: int = 3) -> tup
     return q, lo, hi
 
 
-def interval_stats(d: np.ndarray, b: np.ndarray, e: np.ndarray, r: np.ndarray) -> tuple[float, ...]:
-    """``(rel_rmse, lo, hi, rel_bias, lo, hi)`` from per-pixel ``D_p``, ``B_p``, ``Σ_c (a - b̂)``, ``Σ_c b̂``
-    (module doc): the relative RMSE, over the reference's mean as ``usdml compare`` measures it, from ``D`` and
-    ``Σ_c b̂`` (:func:`mean_square_interval`), square-rooted; the bias from ``Σ e / Σ r``. (``B_p``, the
-    reference's own square, is not needed for it.)"""
+def interval_stats(d: np.ndarray, e: np.ndarray, r: np.ndarray) -> tuple[float, ...]:
+    """``(rel_rmse, lo, hi, rel_bias, lo, hi)`` from per-pixel ``D_p``, ``Σ_c (a - b̂)``, ``Σ_c b̂`` (module doc): the
+    relative RMSE, over the reference's mean as ``usdml compare`` measures it, from ``D`` and ``Σ_c b̂``
+    (:func:`mean_square_interval`), square-rooted; the bias from ``Σ e / Σ r``."""
     q, lo, hi = mean_square_interval(d, r)
     bias, blo, bhi = ratio_interval(e, r)
     return (math.sqrt(max(q, 0.0)), math.sqrt(max(lo, 0.0)), math.sqrt(max(hi, 0.0)), bias, blo, bhi)
@@ -631,21 +630,18 @@ class FrameEstimator:
 
 
 def per_pixel(e: np.ndarray, b: np.ndarray, v: np.ndarray, passes: int) -> tuple[np.ndarray, ...]:
-    """``(D_p, B_p, Σ_c e_p, Σ_c b_p)`` of each sampled pixel (module doc) from its error ``e = a - b̂``, reference
+    """``(D_p, Σ_c e_p, Σ_c b_p)`` of each sampled pixel (module doc) from its error ``e = a - b̂``, reference
     ``b̂`` (``(n, k, 3)``) and the reference's variance ``v`` (``(n, k)``) in ``k`` distinct passes of ``passes``
-    drawn at random: the pixel's value is the mean over its passes, so ``|mean_s x_s|² = (1/S) mean_s |x_s|² +
-    (1 - 1/S) mean_(s≠t) x_s·x_t``, each mean estimated from the ``k`` (``k = 1``: one pass, ``|x|²``)."""
+    drawn at random: the pixel's value is the mean over its passes, so ``|mean_s e_s|² = (1/S) mean_s |e_s|² +
+    (1 - 1/S) mean_(s≠t) e_s·e_t``, each mean estimated from the ``k`` (``k = 1``: one pass, ``|e|²``)."""
     k = e.shape[1]
     s = float(passes)
-
-    def square(x):
-        own = ((x * x).sum(2) - v).mean(1)
-        if k == 1:
-            return own
-        total = x.sum(1)
-        cross = ((total * total).sum(1) - (x * x).sum((1, 2))) / (k * (k - 1))
-        return own / s + (1.0 - 1.0 / s) * cross
-    return square(e), square(b), e.sum((1, 2)) / k, b.sum((1, 2)) / k
+    d = ((e * e).sum(2) - v).mean(1)
+    if k > 1:
+        total = e.sum(1)
+        cross = ((total * total).sum(1) - (e * e).sum((1, 2))) / (k * (k - 1))
+        d = d / s + (1.0 - 1.0 / s) * cross
+    return d, e.sum((1, 2)) / k, b.sum((1, 2)) / k
 
 
 def gi_estimator(field, frame, occluded, settings) -> FrameEstimator | None:
