@@ -61,22 +61,17 @@ def _usdml(args: list[str]) -> dict:
 def render_lgh(stage: str, width: int, flags=()) -> dict:
     """usdml's ``--gi lgh`` frame: ``color``, ``direct``, ``indirect`` (H, W, 3) float32, its ``params``, its
     ``estimate`` (the header's ``usdml:estimate:gi:*``) and ``seconds``."""
-    import OpenImageIO as oiio
+    from usdml.aov.exr import read_exr
 
     with tempfile.TemporaryDirectory() as tmp:
         exr = os.path.join(tmp, "frame.exr")
         summary = _usdml(["render", stage, exr, "--gi", "lgh", "--imageWidth", str(width),
                           "--aovs", "color,direct,indirect", "--json", "-q", *flags])
-        image = oiio.ImageInput.open(exr)
-        spec = image.spec()
-        pixels = image.read_image("float")
-        image.close()
-    names = list(spec.channelnames)
-    out = {aov: np.ascontiguousarray(pixels[..., [names.index(f"{prefix}{c}") for c in "RGB"]])
-           for aov, prefix in (("color", ""), ("direct", "direct."), ("indirect", "indirect."))}
+        aovs, header = read_exr(exr)
+    out = {aov: np.ascontiguousarray(aovs[aov][..., :3], dtype=np.float32) for aov in ("color", "direct", "indirect")}
     prefix = "usdml:estimate:gi:"
-    out["estimate"] = {a.name[len(prefix):]: a.value for a in spec.extra_attribs if a.name.startswith(prefix)}
-    out["params"] = json.loads(spec.getattribute("usdml:settings"))["params"]
+    out["estimate"] = {k[len(prefix):]: v for k, v in header.items() if k.startswith(prefix)}
+    out["params"] = json.loads(header["usdml:settings"])["params"]
     out["seconds"] = summary["secondsPerFrame"]
     return out
 
