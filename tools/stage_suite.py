@@ -95,7 +95,7 @@ def _open(rng, s):
     pitch = math.radians(float(rng.uniform(20, 40)))
     dist = 34.0 * s
     eye = np.array((math.cos(yaw) * math.cos(pitch), math.sin(pitch), math.sin(yaw) * math.cos(pitch))) * dist
-    return mb, boxes, [(region, 1.0)], eye, np.array((0.0, 1.0 * s, 0.0)), (0, 0, 0)
+    return mb, boxes, [(region, 1.0)], eye, np.array((0.0, 1.0 * s, 0.0))
 
 
 def _canyon(rng, s):
@@ -132,7 +132,7 @@ def _canyon(rng, s):
                    (street / 2 + depth, max(tops) + 8 * s, length / 2))
     eye = np.array((float(rng.uniform(-0.3, 0.3)) * street, 1.7 * s, -length / 2 + 4 * s))
     target = np.array((0.0, float(rng.uniform(3, 8)) * s, length / 4))
-    return mb, boxes, [(street_region, 0.75), (roof_region, 0.25)], eye, target, (0, 0, 0)
+    return mb, boxes, [(street_region, 0.75), (roof_region, 0.25)], eye, target
 
 
 def _interior(rng, s):
@@ -176,7 +176,7 @@ def _interior(rng, s):
     if rng.random() < 0.5:
         eye[0] = -eye[0]
     target = np.array((wx * 0.5, 0.4 * ly, lz / 2))
-    return mb, boxes, [(outside, 0.85), (inside, 0.15)], eye, target, (0, 0.5 * ly, 0)
+    return mb, boxes, [(outside, 0.85), (inside, 0.15)], eye, target
 
 
 BUILDERS = {"open": _open, "canyon": _canyon, "interior": _interior}
@@ -188,7 +188,7 @@ def make_suite_stage(out_dir: str, kind: str, lights: int, seed: int) -> dict:
         raise ValueError(f"unknown suite kind {kind!r}: one of {', '.join(KINDS)}")
     rng = np.random.default_rng([37, seed, KINDS.index(kind), lights])
     scale = float(10 ** rng.uniform(math.log10(0.3), math.log10(5.0)))
-    mb, boxes, regions, eye, target, _ = BUILDERS[kind](rng, scale)
+    mb, boxes, regions, eye, target = BUILDERS[kind](rng, scale)
     path = os.path.join(out_dir, stage_name(kind, lights, seed))
     stage = new_stage(path, 1, 1)
     define_mesh(stage, "/World/Geometry", mb)
