@@ -134,30 +134,28 @@ def main(argv: list[str] | None = None) -> int:
     if len(b) != len(points):
         raise SystemExit(f"{args.reference} has {len(b)} pixels, this frame {len(points)}")
     mean = float(b.mean())
-    unshadowed = run(base.updated(gi="vpl-bruteforce"), args.reference_visibility, shadows=False)[0] \
-        if args.hierarchy else None
+    # --hierarchy: brute force without shadows, once for every row
+    unshadowed = run(base.updated(gi="vpl-bruteforce"), args.reference_visibility, shadows=False)[0].radiance \
+        .astype(np.float64) if args.hierarchy else None
     rows = []
     target_choices = args.shadow_targets.split(",") if args.shadow_targets else [base.shadow_targets]
     for alpha in map(float, args.lgh_alpha.split(",")):
         for k in _ints(args.shadow_samples):
             for start, iterations, targets in ((s, i, t) for s in _ints(args.lgh_start_level)
                                                for i in _ints(args.shadow_filter_iterations) for t in target_choices):
-                r, s = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
-                                        shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility)
+                lgh = base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start)
+                row_settings = lgh.updated(shadow_filter_iterations=iterations, shadow_targets=targets)
+                r, s = run(row_settings, args.visibility)
                 extra = {}
                 if args.check_rays > 0 and args.visibility != "exact":     # after the timed run, on its rays
                     checked.clear()
-                    run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
-                                     shadow_filter_iterations=iterations, shadow_targets=targets), args.visibility,
-                        check=True)
+                    run(row_settings, args.visibility, check=True)
                     n_rays, wrongly_visible, wrongly_blocked = map(sum, zip(*checked))
                     extra = {"checked_rays": n_rays, "wrongly_visible": wrongly_visible / max(n_rays, 1),
-                                  "wrongly_blocked": wrongly_blocked / max(n_rays, 1)}
+                             "wrongly_blocked": wrongly_blocked / max(n_rays, 1)}
                 if unshadowed is not None:
-                    u = unshadowed.radiance.astype(np.float64)
-                    got = run(base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start),
-                              args.visibility, shadows=False)[0].radiance.astype(np.float64)
-                    extra["hierarchy_rel_rmse"] = float(np.sqrt(np.mean((got - u) ** 2)) / u.mean())
+                    got = run(lgh, args.visibility, shadows=False)[0].radiance.astype(np.float64)
+                    extra["hierarchy_rel_rmse"] = float(np.sqrt(np.mean((got - unshadowed) ** 2)) / unshadowed.mean())
                 rmse = float(np.sqrt(np.mean((r.radiance.astype(np.float64) - b) ** 2)))
                 split = {key: r.stats.get(key, 0.0) for key in
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
