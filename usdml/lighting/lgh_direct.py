@@ -80,6 +80,12 @@ MAX_SAMPLES = 1024
 LIGHTS_PER_RAY = 100
 
 
+def clamp_distance(direct: "DirectField") -> float:
+    """The geometry term's clamp for the stage's own lights: a millionth of the S1 spacing (a light is a light,
+    not a VPL standing for a patch of surface: next to none)."""
+    return 1e-6 * float(direct.lgh.h1)
+
+
 def grid_mask(lights: Lights) -> np.ndarray:
     """``(N,) bool``: the lights a grid light represents faithfully (see the module doc)."""
     t = np.asarray(lights.type)
@@ -187,7 +193,7 @@ def choose_shadow_samples(points: np.ndarray, normals: np.ndarray, albedo: np.nd
     geo = normals if geometric is None else geometric
     runs = [lgh_indirect(points[pick], normals[pick], albedo[pick], direct.lgh, occluded, alpha=settings.direct_alpha,
                          samples=PILOT_SAMPLES, seed=int(settings.seed) + 1 + i, meters_per_unit=meters_per_unit,
-                         clamp_distance=1e-6 * float(direct.lgh.h1), filter_iterations=0, device=device,
+                         clamp_distance=clamp_distance(direct), filter_iterations=0, device=device,
                          sources=direct.sources, start_level=0, shadow_targets=SHADOW_TARGETS, geometric=geo[pick],
                          sampler=direct.sampler, inclusion=True, cpu_kernel=settings.lgh_cpu_kernel).radiance
             for i in range(2)]
@@ -223,7 +229,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
     if direct.lgh is None or n == 0:
         return rest, stats
     t1 = _time.perf_counter()
-    clamp = 1e-6 * float(direct.lgh.h1)
+    clamp = clamp_distance(direct)
     if direct.sampler is None:
         direct.sampler = ClusterSampler(direct.lgh, *direct.sources, reweight=SHADOW_TARGETS == "member",
                                         meters_per_unit=meters_per_unit, clamp_distance=clamp,
