@@ -208,6 +208,8 @@ def lgh_gather(
     light_std: wp.array(dtype=float),         # (M,) per-axis positional std. dev. for jittered samples
     light_count: wp.array(dtype=float),       # (M,) input lights each grid light stands for
     n_levels: int,
+    level_rank: wp.array(dtype=int),          # (L,) the level each entry is (0 = S1; a split hierarchy repeats one)
+    top_rank: int,                            # the coarsest level's rank
     s0: int,                                  # 1: the input lights are level S0 (below S1), 0: start from S1
     s0_cells: wp.vec3i,                       # S0 lookup grid: cells per axis (the S1 cells of the first level)
     s0_start: wp.array(dtype=int),            # (cells + 1,) first entry of each cell in s0_light
@@ -248,7 +250,7 @@ def lgh_gather(
     st.step = float(0.0)
     st.xi = float(0.0)
     scale = float(tiles)
-    top = n_levels - 1 + s0                 # blending index of the top level; S0, when used, is index 0
+    top = top_rank + s0                     # blending index of the top level; S0, when used, is index 0
     m = light_pos.shape[0]
     # stratified: a first sweep sums the lights, a second walks them again and gives sample s the light
     # whose share of the running sum holds u_s = (s + xi) F / k (systematic sampling: a light of share p
@@ -299,7 +301,8 @@ def lgh_gather(
             # a grid light lies within sqrt(3) cells of its vertex (its centre averages lights from the 8 cells
             # around it) and counts only within 2 r = 2 alpha h: visit the vertices in that sphere, not a cube
             span = 2.0 * alpha + 1.7321
-            if l == n_levels - 1:     # the top level reaches every distance: visit all its vertices
+            rank = level_rank[l]
+            if rank == top_rank:      # the top level reaches every distance: visit all its vertices
                 span = 1.0e9
             base = level_offset[l]
             i0 = wp.max(int(wp.ceil(rel[0] - span)), 0)
@@ -321,7 +324,7 @@ def lgh_gather(
                         if tiles > 1 and v % tiles != tile[tid]:
                             continue
                         q = light_pos[v]
-                        e4 = light_term(p, n, q, light_int[v], light_lobe[v], l + s0, top, r, inv_m2, clamp_d2, scale)
+                        e4 = light_term(p, n, q, light_int[v], light_lobe[v], rank + s0, top, r, inv_m2, clamp_d2, scale)
                         st = visit(st, sweep, stratified, e4, scale, light_count[v], samples, tid, q,
                                    light_std[v] * float(jitter), v,
                                    out_sample_pos, out_sample_ok, out_sample_light, out_sample_weight, out_sample_blend,

@@ -74,6 +74,10 @@ typedef struct {
     const uint64_t *occupancy;
     const int64_t *occ_offset;
     const int32_t *occ_words;
+    /* the level each entry of level_* is (0 = S1): a hierarchy split by VPL normal (usdml.lighting.lgh's
+     * build_lgh_split) lists each level once per normal class on one grid; top_rank is the coarsest */
+    const int32_t *level_rank;
+    int32_t top_rank;
 } Gather;
 
 typedef struct {
@@ -358,7 +362,7 @@ static inline int add(const Level *lv, const float *p, const float *n, Batch *b,
 /* every light whose term at the point is non-zero, in order (a light of luminance 0 visits nothing) */
 static int collect(const Gather *g, const float *p, const float *n, int32_t tile, List *list) {
     const float scale = (float)g->tiles;
-    const int top = g->n_levels - 1 + g->s0;
+    const int top = g->top_rank + g->s0;
     Batch batch = {{0}, 0};
     list->n = 0;
     if (g->s0 == 1) {
@@ -389,11 +393,12 @@ static int collect(const Gather *g, const float *p, const float *n, int32_t tile
         const float *origin = g->level_origin + 3 * l;
         float rel[3] = {(p[0] - origin[0]) / h, (p[1] - origin[1]) / h, (p[2] - origin[2]) / h};
         float span = 2.0f * g->alpha + 1.7321f;
-        if (l == g->n_levels - 1) span = 1.0e9f;
+        const int32_t rank = g->level_rank[l];
+        if (rank == g->top_rank) span = 1.0e9f;
         const int32_t *vl = g->vertex_light + g->level_offset[l];
         const uint64_t *occ = g->occupancy + g->occ_offset[l];
         const int32_t words = g->occ_words[l];
-        Level lvl = {g->light_pos, g->light_int, g->light_lobe, 0, l + g->s0, top, r, g->inv_m2, g->clamp_d2, scale};
+        Level lvl = {g->light_pos, g->light_int, g->light_lobe, 0, rank + g->s0, top, r, g->inv_m2, g->clamp_d2, scale};
         int32_t i0 = imax((int32_t)ceilf(rel[0] - span), 0);
         int32_t i1 = imin((int32_t)floorf(rel[0] + span), dims[0] - 1);
         for (int32_t i = i0; i <= i1; i++) {

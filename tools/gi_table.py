@@ -5,7 +5,8 @@ Usage::
 
     python tools/gi_table.py stages/cornell.usda [--vpls 10000] [--imageWidth 96] [--lgh-alpha 1,2]
         [--shadow-samples 1,4] [--lgh-start-level 1,0] [--shadow-filter-iterations -1] [--frame F]
-        [--visibility exact] [--reference-visibility exact] [--reference FILE.npz] [--hierarchy] [--json]
+        [--lgh-split none,normal] [--visibility exact] [--reference-visibility exact] [--reference FILE.npz]
+        [--hierarchy] [--json]
 
 The G-buffer and the VPLs (same seed) are made once; ``vpl-bruteforce`` (every VPL, exact
 visibility) runs once and every LGH setting is timed against it, so the table costs one brute-force
@@ -66,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lgh-start-level", default="1,0", metavar="L[,L...]", help="LGH start levels to try (%(default)s)")
     p.add_argument("--shadow-filter-iterations", default="-1", metavar="N[,N...]",
                    help="à-trous iterations to try (-1: by samples)")
+    p.add_argument("--lgh-split", default=None, metavar="S[,S...]",
+                   help="LGH splits to try: none, normal (default: the stage's)")
     p.add_argument("--shadow-targets", default=None, help="shadow-ray targets to try (default: the stage's)")
     p.add_argument("--frame", type=float)
     p.add_argument("--visibility", default="exact", help="backend of the LGH's shadow rays (%(default)s)")
@@ -139,11 +142,14 @@ def main(argv: list[str] | None = None) -> int:
         .astype(np.float64) if args.hierarchy else None
     rows = []
     target_choices = args.shadow_targets.split(",") if args.shadow_targets else [base.shadow_targets]
+    splits = args.lgh_split.split(",") if args.lgh_split else [base.lgh_split]
     for alpha in map(float, args.lgh_alpha.split(",")):
         for k in _ints(args.shadow_samples):
-            for start, iterations, targets in ((s, i, t) for s in _ints(args.lgh_start_level)
-                                               for i in _ints(args.shadow_filter_iterations) for t in target_choices):
-                lgh = base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start)
+            for start, iterations, targets, split_by in ((s, i, t, g) for s in _ints(args.lgh_start_level)
+                                                         for i in _ints(args.shadow_filter_iterations)
+                                                         for t in target_choices for g in splits):
+                lgh = base.updated(gi="lgh", lgh_alpha=alpha, shadow_samples=k, lgh_start_level=start,
+                                   lgh_split=split_by)
                 row_settings = lgh.updated(shadow_filter_iterations=iterations, shadow_targets=targets)
                 r, s = run(row_settings, args.visibility)
                 extra = {}
@@ -161,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
                          ("vpl_seconds", "lgh_seconds", "lighting_seconds", "shadow_seconds", "filter_seconds")}
                 rows.append({"alpha": r.stats.get("lgh_alpha", alpha),
                              "shadow_samples": r.stats.get("shadow_samples", k),
-                             "start_level": start, "shadow_targets": targets,
+                             "start_level": start, "shadow_targets": targets, "lgh_split": r.stats.get("lgh_split", split_by),
                              "filter_iterations": r.stats.get("filter_iterations"),
                              "rel_rmse": rmse / mean if mean > 0 else 0.0,
                              "mean_ratio": float(r.radiance.mean()) / mean if mean > 0 else 0.0, "seconds": s,
@@ -182,11 +188,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{args.stage} frame {frame:g}, {width}x{height} ({result['pixels']:,} pixels), {result['vpls']:,} VPLs; "
           f"vpl-bruteforce ({args.reference_visibility}) {ref_s:.2f} s, LGH shadow rays {args.visibility}")
-    print("| α | k | start | targets | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays "
+    print("| α | k | start | targets | split | filter it. | rel. RMSE | seconds | speed-up | VPLs | LGH | lighting | shadow rays "
           "| filter |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['alpha']:g} | {r['shadow_samples']} | S{r['start_level']} | {r['shadow_targets']} | "
+              f"{r['lgh_split']} | "
               f"{r['filter_iterations']} | "
               f"{100 * r['rel_rmse']:.1f} % ({r['mean_ratio']:.2f}) | "
               f"{r['seconds']:.3f} | {r['speedup']:.0f}× | {r['vpl_seconds']:.3f} | {r['lgh_seconds']:.3f} | "

@@ -5,13 +5,15 @@ Usage::
 
     python tools/make_stages.py --suite --out /tmp/suite --seeds 0-3 --lights 64,1024,100000
     python tools/lgh_suite.py /tmp/suite [--split report] [--gi-vpls 10000] [--gi-lights 64,1024]
-        [--direct-lights 100000] [--imageWidth 96] [--direct-width 128] [--reference-pixels 2048] [--json]
+        [--direct-lights 100000] [--imageWidth 96] [--direct-width 128] [--reference-pixels 2048]
+        [--lgh-split none,normal] [--json]
 
 For each suite stage of the split (``report``: odd seeds, never tuned on; ``tune``; ``all``), what
 ``usdml compare`` reports on its start frame with the stage's and usdml's default settings:
 
 * stages with a light count in ``--gi-lights``: ``--gi lgh --against vpl-bruteforce --vpls N`` for each N of
-  ``--gi-vpls`` (relative RMSE of ``indirect`` over the reference's mean; the indirect passes' speed-up);
+  ``--gi-vpls`` and each ``--lgh-split`` (default: usdml's) (relative RMSE of ``indirect`` over the reference's
+  mean; the indirect passes' speed-up);
 * stages with a light count in ``--direct-lights``: ``--direct lgh --against all`` (relative RMSE of ``direct``;
   the frame's speed-up, the reference on ``--reference-pixels`` pixels with its seconds extrapolated to the
   frame when that is above 0);
@@ -64,7 +66,7 @@ def _row(kind: str, path: str, info: dict, r: dict, **extra) -> dict:
 
 
 def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], direct_lights: list[int],
-            width: int, direct_width: int, reference_pixels: int) -> list[dict]:
+            width: int, direct_width: int, reference_pixels: int, splits: list[str | None] = (None,)) -> list[dict]:
     from usdml.compare import compare_direct, compare_gi
     from usdml.stage import StageDelegate
 
@@ -74,12 +76,14 @@ def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], d
         t0 = time.perf_counter()
         if lights in gi_lights:
             for n in gi_vpls:
-                r = compare_gi(StageDelegate(path), "lgh", "vpl-bruteforce", image_width=width,
-                               overrides={"vpl_count": n})
-                rows.append(_row("gi", path, info, r, vpls=n, settings={
-                    k: r[k] for k in ("lgh_alpha", "shadow_samples", "lgh_start_level", "shadow_targets")},
-                    breakdown=r["breakdown"].get("lgh", {})))
-                _tell(rows[-1], time.perf_counter() - t0)
+                for split_by in splits:
+                    r = compare_gi(StageDelegate(path), "lgh", "vpl-bruteforce", image_width=width,
+                                   overrides={"vpl_count": n, **({} if split_by is None else {"lgh_split": split_by})})
+                    rows.append(_row("gi", path, info, r, vpls=n, settings={
+                        k: r[k] for k in ("lgh_alpha", "shadow_samples", "lgh_start_level", "shadow_targets",
+                                          "lgh_split")},
+                        breakdown=r["breakdown"].get("lgh", {})))
+                    _tell(rows[-1], time.perf_counter() - t0)
         if lights in direct_lights:
             r = compare_direct(StageDelegate(path), "lgh", "all", image_width=direct_width,
                                reference_pixels=reference_pixels)
@@ -96,7 +100,8 @@ def _tell(r: dict, seconds: float) -> None:
     est = ("" if r["estimated_rel_rmse"] is None else
            f", estimated {100 * r['estimated_rel_rmse']:.1f} % [{100 * r['estimated_interval'][0]:.1f}, "
            f"{100 * r['estimated_interval'][1]:.1f}] ({'holds' if r['estimate_holds'] else 'MISSES'})")
-    what = f"{r.get('vpls', 0):,} VPLs" if r["mode"] == "gi" else f"{r['lights']:,} lights"
+    what = (f"{r.get('vpls', 0):,} VPLs, split {r['settings'].get('lgh_split')}" if r["mode"] == "gi"
+            else f"{r['lights']:,} lights")
     print(f"{r['stage']} --{r['mode']} lgh, {what}: {100 * r['rel_rmse']:.2f} % at {r['speedup']:.1f}x{est} "
           f"({seconds:.0f} s)", file=sys.stderr, flush=True)
 
@@ -112,12 +117,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--direct-width", type=int, default=128, help="--direct lgh width (%(default)s)")
     p.add_argument("--reference-pixels", type=int, default=2048,
                    help="--direct: pixels every-light shading runs on, its time extrapolated (0: every pixel)")
+    p.add_argument("--lgh-split", default=None, metavar="S[,S...]",
+                   help="--gi lgh: each of these --lgh-split values (none, normal) in turn (default: usdml's)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if not os.path.isdir(args.folder):
         p.error(f"{args.folder}: no such folder (write the suite with tools/make_stages.py --suite --out DIR)")
     rows = measure(args.folder, args.split, _ints(args.gi_vpls), _ints(args.gi_lights), _ints(args.direct_lights),
-                   args.imageWidth, args.direct_width, args.reference_pixels)
+                   args.imageWidth, args.direct_width, args.reference_pixels,
+                   args.lgh_split.split(",") if args.lgh_split else [None])
     if not rows:
         p.error(f"{args.folder}: no suite stage of split {args.split!r} with those light counts")
     if args.json:

@@ -124,7 +124,7 @@ def compare_gi(delegate: StageDelegate, gi: str, against: str, frame: float | No
         "lgh_alpha": (test.stats.gi or {}).get("lgh_alpha", base.lgh_alpha),
         "shadow_samples": (test.stats.gi or {}).get("shadow_samples", base.shadow_samples),
         "interleave": base.interleave,
-        "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets,
+        "lgh_start_level": base.lgh_start_level, "shadow_targets": base.shadow_targets, "lgh_split": (test.stats.gi or {}).get("lgh_split", base.lgh_split),
         "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "gi", rel),
         "seconds": {gi: gi_test, against: gi_ref},
         "frame_seconds": {gi: test_s, against: ref_s},

@@ -375,6 +375,11 @@ _SETTINGS = (
     Param("lgh_start_level", int, 0, "finest LGH level lit from: 1 = S1 as the paper, 0 = the VPLs themselves (S0)",
           **_LIT, choices=(0, 1), label="LGH start level", applies=_GI_LGH,
           source="paper 004 starts from S1 (Sec. 4.1); S0 measured better on every tuning stage (docs/gi.md)"),
+    Param("lgh_split", str, "auto", "one LGH over all VPLs (none, the paper), one per VPL normal class on one grid "
+          "(normal: a coarse grid light never merges VPLs facing different ways), or auto: per frame, the split one "
+          "where it fits the gather's visit budget and a pilot of 64 pixels finds it closer to the VPLs' own sum",
+          **_LIT, choices=("auto", "none", "normal"), label="LGH split", applies=_GI_LGH,
+          source="paper 004 builds one; auto measured on the suite's tuning stages (docs/gi.md)"),
     Param("gi_svo_skip", float, 0.5, "--gi svo: pairs whose light is below this fraction of the pixel's mean cast "
           "no shadow ray and count as seen as much as the pixel's traced light (0 = trace every pair with G > 0)",
           **_LIT, range=Range(0), metavar="FRACTION", applies=_GI_SVO,
@@ -541,6 +546,17 @@ _DOCS = {
     "lgh_levels": """Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
 
     Any positive value forces that number of levels.""",
+    "lgh_split": """One lighting grid hierarchy over all the VPLs (none, paper 004), one per VPL normal class on one grid (normal), or a choice per frame (auto).
+
+    A coarse grid light over a ground and a wall merges VPLs facing up
+    and sideways into one centre and one mean normal, which lights the
+    ground from too low and too weakly. With normal, the VPLs facing
+    along each of +-x, +-y and +-z get a hierarchy of their own on one
+    grid, and the gather visits each: more accurate at the same alpha,
+    and more lights to visit. auto (the default) gives each hierarchy
+    the largest alpha the visit budget allows and keeps the split one
+    where it fits and a pilot of 64 pixels against the VPLs' own
+    unshadowed sum finds it the closer (docs/gi.md).""",
     "lgh_start_level": """Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
 
     S0 makes the near field exact (each pixel visits the VPLs within

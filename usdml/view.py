@@ -242,16 +242,16 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
                              scalar_bar_args={"title": "VPL flux (log10)", "position_y": 0.04})
         drawn["vpls"] = int(len(vpls))
         if "lgh" in show and field.lgh is not None:
-            levels = field.lgh.levels
-            if not 1 <= lgh_level <= len(levels):
-                raise UsdmlError(f"--lgh-level {lgh_level}: this frame's LGH has levels 1 to {len(levels)}")
-            level = levels[lgh_level - 1]
-            grid = pv.PolyData(np.asarray(level.position, np.float64))
-            grid["log10 intensity"] = np.log10(np.maximum(np.asarray(level.intensity, np.float64).mean(axis=1), 1e-12))
+            depth = field.lgh.depth
+            if not 1 <= lgh_level <= depth:
+                raise UsdmlError(f"--lgh-level {lgh_level}: this frame's LGH has levels 1 to {depth}")
+            position, intensity = field.lgh.level_lights(lgh_level)
+            grid = pv.PolyData(np.asarray(position, np.float64))
+            grid["log10 intensity"] = np.log10(np.maximum(np.asarray(intensity, np.float64).mean(axis=1), 1e-12))
             plotter.add_mesh(grid, scalars="log10 intensity", cmap="viridis", point_size=10,
                              render_points_as_spheres=True,
                              scalar_bar_args={"title": f"LGH level {lgh_level} intensity (log10)", "position_y": 0.86})
-            drawn["lgh_level"], drawn["lgh_lights"] = lgh_level, int(len(level.position))
+            drawn["lgh_level"], drawn["lgh_lights"] = lgh_level, int(len(position))
     plotter.add_axes()
     # a three-quarter view from above, the stage's up axis up (pyvista's own "iso" assumes Z up)
     up = np.array([0.0, 0.0, 1.0]) if str(snap.up_axis).upper() == "Z" else np.array([0.0, 1.0, 0.0])

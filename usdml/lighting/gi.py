@@ -20,8 +20,9 @@ from typing import Callable
 import numpy as np
 
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh import build_lgh, s1_spacing
-from usdml.lighting.lgh_lighting import auto_alpha, auto_shadow_samples, cluster_sampler, lgh_indirect
+from usdml.lighting.lgh import build_lgh, build_lgh_split, s1_spacing
+from usdml.lighting.lgh_choice import choose as choose_hierarchy
+from usdml.lighting.lgh_lighting import auto_shadow_samples, cluster_sampler, lgh_indirect
 from usdml.lighting.vpl import generate_vpls
 from usdml.scene import Lights, Snapshot
 from usdml.settings import UsdmlSettings
@@ -59,6 +60,16 @@ class VPLField:
     #: :func:`usdml.lighting.lgh_lighting.auto_alpha`) and the shadow rays' ``ClusterSampler`` (with the
     #: settings they were made for)
     frame_choices: dict = field(default_factory=dict)
+    #: makes the hierarchy split by VPL normal over the same VPLs (``--lgh-split``; the frame's choice calls
+    #: it at most once, through :meth:`split_lgh`)
+    build_split: Callable[[], object] | None = field(default=None, repr=False)
+    _split: object | None = field(default=None, repr=False)
+
+    def split_lgh(self):
+        """The hierarchy split by VPL normal (:func:`usdml.lighting.lgh.build_lgh_split`), made on first use."""
+        if self._split is None:
+            self._split = self.build_split()
+        return self._split
 
 
 def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings, device: str = "cpu") -> VPLField:
@@ -80,10 +91,17 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
         clamp = 0.5 * s1_spacing(vpls.position, intensity, levels=settings.lgh_levels, device=device)
         stats["lgh_seconds"] = _time.perf_counter() - t1
         return VPLField(vpls, None, intensity, stats, clamp)
-    lgh = build_lgh(vpls.position, intensity, levels=settings.lgh_levels, device=device, normal=vpls.normal)
+    # --lgh-split normal: the split hierarchy; none and auto: the single one (auto makes the split one only
+    # if the frame's choice needs it, usdml.lighting.lgh_choice)
+    split = settings.lgh_split == "normal"
+    lgh = (build_lgh_split(vpls.position, intensity, vpls.normal, levels=settings.lgh_levels, device=device) if split
+           else build_lgh(vpls.position, intensity, levels=settings.lgh_levels, device=device, normal=vpls.normal))
     stats["lgh_seconds"] = _time.perf_counter() - t1
-    stats["lgh_levels"] = len(lgh.levels)
-    return VPLField(vpls, lgh, intensity, stats, 0.5 * float(lgh.h1))
+    stats["lgh_levels"] = lgh.depth
+    field = VPLField(vpls, lgh, intensity, stats, 0.5 * float(lgh.h1))
+    field.build_split = (lambda: lgh) if split else \
+        (lambda: build_lgh_split(vpls.position, intensity, vpls.normal, levels=settings.lgh_levels, device=device))
+    return field
 
 
 def indirect_lighting(snap: Snapshot, exact, occluded, lights: Lights, points: np.ndarray, normals: np.ndarray,
@@ -147,24 +165,30 @@ def _gather_lgh(field: VPLField, snap: Snapshot, occluded, points, normals, albe
     t0 = _time.perf_counter()
     sources = (field.vpls.position, field.intensity, field.vpls.normal)
     s0 = settings.lgh_start_level == 0
-    key = (settings.lgh_alpha, s0, settings.shadow_targets, settings.lgh_cpu_kernel)
+    key = (settings.lgh_alpha, s0, settings.shadow_targets, settings.lgh_cpu_kernel, settings.lgh_split)
     if field.frame_choices.get("key") != key:           # the frame's first pass (or other settings)
-        alpha = settings.lgh_alpha if settings.lgh_alpha > 0 else \
-            auto_alpha(field.lgh, points, len(field.vpls), sources[0] if s0 else None)
-        sampler = cluster_sampler(field.lgh, sources, settings.shadow_targets, snap.meters_per_unit, field.clamp,
+        choice = choose_hierarchy(
+            field.lgh if settings.lgh_split != "normal" else None, field.split_lgh, points, normals, sources,
+            alpha=settings.lgh_alpha, split=settings.lgh_split, s0=s0, clamp_distance=field.clamp,
+            meters_per_unit=snap.meters_per_unit, seed=settings.seed, device=device)
+        sampler = cluster_sampler(choice.lgh, sources, settings.shadow_targets, snap.meters_per_unit, field.clamp,
                                   settings.lgh_cpu_kernel)
-        field.frame_choices = {"key": key, "alpha": alpha, "sampler": sampler}
+        field.frame_choices = {"key": key, "alpha": choice.alpha, "sampler": sampler, "lgh": choice.lgh,
+                               "split": choice.split, "candidates": choice.candidates}
     choices_s = _time.perf_counter() - t0
     samples = settings.shadow_samples if settings.shadow_samples > 0 else auto_shadow_samples(len(field.vpls))
-    r = lgh_indirect(points, normals, albedo, field.lgh, occluded, alpha=field.frame_choices["alpha"],
+    r = lgh_indirect(points, normals, albedo, field.frame_choices["lgh"], occluded, alpha=field.frame_choices["alpha"],
                      samples=samples, seed=settings.seed,
                      meters_per_unit=snap.meters_per_unit, clamp_distance=field.clamp, image=image,
                      interleave=settings.interleave, device=device, sources=sources,
                      start_level=settings.lgh_start_level, filter_iterations=settings.shadow_filter_iterations,
                      shadow_targets=settings.shadow_targets, geometric=geometric,
-                     sampler=field.frame_choices["sampler"], cpu_kernel=settings.lgh_cpu_kernel)
+                     sampler=field.frame_choices["sampler"], cpu_kernel=settings.lgh_cpu_kernel,
+                     gathers=field.frame_choices.setdefault("gathers", {}))
     r.stats["choice_seconds"] = choices_s
     r.stats["lgh_alpha"] = field.frame_choices["alpha"]
+    r.stats["lgh_split"] = field.frame_choices["split"]
+    r.stats["lgh_split_candidates"] = field.frame_choices["candidates"]
     r.stats["shadow_samples"] = samples
     return r.radiance, r.stats
 

@@ -65,6 +65,9 @@ class LGHLevel:
     #: (M,) float32 the input lights each grid light stands for: the sum of their trilinear weights
     #: (fractional; every level's counts sum to the number of lights of non-zero luminance)
     count: np.ndarray = field(default=None, repr=False)
+    #: (K,) int64 the input lights this level was built from (a hierarchy split by normal,
+    #: :func:`build_lgh_split`: one normal class's), or None for all of them
+    members: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -81,6 +84,29 @@ class LGH:
     offsets: np.ndarray = field(default=None, repr=False)     #: (L+1,) int64
     lobe: np.ndarray = field(default=None, repr=False)        #: (ΣM, 3) float32
     count: np.ndarray = field(default=None, repr=False)       #: (ΣM,) float32
+
+    @property
+    def depth(self) -> int:
+        """L, the number of levels (a split hierarchy lists a level once per normal class)."""
+        return max((lv.level for lv in self.levels), default=0)
+
+    def level_lights(self, level: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(position (M, 3), intensity (M, 3))`` of level ``level``'s grid lights (1 = S1), every class's."""
+        rows = [lv for lv in self.levels if lv.level == level]
+        return (np.concatenate([lv.position for lv in rows]).reshape(-1, 3),
+                np.concatenate([lv.intensity for lv in rows]).reshape(-1, 3))
+
+
+#: the normal classes of :func:`build_lgh_split`: a VPL's class is the axis its normal leans along most,
+#: and that axis's sign (+x, -x, +y, -y, +z, -z)
+NORMAL_CLASSES = 6
+
+
+def normal_class(normal: np.ndarray) -> np.ndarray:
+    """(N,) int: each of ``normal`` (N, 3)'s class, 2·axis of its largest |component| + (that component < 0)."""
+    n = np.asarray(normal, np.float32).reshape(-1, 3)
+    axis = np.argmax(np.abs(n), axis=1)
+    return (2 * axis + (n[np.arange(len(n)), axis] < 0)).astype(np.int64)
 
 
 def _warp():
@@ -277,7 +303,7 @@ def s1_spacing(position: np.ndarray, intensity: np.ndarray, levels: int = 0, dev
 
 
 def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, device: str = "cpu",
-              normal: np.ndarray | None = None) -> LGH:
+              normal: np.ndarray | None = None, bounds: tuple | None = None) -> LGH:
     """Build a lighting grid hierarchy over point lights (paper 004 §3.1).
 
     ``position``: (N, 3) float32/float64 scene units; ``intensity``: (N, 3) float32 RGB isotropic
@@ -285,7 +311,8 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     (VPLs: power 4π·I into the hemisphere about n, radiant intensity 4·I·max(0, cos)), or None for
     isotropic lights; each grid light gets the mean normal ν of what it aggregates (``lobe``).
     ``levels``: the number of levels L (1..:data:`MAX_LEVELS`), or 0 for :func:`auto_levels`.
-    ``device``: a Warp device (``cpu``, ``cuda``, ``cuda:0``).
+    ``device``: a Warp device (``cpu``, ``cuda``, ``cuda:0``). ``bounds = (lo, hi)`` (3,) each: the box
+    the grid spans, holding every light (default: the lights' own bounding box).
     Raises :class:`UsdmlError` for malformed lights or an absurd level count.
     """
     wp = _warp()
@@ -302,7 +329,7 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
             wp.synchronize_device(device)
 
     t0 = _time.perf_counter()
-    lo, hi = _bounds(p)
+    lo, hi = _bounds(p) if bounds is None else (np.asarray(bounds[0], np.float64), np.asarray(bounds[1], np.float64))
     stats["bounds"] = _time.perf_counter() - t0
     t0 = _time.perf_counter()
     pos_w, int_w = _upload(wp, p, inten, lo, device)
@@ -433,3 +460,55 @@ def build_lgh(position: np.ndarray, intensity: np.ndarray, levels: int = 0, devi
     stats["total"] = _time.perf_counter() - t_start
     return LGH(levels=out, h1=float(h1), bounds=(lo, hi), stats=stats, position=pos_np, intensity=int_np,
                variance=var_np, offsets=offsets, lobe=lobe_np, count=count_np)
+
+
+def build_lgh_split(position: np.ndarray, intensity: np.ndarray, normal: np.ndarray, levels: int = 0,
+                    device: str = "cpu") -> LGH:
+    """One hierarchy per normal class (:func:`normal_class`) on one grid, as one :class:`LGH`.
+
+    A coarse grid light of one hierarchy merges VPLs on a ground and on a wall into one centre and one
+    mean normal, which lights the ground from too low and too weakly (the suite's open stages,
+    docs/gi.md). Here the VPLs of each class get a hierarchy of their own, all over the grid of all the
+    VPLs (the same bounds and level count, so that the level-l grid lights of every class share its
+    spacing and S0's buckets), and the result lists each level once per class (``LGHLevel.members``:
+    the class's VPLs; ``level`` the level), levels in order, the classes in order within a level. The
+    gather walks every entry and blends it as its level (``kernels/lghq.c``, ``level_rank``).
+    Arguments as :func:`build_lgh`.
+    """
+    p, inten = _check_inputs(position, intensity)
+    nrm = _check_normals(normal, p.shape)
+    t_start = _time.perf_counter()
+    if nrm is None or len(p) == 0:
+        return build_lgh(p, inten, levels, device, nrm)
+    lo, hi = _bounds(p)
+    if int(levels) == 0:
+        wp = _warp()
+        levels = _auto_levels(len(p), lo, hi, _upload(wp, p, inten, lo, device), device)
+    klass = normal_class(nrm)
+    groups = [rows for rows in (np.flatnonzero(klass == c) for c in range(NORMAL_CLASSES)) if len(rows)]
+
+    def build(rows):
+        return rows, build_lgh(p[rows], inten[rows], int(levels), device, nrm[rows], bounds=(lo, hi))
+
+    # the classes' builds are independent: concurrent (each one's launches release the GIL, and a small
+    # class's build is mostly launch overhead)
+    parts = run_parallel(build, groups, cpu_workers(device))
+    out, pos, inten_o, var, lobe, count = [], [], [], [], [], []
+    for level in range(1, int(levels) + 1):
+        for rows, part in parts:
+            lv = part.levels[level - 1]
+            out.append(LGHLevel(level=level, spacing=lv.spacing, origin=lv.origin, dims=lv.dims, position=lv.position,
+                                intensity=lv.intensity, variance=lv.variance, vertex=lv.vertex, lobe=lv.lobe,
+                                count=lv.count, members=rows))
+    sizes = [len(lv.position) for lv in out]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    merged = {name: np.concatenate([getattr(lv, name) for lv in out]) for name in
+              ("position", "intensity", "variance", "lobe", "count")}
+    for lv, a, b in zip(out, offsets[:-1], offsets[1:]):    # each entry's arrays as views of the merged ones
+        for name, arr in merged.items():
+            setattr(lv, name, arr[a:b])
+    stats = {"n_lights": len(p), "device": str(device), "levels": int(levels), "classes": len(parts),
+             "lights_per_level": [sum(sizes[i] for i, lv in enumerate(out) if lv.level == level)
+                                  for level in range(1, int(levels) + 1)],
+             "total": _time.perf_counter() - t_start}
+    return LGH(levels=out, h1=parts[0][1].h1, bounds=(lo, hi), stats=stats, offsets=offsets, **merged)

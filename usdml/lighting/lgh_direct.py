@@ -136,7 +136,7 @@ def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> Dire
     sources = grid_sources(grid)
     lgh = build_lgh(sources[0], sources[1], levels=levels, device=device, normal=sources[2])
     stats["lgh_seconds"] = _time.perf_counter() - t0
-    stats["lgh_levels"] = len(lgh.levels)
+    stats["lgh_levels"] = lgh.depth
     stats["lgh_h1"] = float(lgh.h1)
     stats["grid_light_count"] = int(len(lgh.position))
     return DirectField(grid, rest, lgh, sources, stats)

@@ -53,7 +53,9 @@ class IndirectResult:
 
 
 def _flatten(lgh):
-    """Per-level grid arrays and the vertex -> light index map of every level of ``lgh`` (S1 first)."""
+    """Per-level grid arrays and the vertex -> light index map of every level of ``lgh`` (S1 first), and
+    each entry's level (0 = S1): a hierarchy split by normal (:func:`usdml.lighting.lgh.build_lgh_split`)
+    lists a level once per normal class."""
     levels = list(lgh.levels)
     origin = np.array([lv.origin for lv in levels], np.float32).reshape(-1, 3)
     spacing = np.array([lv.spacing for lv in levels], np.float32)
@@ -74,9 +76,10 @@ def _flatten(lgh):
         c = getattr(lv, "count", None)         # None: a hierarchy made without counts
         count.append(np.zeros(m, np.float32) if c is None else np.asarray(c, np.float32))
         base += m
+    rank = np.array([lv.level - 1 for lv in levels], np.int32)
     return (origin, spacing, dims, offset, vertex_light, np.concatenate(pos).reshape(-1, 3),
             np.concatenate(inten).reshape(-1, 3), np.concatenate(std), np.concatenate(lobe).reshape(-1, 3),
-            np.concatenate(count))
+            np.concatenate(count), rank)
 
 
 #: chosen samples :func:`shadow_fraction` handles at once (targets, rays, sums): its arrays stay a few
@@ -151,7 +154,7 @@ class LGHGather:
         self.device = device
         self.k = max(int(samples), 0)
         self.tiles = int(max(tiles, 1))
-        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count = _flatten(lgh)
+        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count, rank = _flatten(lgh)
         self.empty = len(pos) == 0
         if clamp_distance is None:
             clamp_distance = 0.5 * float(lgh.h1)
@@ -169,7 +172,8 @@ class LGHGather:
             from usdml.lighting.lgh_native import Gather
 
             s0_tables = None if s0 is None else (cells, start, order, s0[0], s0[1], s0_normals)
-            self._native = Gather((origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count), s0_tables,
+            self._native = Gather((origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count, rank),
+                                  s0_tables,
                                   alpha, 1.0 / meters_per_unit ** 2, clamp_distance ** 2, self.k, jitter, seed,
                                   self.tiles, stratified)
             return
@@ -178,7 +182,8 @@ class LGHGather:
                   wp.array(vertex_light, dtype=int, device=device), wp.array(pos, dtype=wp.vec3, device=device),
                   wp.array(inten, dtype=wp.vec3, device=device), wp.array(lobe, dtype=wp.vec3, device=device),
                   wp.array(std.astype(np.float32), dtype=float, device=device),
-                  wp.array(count, dtype=float, device=device), len(spacing)]
+                  wp.array(count, dtype=float, device=device), len(spacing),
+                  wp.array(rank, dtype=int, device=device), int(rank.max())]
         if s0 is not None:
             s0_args = [1, wp.vec3i(*map(int, cells)), wp.array(start, dtype=int, device=device),
                        wp.array(order, dtype=int, device=device),
@@ -357,16 +362,22 @@ class ClusterSampler:
         members, groups, weights = [], [], []
         base = 0
         for lv in lgh.levels:
+            # a split hierarchy's entry stands for its class's lights only (LGHLevel.members)
+            src = getattr(lv, "members", None)
             dims = np.asarray(lv.dims, np.int64)
-            ijk = np.clip(np.rint((self.positions - np.asarray(lv.origin)) / lv.spacing).astype(np.int64), 0, dims - 1)
+            at = self.positions if src is None else self.positions[src]
+            ijk = np.clip(np.rint((at - np.asarray(lv.origin)) / lv.spacing).astype(np.int64), 0, dims - 1)
             flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
             light_of_vertex = np.full(int(dims.prod()), -1, np.int64)
             light_of_vertex[np.asarray(lv.vertex, np.int64)] = base + np.arange(len(lv.position))
             group = light_of_vertex[flat]
             keep = np.flatnonzero(group >= 0)
+            group = group[keep]
+            if src is not None:
+                keep = np.asarray(src, np.int64)[keep]
             # the keys are unique and hold their light's place: sorting them (twice as fast as an argsort)
             # orders the lights as keep[np.argsort(key)] does
-            key = np.sort(group[keep] * n + place[keep])
+            key = np.sort(group * n + place[keep])
             order = at_place[key % n]
             members.append(order)
             groups.append(key // n)
@@ -654,10 +665,10 @@ def lights_visited(lgh, points: np.ndarray, alphas, s0_positions: np.ndarray | N
     visits = np.zeros(len(alphas))
     if len(p) == 0:
         return visits
-    top = len(lgh.levels) - 1
+    top = max(lv.level for lv in lgh.levels)
     reach2 = (2.0 * alphas + 1.7321) ** 2
-    for i, lv in enumerate(lgh.levels):
-        if i == top:
+    for lv in lgh.levels:
+        if lv.level == top:
             visits += len(lv.vertex)
             continue
         vertex, share = _some(np.asarray(lv.vertex, np.int64), rng)
@@ -721,7 +732,7 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  start_level: int = 1, shadow_targets: str = "member",
                  geometric: np.ndarray | None = None, stratified: bool = True,
                  sampler: "ClusterSampler | None" = None, inclusion: bool = False,
-                 cpu_kernel: str = "auto") -> IndirectResult:
+                 cpu_kernel: str = "auto", gathers: dict | None = None) -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``sources = (positions, intensities[, normals])`` are the input lights the LGH was built from
@@ -737,7 +748,9 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     :class:`ClusterSampler` of ``sources`` for ``shadow_targets`` made once for the frame's passes
     (made here otherwise); ``inclusion``: :func:`shadow_fraction`'s estimator; ``cpu_kernel``: auto,
     native or warp (``--lgh-cpu-kernel``: the compiled gather and targets of :mod:`usdml.lighting.lgh_native`
-    or the Warp kernels, on a CPU).
+    or the Warp kernels, on a CPU). ``gathers``: a dict the caller keeps for a frame's passes, in which the
+    :class:`LGHGather` made for ``lgh`` and these settings is kept and found again (its tables: the S0
+    buckets' sort over every VPL, the grid's occupancy; made once, not per pass).
     """
     stats: dict = {}
     t0 = _time.perf_counter()
@@ -747,11 +760,16 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         ys, xs = np.nonzero(hit)                  # row-major, the order of the hit points
         tile = (ys % interleave) * interleave + (xs % interleave)
     k = max(int(samples), 0) if occluded is not None else 0
-    gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device,
-                       tiles=interleave * interleave if tile is not None else 1,
-                       s0=sources if start_level == 0 and sources is not None else None,
-                       jitter=sources is None or shadow_targets == "jitter", stratified=stratified,
-                       cpu_kernel=cpu_kernel)
+    args = (alpha, k, seed, meters_per_unit, clamp_distance, device, interleave * interleave if tile is not None else 1,
+            start_level == 0 and sources is not None, sources is None or shadow_targets == "jitter", stratified,
+            cpu_kernel)
+    gather = None if gathers is None else gathers.get((id(lgh), args))
+    if gather is None:
+        gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device, tiles=args[6],
+                           s0=sources if args[7] else None, jitter=args[8], stratified=stratified,
+                           cpu_kernel=cpu_kernel)
+        if gathers is not None:
+            gathers[(id(lgh), args)] = gather
     if occluded is None:
         shading = gather(points, normals, tile)
         stats["lighting_seconds"] = _time.perf_counter() - t0

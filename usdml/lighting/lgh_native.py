@@ -33,7 +33,8 @@ class _Gather(ctypes.Structure):
                 ("light_std", _P), ("light_count", _P), ("m", _i32), ("s0", _i32), ("s0_cells", _i32 * 3),
                 ("s0_start", _P), ("s0_light", _P), ("s0_pos", _P), ("s0_int", _P), ("s0_lobe", _P), ("alpha", _f32),
                 ("inv_m2", _f32), ("clamp_d2", _f32), ("samples", _i32), ("jitter", _i32), ("seed", _i32),
-                ("tiles", _i32), ("stratified", _i32), ("occupancy", _P), ("occ_offset", _P), ("occ_words", _P)]
+                ("tiles", _i32), ("stratified", _i32), ("occupancy", _P), ("occ_offset", _P), ("occ_words", _P),
+                ("level_rank", _P), ("top_rank", _i32)]
 
 
 class _Outputs(ctypes.Structure):
@@ -116,7 +117,7 @@ class Gather:
 
     def __init__(self, flat: tuple, s0: tuple | None, alpha: float, inv_m2: float, clamp_d2: float, samples: int,
                  jitter: bool, seed: int, tiles: int, stratified: bool):
-        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count = flat
+        origin, spacing, dims, offset, vertex_light, pos, inten, std, lobe, count, rank = flat
         self._hold = hold = [_c(origin, np.float32), _c(spacing, np.float32), _c(dims, np.int32),
                              _c(offset, np.int32), _c(vertex_light, np.int32), _c(pos, np.float32),
                              _c(inten, np.float32), _c(lobe, np.float32), _c(std, np.float32), _c(count, np.float32)]
@@ -139,6 +140,9 @@ class Gather:
         occupancy, occ_offset, occ_words = _occupancy(hold[2], hold[3], hold[4])
         hold += [occupancy, occ_offset, occ_words]
         g.occupancy, g.occ_offset, g.occ_words = (_ptr(a) for a in (occupancy, occ_offset, occ_words))
+        rank = _c(rank, np.int32)
+        hold.append(rank)
+        g.level_rank, g.top_rank = _ptr(rank), int(rank.max())
 
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray, lo: int, hi: int, first: int,
                  outputs: tuple) -> None:
