@@ -79,7 +79,7 @@ def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], d
                 for split_by in splits:
                     r = compare_gi(StageDelegate(path), "lgh", "vpl-bruteforce", image_width=width,
                                    overrides={"vpl_count": n, **({} if split_by is None else {"lgh_split": split_by})})
-                    rows.append(_row("gi", path, info, r, vpls=n, settings={
+                    rows.append(_row("gi", path, info, r, vpls=n, asked=split_by or "default", settings={
                         k: r[k] for k in ("lgh_alpha", "shadow_samples", "lgh_start_level", "shadow_targets",
                                           "lgh_split")},
                         breakdown=r["breakdown"].get("lgh", {})))

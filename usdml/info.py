@@ -119,7 +119,7 @@ def format_info(info: dict) -> str:
     alpha = format(s["lgh_alpha"], "g") if s["lgh_alpha"] > 0 else "auto"        # 0: chosen per frame
     samples = s["shadow_samples"] or "auto"
     lines.append(f"usdml       visibility {s['visibility']}, voxels {s['voxel_resolution']}^3 @ {s['direction_step']:g} deg, "
-                 f"{n(s['vpl_count'])} VPLs, LGH alpha {alpha}, {samples} shadow samples, "
+                 f"{n(s['vpl_count'])} VPLs, LGH alpha {alpha}, split {s['lgh_split']}, {samples} shadow samples, "
                  f"{s['pixel_samples']} pixel samples, seed {s['seed']}")
     lines.append("backends    " + "; ".join(f"{name}: {summary}" if summary else name
                                              for name, summary in info["backends"].items()))
