@@ -454,6 +454,42 @@ def lgh_suite_rows(data: dict) -> list[str]:
                    "estimate [95 %]", "holds", "target met"], rows)
 
 
+def lgh_split_rows(data: dict) -> list[str]:
+    """``tools/lgh_suite.py --lgh-split ... --json``: per suite stage and VPL count, ``--gi lgh`` with one
+    hierarchy (none), one per normal class (normal) and the frame's choice (auto, the default) side by side,
+    each as its own ``usdml compare`` (the error against brute force, the speed-up), and whether the
+    default meets issue 37's target."""
+    cells: dict = {}
+    for run in data["runs"]:
+        for r in run["output"]:
+            asked = r.get("asked") if r.get("asked") not in (None, "default") else run.get("asked")
+            asked = asked or r["settings"]["lgh_split"]
+            cells.setdefault((r["kind"], r["lights"], r["seed"], r["vpls"], tuple(r["resolution"]), r["stage"]),
+                             {})[asked] = r
+    err, speed = LGH_SUITE_TARGETS["gi"]
+    rows = []
+    for (_, _, _, vpls, _, stage), by in sorted(cells.items(), key=lambda kv: (kv[0][3], kv[0][4], kv[0][:3])):
+        any_row = next(iter(by.values()))
+        row = [_stage(stage), any_row["split"], f"{vpls:,}", "×".join(map(str, any_row["resolution"]))]
+        for asked in ("none", "normal", "auto"):
+            r = by.get(asked)
+            if r is None:
+                row += ["–", "–"] + (["–", "–", "–"] if asked == "auto" else [])
+                continue
+            row += [f"{_pct3(r['rel_rmse'])} (α {r['settings']['lgh_alpha']:g})", f"{r['speedup']:.1f}×"]
+            if asked == "auto":
+                met = r["rel_rmse"] <= err and r["speedup"] >= speed
+                lo, hi = r["estimated_interval"]
+                est = "–" if r["estimated_rel_rmse"] is None else \
+                    f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]" + \
+                    ("" if r["estimate_holds"] else " **misses**")
+                row += [r["settings"]["lgh_split"], est, "yes" if met else "**no**"]
+        rows.append(row)
+    return _table(["stage", "split", "VPLs", "pixels", "none: rel. RMSE", "none: speed-up", "normal: rel. RMSE",
+                   "normal: speed-up", "auto: rel. RMSE", "auto: speed-up", "auto chose", "auto: estimate [95 %]",
+                   f"auto: ≤ {100 * err:g} %, ≥ {speed:g}×"], rows)
+
+
 def lgh_pathtrace_rows(data: dict) -> list[str]:
     """``tools/lgh_pathtrace.py --json``: per suite stage, ``--gi lgh`` against Mitsuba (issue 37 item 4: ``color``
     and ``indirect``, the reference's own noise) and, where a run measured it, the frame's estimate of its error
@@ -515,7 +551,7 @@ RENDERERS = {
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
     "budget": budget_rows, "lgh-suite": lgh_suite_rows,
-    "lgh-suite-pt": lgh_pathtrace_rows,
+    "lgh-suite-pt": lgh_pathtrace_rows, "lgh-split": lgh_split_rows,
 }
 
 
