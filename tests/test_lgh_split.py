@@ -188,3 +188,6 @@ def test_auto_split_is_not_built_where_it_cannot_fit_the_budget():
     assert wide.candidates["none"]["alpha"] == wide.candidates["normal"]["alpha"] == 4.0
     assert wide.split == "normal", wide.candidates
     assert wide.candidates["normal"]["pilot_rel_rmse"] < wide.candidates["none"]["pilot_rel_rmse"]
+    # no shading points (a frame that sees no geometry): nothing to compare on, the single hierarchy
+    empty = choose(one, lambda: split, pts[:0], pn[:0], (pos, inten, nrm), clamp_distance=0.05, fraction=10.0)
+    assert empty.split == "none" and empty.lgh is one

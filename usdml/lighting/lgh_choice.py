@@ -118,7 +118,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
     if split != "auto":
         c = candidates[split]
         return Choice(split, c["alpha"], hierarchies[split], candidates)
-    if "normal" not in candidates or not candidates["normal"]["within_budget"]:
+    if "normal" not in candidates or not candidates["normal"]["within_budget"] or len(points) == 0:
         return Choice("none", candidates["none"]["alpha"], one, candidates)
     # both fit: the pilot decides
     rng = np.random.default_rng(seed)
