@@ -73,6 +73,12 @@ def _pct3(x) -> str:
     return _span(x, lambda v: f"{100 * v:#.3g}".rstrip(".")) + " %"
 
 
+def _estimate(value: float, interval) -> str:
+    """An estimate and its 95 % interval: ``6.90 % [5.2, 8.6]``."""
+    lo, hi = interval
+    return f"{_pct3(value)} [{100 * lo:.3g}, {100 * hi:.3g}]"
+
+
 def _stage(path: str) -> str:
     return Path(path).name.removesuffix(".usda")
 
@@ -409,12 +415,11 @@ def budget_rows(data: dict) -> list[str]:
     rows = []
     for run in data["runs"]:
         for r in run["output"]:
-            lo, hi = r["estimated_eps_v_interval"]
             budget = "none" if r["budget"] >= 1 else f"{r['budget']:g}"
             frame = (f"{r['frame_seconds']:.1f} ({r['exact_frame_seconds']:.1f})"
                      if r.get("frame_seconds") is not None else "–")
             rows.append([_stage(r["stage"]), r["visibility"], budget, str(r["refine_level"]), _pct3(r["eps_v"]),
-                         f"{_pct3(r['estimated_eps_v'])} [{100 * lo:.3g}, {100 * hi:.3g}]",
+                         _estimate(r["estimated_eps_v"], r["estimated_eps_v_interval"]),
                          "yes" if r["interval_holds"] else "**no**", _pct3(r["eps_s"]),
                          f"{100 * r['refined_fraction']:.1f} / {100 * r['near_fraction']:.1f}",
                          f"{r['speedup']:.2f}×",
@@ -439,12 +444,11 @@ def lgh_suite_rows(data: dict) -> list[str]:
     for run in data["runs"]:
         for r in sorted(run["output"], key=lambda r: (r["mode"] != "gi", r["kind"], r["lights"], r.get("vpls", 0),
                                                       r["seed"])):
-            lo, hi = r["estimated_interval"]
             err, speed = LGH_SUITE_TARGETS[r["mode"]]
             met = r["rel_rmse"] <= err and r["speedup"] >= speed
             what = f"{r['vpls']:,} VPLs" if r["mode"] == "gi" else f"{r['lights']:,} lights"
             est = "–" if r["estimated_rel_rmse"] is None else \
-                f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]"
+                _estimate(r["estimated_rel_rmse"], r["estimated_interval"])
             holds = "–" if r["estimate_holds"] is None else ("yes" if r["estimate_holds"] else "**no**")
             rows.append([run.get("label", "–"), _stage(r["stage"]), r["split"], f"{r['scale']:g}", f"--{r['mode']} lgh",
                          what,
@@ -479,9 +483,8 @@ def lgh_split_rows(data: dict) -> list[str]:
             row += [f"{_pct3(r['rel_rmse'])} (α {r['settings']['lgh_alpha']:g})", f"{r['speedup']:.1f}×"]
             if asked == "auto":
                 met = r["rel_rmse"] <= err and r["speedup"] >= speed
-                lo, hi = r["estimated_interval"]
                 est = "–" if r["estimated_rel_rmse"] is None else \
-                    f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]" + \
+                    _estimate(r["estimated_rel_rmse"], r["estimated_interval"]) + \
                     ("" if r["estimate_holds"] else " **misses**")
                 row += [r["settings"]["lgh_split"], est, "yes" if met else "**no**"]
         rows.append(row)
@@ -512,9 +515,8 @@ def lgh_pathtrace_rows(data: dict) -> list[str]:
         else:
             row += ["–"] * 7
         if "measured_rel_rmse" in r:
-            lo, hi = r["estimated_interval"]
             row += [f"{r['vpls']:,}", _pct3(r["measured_rel_rmse"]),
-                    f"{_pct3(r['estimated_rel_rmse'])} [{100 * lo:.3g}, {100 * hi:.3g}]",
+                    _estimate(r["estimated_rel_rmse"], r["estimated_interval"]),
                     "yes" if r["interval_holds"] else "**no**"]
         else:
             row += ["–"] * 4

@@ -56,9 +56,9 @@ class VPLField:
     intensity: np.ndarray | None    #: (V, 3) float32 isotropic-equivalent intensity Φ/4π
     stats: dict = field(default_factory=dict)
     clamp: float = 0.0              #: geometry-term clamp distance d_c, scene units: half the S1 spacing
-    #: ``--gi lgh``, made by the frame's first pass for the rest: the resolved ``--lgh-alpha`` (auto:
-    #: :func:`usdml.lighting.lgh_lighting.auto_alpha`) and the shadow rays' ``ClusterSampler`` (with the
-    #: settings they were made for)
+    #: ``--gi lgh``, made by the frame's first pass for the rest (with the settings they were made for): the
+    #: hierarchy and ``--lgh-alpha`` chosen (:func:`usdml.lighting.lgh_choice.choose`), the candidates it
+    #: weighed, the shadow rays' ``ClusterSampler`` and the passes' gathers
     frame_choices: dict = field(default_factory=dict)
     #: makes the hierarchy split by VPL normal over the same VPLs (``--lgh-split``; the frame's choice calls
     #: it at most once, through :meth:`split_lgh`)

@@ -32,7 +32,7 @@ from a thread pool.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -482,8 +482,7 @@ def build_lgh_split(position: np.ndarray, intensity: np.ndarray, normal: np.ndar
         return build_lgh(p, inten, levels, device, nrm)
     lo, hi = _bounds(p)
     if int(levels) == 0:
-        wp = _warp()
-        levels = _auto_levels(len(p), lo, hi, _upload(wp, p, inten, lo, device), device)
+        levels = auto_levels(len(p), p, inten, device)
     klass = normal_class(nrm)
     groups = [rows for rows in (np.flatnonzero(klass == c) for c in range(NORMAL_CLASSES)) if len(rows)]
 
@@ -493,13 +492,7 @@ def build_lgh_split(position: np.ndarray, intensity: np.ndarray, normal: np.ndar
     # the classes' builds are independent: concurrent (each one's launches release the GIL, and a small
     # class's build is mostly launch overhead)
     parts = run_parallel(build, groups, cpu_workers(device))
-    out, pos, inten_o, var, lobe, count = [], [], [], [], [], []
-    for level in range(1, int(levels) + 1):
-        for rows, part in parts:
-            lv = part.levels[level - 1]
-            out.append(LGHLevel(level=level, spacing=lv.spacing, origin=lv.origin, dims=lv.dims, position=lv.position,
-                                intensity=lv.intensity, variance=lv.variance, vertex=lv.vertex, lobe=lv.lobe,
-                                count=lv.count, members=rows))
+    out = [replace(part.levels[level - 1], members=rows) for level in range(1, int(levels) + 1) for rows, part in parts]
     sizes = [len(lv.position) for lv in out]
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     merged = {name: np.concatenate([getattr(lv, name) for lv in out]) for name in
@@ -508,7 +501,7 @@ def build_lgh_split(position: np.ndarray, intensity: np.ndarray, normal: np.ndar
         for name, arr in merged.items():
             setattr(lv, name, arr[a:b])
     stats = {"n_lights": len(p), "device": str(device), "levels": int(levels), "classes": len(parts),
-             "lights_per_level": [sum(sizes[i] for i, lv in enumerate(out) if lv.level == level)
+             "lights_per_level": [sum(size for size, lv in zip(sizes, out) if lv.level == level)
                                   for level in range(1, int(levels) + 1)],
              "total": _time.perf_counter() - t_start}
     return LGH(levels=out, h1=parts[0][1].h1, bounds=(lo, hi), stats=stats, offsets=offsets, **merged)

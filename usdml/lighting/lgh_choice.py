@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from usdml.lighting.lgh_lighting import AUTO_ALPHAS, AUTO_VISIT_FRACTION, LGHGather, lights_visited
+from usdml.lighting.lgh_lighting import AUTO_ALPHAS, AUTO_VISIT_FRACTION, LGHGather, alpha_within, lights_visited
 
 #: the frame's points the pilot compares the hierarchies on (seeded): on the tuning stages the error of
 #: 128 points was within a fifth of the whole image's for every hierarchy and α (docs/CHANGELOG.md); the pilot
@@ -78,11 +78,6 @@ def vpl_irradiance(points: np.ndarray, normals: np.ndarray, position: np.ndarray
     return out / float(meters_per_unit) ** 2
 
 
-def _alpha_within(visits: np.ndarray, budget: float) -> tuple[float, bool]:
-    ok = np.nonzero(visits <= budget)[0]
-    return (float(AUTO_ALPHAS[ok[-1]]), True) if len(ok) else (float(AUTO_ALPHAS[0]), False)
-
-
 def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: tuple, *, alpha: float = 0.0,
            split: str = "auto", s0: bool = True, clamp_distance: float, meters_per_unit: float = 1.0, seed: int = 0,
            device: str = "cpu", fraction: float = AUTO_VISIT_FRACTION) -> Choice:
@@ -103,7 +98,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
 
     def candidate(name: str, lgh) -> np.ndarray:
         visits = lights_visited(lgh, points, alphas, s0_positions)
-        a, fits = _alpha_within(visits, budget) if alpha <= 0 else (float(alpha), bool(visits[0] <= budget))
+        a, fits = alpha_within(visits, budget) if alpha <= 0 else (float(alpha), bool(visits[0] <= budget))
         candidates[name] = {"alpha": a, "visits": float(visits[list(alphas).index(a)]), "within_budget": fits}
         hierarchies[name] = lgh
         return visits

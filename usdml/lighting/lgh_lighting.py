@@ -708,8 +708,14 @@ def auto_alpha(lgh, points: np.ndarray, vpl_count: int, s0_positions: np.ndarray
     costs (lights visited) grows with the stage's VPL layout while brute force's grows with the VPL
     count: so more VPLs, or VPLs spread over less of the grid, buy a larger alpha for the same speed-up."""
     visits = lights_visited(lgh, points, AUTO_ALPHAS, s0_positions)
-    ok = np.nonzero(visits <= fraction * max(int(vpl_count), 1))[0]
-    return float(AUTO_ALPHAS[ok[-1]] if len(ok) else AUTO_ALPHAS[0])
+    return alpha_within(visits, fraction * max(int(vpl_count), 1))[0]
+
+
+def alpha_within(visits: np.ndarray, budget: float) -> tuple[float, bool]:
+    """``(alpha, fits)``: the largest of :data:`AUTO_ALPHAS` whose ``visits`` (lights per point, one per alpha,
+    :func:`lights_visited`) are within ``budget``, or the smallest with ``fits`` False when none is."""
+    ok = np.nonzero(np.asarray(visits) <= budget)[0]
+    return (float(AUTO_ALPHAS[ok[-1]]), True) if len(ok) else (float(AUTO_ALPHAS[0]), False)
 
 
 def cluster_sampler(lgh, sources: tuple, shadow_targets: str, meters_per_unit: float = 1.0,
@@ -760,16 +766,18 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         ys, xs = np.nonzero(hit)                  # row-major, the order of the hit points
         tile = (ys % interleave) * interleave + (xs % interleave)
     k = max(int(samples), 0) if occluded is not None else 0
-    args = (alpha, k, seed, meters_per_unit, clamp_distance, device, interleave * interleave if tile is not None else 1,
-            start_level == 0 and sources is not None, sources is None or shadow_targets == "jitter", stratified,
-            cpu_kernel)
-    gather = None if gathers is None else gathers.get((id(lgh), args))
+    tiles = interleave * interleave if tile is not None else 1
+    from_s0 = start_level == 0 and sources is not None
+    jitter = sources is None or shadow_targets == "jitter"
+    key = (id(lgh), alpha, k, seed, meters_per_unit, clamp_distance, device, tiles, from_s0, jitter, stratified,
+           cpu_kernel)
+    gather = None if gathers is None else gathers.get(key)
     if gather is None:
-        gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device, tiles=args[6],
-                           s0=sources if args[7] else None, jitter=args[8], stratified=stratified,
+        gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device, tiles=tiles,
+                           s0=sources if from_s0 else None, jitter=jitter, stratified=stratified,
                            cpu_kernel=cpu_kernel)
         if gathers is not None:
-            gathers[(id(lgh), args)] = gather
+            gathers[key] = gather
     if occluded is None:
         shading = gather(points, normals, tile)
         stats["lighting_seconds"] = _time.perf_counter() - t0
