@@ -635,6 +635,70 @@ EXPORT void lghq_sums(const float *visible, const float *weight, int64_t k, int6
     }
 }
 
+/* The member draws' guide table (usdml.lighting.lgh_lighting._guide_table, the same cut points): for each group
+ * g of rows start[g] .. stop[g] - 1 (running sums cum, non-decreasing), row start + b of guide holds the last row
+ * r of the group with cum[r] <= cum[start] + b * (cum[stop] - cum[start]) / size, found by one forward walk
+ * per group (the cut points rise with b). */
+EXPORT void lghq_guide(const double *cum, const int64_t *start, const int64_t *stop, int64_t groups, int32_t *guide) {
+    for (int64_t g = 0; g < groups; g++) {
+        const int64_t lo = start[g], hi = stop[g], size = hi - lo;
+        if (size <= 0) continue;
+        const double total = cum[hi] - cum[lo];
+        int64_t at = lo;
+        for (int64_t b = 0; b < size; b++) {
+            const double edge = cum[lo] + (double)b * total / (double)size;
+            while (at + 1 < hi && cum[at + 1] <= edge) at++;
+            guide[lo + b] = (int32_t)at;
+        }
+    }
+}
+
+/* Points lo .. hi - 1: the unshadowed irradiance of every input light as a one-sided cosine emitter (the model
+ * the gather approximates, usdml.lighting.lgh_choice.vpl_irradiance), summed in double: out (P, 3) +=
+ * sum_j 4 I_j max(0, n_p . w) max(0, -n_j . w) / (d^2 max(d^2, clamp_d2)), w = q_j - p, d = |w|. The lights
+ * come as nine float32 columns (light: x, y, z, normal x, y, z, intensity r, g, b; n each), taken 8 at a time
+ * into 8 running sums per channel (lane k: lights k, k + 8, ...; the last few alone) added in lane order at the
+ * end: the compiler vectorizes the lanes, and a point's sum is the same on any thread. */
+#define COSINE_LANES 8
+__attribute__((optimize("no-trapping-math"), always_inline)) static inline double cosine_term(const float *const *light, int64_t j, double px, double py, double pz, double nx,
+                                 double ny, double nz, double clamp_d2) {
+    const double wx = light[0][j] - px, wy = light[1][j] - py, wz = light[2][j] - pz;
+    const double d2 = wx * wx + wy * wy + wz * wz;
+    double cs = nx * wx + ny * wy + nz * wz;
+    double cl = -(light[3][j] * wx + light[4][j] * wy + light[5][j] * wz);
+    cs = cs > 0.0 ? cs : 0.0;
+    cl = cl > 0.0 ? cl : 0.0;
+    const double den = d2 * (d2 > clamp_d2 ? d2 : clamp_d2);
+    const int ok = den > 1e-300;          /* a light on the point adds nothing; no division decided by a branch */
+    return (ok ? 4.0 * cs * cl : 0.0) / (ok ? den : 1.0);
+}
+
+__attribute__((optimize("no-trapping-math"), target_clones("avx2", "default"))) EXPORT void lghq_cosine_sum(const float *points, const float *normals, const float *const *light, int64_t n,
+                            double clamp_d2, int64_t lo, int64_t hi, double *out) {
+    const int64_t whole = n - n % COSINE_LANES;
+    for (int64_t p = lo; p < hi; p++) {
+        const double px = points[3 * p], py = points[3 * p + 1], pz = points[3 * p + 2];
+        const double nx = normals[3 * p], ny = normals[3 * p + 1], nz = normals[3 * p + 2];
+        double acc[3][COSINE_LANES] = {{0}};
+        for (int64_t j = 0; j < whole; j += COSINE_LANES)
+            for (int k = 0; k < COSINE_LANES; k++) {
+                const double g = cosine_term(light, j + k, px, py, pz, nx, ny, nz, clamp_d2);
+                acc[0][k] += g * light[6][j + k];
+                acc[1][k] += g * light[7][j + k];
+                acc[2][k] += g * light[8][j + k];
+            }
+        for (int64_t j = whole; j < n; j++) {
+            const double g = cosine_term(light, j, px, py, pz, nx, ny, nz, clamp_d2);
+            for (int c = 0; c < 3; c++) acc[c][j - whole] += g * light[6 + c][j];
+        }
+        for (int c = 0; c < 3; c++) {
+            double sum = 0.0;
+            for (int k = 0; k < COSINE_LANES; k++) sum += acc[c][k];
+            out[3 * p + c] += sum;
+        }
+    }
+}
+
 /* an importable module, so that setuptools builds it as an extension; the functions are called by ctypes */
 static struct PyModuleDef lghq_module = {PyModuleDef_HEAD_INIT, "_lghq", "LGH gather and shadow targets (ctypes)", -1, NULL};
 PyMODINIT_FUNC PyInit__lghq(void) { return PyModule_Create(&lghq_module); }

@@ -70,6 +70,24 @@ def test_compiled_gather_of_a_split_hierarchy_is_the_warp_gather_bit_for_bit(fra
         np.testing.assert_array_equal(getattr(runs["native"], name), getattr(runs["warp"], name), err_msg=name)
 
 
+@pytest.mark.parametrize("kernel", ["native", "warp"])
+def test_a_gather_at_another_alpha_is_a_gather_made_at_it(frame, kernel):
+    """``LGHGather.at_alpha`` (the frame's choice tries several α over one gather's tables) gathers what a gather
+    made at that α does, bit for bit, and leaves the gather it came from as it was."""
+    snap, ex, gb, pts, nrm, alb, lgh, sources = frame
+    base = m.LGHGather(lgh, 1.0, 8, 5, snap.meters_per_unit, None, s0=sources, cpu_kernel=kernel)
+    before = base(pts, nrm)
+    for alpha in (1.5, 3.0):
+        got = base.at_alpha(alpha)(pts, nrm)
+        want = m.LGHGather(lgh, alpha, 8, 5, snap.meters_per_unit, None, s0=sources, cpu_kernel=kernel)(pts, nrm)
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=f"{alpha} {name}")
+        assert not np.array_equal(got.irradiance, before.irradiance)
+    again = base(pts, nrm)
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(again, name), getattr(before, name), err_msg=name)
+
+
 @pytest.mark.parametrize("reweight", [True, False])
 def test_compiled_member_draws_are_the_warp_draws_bit_for_bit(frame, reweight):
     snap, ex, gb, pts, nrm, alb, lgh, sources = frame

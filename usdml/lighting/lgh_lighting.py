@@ -15,6 +15,7 @@ shadow-ratio estimator of Heitz et al. 2018) scales the unshadowed lighting.
 
 from __future__ import annotations
 
+import copy
 import time as _time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -197,6 +198,23 @@ class LGHGather:
         self._args = [*shared, *s0_args, float(alpha), float(1.0 / meters_per_unit ** 2), float(clamp_distance ** 2),
                       self.k, int(bool(jitter)), int(seed)]
 
+    def at_alpha(self, alpha: float) -> "LGHGather":
+        """This gather at blending radius factor ``alpha``, sharing its tables (the S0 buckets, the grid's
+        occupancy): what ``LGHGather(lgh, alpha, ...)`` with the other arguments as here gathers, without
+        making them again (a frame's choice tries several α on a few points)."""
+        other = copy.copy(self)
+        if self.empty:
+            return other
+        if self._native is not None:
+            other._native = self._native.at_alpha(alpha)
+        else:
+            other._args = list(self._args)
+            other._args[self._ALPHA_ARG] = float(alpha)
+        return other
+
+    #: where α sits in the Warp kernel's arguments (after the grid's and the S0 tables)
+    _ALPHA_ARG = -6
+
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
                  first: int = 0) -> LGHShading:
         """The shading of ``points`` (P, 3), the ``first``-th to ``first + P - 1``-th of all points."""
@@ -289,15 +307,21 @@ def sample_runs(light: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     return (np.arange(m) - first[run]).astype(np.int32), length[run].astype(np.int32)
 
 
-def _guide_table(cum: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+def _guide_table(cum: np.ndarray, start: np.ndarray, stop: np.ndarray, compiled: bool = True) -> np.ndarray:
     """Cut points for drawing a member of each group in proportion to its luminance (the guide table
     of the inverse-CDF method): the group of rows ``start .. stop - 1`` (running sums ``cum``) is cut
     into as many equal shares of its sum as it has members, and row ``start + b`` of the table holds
     the last row whose running sum is at most the start of share ``b``. A draw then starts from its
     share's row and steps forward while the next running sum is at most it: the row a binary search
     over the group finds, in about two reads instead of log2(members) (a group of the city's coarse
-    levels holds thousands of VPLs, each read a cache miss)."""
+    levels holds thousands of VPLs, each read a cache miss). By ``kernels/lghq.c`` (one forward walk per
+    group) where it is built and ``compiled``, else by NumPy: the same table."""
     rows = len(cum) - 1
+    if compiled:
+        from usdml.lighting import lgh_native
+
+        if lgh_native.library() is not None:
+            return lgh_native.guide(cum, start, stop, rows)
     guide = np.zeros(max(rows, 1), np.int32)
     size = (stop - start).astype(np.int64)
     group = np.repeat(np.arange(len(start)), size)          # each row's group (rows are grouped in order)

@@ -15,13 +15,14 @@ Warp.
 
 from __future__ import annotations
 
+import copy
 import ctypes
 
 import numpy as np
 
 from usdml.native import Extension
 
-__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums"]
+__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "guide"]
 
 _P = ctypes.c_void_p
 _i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
@@ -59,6 +60,8 @@ EXTENSION = Extension("_lghq", {
     "lghq_targets": (None, [ctypes.POINTER(_Members), _P, _P, _i32, _i64, _i32, _P, _P, _i32, _P, _P, _P, _P,
                             _i64, _i64, _P, _P]),
     "lghq_sums": (None, [_P, _P, _i64, _i64, _i64, _P, _P]),
+    "lghq_guide": (None, [_P, _P, _P, _i64, _P]),
+    "lghq_cosine_sum": (None, [_P, _P, _P, _i64, ctypes.c_double, _i64, _i64, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
 
@@ -144,6 +147,13 @@ class Gather:
         hold.append(rank)
         g.level_rank, g.top_rank = _ptr(rank), int(rank.max())
 
+    def at_alpha(self, alpha: float) -> "Gather":
+        """These tables at blending radius factor ``alpha`` (the arrays shared, the table copied)."""
+        other = copy.copy(self)
+        other.table = _Gather.from_buffer_copy(self.table)
+        other.table.alpha = float(alpha)
+        return other
+
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray, lo: int, hi: int, first: int,
                  outputs: tuple) -> None:
         """Rows ``lo .. hi - 1`` of ``points`` / ``normals`` (P, 3) float32 and ``tile`` (P,) int32 into
@@ -189,3 +199,29 @@ def sums(visible: np.ndarray, weight: np.ndarray, num: np.ndarray, den: np.ndarr
     double (``lghq_sums``)."""
     library().lghq_sums(visible.ctypes.data, weight.ctypes.data, visible.shape[1], int(lo), int(hi), num.ctypes.data,
                         den.ctypes.data)
+
+
+class CosineLights:
+    """``lghq_cosine_sum``'s lights: positions, normals and intensities (Φ/4π) of N one-sided cosine emitters as
+    nine float32 columns."""
+
+    def __init__(self, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray):
+        self.n = len(positions)
+        self._columns = np.ascontiguousarray(np.concatenate([np.asarray(a, np.float32).reshape(-1, 3).T for a in
+                                                             (positions, normals, intensity)]), np.float32)
+        self._pointers = (ctypes.c_void_p * 9)(*(self._columns[i].ctypes.data for i in range(9)))
+
+    def sum(self, points: np.ndarray, normals: np.ndarray, clamp_d2: float, lo: int, hi: int, out: np.ndarray) -> None:
+        """Points ``lo .. hi - 1`` (``points``, ``normals``: (P, 3) float32, C-contiguous): ``out`` (P, 3) float64
+        += every light's unshadowed irradiance, in scene units (no metersPerUnit)."""
+        library().lghq_cosine_sum(points.ctypes.data, normals.ctypes.data, self._pointers, self.n, float(clamp_d2),
+                                  int(lo), int(hi), out.ctypes.data)
+
+
+def guide(cum: np.ndarray, start: np.ndarray, stop: np.ndarray, rows: int) -> np.ndarray:
+    """:func:`usdml.lighting.lgh_lighting._guide_table` by ``lghq_guide``: ``(max(rows, 1),)`` int32."""
+    cum = _c(cum, np.float64)
+    start, stop = _c(start, np.int64), _c(stop, np.int64)
+    out = np.zeros(max(rows, 1), np.int32)
+    library().lghq_guide(cum.ctypes.data, start.ctypes.data, stop.ctypes.data, len(start), out.ctypes.data)
+    return out
