@@ -108,10 +108,13 @@ def test_auto_alpha_from_s0_within_bound_of_every_vpl_where_the_paper_default_is
     assert error(alpha, 0) < 0.12 < error(1.0, 1)
 
 
-def test_auto_split_keeps_the_hierarchy_closer_to_every_vpl(interior):
-    """``--lgh-split auto`` on a held-back kind at 100,000 VPLs: each hierarchy at the largest alpha the budget
-    allows, the pilot's pick against every VPL by brute force's own code (unshadowed): the pick is the
-    closer of the two over the whole image, and closer than the single hierarchy by a margin."""
+def test_auto_choice_holds_its_pilot_target_over_every_vpl(interior):
+    """``--lgh-split auto`` on a held-back kind at 100,000 VPLs: the split hierarchy (it fits the budget) at the
+    smallest α whose pilot error is within target; over the whole image, against every VPL by brute force's own
+    code (unshadowed, no code shared with the pilot's sum), within 1.6 times the target, and the α before it on
+    the pilot's grid (tried and refused) errs more there."""
+    from usdml.lighting.lgh_choice import PILOT_TARGET
+
     snap, pts, nrm, alb, vpls = interior
     intensity = vpls.flux / np.float32(4 * np.pi)
     sources = (vpls.position, intensity, vpls.normal)
@@ -126,14 +129,17 @@ def test_auto_split_keeps_the_hierarchy_closer_to_every_vpl(interior):
         return built[-1]
 
     choice = choose(one, build_split, pts, nrm, sources, clamp_distance=clamp, meters_per_unit=snap.meters_per_unit)
-    assert len(built) == 1 and set(choice.candidates) == {"none", "normal"}
-    hierarchy = {"none": one, "normal": built[0]}
-    error = {}
-    for name, c in choice.candidates.items():
-        assert c["within_budget"] and c["visits"] <= 0.06 * len(vpls) and "pilot_rel_rmse" in c
-        got = lgh_indirect(pts, nrm, alb, hierarchy[name], None, alpha=c["alpha"], meters_per_unit=snap.meters_per_unit,
+    assert len(built) == 1 and choice.split == "normal" and choice.lgh is built[0], choice.candidates
+    tried = choice.candidates["normal"]["pilot"]
+    assert [t["alpha"] for t in tried] == sorted(t["alpha"] for t in tried) and tried[-1]["alpha"] == choice.alpha
+    assert tried[-1]["rel_rmse"] <= PILOT_TARGET < min(t["rel_rmse"] for t in tried[:-1]), tried
+    assert tried[-1]["visits"] <= 0.06 * len(vpls)
+
+    def error(alpha):
+        got = lgh_indirect(pts, nrm, alb, choice.lgh, None, alpha=alpha, meters_per_unit=snap.meters_per_unit,
                            clamp_distance=clamp, sources=sources, start_level=0).radiance
-        error[name] = np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
-    assert choice.split == min(error, key=error.get), (choice.candidates, error)
-    # measured: the split one at alpha 2 2.5 % against the single one's 8.8 % at alpha 2
-    assert choice.split == "normal" and error["normal"] < 0.5 * error["none"], error
+        return np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
+
+    # measured: alpha 1.75 (pilot 4.6 %), 4.6 % over the image; alpha 1.5 (pilot 9.2 %) 9.6 %
+    assert error(choice.alpha) < 1.6 * PILOT_TARGET
+    assert len(tried) < 2 or error(tried[-2]["alpha"]) > error(choice.alpha)

@@ -144,24 +144,53 @@ def test_a_corner_is_lit_as_its_vpls_light_it_when_split(device):
     assert err["split"] < 0.1 * err["one"], err
 
 
-def test_the_pilot_sum_is_a_cosine_emitter():
-    """vpl_irradiance against the analytic Lambertian emitter E = Φ cos θ_l cos θ_s / (π d²), I = Φ/4π."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_pilot_sum_is_a_cosine_emitter(compiled):
+    """vpl_irradiance (kernels/lghq.c's and NumPy's) against the analytic Lambertian emitters
+    E = Σ Φ cos θ_l cos θ_s / (π d²), I = Φ/4π: thirteen lights, so the compiled sum's lanes of eight and its
+    remainder both count."""
     from usdml.lighting.lgh_choice import vpl_irradiance
+    from usdml.lighting.lgh_native import library
 
-    q = np.array([[0.3, 0.2, -0.1]], np.float32)
-    n_l = np.array([[0.0, 0.6, 0.8]], np.float32)
-    flux = np.array([[2.0, 1.0, 0.5]], np.float32)
+    if compiled and library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
     rng = np.random.default_rng(8)
-    pts = (q + rng.normal(size=(300, 3)) * 3).astype(np.float32)
+    q = (np.array([[0.3, 0.2, -0.1]]) + rng.normal(size=(13, 3)) * 0.5).astype(np.float32)
+    n_l = _unit(rng.normal(size=(13, 3)))
+    flux = rng.uniform(0.5, 2.0, size=(13, 3)).astype(np.float32)
+    pts = (q[:1] + rng.normal(size=(300, 3)) * 3).astype(np.float32)
     pn = _unit(rng.normal(size=(300, 3)))
-    got = vpl_irradiance(pts, pn, q, flux / np.float32(4 * np.pi), n_l, clamp_distance=1e-4, meters_per_unit=2.0)
-    w = q - pts
-    d = np.linalg.norm(w, axis=1, keepdims=True)
-    cos_l = np.maximum(-(w / d) @ n_l[0], 0.0)
-    cos_s = np.maximum(((w / d) * pn).sum(1), 0.0)
-    want = flux * (cos_l * cos_s / (np.pi * d[:, 0] ** 2))[:, None] / 4.0
+    got = vpl_irradiance(pts, pn, q, flux / np.float32(4 * np.pi), n_l, clamp_distance=1e-4, meters_per_unit=2.0,
+                         compiled=compiled)
+    w = q[None].astype(np.float64) - pts[:, None]                      # (P, L, 3)
+    d = np.linalg.norm(w, axis=2)
+    cos_l = np.maximum(-((w / d[..., None]) * n_l[None]).sum(2), 0.0)
+    cos_s = np.maximum(((w / d[..., None]) * pn[:, None]).sum(2), 0.0)
+    want = (cos_l * cos_s / (np.pi * d ** 2)) @ flux.astype(np.float64) / 4.0
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-12)
     assert (got == 0).any() and (got > 0).any()
+
+
+def test_the_compiled_pilot_sum_is_numpys_with_clamped_and_coincident_lights():
+    """kernels/lghq.c's sum (lanes of eight, four threads' blocks) and the NumPy one, where lights sit on points
+    and within the clamp distance of them."""
+    from usdml.lighting.lgh_choice import vpl_irradiance
+    from usdml.lighting.lgh_native import library
+
+    if library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-1, 1, size=(97, 3)).astype(np.float32)
+    pn = _unit(rng.normal(size=(97, 3)))
+    q = rng.uniform(-1, 1, size=(1003, 3)).astype(np.float32)
+    q[:10] = pts[:10]                                      # on the point: adds nothing
+    q[10:20] = pts[10:20] + np.float32(0.01) * pn[10:20]    # within the clamp
+    n_l = _unit(rng.normal(size=(1003, 3)))
+    inten = rng.uniform(0, 1, size=(1003, 3)).astype(np.float32)
+    a = vpl_irradiance(pts, pn, q, inten, n_l, clamp_distance=0.05, meters_per_unit=0.01)
+    b = vpl_irradiance(pts, pn, q, inten, n_l, clamp_distance=0.05, meters_per_unit=0.01, compiled=False)
+    np.testing.assert_allclose(a, b, rtol=1e-9)
+    assert np.isfinite(a).all() and (a > 0).any()
 
 
 def test_auto_split_is_not_built_where_it_cannot_fit_the_budget():
@@ -182,12 +211,19 @@ def test_auto_split_is_not_built_where_it_cannot_fit_the_budget():
     split = build_lgh_split(pos, inten, nrm)
     forced = choose(None, lambda: split, pts, pn, (pos, inten, nrm), alpha=1.5, split="normal", clamp_distance=0.05)
     assert forced.split == "normal" and forced.lgh is split and forced.alpha == 1.5
-    # a budget every alpha fits: each gets the largest, and the pilot picks the split one, which lights this
-    # corner as its VPLs do (test_a_corner_is_lit_as_its_vpls_light_it_when_split)
+    # a budget every alpha fits: the split hierarchy, which lights this corner as its VPLs do
+    # (test_a_corner_is_lit_as_its_vpls_light_it_when_split), at the first alpha the pilot finds within target
+    from usdml.lighting.lgh_choice import PILOT_TARGET
+
     wide = choose(one, lambda: split, pts, pn, (pos, inten, nrm), clamp_distance=0.05, fraction=10.0)
-    assert wide.candidates["none"]["alpha"] == wide.candidates["normal"]["alpha"] == 4.0
-    assert wide.split == "normal", wide.candidates
-    assert wide.candidates["normal"]["pilot_rel_rmse"] < wide.candidates["none"]["pilot_rel_rmse"]
+    assert wide.split == "normal" and wide.lgh is split, wide.candidates
+    tried = wide.candidates["normal"]["pilot"]
+    assert tried[-1]["alpha"] == wide.alpha and tried[-1]["rel_rmse"] <= PILOT_TARGET
+    assert all(t["rel_rmse"] > PILOT_TARGET for t in tried[:-1])
+    # a target nothing meets: the alpha that erred least, every alpha tried
+    strict = choose(one, lambda: split, pts, pn, (pos, inten, nrm), clamp_distance=0.05, fraction=10.0, target=0.0)
+    tried = strict.candidates["normal"]["pilot"]
+    assert len(tried) == 9 and strict.alpha == min(tried, key=lambda t: t["rel_rmse"])["alpha"]
     # no shading points (a frame that sees no geometry): nothing to compare on, the single hierarchy
     empty = choose(one, lambda: split, pts[:0], pn[:0], (pos, inten, nrm), clamp_distance=0.05, fraction=10.0)
     assert empty.split == "none" and empty.lgh is one

@@ -363,7 +363,8 @@ _SETTINGS = (
     Param("vpl_bounces", int, 3, "diffuse bounces of the light paths that place VPLs", **_LIT, range=Range(1),
           label="VPL bounces", metavar="N", applies=_GI, source="paper 004"),
     Param("lgh_alpha", float, 0.0, "LGH blending radius factor alpha, r_l = alpha h_l; 0 = automatic per frame: "
-          "the largest of 1-4 whose gather visits few enough lights per pixel for the VPL count", **_LIT,
+          "the smallest of 1-4 whose gather a pilot of 256 pixels finds within 5 % of the VPLs' own sum, within a visit "
+          "budget for the VPL count", **_LIT,
           range=Range(0), label="LGH alpha", metavar="ALPHA", applies=_GI_LGH,
           source="paper 004 uses 1; automatic: measured on the suite's tuning stages (docs/gi.md)"),
     Param("lgh_cpu_kernel", str, "auto", "how the LGH's gather and shadow-ray targets run on a CPU: auto (the "
@@ -377,7 +378,7 @@ _SETTINGS = (
           source="paper 004 starts from S1 (Sec. 4.1); S0 measured better on every tuning stage (docs/gi.md)"),
     Param("lgh_split", str, "auto", "one LGH over all VPLs (none, the paper), one per VPL normal class on one grid "
           "(normal: a coarse grid light never merges VPLs facing different ways), or auto: per frame, the split one "
-          "where it fits the gather's visit budget and a pilot of 64 pixels finds it closer to the VPLs' own sum",
+          "where it fits the gather's visit budget, the single one elsewhere",
           **_LIT, choices=("auto", "none", "normal"), label="LGH split", applies=_GI_LGH,
           source="paper 004 builds one; auto measured on the suite's tuning stages (docs/gi.md)"),
     Param("gi_svo_skip", float, 0.5, "--gi svo: pairs whose light is below this fraction of the pixel's mean cast "
@@ -539,10 +540,13 @@ _DOCS = {
 
     h_l is the grid size of level l. Larger alpha widens the blending
     functions: more grid lights per shading point, more accurate and
-    slower. 0 (automatic): the largest alpha from 1 to 4 whose gather
-    visits at most a fixed share of the VPL count per pixel (counted on a
-    few pixels of the frame), so that it stays a small part of what
-    brute force costs: more VPLs buy a larger alpha (docs/gi.md).""",
+    slower. 0 (automatic): the smallest alpha from 1 to 4 whose
+    unshadowed light at 256 of the frame's pixels is within 5 % (relative
+    RMSE) of the VPLs' own sum there, among those whose gather visits at
+    most a fixed share of the VPL count per pixel (counted on a few
+    pixels of the frame), so that it stays a small part of what brute
+    force costs; where none is within 5 %, the one that erred least
+    (docs/gi.md).""",
     "lgh_levels": """Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
 
     Any positive value forces that number of levels.""",
@@ -553,10 +557,9 @@ _DOCS = {
     ground from too low and too weakly. With normal, the VPLs facing
     along each of +-x, +-y and +-z get a hierarchy of their own on one
     grid, and the gather visits each: more accurate at the same alpha,
-    and more lights to visit. auto (the default) gives each hierarchy
-    the largest alpha the visit budget allows and keeps the split one
-    where it fits and a pilot of 64 pixels against the VPLs' own
-    unshadowed sum finds it the closer (docs/gi.md).""",
+    and more lights to visit. auto (the default) takes the split one
+    wherever its gather fits the visit budget at alpha 1, the single one
+    elsewhere (docs/gi.md).""",
     "lgh_start_level": """Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
 
     S0 makes the near field exact (each pixel visits the VPLs within

@@ -99,8 +99,10 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
     stats["lgh_seconds"] = _time.perf_counter() - t1
     stats["lgh_levels"] = lgh.depth
     field = VPLField(vpls, lgh, intensity, stats, 0.5 * float(lgh.h1))
+    # the split one on the single one's level count (what --lgh-levels 0 finds for these VPLs: not found again)
     field.build_split = (lambda: lgh) if split else \
-        (lambda: build_lgh_split(vpls.position, intensity, vpls.normal, levels=settings.lgh_levels, device=device))
+        (lambda: build_lgh_split(vpls.position, intensity, vpls.normal, levels=settings.lgh_levels or lgh.depth,
+                                 device=device))
     return field
 
 

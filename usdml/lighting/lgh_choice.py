@@ -3,18 +3,22 @@
 Two hierarchies can light a frame's VPLs: paper 004's one over all of them, or one per normal class on
 one grid (:func:`usdml.lighting.lgh.build_lgh_split`). At the same α the split one is the more accurate
 wherever a grid light would merge VPLs facing different ways (a ground and a wall), and it visits more
-grid lights per pixel. Measured on the suite's tuning stages (docs/gi.md), neither wins at every cost:
-at the α ten thousand VPLs afford a larger α of the one hierarchy erred as little as the split one for
-the same visits, while at a hundred thousand the split one at the largest α the budget allowed erred
-1.5-5 times less than the one hierarchy at its largest.
+grid lights per pixel.
 
-So ``--lgh-split auto`` (the default) lets the frame decide: each hierarchy gets the largest α of
-:data:`usdml.lighting.lgh_lighting.AUTO_ALPHAS` its gather affords (:func:`auto_alpha`'s visit budget,
-or the given ``--lgh-alpha``), the split one only when it fits that budget, and a pilot decides
-between the two: both hierarchies' unshadowed irradiance at :data:`PILOT_POINTS` of the frame's points
-against the VPLs' own unshadowed sum there (:func:`vpl_irradiance`, the cosine emitters brute force
-gathers, by NumPy), the smaller relative RMSE winning. Shadows are left out on both sides: they are
-drawn the same way from either hierarchy, and the hierarchy is what the two differ in.
+``--lgh-split auto`` (the default) takes the split one wherever its gather fits the visit budget
+(:data:`usdml.lighting.lgh_lighting.AUTO_VISIT_FRACTION` of the VPLs) at its smallest α, the single one
+elsewhere; the split one is built only where the single one's smallest α leaves room for it. Why not the
+one whose unshadowed light is closer, as before: on the suite's tuning stages at 100,000 VPLs the single
+hierarchy's whole-image error with its shadows was up to 2.7 times its unshadowed error (its member draws
+mix a grid light's ground and wall VPLs), the split one's 0.9-1.6 times, so an unshadowed comparison picked
+the single one where it was the worse (docs/gi.md, "Which hierarchy, and which α").
+
+The α (``--lgh-alpha`` 0, automatic) is the smallest of :data:`PILOT_ALPHAS` within the visit budget whose
+unshadowed irradiance at :data:`PILOT_POINTS` of the frame's points errs at most :data:`PILOT_TARGET`
+(relative RMSE) against the VPLs' own unshadowed sum there (:func:`vpl_irradiance`, the cosine emitters
+brute force gathers); where none does, the one within the budget that erred least. The gather's cost grows
+with α (lights visited per point) and its error falls, so this is the cheapest α the pilot finds close
+enough, instead of the largest the budget allows.
 """
 
 from __future__ import annotations
@@ -23,12 +27,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from usdml.lighting.lgh_lighting import AUTO_ALPHAS, AUTO_VISIT_FRACTION, LGHGather, alpha_within, lights_visited
+from usdml.parallel import cpu_workers, run_parallel, spans
+from usdml.lighting.lgh_lighting import AUTO_VISIT_FRACTION, LGHGather, lights_visited
 
-#: the frame's points the pilot compares the hierarchies on (seeded): on the tuning stages the error of
-#: 128 points was within a fifth of the whole image's for every hierarchy and α (docs/CHANGELOG.md); the pilot
-#: compares two hierarchies on the same points, whose errors differed 1.5-5 times where it mattered
-PILOT_POINTS = 64
+#: the frame's points the pilot measures each α on (seeded). On the tuning stages two disjoint sets of 64 points
+#: put the split hierarchy's error at 3.4 % and 8.8 % where 1,024 points put it at 9.8 % (open_1024_s0, α 1.5):
+#: 64 points could not tell 5 % from 10 %, 256 cost 0.04 s against 100,000 VPLs (kernels/lghq.c)
+PILOT_POINTS = 256
+
+#: the pilot's unshadowed relative RMSE the α is chosen for: the smallest α of :data:`PILOT_ALPHAS` within the
+#: visit budget whose pilot error is at most this. Tuned on the suite's tuning stages at 100,000 VPLs
+#: (docs/gi.md, "Which hierarchy, and which α"): the split hierarchy's whole-image error with its shadows
+#: was 0.9-1.6 times its unshadowed error, so this leaves room under paper 004's 10 % target
+PILOT_TARGET = 0.05
+
+#: the blending radius factors the pilot tries, smallest first (:data:`AUTO_ALPHAS` with the steps below 2
+#: halved: the split hierarchy's error fell from 12-16 % to 4-6 % between α 1 and 2 on the tuning stages)
+PILOT_ALPHAS = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 3.5, 4.0)
 
 #: the split hierarchy visited 1.4-2.5 times as many lights as the single one at α 1 on the tuning stages
 #: (1.2-2.5 at α 1-4): where the single one at its smallest α already visits more than the budget over this, the split
@@ -46,27 +61,47 @@ class Choice:
     split: str                  #: "none" (one hierarchy) or "normal" (one per normal class)
     alpha: float                #: the blending radius factor
     lgh: object                 #: the hierarchy (:class:`usdml.lighting.lgh.LGH`)
-    #: per candidate ("none", "normal"): {"alpha", "visits", "within_budget", "pilot_rel_rmse"} as measured
+    #: per hierarchy considered ("none", "normal"): {"alpha", "visits", "within_budget"} as chosen, and for the
+    #: one chosen with a pilot, "pilot": [{"alpha", "visits", "rel_rmse"}, ...] for each α tried
     candidates: dict = field(default_factory=dict)
 
 
 def vpl_irradiance(points: np.ndarray, normals: np.ndarray, position: np.ndarray, intensity: np.ndarray,
-                   normal: np.ndarray, clamp_distance: float, meters_per_unit: float = 1.0) -> np.ndarray:
+                   normal: np.ndarray, clamp_distance: float, meters_per_unit: float = 1.0,
+                   compiled: bool = True) -> np.ndarray:
     """``(P, 3)`` float64 unshadowed irradiance at ``points`` (P, 3) with unit ``normals`` from every VPL as the
     LGH models it (``position``, ``intensity`` = Φ/4π, ``normal``: (N, 3)): Σ 4 I max(0, cos θ_l) max(0, cos θ_s)
     / max(d², d_c²) / metersPerUnit², d and the clamp d_c in scene units.
 
-    By NumPy, block by block of VPLs, each term from products of (P, 3) and (3, B) matrices: with w = q − p,
-    d² = |q|² + |p|² − 2 p·q, d cos θ_s = q·n_p − p·n_p and d cos θ_l = p·n_q − q·n_q (coordinates taken
-    from the points' centre, in float64, so the expansion loses nothing a clamped d² would keep)."""
+    Pair by pair in double by ``kernels/lghq.c`` (``lghq_cosine_sum``, blocks of points on the thread pool)
+    where it is built and ``compiled``; else by NumPy (:func:`_numpy_irradiance`)."""
+    from usdml.lighting import lgh_native
+
+    p = np.ascontiguousarray(np.asarray(points).reshape(-1, 3), np.float32)
+    if not compiled or lgh_native.library() is None or len(p) == 0:
+        return _numpy_irradiance(points, normals, position, intensity, normal, clamp_distance, meters_per_unit)
+    n = np.ascontiguousarray(np.asarray(normals).reshape(-1, 3), np.float32)
+    lights = lgh_native.CosineLights(position, intensity, normal)
+    out = np.zeros((len(p), 3))
+    run_parallel(lambda span: lights.sum(p, n, float(clamp_distance) ** 2, *span, out),
+                 spans(len(p), 4 * cpu_workers()), cpu_workers())
+    return out / float(meters_per_unit) ** 2
+
+
+def _numpy_irradiance(points: np.ndarray, normals: np.ndarray, position: np.ndarray, intensity: np.ndarray,
+                      normal: np.ndarray, clamp_distance: float, meters_per_unit: float = 1.0) -> np.ndarray:
+    """:func:`vpl_irradiance` by NumPy, block by block of VPLs, each term from products of (P, 3) and (3, B)
+    matrices: with w = q − p, d² = |q|² + |p|² − 2 p·q, d cos θ_s = q·n_p − p·n_p and d cos θ_l = p·n_q − q·n_q
+    (coordinates taken from the points' centre, in float64, so the expansion loses nothing a clamped d² would
+    keep)."""
     centre = np.asarray(points, np.float64).reshape(-1, 3).mean(axis=0) if len(points) else np.zeros(3)
     p = np.asarray(points, np.float64).reshape(-1, 3) - centre
     n = np.asarray(normals, np.float64).reshape(-1, 3)
     pp = (p * p).sum(1)[:, None]
     pn = (p * n).sum(1)[:, None]
-    out = np.zeros((len(p), 3))
     clamp2 = float(clamp_distance) ** 2
-    for a in range(0, len(position), _BLOCK):
+
+    def block(a: int) -> np.ndarray:
         q = np.asarray(position[a:a + _BLOCK], np.float64) - centre
         nq = np.asarray(normal[a:a + _BLOCK], np.float64)
         d2 = np.maximum(pp + (q * q).sum(1)[None, :] - 2.0 * (p @ q.T), 0.0)       # (P, B)
@@ -74,57 +109,95 @@ def vpl_irradiance(points: np.ndarray, normals: np.ndarray, position: np.ndarray
         cos_l = np.maximum(p @ nq.T - (q * nq).sum(1)[None, :], 0.0)               # d cos θ_l
         g = 4.0 * cos_s * cos_l / np.maximum(d2 * np.maximum(d2, clamp2), 1e-300)
         g[d2 <= 0.0] = 0.0
-        out += g @ np.asarray(intensity[a:a + _BLOCK], np.float64)
+        return g @ np.asarray(intensity[a:a + _BLOCK], np.float64)
+
+    # the blocks on the thread pool (NumPy lets go of the GIL), summed in their order: the same sum on any
+    # number of cores
+    out = np.zeros((len(p), 3))
+    for part in run_parallel(block, range(0, len(position), _BLOCK), cpu_workers()):
+        out += part
     return out / float(meters_per_unit) ** 2
 
 
 def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: tuple, *, alpha: float = 0.0,
            split: str = "auto", s0: bool = True, clamp_distance: float, meters_per_unit: float = 1.0, seed: int = 0,
-           device: str = "cpu", fraction: float = AUTO_VISIT_FRACTION) -> Choice:
+           device: str = "cpu", fraction: float = AUTO_VISIT_FRACTION, target: float = PILOT_TARGET) -> Choice:
     """The frame's hierarchy and α (module docstring).
 
     ``one``: the single hierarchy (or None when ``split`` is "normal"); ``build_split()`` makes the split one
     (called at most once, only when needed); ``points``, ``normals`` (P, 3): the frame's shading points;
     ``sources = (positions, intensities, normals)`` the VPLs; ``alpha`` 0 = automatic (else used as given);
     ``split``: "auto", "none" or "normal"; ``s0``: the gathers start from the VPLs (S0); ``clamp_distance``
-    and ``meters_per_unit`` as the gathers'; ``seed``: the pilot's points.
+    and ``meters_per_unit`` as the gathers'; ``seed``: the pilot's points; ``fraction``: the visit budget
+    (of the VPLs); ``target``: the pilot error an automatic α is chosen for.
     """
     n_vpls = len(sources[0])
     budget = fraction * max(n_vpls, 1)
     s0_positions = sources[0] if s0 else None
-    alphas = np.asarray(AUTO_ALPHAS if alpha <= 0 else (alpha,), np.float64)
+    alphas = np.asarray(PILOT_ALPHAS if alpha <= 0 else (alpha,), np.float64)
     candidates: dict = {}
-    hierarchies: dict = {}
 
-    def candidate(name: str, lgh) -> np.ndarray:
+    def visits_of(name: str, lgh) -> np.ndarray:
         visits = lights_visited(lgh, points, alphas, s0_positions)
-        a, fits = alpha_within(visits, budget) if alpha <= 0 else (float(alpha), bool(visits[0] <= budget))
-        candidates[name] = {"alpha": a, "visits": float(visits[list(alphas).index(a)]), "within_budget": fits}
-        hierarchies[name] = lgh
+        fits = visits <= budget
+        candidates[name] = {"alpha": float(alphas[0]), "visits": float(visits[0]), "within_budget": bool(fits[0])}
         return visits
 
-    want_split = split == "normal"
+    if len(points) == 0 and split != "normal":      # a frame that sees no geometry: nothing to choose for
+        return Choice("none", float(alphas[0]), one, {"none": {"alpha": float(alphas[0]), "visits": 0.0,
+                                                               "within_budget": True}})
+    hierarchies: dict = {}                       # name -> (hierarchy, visits per α)
     if split in ("auto", "none"):
-        visits = candidate("none", one)
-        # auto: the split hierarchy only where it may fit the budget at the smallest alpha
-        want_split = split == "auto" and visits[0] * SPLIT_VISIT_FACTOR <= budget
-    if want_split:
-        candidate("normal", build_split())
-    if split != "auto":
-        c = candidates[split]
-        return Choice(split, c["alpha"], hierarchies[split], candidates)
-    if "normal" not in candidates or not candidates["normal"]["within_budget"] or len(points) == 0:
-        return Choice("none", candidates["none"]["alpha"], one, candidates)
-    # both fit: the pilot decides
+        hierarchies["none"] = (one, visits_of("none", one))
+        # auto: the split hierarchy too where it may fit (it is built only then)
+        if split == "auto" and hierarchies["none"][1][0] * SPLIT_VISIT_FACTOR <= budget:
+            split_lgh = build_split()
+            hierarchies["normal"] = (split_lgh, visits_of("normal", split_lgh))
+    else:
+        split_lgh = build_split()
+        hierarchies["normal"] = (split_lgh, visits_of("normal", split_lgh))
+    # the split one first (its shadows too are closer: module docstring), where it fits the budget at all
+    order = [n for n in ("normal", "none") if n in hierarchies and (hierarchies[n][1] <= budget).any()] \
+        or [next(iter(hierarchies))]
+    if alpha > 0 or len(points) == 0 or (len(order) == 1 and (hierarchies[order[0]][1] <= budget).sum() <= 1):
+        # α as given, or one hierarchy with one α (or none) within the budget: nothing for a pilot to decide
+        name = order[0]
+        visits = hierarchies[name][1]
+        at = int(np.argmax(visits <= budget))         # the α within the budget, or the smallest
+        c = candidates[name]
+        c.update(alpha=float(alphas[at]), visits=float(visits[at]), within_budget=bool(visits[at] <= budget))
+        return Choice(name, c["alpha"], hierarchies[name][0], candidates)
+    # the pilot: per hierarchy in order, the smallest α within the budget whose unshadowed error on the pilot
+    # points is within target; where no hierarchy has one, the (hierarchy, α) that erred least there
     rng = np.random.default_rng(seed)
     pick = np.sort(rng.choice(len(points), min(PILOT_POINTS, len(points)), replace=False))
     pts = np.ascontiguousarray(points[pick], np.float32)
     nrm = np.ascontiguousarray(normals[pick], np.float32)
-    exact = vpl_irradiance(pts, nrm, *sources, clamp_distance, meters_per_unit)
-    mean = float(exact.mean())
-    for name, c in candidates.items():
-        got = LGHGather(hierarchies[name], c["alpha"], 0, seed, meters_per_unit, clamp_distance, device,
-                        s0=sources if s0 else None)(pts, nrm).irradiance.astype(np.float64)
-        c["pilot_rel_rmse"] = float(np.sqrt(np.mean((got - exact) ** 2)) / mean) if mean > 0 else 0.0
-    best = "normal" if candidates["normal"]["pilot_rel_rmse"] < candidates["none"]["pilot_rel_rmse"] else "none"
-    return Choice(best, candidates[best]["alpha"], hierarchies[best], candidates)
+    exact = None
+    least = None
+    for name in order:
+        lgh, visits = hierarchies[name]
+        within = np.flatnonzero(visits <= budget)
+        c = candidates[name]
+        if len(within) == 0:                       # the last resort: the smallest α, over the budget
+            c.update(alpha=float(alphas[0]), visits=float(visits[0]))
+            return Choice(name, c["alpha"], lgh, candidates)
+        if exact is None:
+            exact = vpl_irradiance(pts, nrm, *sources, clamp_distance, meters_per_unit)
+            mean = float(exact.mean())
+        gather = LGHGather(lgh, float(alphas[within[0]]), 0, seed, meters_per_unit, clamp_distance, device,
+                           s0=sources if s0 else None)
+        tried = c["pilot"] = []
+        for at in within:
+            got = gather.at_alpha(float(alphas[at]))(pts, nrm).irradiance.astype(np.float64)
+            error = float(np.sqrt(np.mean((got - exact) ** 2)) / mean) if mean > 0 else 0.0
+            tried.append({"alpha": float(alphas[at]), "visits": float(visits[at]), "rel_rmse": error})
+            if least is None or error < least[2]["rel_rmse"]:
+                least = (name, lgh, tried[-1])
+            if error <= target:
+                c.update(alpha=tried[-1]["alpha"], visits=tried[-1]["visits"], pilot_rel_rmse=error)
+                return Choice(name, tried[-1]["alpha"], lgh, candidates)
+        best = min(tried, key=lambda t: t["rel_rmse"])
+        c.update(alpha=best["alpha"], visits=best["visits"], pilot_rel_rmse=best["rel_rmse"])
+    name, lgh, best = least
+    return Choice(name, best["alpha"], lgh, candidates)
