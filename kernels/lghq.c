@@ -660,8 +660,21 @@ EXPORT void lghq_guide(const double *cum, const int64_t *start, const int64_t *s
  * into 8 running sums per channel (lane k: lights k, k + 8, ...; the last few alone) added in lane order at the
  * end: the compiler vectorizes the lanes, and a point's sum is the same on any thread. */
 #define COSINE_LANES 8
-__attribute__((optimize("no-trapping-math"), always_inline)) static inline double cosine_term(const float *const *light, int64_t j, double px, double py, double pz, double nx,
-                                 double ny, double nz, double clamp_d2) {
+/* the lanes vectorize only where a division need not be guarded by a branch (GCC: no trapping math here), and
+ * run 4 doubles at a time where the CPU has AVX2 (GCC's function clones, dispatched at load; Linux on x86) */
+#if defined(__GNUC__) && !defined(__clang__)
+#define COSINE_NO_TRAP __attribute__((optimize("no-trapping-math")))
+#else
+#define COSINE_NO_TRAP
+#endif
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#define COSINE_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define COSINE_CLONES
+#endif
+COSINE_NO_TRAP __attribute__((always_inline)) static inline double cosine_term(
+    const float *const *light, int64_t j, double px, double py, double pz, double nx, double ny, double nz,
+    double clamp_d2) {
     const double wx = light[0][j] - px, wy = light[1][j] - py, wz = light[2][j] - pz;
     const double d2 = wx * wx + wy * wy + wz * wz;
     double cs = nx * wx + ny * wy + nz * wz;
@@ -673,8 +686,9 @@ __attribute__((optimize("no-trapping-math"), always_inline)) static inline doubl
     return (ok ? 4.0 * cs * cl : 0.0) / (ok ? den : 1.0);
 }
 
-__attribute__((optimize("no-trapping-math"), target_clones("avx2", "default"))) EXPORT void lghq_cosine_sum(const float *points, const float *normals, const float *const *light, int64_t n,
-                            double clamp_d2, int64_t lo, int64_t hi, double *out) {
+COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, const float *normals,
+                                                         const float *const *light, int64_t n, double clamp_d2,
+                                                         int64_t lo, int64_t hi, double *out) {
     const int64_t whole = n - n % COSINE_LANES;
     for (int64_t p = lo; p < hi; p++) {
         const double px = points[3 * p], py = points[3 * p + 1], pz = points[3 * p + 2];
