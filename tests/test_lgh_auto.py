@@ -11,9 +11,8 @@ import pytest
 from conftest import ROOT, gi_frame
 from usdml.lighting.direct import shade_direct
 from usdml.lighting.lgh import build_lgh, build_lgh_split
-from usdml.lighting.lgh_choice import choose
-from usdml.lighting.lgh_lighting import (AUTO_ALPHAS, AUTO_SHADOW_SAMPLES, auto_alpha, auto_shadow_samples,
-                                         lgh_indirect, lights_visited)
+from usdml.lighting.lgh_choice import PILOT_ALPHAS, choose
+from usdml.lighting.lgh_lighting import AUTO_SHADOW_SAMPLES, auto_shadow_samples, lgh_indirect, lights_visited
 
 
 def _planes(n, rng):
@@ -59,14 +58,20 @@ def test_lights_visited_counts_the_gathers_walk(split):
 
 
 def test_auto_alpha_grows_with_the_vpl_count():
+    """The largest alpha the visit budget leaves ``--lgh-alpha auto`` (the last the pilot may try: with a target
+    nothing meets, it tries every alpha within the budget) grows with the VPL count."""
     rng = np.random.default_rng(0)
-    points, _ = _planes(256, rng)
+    points, point_normals = _planes(256, rng)
     chosen = []
     for n in (2_000, 20_000, 200_000):
         pos, nrm = _planes(n, rng)
-        lgh = build_lgh(pos, np.ones((n, 3), np.float32), normal=nrm)
-        chosen.append(auto_alpha(lgh, points, n, pos))
-    assert chosen == sorted(chosen) and chosen[0] == AUTO_ALPHAS[0] and chosen[-1] > 2.0, chosen
+        inten = np.ones((n, 3), np.float32)
+        lgh = build_lgh(pos, inten, normal=nrm)
+        c = choose(lgh, None, points, point_normals, (pos, inten, nrm), split="none", clamp_distance=0.5 * lgh.h1,
+                   target=0.0)
+        tried = c.candidates["none"].get("pilot")
+        chosen.append(max(t["alpha"] for t in tried) if tried else c.alpha)
+    assert chosen == sorted(chosen) and chosen[0] == PILOT_ALPHAS[0] and chosen[-1] > 2.0, chosen
 
 
 def test_auto_shadow_samples_grow_with_the_vpl_count():
@@ -102,9 +107,11 @@ def test_auto_alpha_from_s0_within_bound_of_every_vpl_where_the_paper_default_is
                            start_level=start).radiance
         return np.sqrt(((got - reference) ** 2).mean()) / reference.mean()
 
-    alpha = auto_alpha(lgh, pts, len(vpls), vpls.position)
+    sources = (vpls.position, intensity, vpls.normal)
+    alpha = choose(lgh, None, pts, nrm, sources, split="none", clamp_distance=clamp,
+                   meters_per_unit=snap.meters_per_unit).alpha
     assert alpha > 1.0
-    # measured 0.088 (alpha 2 from S0) against 0.193 (alpha 1 from S1)
+    # measured 0.088 (the single hierarchy's pilot-chosen alpha 2 from S0) against 0.193 (alpha 1 from S1)
     assert error(alpha, 0) < 0.12 < error(1.0, 1)
 
 

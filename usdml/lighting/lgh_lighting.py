@@ -646,9 +646,6 @@ def filter_iterations_for(samples: int) -> int:
     return int(max(0, 3 - np.floor(np.log(max(samples, 1) / 4.0) / np.log(4.0) + 1e-9)))
 
 
-#: the alphas ``--lgh-alpha auto`` chooses from (paper 004's 1 up to 4, where the error had stopped falling)
-AUTO_ALPHAS = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
-
 #: ``--lgh-alpha auto``: the most lights a point's gather may visit, as a fraction of the VPLs (each of
 #: which brute force traces a ray to). A visit cost 24-36 ns and a brute-force ray 170-310 ns on the
 #: suite's tuning stages (CHANGELOG, issue 37), so at this fraction the gather costs about a hundredth
@@ -722,24 +719,6 @@ def _within(values: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """How many of ``values`` are at most each of the increasing ``bounds``: ``(len(bounds),)`` float64."""
     bins = np.searchsorted(bounds, values, side="left")        # the first bound each value is within
     return np.cumsum(np.bincount(bins, minlength=len(bounds) + 1)[:len(bounds)]).astype(np.float64)
-
-
-def auto_alpha(lgh, points: np.ndarray, vpl_count: int, s0_positions: np.ndarray | None = None,
-               fraction: float = AUTO_VISIT_FRACTION) -> float:
-    """``--lgh-alpha auto`` for a frame: the largest of :data:`AUTO_ALPHAS` whose gather visits at most
-    ``fraction`` of the ``vpl_count`` VPLs per point (:func:`lights_visited` on ``points``), else the
-    smallest. The hierarchy's error falls with alpha on every tuning stage of the suite, and what alpha
-    costs (lights visited) grows with the stage's VPL layout while brute force's grows with the VPL
-    count: so more VPLs, or VPLs spread over less of the grid, buy a larger alpha for the same speed-up."""
-    visits = lights_visited(lgh, points, AUTO_ALPHAS, s0_positions)
-    return alpha_within(visits, fraction * max(int(vpl_count), 1))[0]
-
-
-def alpha_within(visits: np.ndarray, budget: float) -> tuple[float, bool]:
-    """``(alpha, fits)``: the largest of :data:`AUTO_ALPHAS` whose ``visits`` (lights per point, one per alpha,
-    :func:`lights_visited`) are within ``budget``, or the smallest with ``fits`` False when none is."""
-    ok = np.nonzero(np.asarray(visits) <= budget)[0]
-    return (float(AUTO_ALPHAS[ok[-1]]), True) if len(ok) else (float(AUTO_ALPHAS[0]), False)
 
 
 def cluster_sampler(lgh, sources: tuple, shadow_targets: str, meters_per_unit: float = 1.0,
