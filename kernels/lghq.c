@@ -713,6 +713,158 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
     }
 }
 
+/* ---- every VPL its own light (--lgh-split each): the hierarchy's limit, summed exactly ---- */
+
+/* Points lo .. hi - 1 of the frame: the unshadowed irradiance of every input light as a one-sided cosine emitter
+ * (lghq_cosine_sum's model, in float), and `samples` of those lights drawn for shadow rays with probability in
+ * proportion to their luminance at the point (systematic: one uniform u per point, thresholds (s + u) / k of the
+ * total), each with its own RGB irradiance over that luminance and the luminance. The lights come as ten float32
+ * columns (x, y, z, normal x, y, z, intensity r, g, b, luminance of the intensity), n a multiple of EACH_LANES
+ * (the caller pads with lights of no intensity and no normal, which add nothing). Lane k sums lights k, k + 16, ...
+ * and `snap` keeps each lane's running luminance after every block of 16, so the sum up to a block is 16 floats
+ * added in lane order: monotone in the block, which a binary search over blocks then inverts. A point's answer
+ * is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
+#define EACH_LANES 16
+/* float terms contracted into fused multiply-adds where the compiler can (this sum is not one of those that
+ * must give Warp's bits) */
+#if defined(__GNUC__) && !defined(__clang__)
+#define EACH_FAST __attribute__((optimize("no-trapping-math", "fp-contract=fast")))
+#else
+#define EACH_FAST
+#endif
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#define EACH_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define EACH_CLONES
+#endif
+
+/* the lanes lghq_each's clone runs on this CPU: 16 (AVX-512), 8 (AVX2), 4 (the baseline's SSE), 0 where the
+ * clones are not made (another compiler or platform: whatever it vectorizes) */
+EXPORT int lghq_each_lanes(void) {
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f")) return 16;
+    if (__builtin_cpu_supports("avx2")) return 8;
+    return 4;
+#else
+    return 0;
+#endif
+}
+
+EACH_FAST __attribute__((always_inline)) static inline float each_term(
+    float qx, float qy, float qz, float mx, float my, float mz, float px, float py, float pz, float nx, float ny,
+    float nz, float clamp_d2) {
+    const float wx = qx - px, wy = qy - py, wz = qz - pz;
+    const float d2 = wx * wx + wy * wy + wz * wz;
+    float cs = nx * wx + ny * wy + nz * wz;
+    float cl = -(mx * wx + my * wy + mz * wz);
+    cs = cs > 0.0f ? cs : 0.0f;
+    cl = cl > 0.0f ? cl : 0.0f;
+    const float den = d2 * (d2 > clamp_d2 ? d2 : clamp_d2);
+    const int ok = den > 0.0f;            /* a light on the point adds nothing */
+    return (ok ? 4.0f * cs * cl : 0.0f) / (ok ? den : 1.0f);
+}
+
+static inline double each_block_sum(const float *snap, int64_t b) {
+    double s = 0.0;
+    for (int k = 0; k < EACH_LANES; k++) s += snap[b * EACH_LANES + k];
+    return s;
+}
+
+/* points taken together through the lights (each light's columns loaded once for all of them: at 100,000 lights
+ * the columns outgrow the cache, and one point at a time was bound by the loads) */
+#define EACH_POINTS 2
+
+/* point p's irradiance from its lanes' sums, and its shadow draws from its running sums `snap` */
+EACH_FAST static void each_finish(const float *const *light, int64_t n, float px, float py, float pz, float nx,
+                                  float ny, float nz, float clamp_d2, float inv_m2, int32_t samples, int32_t seed,
+                                  int64_t first, int64_t p, const float acc[3][EACH_LANES], const float *snap,
+                                  float *irradiance, int32_t *sample_light, float *sample_weight, float *sample_lum,
+                                  uint8_t *sample_ok) {
+    const int64_t blocks = n / EACH_LANES;
+    for (int c = 0; c < 3; c++) {
+        double sum = 0.0;
+        for (int k = 0; k < EACH_LANES; k++) sum += acc[c][k];
+        irradiance[3 * p + c] = (float)(sum * inv_m2);
+    }
+    const double total = blocks ? each_block_sum(snap, blocks - 1) : 0.0;
+    uint32_t rng = rand_init(seed, (int32_t)(first + p));
+    const float u = samples > 0 ? randf(&rng) : 0.0f;
+    int64_t from = 0;
+    for (int32_t s = 0; s < samples; s++) {
+        const int64_t row = p * samples + s;
+        sample_ok[row] = 0;
+        sample_light[row] = -1;
+        sample_lum[row] = 0.0f;
+        sample_weight[3 * row] = sample_weight[3 * row + 1] = sample_weight[3 * row + 2] = 0.0f;
+        if (!(total > 0.0)) continue;
+        const double t = ((double)s + (double)u) / (double)samples * total;
+        int64_t a = from, z = blocks - 1;           /* the first block whose running sum exceeds t */
+        while (a < z) {
+            const int64_t m = a + (z - a) / 2;
+            if (each_block_sum(snap, m) > t) z = m; else a = m + 1;
+        }
+        from = a;
+        double run = a > 0 ? each_block_sum(snap, a - 1) : 0.0;
+        int chosen = -1, last = -1;
+        for (int k = 0; k < EACH_LANES; k++) {
+            const float v = snap[a * EACH_LANES + k] - (a > 0 ? snap[(a - 1) * EACH_LANES + k] : 0.0f);
+            if (!(v > 0.0f)) continue;
+            last = k;
+            run += v;
+            if (run > t) { chosen = k; break; }
+        }
+        if (chosen < 0) chosen = last;              /* rounding: the block's last light that adds */
+        if (chosen < 0) continue;
+        const int64_t j = a * EACH_LANES + chosen;
+        const float g = each_term(light[0][j], light[1][j], light[2][j], light[3][j], light[4][j], light[5][j], px, py,
+                                  pz, nx, ny, nz, clamp_d2) * inv_m2;
+        const float f = g * light[9][j];
+        if (!(f > 0.0f)) continue;
+        sample_ok[row] = 1;
+        sample_light[row] = (int32_t)j;
+        sample_lum[row] = f;
+        for (int c = 0; c < 3; c++) sample_weight[3 * row + c] = g * light[6 + c][j] / f;
+    }
+}
+
+EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *normals, const float *const *light,
+                                            int64_t n, float clamp_d2, float inv_m2, int32_t samples, int32_t seed,
+                                            int64_t first, int64_t lo, int64_t hi, float *irradiance,
+                                            int32_t *sample_light, float *sample_weight, float *sample_lum,
+                                            uint8_t *sample_ok) {
+    if (n % EACH_LANES) return 0;
+    float *snap = (float *)malloc((size_t)(n > 0 ? n : 1) * EACH_POINTS * sizeof(float));
+    if (!snap) return 0;
+    for (int64_t p0 = lo; p0 < hi; p0 += EACH_POINTS) {
+        float px[EACH_POINTS], py[EACH_POINTS], pz[EACH_POINTS], nx[EACH_POINTS], ny[EACH_POINTS], nz[EACH_POINTS];
+        for (int i = 0; i < EACH_POINTS; i++) {     /* past hi: the last point again, not written */
+            const int64_t p = p0 + i < hi ? p0 + i : hi - 1;
+            px[i] = points[3 * p], py[i] = points[3 * p + 1], pz[i] = points[3 * p + 2];
+            nx[i] = normals[3 * p], ny[i] = normals[3 * p + 1], nz[i] = normals[3 * p + 2];
+        }
+        float acc[EACH_POINTS][4][EACH_LANES] = {{{0}}};
+        for (int64_t j = 0; j < n; j += EACH_LANES)
+            for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for every point but the first */
+                for (int k = 0; k < EACH_LANES; k++) {
+                    const float g = each_term(light[0][j + k], light[1][j + k], light[2][j + k], light[3][j + k],
+                                              light[4][j + k], light[5][j + k], px[i], py[i], pz[i], nx[i], ny[i],
+                                              nz[i], clamp_d2);
+                    acc[i][0][k] += g * light[6][j + k];
+                    acc[i][1][k] += g * light[7][j + k];
+                    acc[i][2][k] += g * light[8][j + k];
+                    acc[i][3][k] += g * light[9][j + k];
+                    snap[i * n + j + k] = acc[i][3][k];
+                }
+        for (int i = 0; i < EACH_POINTS && p0 + i < hi; i++)
+            each_finish(light, n, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2, inv_m2, samples, seed, first,
+                        p0 + i, (const float(*)[EACH_LANES])acc[i], snap + i * n, irradiance, sample_light,
+                        sample_weight, sample_lum, sample_ok);
+    }
+    free(snap);
+    return 1;
+}
+
 /* an importable module, so that setuptools builds it as an extension; the functions are called by ctypes */
 static struct PyModuleDef lghq_module = {PyModuleDef_HEAD_INIT, "_lghq", "LGH gather and shadow targets (ctypes)", -1, NULL};
 PyMODINIT_FUNC PyInit__lghq(void) { return PyModule_Create(&lghq_module); }

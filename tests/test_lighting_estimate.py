@@ -25,7 +25,9 @@ from usdml.scene import LightType
 from usdml.stage import StageDelegate
 from vpl_scenes import backend_for, box, mesh, snapshot
 
-GI = dict(gi="lgh", vpl_count=5000)
+#: the paper's single hierarchy, whose error on cornell (15 %) the interval resolves; every VPL its own light (the
+#: default at this VPL count) errs about 5 %, near what 160 draws a pixel resolve (its own case below)
+GI = dict(gi="lgh", vpl_count=5000, lgh_split="none")
 
 
 def frame(path, width, **settings):
@@ -126,14 +128,15 @@ def lamp_path(new_stage):
     return lamp_stage(new_stage, lamps(2000))
 
 
-@pytest.mark.parametrize("case", ["gi cornell", "direct lamps"])
+@pytest.mark.parametrize("case", ["gi cornell", "gi cornell each", "direct lamps"])
 def test_interval_holds_the_error_measured_over_every_pixel(case, lamp_path):
     """The frame's 95 % interval holds the relative RMSE of its AOV against a brute-force frame of the same
     VPLs or lights (every pixel, every pass; measured 13.2 % on cornell's indirect, 2.1 % on the lamps' direct:
-    within the interval for 58 and 60 of 60 estimate seeds)."""
-    if case == "gi cornell":
-        path, width, aov, kind, test, reference = STAGES / "cornell.usda", 32, "indirect", "gi", GI, \
-            dict(GI, gi="vpl-bruteforce")
+    within the interval for 58 and 60 of 60 estimate seeds). With every VPL its own light (measured 5.3 %,
+    estimated 3.4 % [0, 10.1]) the interval holds it and reaches 0: it still bounds the error from above."""
+    if case.startswith("gi cornell"):
+        test = dict(GI, lgh_split="each") if case.endswith("each") else GI
+        path, width, aov, kind, reference = STAGES / "cornell.usda", 32, "indirect", "gi", dict(GI, gi="vpl-bruteforce")
     else:
         path, width, aov, kind, test, reference = lamp_path, 32, "direct", "direct", dict(direct="lgh"), \
             dict(direct="all")
@@ -142,7 +145,10 @@ def test_interval_holds_the_error_measured_over_every_pixel(case, lamp_path):
     e = getattr(got.stats, f"estimate_{kind}")
     assert e["rel_rmse_lo"] <= want <= e["rel_rmse_hi"], (want, e)
     assert e["rel_rmse_lo"] <= e["rel_rmse"] <= e["rel_rmse_hi"] and e["rel_bias_lo"] <= e["rel_bias"] <= e["rel_bias_hi"]
-    assert 0 < e["rel_rmse_lo"] and e["rel_rmse_hi"] < 2 * want        # an interval that says something
+    if case.endswith("each"):
+        assert e["rel_rmse_hi"] < 2.5 * want       # an upper bound that says something
+    else:
+        assert 0 < e["rel_rmse_lo"] and e["rel_rmse_hi"] < 2 * want        # an interval that says something
     assert e["pixels"] == 192 and e["rays"] > 0 and e["seconds"] > 0
     assert getattr(got.stats, f"estimate_{'direct' if kind == 'gi' else 'gi'}") is None
 

@@ -480,7 +480,9 @@ def lgh_split_rows(data: dict) -> list[str]:
             if r is None:
                 row += ["–", "–"] + (["–", "–", "–"] if asked == "auto" else [])
                 continue
-            row += [f"{_pct3(r['rel_rmse'])} (α {r['settings']['lgh_alpha']:g})", f"{r['speedup']:.1f}×"]
+            alpha = r["settings"]["lgh_alpha"]       # None: every VPL its own light (no α)
+            row += [f"{_pct3(r['rel_rmse'])} ({'every VPL' if alpha is None else f'α {alpha:g}'})",
+                    f"{r['speedup']:.1f}×"]
             if asked == "auto":
                 met = r["rel_rmse"] <= err and r["speedup"] >= speed
                 est = "–" if r["estimated_rel_rmse"] is None else \

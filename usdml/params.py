@@ -377,9 +377,10 @@ _SETTINGS = (
           **_LIT, choices=(0, 1), label="LGH start level", applies=_GI_LGH,
           source="paper 004 starts from S1 (Sec. 4.1); S0 measured better on every tuning stage (docs/gi.md)"),
     Param("lgh_split", str, "auto", "one LGH over all VPLs (none, the paper), one per VPL normal class on one grid "
-          "(normal: a coarse grid light never merges VPLs facing different ways), or auto: per frame, the split one "
-          "where it fits the gather's visit budget, the single one elsewhere",
-          **_LIT, choices=("auto", "none", "normal"), label="LGH split", applies=_GI_LGH,
+          "(normal: a coarse grid light never merges VPLs facing different ways), every VPL its own light (each: "
+          "the hierarchy's limit, summed exactly), or auto: per frame, the cheapest of these whose pilot is "
+          "within target (each where no hierarchy's alpha costs less)",
+          **_LIT, choices=("auto", "none", "normal", "each"), label="LGH split", applies=_GI_LGH,
           source="paper 004 builds one; auto measured on the suite's tuning stages (docs/gi.md)"),
     Param("gi_svo_skip", float, 0.5, "--gi svo: pairs whose light is below this fraction of the pixel's mean cast "
           "no shadow ray and count as seen as much as the pixel's traced light (0 = trace every pair with G > 0)",
@@ -550,16 +551,20 @@ _DOCS = {
     "lgh_levels": """Lighting grid hierarchy levels; 0 picks the largest count whose finest level S1 has under half as many lights as there are VPLs (paper 004).
 
     Any positive value forces that number of levels.""",
-    "lgh_split": """One lighting grid hierarchy over all the VPLs (none, paper 004), one per VPL normal class on one grid (normal), or a choice per frame (auto).
+    "lgh_split": """One lighting grid hierarchy over all the VPLs (none, paper 004), one per VPL normal class on one grid (normal), every VPL its own light (each), or a choice per frame (auto).
 
     A coarse grid light over a ground and a wall merges VPLs facing up
     and sideways into one centre and one mean normal, which lights the
     ground from too low and too weakly. With normal, the VPLs facing
     along each of +-x, +-y and +-z get a hierarchy of their own on one
     grid, and the gather visits each: more accurate at the same alpha,
-    and more lights to visit. auto (the default) takes the split one
-    wherever its gather fits the visit budget at alpha 1, the single one
-    elsewhere (docs/gi.md).""",
+    and more lights to visit. With each, no grid lights: every point sums
+    every VPL (the hierarchy's limit, with no error of its own) and draws
+    its shadow rays among them in proportion to their light; a VPL's term
+    costs about 1.5 % of a visited grid light's. auto (the
+    default) takes, per frame, the cheapest alpha of the split one (then
+    the single one) that a pilot finds within 5 % of every VPL's sum, and
+    each where none costs less than it (on a CPU, from S0; docs/gi.md).""",
     "lgh_start_level": """Finest lighting grid hierarchy level lit from: 1 starts from S1 as paper 004 does (Sec. 4.1), 0 adds the VPLs themselves as level S0.
 
     S0 makes the near field exact (each pixel visits the VPLs within
@@ -578,12 +583,15 @@ _DOCS = {
     Shadow rays are importance-sampled from the lights that contribute to
     the pixel and filtered before being used as shadow ratio estimators.
     0 (automatic): 4, 16 or 64, the most within one ray per 1,000 VPLs, so
-    that they stay a small part of what brute force costs (docs/gi.md).""",
+    that they stay a small part of what brute force costs; with every VPL
+    its own light (--lgh-split each), one ray per 4,000 VPLs, as its draws
+    follow each VPL's own light (docs/gi.md).""",
     "shadow_filter_iterations": """Iterations of the edge-avoiding a-trous filter applied to the stochastic shadows before they are used as shadow ratio estimators (paper 004, Sec. 3.3); 0 leaves them unfiltered, -1 picks by the shadow samples.
 
     Each iteration doubles the filter's reach (3 iterations: +-14 pixels).
     -1: 3 iterations at 4 samples per pixel, one fewer for every 4x more
-    samples, none from 256 (the best measured on cornell and city).""",
+    samples, none from 256 (the best measured on cornell and city); one
+    fewer again with every VPL its own light (--lgh-split each).""",
     "shadow_targets": """Where an LGH shadow ray goes and how it counts: member (a VPL of the chosen grid light, drawn by luminance, the sample weighed by that VPL's own irradiance at the pixel), cluster (the same VPL, weighed by the grid light's irradiance) or jitter (the grid light's centre jittered by its stored variance, as paper 004 does).
 
     Grid-light centres average surface points and often lie inside

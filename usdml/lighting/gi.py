@@ -22,7 +22,8 @@ import numpy as np
 from usdml.lighting.direct import shade_direct
 from usdml.lighting.lgh import build_lgh, build_lgh_split, s1_spacing
 from usdml.lighting.lgh_choice import choose as choose_hierarchy
-from usdml.lighting.lgh_lighting import auto_shadow_samples, cluster_sampler, lgh_indirect
+from usdml.lighting.lgh_lighting import (AUTO_VPLS_PER_RAY, EACH_VPLS_PER_RAY, auto_shadow_samples, cluster_sampler,
+                                         lgh_indirect)
 from usdml.lighting.vpl import generate_vpls
 from usdml.scene import Lights, Snapshot
 from usdml.settings import UsdmlSettings
@@ -172,13 +173,18 @@ def _gather_lgh(field: VPLField, snap: Snapshot, occluded, points, normals, albe
         choice = choose_hierarchy(
             field.lgh if settings.lgh_split != "normal" else None, field.split_lgh, points, normals, sources,
             alpha=settings.lgh_alpha, split=settings.lgh_split, s0=s0, clamp_distance=field.clamp,
-            meters_per_unit=snap.meters_per_unit, seed=settings.seed, device=device)
-        sampler = cluster_sampler(choice.lgh, sources, settings.shadow_targets, snap.meters_per_unit, field.clamp,
-                                  settings.lgh_cpu_kernel)
+            meters_per_unit=snap.meters_per_unit, seed=settings.seed, device=device,
+            # every VPL its own light, where it is cheaper: compiled on a CPU, from S0, with shadow rays to the VPLs
+            each=(device == "cpu" and s0 and settings.interleave == 1 and settings.lgh_cpu_kernel != "warp"
+                  and settings.shadow_targets in ("member", "cluster")))
+        sampler = None if choice.split == "each" else cluster_sampler(
+            choice.lgh, sources, settings.shadow_targets, snap.meters_per_unit, field.clamp, settings.lgh_cpu_kernel)
         field.frame_choices = {"key": key, "alpha": choice.alpha, "sampler": sampler, "lgh": choice.lgh,
                                "split": choice.split, "candidates": choice.candidates}
     choices_s = _time.perf_counter() - t0
-    samples = settings.shadow_samples if settings.shadow_samples > 0 else auto_shadow_samples(len(field.vpls))
+    each = field.frame_choices["split"] == "each"
+    samples = settings.shadow_samples if settings.shadow_samples > 0 else \
+        auto_shadow_samples(len(field.vpls), EACH_VPLS_PER_RAY if each else AUTO_VPLS_PER_RAY)
     r = lgh_indirect(points, normals, albedo, field.frame_choices["lgh"], occluded, alpha=field.frame_choices["alpha"],
                      samples=samples, seed=settings.seed,
                      meters_per_unit=snap.meters_per_unit, clamp_distance=field.clamp, image=image,
@@ -188,7 +194,8 @@ def _gather_lgh(field: VPLField, snap: Snapshot, occluded, points, normals, albe
                      sampler=field.frame_choices["sampler"], cpu_kernel=settings.lgh_cpu_kernel,
                      gathers=field.frame_choices.setdefault("gathers", {}))
     r.stats["choice_seconds"] = choices_s
-    r.stats["lgh_alpha"] = field.frame_choices["alpha"]
+    # each: every VPL, no α (null in JSON)
+    r.stats["lgh_alpha"] = None if each else field.frame_choices["alpha"]
     r.stats["lgh_split"] = field.frame_choices["split"]
     r.stats["lgh_split_candidates"] = field.frame_choices["candidates"]
     r.stats["shadow_samples"] = samples

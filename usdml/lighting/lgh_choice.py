@@ -20,6 +20,11 @@ the suite's tuning stages at 100,000 VPLs the single hierarchy's whole-image err
 to 2.85 times its unshadowed error (its member draws mix a grid light's ground and wall VPLs), the split
 one's 0.9-1.5 times at α up to 2.5, so an unshadowed comparison picked the single one where it was the
 worse (docs/gi.md, "Which hierarchy, and which α").
+
+The hierarchies' limit, every VPL its own light (``--lgh-split each``, :mod:`usdml.lighting.lgh_each`), has no
+error of its own and costs :func:`each_visit_cost` of a visit per VPL. Where ``choose`` may take it (``each``:
+an automatic α and split, a CPU, S0), the visit budget becomes that cost where it is less, and the limit is taken
+wherever no hierarchy has an α within the budget and the pilot's target (no pilot where none fits).
 """
 
 from __future__ import annotations
@@ -52,6 +57,22 @@ PILOT_ALPHAS = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 3.5, 4.0)
 #: one cannot fit it and is not built
 SPLIT_VISIT_FACTOR = 1.4
 
+#: what a point's exact sum over every VPL (``--lgh-split each``, :mod:`usdml.lighting.lgh_each`) costs, in visits of
+#: the compiled gather per VPL, by the lanes ``lghq_each`` runs on (:func:`usdml.lighting.lgh_native.each_lanes`;
+#: the gather's own are AVX2's on both): a VPL's term against a light visited by ``lghq_gather`` (24-36 ns), on the
+#: same 2-core CPU (docs/CHANGELOG.md, "Every VPL its own light"): 0.27-0.39 ns with AVX-512; 1.6-1.7 times that
+#: with AVX2 and 3.2 times with SSE (one thread, 100,000 lights); 0: a platform without the clones, taken as AVX2
+EACH_VISIT_COSTS = {16: 0.015, 8: 0.025, 4: 0.05, 0: 0.025}
+
+
+def each_visit_cost() -> float:
+    """:data:`EACH_VISIT_COSTS` for this CPU (inf where nothing was compiled: the NumPy sum is no cheaper way)."""
+    from usdml.lighting import lgh_native
+
+    if lgh_native.library() is None:
+        return float("inf")
+    return EACH_VISIT_COSTS.get(lgh_native.each_lanes(), EACH_VISIT_COSTS[0])
+
 #: VPLs per block of :func:`vpl_irradiance` (its arrays are points x this)
 _BLOCK = 8192
 
@@ -60,9 +81,9 @@ _BLOCK = 8192
 class Choice:
     """What a frame's ``--gi lgh`` lights with."""
 
-    split: str                  #: "none" (one hierarchy) or "normal" (one per normal class)
-    alpha: float                #: the blending radius factor
-    lgh: object                 #: the hierarchy (:class:`usdml.lighting.lgh.LGH`)
+    split: str                  #: "none" (one hierarchy), "normal" (one per normal class) or "each" (every VPL)
+    alpha: float                #: the blending radius factor (inf for "each")
+    lgh: object                 #: the hierarchy (:class:`usdml.lighting.lgh.LGH`; "each": :class:`EachVPL`)
     #: per hierarchy considered ("none", "normal"): {"alpha", "visits", "within_budget"} as chosen, and for the
     #: one chosen with a pilot, "pilot": [{"alpha", "visits", "rel_rmse"}, ...] for each α tried
     candidates: dict = field(default_factory=dict)
@@ -123,7 +144,8 @@ def _numpy_irradiance(points: np.ndarray, normals: np.ndarray, position: np.ndar
 
 def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: tuple, *, alpha: float = 0.0,
            split: str = "auto", s0: bool = True, clamp_distance: float, meters_per_unit: float = 1.0, seed: int = 0,
-           device: str = "cpu", fraction: float = AUTO_VISIT_FRACTION, target: float = PILOT_TARGET) -> Choice:
+           device: str = "cpu", fraction: float = AUTO_VISIT_FRACTION, target: float = PILOT_TARGET,
+           each: bool = False, each_cost: float | None = None) -> Choice:
     """The frame's hierarchy and α (module docstring).
 
     ``one``: the single hierarchy (or None when ``split`` is "normal"); ``build_split()`` makes the split one
@@ -131,13 +153,32 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
     ``sources = (positions, intensities, normals)`` the VPLs; ``alpha`` 0 = automatic (else used as given);
     ``split``: "auto", "none" or "normal"; ``s0``: the gathers start from the VPLs (S0); ``clamp_distance``
     and ``meters_per_unit`` as the gathers'; ``seed``: the pilot's points; ``fraction``: the visit budget
-    (of the VPLs); ``target``: the pilot error an automatic α is chosen for.
+    (of the VPLs); ``target``: the pilot error an automatic α is chosen for; ``each``: the hierarchies' limit,
+    every VPL its own light (:mod:`usdml.lighting.lgh_each`), may be chosen (``split`` "auto" with an automatic
+    α), wherever no hierarchy has an α within target that costs less (``each_cost`` visits per VPL, default
+    :func:`each_visit_cost`); ``split`` "each" takes it whatever the rest.
     """
+    from usdml.lighting.lgh_each import EachVPL
+
     n_vpls = len(sources[0])
     budget = fraction * max(n_vpls, 1)
     s0_positions = sources[0] if s0 else None
     alphas = np.asarray(PILOT_ALPHAS if alpha <= 0 else (alpha,), np.float64)
     candidates: dict = {}
+    each = split == "each" or (each and split == "auto" and alpha <= 0)
+    each_visits = (each_visit_cost() if each_cost is None else each_cost) * n_vpls   # in the gather's visits a point
+    if each:
+        candidates["each"] = {"alpha": None, "visits": float(each_visits) if np.isfinite(each_visits) else None,
+                              "within_budget": bool(each_visits <= budget)}
+
+    def limit() -> Choice:
+        return Choice("each", float("inf"), EachVPL(sources), candidates)
+
+    if split == "each":
+        return limit()
+    if each and each_visits <= budget:
+        # the budget now: what the exact sum costs, where that is less (a hierarchy's α must cost less to be chosen)
+        budget = min(budget, each_visits)
 
     def visits_of(name: str, lgh) -> np.ndarray:
         visits = lights_visited(lgh, points, alphas, s0_positions)
@@ -161,7 +202,10 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
     # the split one first (its shadows too are closer: module docstring), where it fits the budget at all
     order = [n for n in ("normal", "none") if n in hierarchies and (hierarchies[n][1] <= budget).any()] \
         or [next(iter(hierarchies))]
-    if alpha > 0 or len(points) == 0 or (len(order) == 1 and (hierarchies[order[0]][1] <= budget).sum() <= 1):
+    if each and len(points) and not (hierarchies[order[0]][1] <= budget).any():
+        return limit()          # no α of any hierarchy costs less than every VPL
+    if alpha > 0 or len(points) == 0 or (not each and len(order) == 1
+                                         and (hierarchies[order[0]][1] <= budget).sum() <= 1):
         # α as given, or one hierarchy with one α (or none) within the budget: nothing for a pilot to decide
         name = order[0]
         visits = hierarchies[name][1]
@@ -201,5 +245,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
                 return Choice(name, tried[-1]["alpha"], lgh, candidates)
         best = min(tried, key=lambda t: t["rel_rmse"])
         c.update(alpha=best["alpha"], visits=best["visits"], pilot_rel_rmse=best["rel_rmse"])
+    if each:
+        return limit()          # no hierarchy within target at less than every VPL's cost
     name, lgh, best = least
     return Choice(name, best["alpha"], lgh, candidates)

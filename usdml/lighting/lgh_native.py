@@ -22,7 +22,7 @@ import numpy as np
 
 from usdml.native import Extension
 
-__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "guide"]
+__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "EachLights", "EACH_LANES", "each_lanes", "guide"]
 
 _P = ctypes.c_void_p
 _i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
@@ -62,6 +62,8 @@ EXTENSION = Extension("_lghq", {
     "lghq_sums": (None, [_P, _P, _i64, _i64, _i64, _P, _P]),
     "lghq_guide": (None, [_P, _P, _P, _i64, _P]),
     "lghq_cosine_sum": (None, [_P, _P, _P, _i64, ctypes.c_double, _i64, _i64, _P]),
+    "lghq_each_lanes": (ctypes.c_int, []),
+    "lghq_each": (ctypes.c_int, [_P, _P, _P, _i64, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P, _P, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
 
@@ -216,6 +218,45 @@ class CosineLights:
         += every light's unshadowed irradiance, in scene units (no metersPerUnit)."""
         library().lghq_cosine_sum(points.ctypes.data, normals.ctypes.data, self._pointers, self.n, float(clamp_d2),
                                   int(lo), int(hi), out.ctypes.data)
+
+
+#: ``lghq_each`` takes its lights in blocks of this many (:class:`EachLights` pads with lights that add nothing)
+EACH_LANES = 16
+
+
+def each_lanes() -> int:
+    """The lanes ``lghq_each`` runs on this CPU: 16 (AVX-512), 8 (AVX2), 4 (SSE), 0 where unknown (no function
+    clones on this platform) or where nothing was compiled."""
+    lib = library()
+    return 0 if lib is None else int(lib.lghq_each_lanes())
+
+
+class EachLights:
+    """``lghq_each``'s lights: N one-sided cosine emitters (positions, normals, intensities Φ/4π) as ten float32
+    columns, the tenth each intensity's luminance, padded to a multiple of :data:`EACH_LANES` with lights of no
+    intensity and no normal."""
+
+    def __init__(self, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray):
+        self.n = len(positions)
+        padded = -(-self.n // EACH_LANES) * EACH_LANES
+        self._columns = np.zeros((10, padded), np.float32)
+        for i, a in enumerate((positions, normals, intensity)):
+            self._columns[3 * i:3 * i + 3, :self.n] = np.asarray(a, np.float32).reshape(-1, 3).T
+        lum = np.array([0.2126, 0.7152, 0.0722], np.float32)   # lghq.c's LUMA0..2
+        self._columns[9, :self.n] = np.maximum(lum @ self._columns[6:9, :self.n], 0.0)
+        self._columns[:3, self.n:] = self._columns[:3, :1] if self.n else 0.0
+        self._pointers = (ctypes.c_void_p * 10)(*(self._columns[i].ctypes.data for i in range(10)))
+        self.padded = padded
+
+    def gather(self, points: np.ndarray, normals: np.ndarray, clamp_d2: float, inv_m2: float, samples: int, seed: int,
+               first: int, lo: int, hi: int, out: tuple) -> None:
+        """Points ``lo .. hi - 1`` (``points``, ``normals``: (P, 3) float32, C-contiguous; point p's random stream
+        ``first + p``): ``out = (irradiance (P, 3) f32, light (P, k) int32, weight (P, k, 3) f32, lum (P, k) f32,
+        ok (P, k) uint8)`` written for those rows (``lghq_each``)."""
+        if not library().lghq_each(points.ctypes.data, normals.ctypes.data, self._pointers, self.padded,
+                                   float(clamp_d2), float(inv_m2), int(samples), int(seed), int(first), int(lo),
+                                   int(hi), *(a.ctypes.data for a in out)):
+            raise MemoryError("lghq_each: no memory for a point's running sums")
 
 
 def guide(cum: np.ndarray, start: np.ndarray, stop: np.ndarray, rows: int) -> np.ndarray:

@@ -1,0 +1,149 @@
+"""Every VPL its own light (``--lgh-split each``): the lighting grid hierarchy's limit, summed exactly.
+
+Paper 004's hierarchy stands a grid light in for the VPLs near each vertex so that a point visits a few
+hundred lights instead of all of them. From S0 with α growing, a point visits more of the VPLs themselves; at
+the limit it visits every one, and the hierarchy's own error is gone. A point's visit through the compiled gather
+costs 24-36 ns (a grid light's blend, lobe and a streaming draw for each of the k shadow samples), while a
+VPL's term in a plain sum over all of them costs about 0.3-0.4 ns on two cores (``kernels/lghq.c``,
+``lghq_each``: sixteen lights at a time, float): so where the pilot finds no α within target at fewer visits than
+about 1.5 % of the VPLs with AVX-512, 2.5 % with AVX2 (:data:`usdml.lighting.lgh_choice.EACH_VISIT_COSTS`), the
+limit itself is the cheaper way
+there (:mod:`usdml.lighting.lgh_choice`). The hierarchy's cost does not grow with the VPL count, the sum's does.
+
+What a point gets, as :class:`usdml.lighting.lgh_lighting.LGHShading`: the unshadowed irradiance of every VPL
+(the cosine emitters brute force gathers, with its clamp), and k shadow samples drawn among the VPLs with
+probability in proportion to their luminance at the point (systematic sampling: one uniform per point), each
+with its RGB irradiance over its luminance. :func:`usdml.lighting.lgh_lighting.shadow_fraction`'s
+``F · mean(V · e / f)`` over them is then an unbiased estimate of brute force's shadowed sum, and the frame's
+à-trous filter and shadow ratio do the rest as for a hierarchy. Shadow rays go to the VPLs themselves, as
+brute force's do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from usdml.lighting.lgh_lighting import LUMA, LGHShading
+from usdml.parallel import cpu_workers, run_parallel, spans
+
+#: lights a NumPy block holds at once, times its points (the fallback's memory: about 40 bytes each)
+_PAIRS = 1 << 21
+
+
+class EachVPL:
+    """The VPLs as a hierarchy of one level of themselves: what :func:`usdml.lighting.lgh_lighting.lgh_indirect`
+    gathers from in place of a hierarchy (``sources = (positions, intensity Φ/4π, normals)``)."""
+
+    each = True
+    levels: tuple = ()
+
+    def __init__(self, sources: tuple):
+        self.position = np.asarray(sources[0], np.float64).reshape(-1, 3)
+        self.intensity = np.asarray(sources[1], np.float32).reshape(-1, 3)
+        self.normal = np.asarray(sources[2], np.float32).reshape(-1, 3)
+
+    def __len__(self) -> int:
+        return len(self.position)
+
+    def gather(self, samples: int, seed: int, meters_per_unit: float, clamp_distance: float,
+               compiled: bool = True) -> "EachGather":
+        return EachGather(self, samples, seed, meters_per_unit, clamp_distance, compiled)
+
+
+class EachGather:
+    """``gather(points, normals, tile=None, first=0) -> LGHShading`` over every VPL of an :class:`EachVPL`
+    (the interface of :class:`usdml.lighting.lgh_lighting.LGHGather`; ``tile`` is not used: every point sums
+    every VPL). Compiled (``lghq_each``) where the extension is built and ``compiled``, else NumPy with the
+    same random numbers (the same draws but where float rounding puts a threshold on the other side of a
+    light)."""
+
+    def __init__(self, vpls: EachVPL, samples: int, seed: int, meters_per_unit: float, clamp_distance: float,
+                 compiled: bool = True):
+        from usdml.lighting import lgh_native
+
+        self.vpls = vpls
+        self.k = max(int(samples), 0)
+        self.seed = int(seed)
+        self.inv_m2 = 1.0 / float(meters_per_unit) ** 2
+        self.clamp_d2 = float(clamp_distance) ** 2
+        self.lights = (lgh_native.EachLights(vpls.position, vpls.intensity, vpls.normal)
+                       if compiled and lgh_native.library() is not None else None)
+
+    def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
+                 first: int = 0) -> LGHShading:
+        p = np.ascontiguousarray(np.asarray(points).reshape(-1, 3), np.float32)
+        nrm = np.ascontiguousarray(np.asarray(normals).reshape(-1, 3), np.float32)
+        n, k = len(p), self.k
+        out = (np.zeros((n, 3), np.float32), np.full((n, k), -1, np.int32), np.zeros((n, k, 3), np.float32),
+               np.zeros((n, k), np.float32), np.zeros((n, k), np.uint8))
+        if n and len(self.vpls):
+            if self.lights is not None:
+                run_parallel(lambda span: self.lights.gather(p, nrm, self.clamp_d2, self.inv_m2, k, self.seed,
+                                                             first, *span, out),
+                             spans(n, 4 * cpu_workers()), cpu_workers())
+            else:
+                self._numpy(p, nrm, first, out)
+        irradiance, light, weight, lum, ok = out
+        ok = ok.astype(bool)
+        pos = np.zeros((n, k, 3), np.float32)
+        if k and ok.any():
+            pos[ok] = self.vpls.position[light[ok]]
+        return LGHShading(irradiance, pos, ok, light.astype(np.int64), weight, None,
+                          np.full(n, float(len(self.vpls)), np.float32), lum,
+                          np.ones(len(self.vpls), np.float32))
+
+    def _numpy(self, p: np.ndarray, nrm: np.ndarray, first: int, out: tuple) -> None:
+        """:meth:`__call__`'s sums and draws by NumPy, block by block of points, in float64."""
+        irradiance, light, weight, lum, ok = out
+        q = self.vpls.position
+        nq = self.vpls.normal.astype(np.float64)
+        inten = self.vpls.intensity.astype(np.float64)
+        luma = np.maximum(inten @ LUMA, 0.0)
+        k = self.k
+        u = uniform(self.seed, first + np.arange(len(p), dtype=np.int64)) if k else None
+        step = max(1, _PAIRS // max(len(q), 1))
+        for lo in range(0, len(p), step):
+            hi = min(len(p), lo + step)
+            w = q[None, :, :] - p[lo:hi, None, :].astype(np.float64)           # (B, V, 3)
+            d2 = (w * w).sum(-1)
+            cs = np.maximum(np.einsum("bvc,bc->bv", w, nrm[lo:hi].astype(np.float64)), 0.0)
+            cl = np.maximum(-np.einsum("bvc,vc->bv", w, nq), 0.0)
+            den = d2 * np.maximum(d2, self.clamp_d2)
+            g = np.where(den > 0, 4.0 * cs * cl / np.where(den > 0, den, 1.0), 0.0) * self.inv_m2
+            irradiance[lo:hi] = g @ inten
+            if not k:
+                continue
+            f = g * luma[None, :]
+            cum = np.cumsum(f, axis=1)
+            for b in range(hi - lo):
+                total = cum[b, -1]
+                if not total > 0:
+                    continue
+                t = (np.arange(k) + u[lo + b]) / k * total
+                j = np.minimum(np.searchsorted(cum[b], t, side="right"), len(q) - 1)
+                fj = f[b, j]
+                good = fj > 0
+                row = lo + b
+                ok[row] = good
+                light[row] = np.where(good, j, -1)
+                lum[row] = np.where(good, fj, 0.0)
+                weight[row] = np.where(good[:, None], g[b, j][:, None] * inten[j] / np.where(good, fj, 1.0)[:, None],
+                                       0.0)
+
+
+def _pcg(state: np.ndarray) -> np.ndarray:
+    """Warp's PCG hash on uint32 (``kernels/lghq.c``'s ``pcg``), element-wise."""
+    with np.errstate(over="ignore"):
+        b = state * np.uint32(747796405) + np.uint32(2891336453)
+        c = ((b >> ((b >> np.uint32(28)) + np.uint32(4))) ^ b) * np.uint32(277803737)
+    return (c >> np.uint32(22)) ^ c
+
+
+def uniform(seed: int, offsets: np.ndarray) -> np.ndarray:
+    """The first uniform of each stream ``rand_init(seed, offset)`` as ``lghq.c`` draws it (float64 of the same
+    float32 value)."""
+    off = np.asarray(offsets).astype(np.int64).astype(np.int32).view(np.uint32)
+    with np.errstate(over="ignore"):
+        state = _pcg(np.uint32(seed & 0xFFFFFFFF) + _pcg(off))
+    state = _pcg(state)
+    return ((state >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / 16777216.0)).astype(np.float64)
