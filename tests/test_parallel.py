@@ -62,3 +62,50 @@ def test_spans_cover_the_range_once(n, parts, min_size):
     assert [i for lo, hi in s for i in range(lo, hi)] == list(range(n))
     assert len(s) <= max(parts, 1)
     assert all(hi - lo >= min(min_size, n) for lo, hi in s[:-1])
+
+
+def test_calls_for_every_core_share_one_pool_and_nested_calls_get_their_own():
+    """A call on every core runs on the process's pool (the same threads call after call: none started per
+    call); a call made from one of those threads, which would wait on the pool from inside it, gets threads of
+    its own and finishes (with two workers, both pool threads blocked on inner calls would otherwise hang)."""
+    n = cpu_workers()
+    if n < 2:
+        pytest.skip("one core: every call runs on the calling thread")
+
+    def names(_):
+        return threading.current_thread().name
+
+    first, second = set(run_parallel(names, range(8 * n), n)), set(run_parallel(names, range(8 * n), n))
+    assert all(t.startswith("usdml-parallel") for t in first | second)
+    assert first | second and len(first | second) <= n
+
+    def outer(x):
+        return sum(run_parallel(lambda y: x * y, range(10), n))
+
+    done = []
+    worker = threading.Thread(target=lambda: done.append(run_parallel(outer, range(4 * n), n)), daemon=True)
+    worker.start()
+    worker.join(timeout=30)
+    assert done == [[45 * x for x in range(4 * n)]]
+    # fewer workers than cores: threads of its own, at most that many
+    assert not any(t.startswith("usdml-parallel") for t in run_parallel(names, range(8), n - 1))
+
+
+def test_a_forked_child_gets_a_pool_of_its_own():
+    """The pool is the process's: a child forked after it started (a Dask worker, multiprocessing) runs its calls
+    on new threads instead of waiting on threads the fork did not carry."""
+    import multiprocessing
+    import os
+
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork here")
+    n = max(2, cpu_workers())
+    run_parallel(lambda x: x, range(8), n)               # the parent's pool exists
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as pool:
+        got = pool.apply_async(_child_squares, (n,)).get(timeout=60)
+    assert got == [x * x for x in range(20)]
+
+
+def _child_squares(n):
+    return run_parallel(lambda x: x * x, range(20), n)
