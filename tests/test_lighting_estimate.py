@@ -201,3 +201,20 @@ def test_estimates_in_header_json_and_recorder(tmp_path, capsys, lamp_path):
     plain = Recorder(image_width=24).record(str(lamp_path), 1, str(tmp_path / "p.exr"))
     assert plain.lighting_estimates == {}
     assert not any(k.startswith("usdml:estimate:") for k in read_exr(str(tmp_path / "p.exr"))[1])
+
+
+def test_an_error_under_the_references_noise_keeps_an_upper_end():
+    """Per-pixel D below 0 on average (the reference's noise taken out of an error smaller than it): the
+    estimate is clipped at 0 and its upper end is the interval's half-width, not 0, so a frame that erred
+    1.6 % is not reported as within [0, 0]."""
+    from usdml.render.lighting_estimate import interval_stats, mean_square_interval
+
+    rng = np.random.default_rng(4)
+    r = rng.uniform(0.5, 1.5, 192)
+    d = rng.normal(-0.002, 0.004, 192)
+    q, lo, hi = mean_square_interval(d, r)
+    assert q < 0 and lo < q and hi > 0
+    rel, rlo, rhi = interval_stats(d, rng.normal(0, 0.01, 192), r)[:3]
+    assert rel == 0.0 == rlo and 0.002 < rhi < 0.05, (rel, rlo, rhi)
+    # the exact case stays exact: no error, no noise
+    assert mean_square_interval(np.zeros(10), np.ones(10)) == (0.0, 0.0, 0.0)

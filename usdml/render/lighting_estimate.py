@@ -519,6 +519,10 @@ def mean_square_interval(d: np.ndarray, r: np.ndarray, channels: int = 3) -> tup
     lo, hi = q - half, q + half
     if q > 0:
         hi = min(q * math.exp(half / q), q + 2.0 * half)
+    else:
+        # the reference's noise outweighs the error (Q is never below 0): the upper end is what the sample can
+        # resolve, the half-width, not a bound at or under 0 (every-VPL frames at 1.6 % error estimated [0, 0])
+        hi = max(hi, half)
     return q, lo, hi
 
 
