@@ -24,7 +24,8 @@ worse (docs/gi.md, "Which hierarchy, and which α").
 The hierarchies' limit, every VPL its own light (``--lgh-split each``, :mod:`usdml.lighting.lgh_each`), has no
 error of its own and costs :func:`each_visit_cost` of a visit per VPL. Where ``choose`` may take it (``each``:
 an automatic α and split, a CPU, S0), the visit budget becomes that cost where it is less, and the limit is taken
-wherever no hierarchy has an α within the budget and the pilot's target (no pilot where none fits).
+wherever the split hierarchy has no α within the budget and the pilot's target (no pilot where none fits); the
+single hierarchy is not tried then, as its pilot does not bound its error with shadows.
 """
 
 from __future__ import annotations
@@ -72,6 +73,13 @@ def each_visit_cost() -> float:
     if lgh_native.library() is None:
         return float("inf")
     return EACH_VISIT_COSTS.get(lgh_native.each_lanes(), EACH_VISIT_COSTS[0])
+
+#: with every VPL as the other way (``choose(each=True)``), the split hierarchy is built only where the single one's
+#: α 1 visits, times :data:`SPLIT_VISIT_FACTOR` and this, fit the budget: on the tuning stages at 100,000 VPLs the
+#: pilot never took the split one's α below 1.75 (its α 1 erred 12-16 %), and the single one's gather visited
+#: 1.9-2.0 times as many lights at α 1.75 as at 1. Building it and its pilot cost 0.25 s of a 0.87 s frame
+#: (open_1024_s1, 64 px) that every VPL then lit
+SPLIT_ALPHA_GROWTH = 2.0
 
 #: VPLs per block of :func:`vpl_irradiance` (its arrays are points x this)
 _BLOCK = 8192
@@ -193,17 +201,21 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
     if split in ("auto", "none"):
         hierarchies["none"] = (one, visits_of("none", one))
         # auto: the split hierarchy too where it may fit (it is built only then)
-        if split == "auto" and hierarchies["none"][1][0] * SPLIT_VISIT_FACTOR <= budget:
+        grow = SPLIT_ALPHA_GROWTH if each else 1.0
+        if split == "auto" and hierarchies["none"][1][0] * SPLIT_VISIT_FACTOR * grow <= budget:
             split_lgh = build_split()
             hierarchies["normal"] = (split_lgh, visits_of("normal", split_lgh))
     else:
         split_lgh = build_split()
         hierarchies["normal"] = (split_lgh, visits_of("normal", split_lgh))
-    # the split one first (its shadows too are closer: module docstring), where it fits the budget at all
-    order = [n for n in ("normal", "none") if n in hierarchies and (hierarchies[n][1] <= budget).any()] \
+    # the split one first (its shadows too are closer: module docstring), where it fits the budget at all; with
+    # every VPL as the other way, the single one not at all: its error with shadows was up to 2.85 times its pilot's
+    # (canyon_1024_s1 at 64 px, 100,000 VPLs: its pilot-chosen α erred 8.4 % at 50x, every VPL 1.5 % at 70x)
+    names = ("normal",) if each else ("normal", "none")
+    order = [n for n in names if n in hierarchies and (hierarchies[n][1] <= budget).any()] \
         or [next(iter(hierarchies))]
-    if each and len(points) and not (hierarchies[order[0]][1] <= budget).any():
-        return limit()          # no α of any hierarchy costs less than every VPL
+    if each and len(points) and (order[0] not in names or not (hierarchies[order[0]][1] <= budget).any()):
+        return limit()          # no α of the split hierarchy costs less than every VPL
     if alpha > 0 or len(points) == 0 or (not each and len(order) == 1
                                          and (hierarchies[order[0]][1] <= budget).sum() <= 1):
         # α as given, or one hierarchy with one α (or none) within the budget: nothing for a pilot to decide
