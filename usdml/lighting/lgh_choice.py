@@ -210,7 +210,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
         hierarchies["normal"] = (split_lgh, visits_of("normal", split_lgh))
     # the split one first (its shadows too are closer: module docstring), where it fits the budget at all; with
     # every VPL as the other way, the single one not at all: its error with shadows was up to 2.85 times its pilot's
-    # (canyon_1024_s1 at 64 px, 100,000 VPLs: its pilot-chosen α erred 8.4 % at 50x, every VPL 1.5 % at 70x)
+    # (canyon_1024_s1 at 64 px, 100,000 VPLs: its pilot-chosen α erred 8.4 % at 50x, every VPL 1.7 % at 89x)
     names = ("normal",) if each else ("normal", "none")
     order = [n for n in names if n in hierarchies and (hierarchies[n][1] <= budget).any()] \
         or [next(iter(hierarchies))]
