@@ -197,9 +197,9 @@ def lgh_build(data: dict) -> list[str]:
 
 def gi_reference(data: dict) -> list[str]:
     """``tools/gi_reference.py --json``: energy and block error against Mitsuba, furnace against ρ + … + ρ^B."""
-    labels = data.get("labels", {})
     rows = []
     for run in data["runs"]:
+        labels = {**data.get("labels", {}), **run.get("labels", {})}       # a run's own labels first
         for method, r in run["output"]["methods"].items():
             rows.append([labels.get(method, f"`{method}`"), f"{r['indirect_ratio']:.3f}",
                          f"{100 * r['block_error']:.1f} %", f"{r['furnace_ratio']:.4g}"])
