@@ -190,3 +190,14 @@ def test_the_sums_lanes_are_the_cpus():
         flags = next((line.split(":", 1)[1].split() for line in info.read_text().splitlines()
                       if line.startswith("flags")), [])
         assert lanes == (16 if "avx512f" in flags else 8 if "avx2" in flags else 4)
+
+
+def test_compare_says_what_the_frame_lit_with():
+    """``usdml compare --gi lgh``'s line names every VPL, or the hierarchy and its α."""
+    from usdml.compare import format_gi_comparison
+
+    r = {"gi": "lgh", "against": "vpl-bruteforce", "pixels": 312, "vpls": 2000, "rel_rmse": 0.059, "speedup": 6.4,
+         "seconds": {"lgh": 0.14, "vpl-bruteforce": 0.89}, "lgh_split": "each", "lgh_alpha": None}
+    assert format_gi_comparison(r).startswith("lgh (every VPL its own light) vs vpl-bruteforce on 312 pixels")
+    assert "(one hierarchy per normal class, α 2)" in format_gi_comparison(dict(r, lgh_split="normal", lgh_alpha=2.0))
+    assert "(one hierarchy, α 1.5)" in format_gi_comparison(dict(r, lgh_split="none", lgh_alpha=1.5))
