@@ -76,7 +76,7 @@ def test_calls_for_every_core_share_one_pool_and_nested_calls_get_their_own():
         return threading.current_thread().name
 
     first, second = set(run_parallel(names, range(8 * n), n)), set(run_parallel(names, range(8 * n), n))
-    assert all(t.startswith("usdml-parallel") for t in first | second)
+    assert all(t.startswith("usdml-parallel-pool") for t in first | second)
     assert first | second and len(first | second) <= n
 
     def outer(x):
@@ -87,8 +87,8 @@ def test_calls_for_every_core_share_one_pool_and_nested_calls_get_their_own():
     worker.start()
     worker.join(timeout=30)
     assert done == [[45 * x for x in range(4 * n)]]
-    # fewer workers than cores: threads of its own, at most that many
-    assert not any(t.startswith("usdml-parallel") for t in run_parallel(names, range(8), n - 1))
+    # fewer workers than cores: threads of its own (not the pool's), at most that many
+    assert not any(t.startswith("usdml-parallel-pool") for t in run_parallel(names, range(8), n - 1))
 
 
 def test_a_forked_child_gets_a_pool_of_its_own():
@@ -109,3 +109,21 @@ def test_a_forked_child_gets_a_pool_of_its_own():
 
 def _child_squares(n):
     return run_parallel(lambda x: x * x, range(20), n)
+
+
+def test_calls_nested_three_deep_finish():
+    """A call inside a call inside a call on every core: the middle one runs on threads of its own, and so must
+    the innermost (were it to wait on the process's pool, whose threads all wait on the middle one, it would
+    never run)."""
+    n = cpu_workers()
+    if n < 2:
+        pytest.skip("one core: every call runs on the calling thread")
+
+    def middle(x):
+        return sum(run_parallel(lambda y: sum(run_parallel(lambda z: x + y + z, range(4), n)), range(4), n))
+
+    done = []
+    worker = threading.Thread(target=lambda: done.append(run_parallel(middle, range(2 * n), n)), daemon=True)
+    worker.start()
+    worker.join(timeout=30)
+    assert done == [[sum(x + y + z for y in range(4) for z in range(4)) for x in range(2 * n)]]

@@ -63,7 +63,8 @@ def iter_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int, *,
     if pool is not None:
         yield from pool.map(fn, items)
         return
-    with ThreadPoolExecutor(max_workers=min(workers, len(items))) as pool:
+    # named as the pool's: a call made from these threads is nested too, and gets threads of its own
+    with ThreadPoolExecutor(max_workers=min(workers, len(items)), thread_name_prefix=f"{_POOL_PREFIX}-call") as pool:
         yield from pool.map(fn, items)
 
 
@@ -72,13 +73,13 @@ def iter_parallel(fn: Callable[[T], R], items: Iterable[T], workers: int, *,
 #: process id, as a fork does not carry threads over
 _POOL: dict = {}
 _POOL_LOCK = threading.Lock()
-_POOL_PREFIX = "usdml-parallel"
+_POOL_PREFIX = "usdml-parallel"      #: the names of the threads this module starts (the pool's, and a call's own)
 
 
 def _shared_pool(workers: int) -> ThreadPoolExecutor | None:
     """The shared pool where ``workers`` is this process's core count (:func:`cpu_workers`) and the caller is not
-    one of the pool's own threads (a nested call gets threads of its own, as waiting on the pool from inside it
-    could leave no thread to run what it waits for); None otherwise."""
+    a thread this module started (a nested call, at any depth, gets threads of its own, as waiting on the pool
+    from inside it could leave no thread to run what it waits for); None otherwise."""
     if workers != cpu_workers() or threading.current_thread().name.startswith(_POOL_PREFIX):
         return None
     pid = os.getpid()
@@ -86,7 +87,7 @@ def _shared_pool(workers: int) -> ThreadPoolExecutor | None:
         pool = _POOL.get(pid)
         if pool is None:
             _POOL.clear()
-            pool = _POOL[pid] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=_POOL_PREFIX)
+            pool = _POOL[pid] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=f"{_POOL_PREFIX}-pool")
         return pool
 
 
