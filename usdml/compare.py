@@ -431,11 +431,12 @@ def _percent_interval(value: float, interval) -> str:
 def format_gi_comparison(r: dict) -> str:
     """One line of :func:`compare_gi`'s result for the terminal."""
     s = r["seconds"]
-    how = ""
-    if r["gi"] == "lgh":        # what the frame lit with: every VPL its own light, or a hierarchy at its α
-        how = (" (every VPL its own light)" if r.get("lgh_split") == "each" else
-               f" ({'one hierarchy per normal class' if r.get('lgh_split') == 'normal' else 'one hierarchy'}"
-               f", α {r['lgh_alpha']:g})" if r.get("lgh_alpha") is not None else "")
+    how = ""                    # --gi lgh: what the frame lit with, every VPL its own light or a hierarchy at its α
+    if r["gi"] == "lgh" and r.get("lgh_split") == "each":
+        how = " (every VPL its own light)"
+    elif r["gi"] == "lgh" and r.get("lgh_alpha") is not None:
+        hierarchy = "one hierarchy per normal class" if r.get("lgh_split") == "normal" else "one hierarchy"
+        how = f" ({hierarchy}, α {r['lgh_alpha']:g})"
     return (f"{r['gi']}{how} vs {r['against']} on {r['pixels']:,} pixels, {r['vpls']:,} VPLs: "
             f"relative RMSE of indirect {100 * r['rel_rmse']:.2f} %; indirect pass "
             f"{s[r['gi']]:.2f} s vs {s[r['against']]:.2f} s ({r['speedup']:.1f}x){_estimate_text(r)}")

@@ -784,15 +784,12 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
            cpu_kernel)
     gather = None if gathers is None else gathers.get(key)
     each = getattr(lgh, "each", False)       # every VPL its own light (usdml.lighting.lgh_each): no grid lights
-    if gather is None and each:
-        gather = lgh.gather(k, seed, meters_per_unit, 0.0 if clamp_distance is None else clamp_distance,
-                            compiled=_compiled(cpu_kernel))
-        if gathers is not None:
-            gathers[key] = gather
     if gather is None:
-        gather = LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device, tiles=tiles,
-                           s0=sources if from_s0 else None, jitter=jitter, stratified=stratified,
-                           cpu_kernel=cpu_kernel)
+        gather = (lgh.gather(k, seed, meters_per_unit, 0.0 if clamp_distance is None else clamp_distance,
+                             compiled=_compiled(cpu_kernel)) if each else
+                  LGHGather(lgh, alpha, k, seed, meters_per_unit, clamp_distance, device, tiles=tiles,
+                            s0=sources if from_s0 else None, jitter=jitter, stratified=stratified,
+                            cpu_kernel=cpu_kernel))
         if gathers is not None:
             gathers[key] = gather
     if occluded is None:
