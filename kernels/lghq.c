@@ -660,14 +660,18 @@ EXPORT void lghq_guide(const double *cum, const int64_t *start, const int64_t *s
  * into 8 running sums per channel (lane k: lights k, k + 8, ...; the last few alone) added in lane order at the
  * end: the compiler vectorizes the lanes, and a point's sum is the same on any thread. */
 #define COSINE_LANES 8
+/* where GCC makes function clones per ISA, dispatched at load (Linux on x86) */
+#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#define LGHQ_CLONES 1
+#endif
 /* the lanes vectorize only where a division need not be guarded by a branch (GCC: no trapping math here), and
- * run 4 doubles at a time where the CPU has AVX2 (GCC's function clones, dispatched at load; Linux on x86) */
+ * run 4 doubles at a time where the CPU has AVX2 (the clones) */
 #if defined(__GNUC__) && !defined(__clang__)
 #define COSINE_NO_TRAP __attribute__((optimize("no-trapping-math")))
 #else
 #define COSINE_NO_TRAP
 #endif
-#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#ifdef LGHQ_CLONES
 #define COSINE_CLONES __attribute__((target_clones("avx2", "default")))
 #else
 #define COSINE_CLONES
@@ -732,7 +736,7 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
 #else
 #define EACH_FAST
 #endif
-#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#ifdef LGHQ_CLONES
 #define EACH_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define EACH_CLONES
@@ -741,7 +745,7 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
 /* the lanes lghq_each's clone runs on this CPU: 16 (AVX-512), 8 (AVX2), 4 (the baseline's SSE), 0 where the
  * clones are not made (another compiler or platform: whatever it vectorizes) */
 EXPORT int lghq_each_lanes(void) {
-#if (defined(__x86_64__) || defined(__i386__)) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__)
+#ifdef LGHQ_CLONES
     __builtin_cpu_init();
     if (__builtin_cpu_supports("avx512f")) return 16;
     if (__builtin_cpu_supports("avx2")) return 8;
