@@ -719,15 +719,19 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
 
 /* ---- every VPL its own light (--lgh-split each): the hierarchy's limit, summed exactly ---- */
 
-/* Points lo .. hi - 1 of the frame: the unshadowed irradiance of every input light as a one-sided cosine emitter
- * (lghq_cosine_sum's model, in float), and `samples` of those lights drawn for shadow rays with probability in
- * proportion to their luminance at the point (systematic: one uniform u per point, thresholds (s + u) / k of the
- * total), each with its own RGB irradiance over that luminance and the luminance. The lights come as ten float32
- * columns (x, y, z, normal x, y, z, intensity r, g, b, luminance of the intensity), n a multiple of EACH_LANES
- * (the caller pads with lights of no intensity and no normal, which add nothing). Lane k sums lights k, k + 16, ...
- * and `snap` keeps each lane's running luminance after every block of 16, so the sum up to a block is 16 floats
- * added in lane order: monotone in the block, which a binary search over blocks then inverts. A point's answer
- * is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
+/* Points lo .. hi - 1 of the frame: the unshadowed irradiance of every input light (lghq_cosine_sum's model, in
+ * float, generalised as the LGH's lobe: an isotropic share a plus a one-sided cosine lobe 4 max(0, cos θ_l) about
+ * the light's normal, a = 1 - |normal|: a VPL or a disk light has a = 0, a point light a = 1 and no normal), and
+ * `samples` of those lights drawn for shadow rays with probability in proportion to their luminance at the point
+ * (systematic: one uniform u per point, thresholds (s + u) / k of the total), each with its own RGB irradiance over
+ * that luminance and the luminance, and the count of lights that reach the point. The lights come as eleven
+ * float32 columns (x, y, z, normal x, y, z, intensity r, g, b, luminance of the intensity, isotropic share a), n a
+ * multiple of EACH_LANES (the caller pads with lights of no intensity, no normal and a = 0, which add nothing);
+ * `mode` says which terms the lights have (EACH_COSINE: every a is 0; EACH_ISOTROPIC: every a is 1; EACH_MIXED),
+ * so that a sum of VPLs takes no square root and one of point lights reads no normals. Lane k sums lights k,
+ * k + 16, ... and `snap` keeps each lane's running luminance after every block of 16, so the sum up to a block is
+ * 16 floats added in lane order: monotone in the block, which a binary search over blocks then inverts. A point's
+ * answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
 #define EACH_LANES 16
 /* float terms contracted into fused multiply-adds where the compiler can (this sum is not one of those that
  * must give Warp's bits) */
@@ -755,24 +759,41 @@ EXPORT int lghq_each_lanes(void) {
 #endif
 }
 
+#define EACH_COSINE 0
+#define EACH_ISOTROPIC 1
+#define EACH_MIXED 2
+
+/* light j's irradiance at a point over its intensity (before metersPerUnit): cos θ_s (a + 4 max(0, cos θ_l)) /
+ * max(d², d_c²) */
 EACH_FAST __attribute__((always_inline)) static inline float each_term(
-    float qx, float qy, float qz, float mx, float my, float mz, float px, float py, float pz, float nx, float ny,
-    float nz, float clamp_d2) {
-    const float wx = qx - px, wy = qy - py, wz = qz - pz;
+    const float *const *light, int64_t j, const int mode, float px, float py, float pz, float nx, float ny, float nz,
+    float clamp_d2) {
+    const float wx = light[0][j] - px, wy = light[1][j] - py, wz = light[2][j] - pz;
     const float d2 = wx * wx + wy * wy + wz * wz;
     float cs = nx * wx + ny * wy + nz * wz;
-    float cl = -(mx * wx + my * wy + mz * wz);
     cs = cs > 0.0f ? cs : 0.0f;
-    cl = cl > 0.0f ? cl : 0.0f;
     const float den = d2 * (d2 > clamp_d2 ? d2 : clamp_d2);
     const int ok = den > 0.0f;            /* a light on the point adds nothing */
-    return (ok ? 4.0f * cs * cl : 0.0f) / (ok ? den : 1.0f);
+    float lobe;                           /* (a d + 4 max(0, -m.w)) = d (a + 4 max(0, cos θ_l)) */
+    if (mode == EACH_ISOTROPIC) {
+        lobe = sqrtf(d2);
+    } else {
+        float cl = -(light[3][j] * wx + light[4][j] * wy + light[5][j] * wz);
+        cl = cl > 0.0f ? cl : 0.0f;
+        lobe = mode == EACH_MIXED ? light[10][j] * sqrtf(d2) + 4.0f * cl : 4.0f * cl;
+    }
+    return (ok ? cs * lobe : 0.0f) / (ok ? den : 1.0f);
 }
 
+/* the running sum up to the end of block b: its 16 lanes' running sums added as a tree (a fixed order, so monotone
+ * in b as every lane is; a chain of 16 dependent adds made each draw's binary search latency-bound) */
 static inline double each_block_sum(const float *snap, int64_t b) {
-    double s = 0.0;
-    for (int k = 0; k < EACH_LANES; k++) s += snap[b * EACH_LANES + k];
-    return s;
+    const float *v = snap + b * EACH_LANES;
+    double s[EACH_LANES / 2];
+    for (int k = 0; k < EACH_LANES / 2; k++) s[k] = (double)v[k] + (double)v[k + EACH_LANES / 2];
+    for (int w = EACH_LANES / 4; w > 0; w /= 2)
+        for (int k = 0; k < w; k++) s[k] += s[k + w];
+    return s[0];
 }
 
 /* points taken together through the lights (each light's columns loaded once for all of them: at 100,000 lights
@@ -780,17 +801,20 @@ static inline double each_block_sum(const float *snap, int64_t b) {
 #define EACH_POINTS 2
 
 /* point p's irradiance from its lanes' sums, and its shadow draws from its running sums `snap` */
-EACH_FAST static void each_finish(const float *const *light, int64_t n, float px, float py, float pz, float nx,
-                                  float ny, float nz, float clamp_d2, float inv_m2, int32_t samples, int32_t seed,
-                                  int64_t first, int64_t p, const float acc[3][EACH_LANES], const float *snap,
-                                  float *irradiance, int32_t *sample_light, float *sample_weight, float *sample_lum,
-                                  uint8_t *sample_ok) {
+EACH_FAST static void each_finish(const float *const *light, int64_t n, const int mode, float px, float py,
+                                  float pz, float nx, float ny, float nz, float clamp_d2, float inv_m2, int32_t samples,
+                                  int32_t seed, int64_t first, int64_t p, const float acc[5][EACH_LANES],
+                                  const float *snap, float *irradiance, float *count, int32_t *sample_light,
+                                  float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
     const int64_t blocks = n / EACH_LANES;
     for (int c = 0; c < 3; c++) {
         double sum = 0.0;
         for (int k = 0; k < EACH_LANES; k++) sum += acc[c][k];
         irradiance[3 * p + c] = (float)(sum * inv_m2);
     }
+    double reach = 0.0;
+    for (int k = 0; k < EACH_LANES; k++) reach += acc[4][k];
+    count[p] = (float)reach;
     const double total = blocks ? each_block_sum(snap, blocks - 1) : 0.0;
     uint32_t rng = rand_init(seed, (int32_t)(first + p));
     const float u = samples > 0 ? randf(&rng) : 0.0f;
@@ -804,6 +828,10 @@ EACH_FAST static void each_finish(const float *const *light, int64_t n, float px
         if (!(total > 0.0)) continue;
         const double t = ((double)s + (double)u) / (double)samples * total;
         int64_t a = from, z = blocks - 1;           /* the first block whose running sum exceeds t */
+        for (int64_t step = 1; a + step < z; step *= 2) {     /* galloping from the last draw's block */
+            if (each_block_sum(snap, a + step - 1) > t) { z = a + step - 1; break; }
+            a += step;
+        }
         while (a < z) {
             const int64_t m = a + (z - a) / 2;
             if (each_block_sum(snap, m) > t) z = m; else a = m + 1;
@@ -821,8 +849,7 @@ EACH_FAST static void each_finish(const float *const *light, int64_t n, float px
         if (chosen < 0) chosen = last;              /* rounding: the block's last light that adds */
         if (chosen < 0) continue;
         const int64_t j = a * EACH_LANES + chosen;
-        const float g = each_term(light[0][j], light[1][j], light[2][j], light[3][j], light[4][j], light[5][j], px, py,
-                                  pz, nx, ny, nz, clamp_d2) * inv_m2;
+        const float g = each_term(light, j, mode, px, py, pz, nx, ny, nz, clamp_d2) * inv_m2;
         const float f = g * light[9][j];
         if (!(f > 0.0f)) continue;
         sample_ok[row] = 1;
@@ -832,14 +859,11 @@ EACH_FAST static void each_finish(const float *const *light, int64_t n, float px
     }
 }
 
-EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *normals, const float *const *light,
-                                            int64_t n, float clamp_d2, float inv_m2, int32_t samples, int32_t seed,
-                                            int64_t first, int64_t lo, int64_t hi, float *irradiance,
-                                            int32_t *sample_light, float *sample_weight, float *sample_lum,
-                                            uint8_t *sample_ok) {
-    if (n % EACH_LANES) return 0;
-    float *snap = (float *)malloc((size_t)(n > 0 ? n : 1) * EACH_POINTS * sizeof(float));
-    if (!snap) return 0;
+/* points p0 .. hi - 1 in steps of EACH_POINTS, for one `mode` (a constant where it is inlined) */
+EACH_FAST __attribute__((always_inline)) static inline void each_points(
+    const float *points, const float *normals, const float *const *light, int64_t n, const int mode, float clamp_d2,
+    float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, float *snap, float *irradiance,
+    float *count, int32_t *sample_light, float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
     for (int64_t p0 = lo; p0 < hi; p0 += EACH_POINTS) {
         float px[EACH_POINTS], py[EACH_POINTS], pz[EACH_POINTS], nx[EACH_POINTS], ny[EACH_POINTS], nz[EACH_POINTS];
         for (int i = 0; i < EACH_POINTS; i++) {     /* past hi: the last point again, not written */
@@ -847,24 +871,43 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
             px[i] = points[3 * p], py[i] = points[3 * p + 1], pz[i] = points[3 * p + 2];
             nx[i] = normals[3 * p], ny[i] = normals[3 * p + 1], nz[i] = normals[3 * p + 2];
         }
-        float acc[EACH_POINTS][4][EACH_LANES] = {{{0}}};
+        float acc[EACH_POINTS][5][EACH_LANES] = {{{0}}};
         for (int64_t j = 0; j < n; j += EACH_LANES)
             for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for every point but the first */
                 for (int k = 0; k < EACH_LANES; k++) {
-                    const float g = each_term(light[0][j + k], light[1][j + k], light[2][j + k], light[3][j + k],
-                                              light[4][j + k], light[5][j + k], px[i], py[i], pz[i], nx[i], ny[i],
-                                              nz[i], clamp_d2);
+                    const float g = each_term(light, j + k, mode, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2);
                     acc[i][0][k] += g * light[6][j + k];
                     acc[i][1][k] += g * light[7][j + k];
                     acc[i][2][k] += g * light[8][j + k];
-                    acc[i][3][k] += g * light[9][j + k];
+                    const float f = g * light[9][j + k];
+                    acc[i][3][k] += f;
+                    acc[i][4][k] += f > 0.0f ? 1.0f : 0.0f;     /* (a padding light has no luminance) */
                     snap[i * n + j + k] = acc[i][3][k];
                 }
         for (int i = 0; i < EACH_POINTS && p0 + i < hi; i++)
-            each_finish(light, n, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2, inv_m2, samples, seed, first,
-                        p0 + i, (const float(*)[EACH_LANES])acc[i], snap + i * n, irradiance, sample_light,
-                        sample_weight, sample_lum, sample_ok);
+            each_finish(light, n, mode, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2, inv_m2, samples, seed,
+                        first, p0 + i, (const float(*)[EACH_LANES])acc[i], snap + i * n, irradiance, count,
+                        sample_light, sample_weight, sample_lum, sample_ok);
     }
+}
+
+EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *normals, const float *const *light,
+                                            int64_t n, int32_t mode, float clamp_d2, float inv_m2, int32_t samples,
+                                            int32_t seed, int64_t first, int64_t lo, int64_t hi, float *irradiance,
+                                            float *count, int32_t *sample_light, float *sample_weight,
+                                            float *sample_lum, uint8_t *sample_ok) {
+    if (n % EACH_LANES || mode < EACH_COSINE || mode > EACH_MIXED) return 0;
+    float *snap = (float *)malloc((size_t)(n > 0 ? n : 1) * EACH_POINTS * sizeof(float));
+    if (!snap) return 0;
+    if (mode == EACH_COSINE)
+        each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
+                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+    else if (mode == EACH_ISOTROPIC)
+        each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
+                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+    else
+        each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
+                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     free(snap);
     return 1;
 }

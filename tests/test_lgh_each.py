@@ -5,7 +5,7 @@ emitters, the shadow draws against the lights' own shares, the shadowed estimate
 import numpy as np
 import pytest
 
-from usdml.lighting.lgh_each import EachVPL, uniform
+from usdml.lighting.lgh_each import EachLight, uniform
 from usdml.lighting.lgh_lighting import LUMA, shadow_fraction
 from usdml.lighting.lgh_native import library
 
@@ -35,7 +35,7 @@ def _analytic(pts, pn, q, n_l, flux, mpu=1.0):
 def _gather(q, n_l, flux, k, seed, compiled, mpu=1.0, clamp=1e-4):
     if compiled and library() is None:
         pytest.skip("the compiled LGH kernels are not built here")
-    return EachVPL((q, flux / np.float32(4 * np.pi), n_l)).gather(k, seed, mpu, clamp, compiled=compiled)
+    return EachLight((q, flux / np.float32(4 * np.pi), n_l)).gather(k, seed, mpu, clamp, compiled=compiled)
 
 
 @pytest.mark.parametrize("compiled", COMPILED)
@@ -50,6 +50,36 @@ def test_the_sum_is_every_light_as_a_cosine_emitter(compiled):
     g, phi = _analytic(pts, pn, q, n_l, flux, mpu=2.0)
     np.testing.assert_allclose(got, g @ phi, rtol=2e-5, atol=1e-9)
     assert (got.sum(1) == 0).any() and (got > 0).any()
+
+
+@pytest.mark.parametrize("compiled", COMPILED)
+@pytest.mark.parametrize("kind", ["isotropic", "mixed"])
+def test_the_sum_of_point_lights_and_of_a_mix(compiled, kind):
+    """The stage's own lights as ``--direct lgh`` gives them (``grid_sources``): 53 point lights, E = Σ I cos θ_s /
+    d², or a mix of those with disk-like one-sided emitters (``I / 4`` about a unit normal, ``4 cos θ_l``), against
+    the analytic sum; the count is the lights whose term is above 0."""
+    q, n_l, inten = _lights(53, 12)
+    normals = None
+    if kind == "mixed":
+        normals = np.where((np.arange(53) % 3 == 0)[:, None], n_l, 0.0).astype(np.float32)
+    rng = np.random.default_rng(6)
+    pts = (rng.normal(size=(200, 3)) * 4).astype(np.float32)
+    pts = pts[np.linalg.norm(pts, axis=1) > 4.5]
+    pn = _unit(rng.normal(size=(len(pts), 3)))
+    if compiled and library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
+    s = EachLight((q, inten, normals)).gather(0, 0, 0.5, 1e-4, compiled=compiled)(pts, pn)
+    w = q[None].astype(np.float64) - pts[:, None]
+    d = np.linalg.norm(w, axis=2)
+    cos_s = np.maximum(((w / d[..., None]) * pn[:, None]).sum(2), 0.0)
+    lobe = np.ones(len(q))[None, :] * np.ones_like(d)
+    if normals is not None:
+        cos_l = np.maximum(-((w / d[..., None]) * n_l[None]).sum(2), 0.0)
+        lobe = np.where((np.arange(53) % 3 == 0)[None, :], 4.0 * cos_l, 1.0)
+    g = cos_s * lobe / d ** 2 / 0.5 ** 2
+    np.testing.assert_allclose(s.irradiance, g @ inten.astype(np.float64), rtol=2e-5, atol=1e-9)
+    np.testing.assert_array_equal(s.count, (g > 0).sum(1))
+    assert ((s.count > 0) & (s.count < len(q))).any()        # some points face some of the lights only
 
 
 @pytest.mark.parametrize("compiled", COMPILED)

@@ -91,7 +91,7 @@ class Choice:
 
     split: str                  #: "none" (one hierarchy), "normal" (one per normal class) or "each" (every VPL)
     alpha: float                #: the blending radius factor (inf for "each")
-    lgh: object                 #: the hierarchy (:class:`usdml.lighting.lgh.LGH`; "each": :class:`EachVPL`)
+    lgh: object                 #: the hierarchy (:class:`usdml.lighting.lgh.LGH`; "each": :class:`EachLight`)
     #: per hierarchy considered ("none", "normal"): {"alpha", "visits", "within_budget"} as chosen, and for the
     #: one chosen with a pilot, "pilot": [{"alpha", "visits", "rel_rmse"}, ...] for each α tried
     candidates: dict = field(default_factory=dict)
@@ -166,7 +166,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
     α), wherever no hierarchy has an α within target that costs less (``each_cost`` visits per VPL, default
     :func:`each_visit_cost`); ``split`` "each" takes it whatever the rest.
     """
-    from usdml.lighting.lgh_each import EachVPL
+    from usdml.lighting.lgh_each import EachLight
 
     n_vpls = len(sources[0])
     budget = fraction * max(n_vpls, 1)
@@ -180,7 +180,7 @@ def choose(one, build_split, points: np.ndarray, normals: np.ndarray, sources: t
                               "within_budget": bool(each_visits <= budget)}
 
     def limit() -> Choice:
-        return Choice("each", float("inf"), EachVPL(sources), candidates)
+        return Choice("each", float("inf"), EachLight(sources), candidates)
 
     if split == "each":
         return limit()

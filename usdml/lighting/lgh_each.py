@@ -1,22 +1,28 @@
-"""Every VPL its own light (``--lgh-split each``): the lighting grid hierarchy's limit, summed exactly.
+"""Every light its own light (``--lgh-split each``, ``--direct-gather each``): the lighting grid hierarchy's limit,
+summed exactly.
 
-Paper 004's hierarchy stands a grid light in for the VPLs near each vertex so that a point visits a few
-hundred lights instead of all of them. From S0 with α growing, a point visits more of the VPLs themselves; at
+Paper 004's hierarchy stands a grid light in for the lights near each vertex so that a point visits a few
+hundred lights instead of all of them. From S0 with α growing, a point visits more of the lights themselves; at
 the limit it visits every one, and the hierarchy's own error is gone. A point's visit through the compiled gather
-costs 24-36 ns (a grid light's blend, lobe and a streaming draw for each of the k shadow samples), while a
-VPL's term in a plain sum over all of them costs about 0.3-0.4 ns on two cores (``kernels/lghq.c``,
-``lghq_each``: sixteen lights at a time, float): so where the pilot finds no α within target at fewer visits than
-about 1.5 % of the VPLs with AVX-512, 2.5 % with AVX2 (:data:`usdml.lighting.lgh_choice.EACH_VISIT_COSTS`), the
-limit itself is the cheaper way
-there (:mod:`usdml.lighting.lgh_choice`). The hierarchy's cost does not grow with the VPL count, the sum's does.
+costs 24-36 ns for VPLs (a grid light's blend, lobe and a streaming draw for each of the k shadow samples), while a
+light's term in a plain sum over all of them costs about 0.25-0.4 ns on two cores (``kernels/lghq.c``,
+``lghq_each``: sixteen lights at a time, float): so where the hierarchy would visit more than a few hundredths of
+the lights per point, the limit itself is the cheaper way there: for VPLs where the pilot finds no α within
+target at fewer visits than about 1.5 % of them with AVX-512 (:mod:`usdml.lighting.lgh_choice`), for the stage's
+own lights where the gather at ``usdml:direct:alpha`` visits more than about 3 % of them
+(:func:`usdml.lighting.lgh_direct.choose_gather`). The hierarchy's cost does not grow with the light count, the
+sum's does.
 
-What a point gets, as :class:`usdml.lighting.lgh_lighting.LGHShading`: the unshadowed irradiance of every VPL
-(the cosine emitters brute force gathers, with its clamp), and k shadow samples drawn among the VPLs with
-probability in proportion to their luminance at the point (systematic sampling: one uniform per point), each
-with its RGB irradiance over its luminance. :func:`usdml.lighting.lgh_lighting.shadow_fraction`'s
-``F · mean(V · e / f)`` over them is then an unbiased estimate of brute force's shadowed sum, and the frame's
-à-trous filter and shadow ratio do the rest as for a hierarchy. Shadow rays go to the VPLs themselves, as
-brute force's do.
+The lights are the LGH's: an isotropic share ``a = 1 - |normal|`` plus a one-sided cosine lobe ``4 max(0, cos θ_l)``
+about the normal (VPLs and disk lights ``a = 0``, the stage's point lights ``a = 1`` with no normal). What a point
+gets, as :class:`usdml.lighting.lgh_lighting.LGHShading`: the unshadowed irradiance of every light (for VPLs the
+cosine emitters brute force gathers, with its clamp), the lights that reach it, and k shadow samples drawn among
+the lights with probability in proportion to their luminance at the point (systematic sampling: one uniform per
+point, along the lights in Morton order, so that a point's draws spread over space), each with its RGB irradiance
+over its luminance. :func:`usdml.lighting.lgh_lighting.shadow_fraction`'s ``F · mean(V · e / f)`` over them (or
+its inclusion-probability form, for the stage's lights) is then an unbiased estimate of brute force's shadowed
+sum, and the frame's à-trous filter and shadow ratio do the rest as for a hierarchy. Shadow rays go to the lights
+themselves, as brute force's do.
 """
 
 from __future__ import annotations
@@ -30,17 +36,30 @@ from usdml.parallel import cpu_workers, run_parallel, spans
 _PAIRS = 1 << 21
 
 
-class EachVPL:
-    """The VPLs as a hierarchy of one level of themselves: what :func:`usdml.lighting.lgh_lighting.lgh_indirect`
-    gathers from in place of a hierarchy (``sources = (positions, intensity Φ/4π, normals)``)."""
+class EachLight:
+    """The lights as a hierarchy of one level of themselves: what :func:`usdml.lighting.lgh_lighting.lgh_indirect`
+    gathers from in place of a hierarchy (``sources = (positions, intensities, normals or None)`` as the LGH
+    takes them: VPLs with intensity Φ/4π and unit normals, the stage's point lights with none)."""
 
     each = True
     levels: tuple = ()
 
     def __init__(self, sources: tuple):
-        self.position = np.asarray(sources[0], np.float64).reshape(-1, 3)
-        self.intensity = np.asarray(sources[1], np.float32).reshape(-1, 3)
-        self.normal = np.asarray(sources[2], np.float32).reshape(-1, 3)
+        from usdml.zorder import morton_order
+
+        position = np.asarray(sources[0], np.float64).reshape(-1, 3)
+        #: the lights in Morton order of their positions: the systematic draws run through them in this order, so a
+        #: point's k draws are spread over space as a grid's would be (in the order given, often random, they were
+        #: as noisy as independent draws)
+        self.order = morton_order(position.astype(np.float32)) if len(position) else np.zeros(0, np.int64)
+        self.position = position[self.order]
+        self.intensity = np.asarray(sources[1], np.float32).reshape(-1, 3)[self.order]
+        normal = sources[2] if len(sources) > 2 else None
+        self.normal = (np.zeros_like(self.intensity) if normal is None else
+                       np.asarray(normal, np.float32).reshape(-1, 3)[self.order])
+        #: each light's isotropic share, the LGH lobe's 1 - |normal| (0 for a VPL, 1 for a point light)
+        self.isotropic = np.clip(1.0 - np.sqrt((self.normal.astype(np.float64) ** 2).sum(axis=1)), 0.0, 1.0)
+        self.isotropic[self.isotropic < 1e-6] = 0.0
 
     def __len__(self) -> int:
         return len(self.position)
@@ -51,22 +70,22 @@ class EachVPL:
 
 
 class EachGather:
-    """``gather(points, normals, tile=None, first=0) -> LGHShading`` over every VPL of an :class:`EachVPL`
+    """``gather(points, normals, tile=None, first=0) -> LGHShading`` over every light of an :class:`EachLight`
     (the interface of :class:`usdml.lighting.lgh_lighting.LGHGather`; ``tile`` is not used: every point sums
-    every VPL). Compiled (``lghq_each``) where the extension is built and ``compiled``, else NumPy with the
+    every light). Compiled (``lghq_each``) where the extension is built and ``compiled``, else NumPy with the
     same random numbers (the same draws but where float rounding puts a threshold on the other side of a
-    light)."""
+    light). The shading's ``count`` is the lights that reach each point (their luminance there above 0)."""
 
-    def __init__(self, vpls: EachVPL, samples: int, seed: int, meters_per_unit: float, clamp_distance: float,
+    def __init__(self, lights: EachLight, samples: int, seed: int, meters_per_unit: float, clamp_distance: float,
                  compiled: bool = True):
         from usdml.lighting import lgh_native
 
-        self.vpls = vpls
+        self.vpls = lights
         self.k = max(int(samples), 0)
         self.seed = int(seed)
         self.inv_m2 = 1.0 / float(meters_per_unit) ** 2
         self.clamp_d2 = float(clamp_distance) ** 2
-        self.lights = (lgh_native.EachLights(vpls.position, vpls.intensity, vpls.normal)
+        self.lights = (lgh_native.EachLights(lights.position, lights.intensity, lights.normal)
                        if compiled and lgh_native.library() is not None else None)
 
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
@@ -74,8 +93,8 @@ class EachGather:
         p = np.ascontiguousarray(np.asarray(points).reshape(-1, 3), np.float32)
         nrm = np.ascontiguousarray(np.asarray(normals).reshape(-1, 3), np.float32)
         n, k = len(p), self.k
-        out = (np.zeros((n, 3), np.float32), np.full((n, k), -1, np.int32), np.zeros((n, k, 3), np.float32),
-               np.zeros((n, k), np.float32), np.zeros((n, k), np.uint8))
+        out = (np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.full((n, k), -1, np.int32),
+               np.zeros((n, k, 3), np.float32), np.zeros((n, k), np.float32), np.zeros((n, k), np.uint8))
         if n and len(self.vpls):
             if self.lights is not None:
                 run_parallel(lambda span: self.lights.gather(p, nrm, self.clamp_d2, self.inv_m2, k, self.seed,
@@ -83,20 +102,21 @@ class EachGather:
                              spans(n, 4 * cpu_workers()), cpu_workers())
             else:
                 self._numpy(p, nrm, first, out)
-        irradiance, light, weight, lum, ok = out
+        irradiance, count, light, weight, lum, ok = out
         ok = ok.astype(bool)
         pos = np.zeros((n, k, 3), np.float32)
+        index = np.full((n, k), -1, np.int64)           # in the order the lights were given
         if k and ok.any():
             pos[ok] = self.vpls.position[light[ok]]
-        return LGHShading(irradiance, pos, ok, light.astype(np.int64), weight, None,
-                          np.full(n, float(len(self.vpls)), np.float32), lum,
-                          np.ones(len(self.vpls), np.float32))
+            index[ok] = self.vpls.order[light[ok]]
+        return LGHShading(irradiance, pos, ok, index, weight, None, count, lum, np.ones(len(self.vpls), np.float32))
 
     def _numpy(self, p: np.ndarray, nrm: np.ndarray, first: int, out: tuple) -> None:
         """:meth:`__call__`'s sums and draws by NumPy, block by block of points, in float64."""
-        irradiance, light, weight, lum, ok = out
+        irradiance, count, light, weight, lum, ok = out
         q = self.vpls.position
         nq = self.vpls.normal.astype(np.float64)
+        iso = self.vpls.isotropic
         inten = self.vpls.intensity.astype(np.float64)
         luma = np.maximum(inten @ LUMA, 0.0)
         k = self.k
@@ -108,9 +128,11 @@ class EachGather:
             d2 = (w * w).sum(-1)
             cs = np.maximum(np.einsum("bvc,bc->bv", w, nrm[lo:hi].astype(np.float64)), 0.0)
             cl = np.maximum(-np.einsum("bvc,vc->bv", w, nq), 0.0)
+            lobe = 4.0 * cl + (iso[None, :] * np.sqrt(d2) if iso.any() else 0.0)
             den = d2 * np.maximum(d2, self.clamp_d2)
-            g = np.where(den > 0, 4.0 * cs * cl / np.where(den > 0, den, 1.0), 0.0) * self.inv_m2
+            g = np.where(den > 0, cs * lobe / np.where(den > 0, den, 1.0), 0.0) * self.inv_m2
             irradiance[lo:hi] = g @ inten
+            count[lo:hi] = (g * luma[None, :] > 0).sum(axis=1)
             if not k:
                 continue
             f = g * luma[None, :]

@@ -63,7 +63,8 @@ EXTENSION = Extension("_lghq", {
     "lghq_guide": (None, [_P, _P, _P, _i64, _P]),
     "lghq_cosine_sum": (None, [_P, _P, _P, _i64, ctypes.c_double, _i64, _i64, _P]),
     "lghq_each_lanes": (ctypes.c_int, []),
-    "lghq_each": (ctypes.c_int, [_P, _P, _P, _i64, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P, _P, _P]),
+    "lghq_each": (ctypes.c_int, [_P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P, _P,
+                                 _P, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
 
@@ -231,31 +232,44 @@ def each_lanes() -> int:
     return 0 if lib is None else int(lib.lghq_each_lanes())
 
 
-class EachLights:
-    """``lghq_each``'s lights: N one-sided cosine emitters (positions, normals, intensities Φ/4π) as ten float32
-    columns, the tenth each intensity's luminance, padded to a multiple of :data:`EACH_LANES` with lights of no
-    intensity and no normal."""
+#: ``lghq_each``'s modes: the lights' terms (every isotropic share a 0, every one 1, or mixed)
+EACH_MODES = {"cosine": 0, "isotropic": 1, "mixed": 2}
 
-    def __init__(self, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray):
+
+class EachLights:
+    """``lghq_each``'s lights: N emitters as the LGH models them (positions, normals, intensities), an isotropic
+    share a = 1 - |normal| plus a one-sided cosine lobe about the normal (VPLs and disk lights: unit normals;
+    point lights: no normal), as eleven float32 columns (the tenth each intensity's luminance, the eleventh a),
+    padded to a multiple of :data:`EACH_LANES` with lights of no intensity, no normal and a = 0. ``normals``
+    None: every light isotropic."""
+
+    def __init__(self, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray | None):
         self.n = len(positions)
         padded = -(-self.n // EACH_LANES) * EACH_LANES
-        self._columns = np.zeros((10, padded), np.float32)
-        for i, a in enumerate((positions, normals, intensity)):
-            self._columns[3 * i:3 * i + 3, :self.n] = np.asarray(a, np.float32).reshape(-1, 3).T
+        self._columns = np.zeros((11, padded), np.float32)
+        self._columns[0:3, :self.n] = np.asarray(positions, np.float32).reshape(-1, 3).T
+        self._columns[6:9, :self.n] = np.asarray(intensity, np.float32).reshape(-1, 3).T
+        if normals is not None:
+            self._columns[3:6, :self.n] = np.asarray(normals, np.float32).reshape(-1, 3).T
+        share = np.clip(1.0 - np.sqrt((self._columns[3:6, :self.n] ** 2).sum(axis=0)), 0.0, 1.0)
+        self._columns[10, :self.n] = np.where(share < 1e-6, 0.0, share)
         lum = np.array([0.2126, 0.7152, 0.0722], np.float32)   # lghq.c's LUMA0..2
         self._columns[9, :self.n] = np.maximum(lum @ self._columns[6:9, :self.n], 0.0)
         self._columns[:3, self.n:] = self._columns[:3, :1] if self.n else 0.0
-        self._pointers = (ctypes.c_void_p * 10)(*(self._columns[i].ctypes.data for i in range(10)))
+        self._pointers = (ctypes.c_void_p * 11)(*(self._columns[i].ctypes.data for i in range(11)))
         self.padded = padded
+        a = self._columns[10, :self.n]
+        self.mode = ("cosine" if not (a > 0).any() else "isotropic" if (a == 1.0).all() else "mixed")
 
     def gather(self, points: np.ndarray, normals: np.ndarray, clamp_d2: float, inv_m2: float, samples: int, seed: int,
                first: int, lo: int, hi: int, out: tuple) -> None:
         """Points ``lo .. hi - 1`` (``points``, ``normals``: (P, 3) float32, C-contiguous; point p's random stream
-        ``first + p``): ``out = (irradiance (P, 3) f32, light (P, k) int32, weight (P, k, 3) f32, lum (P, k) f32,
-        ok (P, k) uint8)`` written for those rows (``lghq_each``)."""
+        ``first + p``): ``out = (irradiance (P, 3) f32, count (P,) f32, light (P, k) int32, weight (P, k, 3) f32,
+        lum (P, k) f32, ok (P, k) uint8)`` written for those rows (``lghq_each``; count: the lights that reach
+        the point)."""
         if not library().lghq_each(points.ctypes.data, normals.ctypes.data, self._pointers, self.padded,
-                                   float(clamp_d2), float(inv_m2), int(samples), int(seed), int(first), int(lo),
-                                   int(hi), *(a.ctypes.data for a in out)):
+                                   EACH_MODES[self.mode], float(clamp_d2), float(inv_m2), int(samples), int(seed),
+                                   int(first), int(lo), int(hi), *(a.ctypes.data for a in out)):
             raise MemoryError("lghq_each: no memory for a point's running sums")
 
 
