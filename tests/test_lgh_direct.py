@@ -218,17 +218,25 @@ def test_grid_lights_keep_a_disk_lights_profile():
 
 # -------------------------------------------------------------------------------- frames, against all
 
-def test_lgh_frame_against_every_light(new_stage):
+@pytest.mark.parametrize("gather", ["hierarchy", "each"])
+def test_lgh_frame_against_every_light(new_stage, gather):
     """2,000 lamps over a ground with a box: ``--direct lgh`` within 6 % relative RMSE of every-light
     exact shading, its shadow AOV's mean within 0.03 of every-light's (per pixel within 0.15 on average:
-    an estimate from 64 rays) and lightCount within 5 % of the facing lights."""
+    an estimate from 64 rays) and lightCount within 5 % of the facing lights; from the hierarchy and from
+    every light (exactly the facing lights' count)."""
     path = lamp_stage(new_stage, lamps(2000))
-    lgh = render(path, direct="lgh")
+    lgh = render(path, direct="lgh", direct_gather=gather, aovs=("direct", "shadow", "lightCount", "depth", "normal"))
     ref = render(path, direct="all")
     hit = np.isfinite(ref.buffers["depth"])
     err = rel_rmse(lgh.buffers["direct"], ref.buffers["direct"], hit)
     assert err < 0.06, err
-    assert lgh.stats.direct_lgh["grid_lights"] == 2000
+    assert lgh.stats.direct_lgh["grid_lights"] == 2000 and lgh.stats.direct_lgh["gather"] == gather
+    if gather == "each":
+        # where the shading normal is the face's (every light counts by its side of the face, as every-light
+        # shading counts them; along the box's edges the smoothed normal leans over its faces)
+        flat = hit & (np.abs(lgh.buffers["normal"]).max(axis=-1) > 0.9999)
+        assert flat.sum() > 0.9 * hit.sum()
+        np.testing.assert_array_equal(lgh.buffers["lightCount"][flat], ref.buffers["lightCount"][flat])
     count = lgh.buffers["lightCount"][hit].sum() / ref.buffers["lightCount"][hit].sum()
     assert count == pytest.approx(1.0, abs=0.05)
     # the shadow AOV: blocked lights over facing lights, as every-light's, estimated (noisy per pixel)
@@ -236,17 +244,19 @@ def test_lgh_frame_against_every_light(new_stage):
     assert ref.buffers["shadow"][hit].mean() > 0.05 and shadow < 0.15, shadow
     assert abs(lgh.buffers["shadow"][hit].mean() - ref.buffers["shadow"][hit].mean()) < 0.03
     # the same seed, the same pixels
-    again = render(path, direct="lgh")
+    again = render(path, direct="lgh", direct_gather=gather)
     np.testing.assert_array_equal(again.buffers["direct"], lgh.buffers["direct"])
 
 
-def test_analytic_reference(new_stage):
+@pytest.mark.parametrize("gather", ["hierarchy", "each"])
+def test_analytic_reference(new_stage, gather):
     """No usdml code in the reference: 1,500 lamps 4-6 m over a plane and a 4 x 2 x 4 box, the plane's
     irradiance Σ I cos θ / d² with each lamp's segment tested against the box (slab test) here, at the
-    G-buffer's ground points; ``--direct lgh`` within 6 % relative RMSE (measured 3.3 %)."""
+    G-buffer's ground points; ``--direct lgh`` within 6 % relative RMSE from the hierarchy (measured 3.3 %) and
+    from every light."""
     pos = lamps(1500, seed=7, lo=(-15, 4.0, -15), hi=(15, 6.0, 15))
     path = lamp_stage(new_stage, pos, intensity=40.0)
-    res = render(path, aovs=("direct", "P", "normal", "depth"), direct="lgh")
+    res = render(path, aovs=("direct", "P", "normal", "depth"), direct="lgh", direct_gather=gather)
     p = res.buffers["P"].reshape(-1, 3).astype(np.float64)
     n = res.buffers["normal"].reshape(-1, 3)
     ground = np.isfinite(res.buffers["depth"].ravel()) & (np.abs(p[:, 1]) < 1e-4) & (n[:, 1] > 0.99)
@@ -346,7 +356,8 @@ def box_occluded(lo, hi):
     return occluded
 
 
-def test_shadow_aov_is_the_blocked_fraction_of_the_lights():
+@pytest.mark.parametrize("gather", ["hierarchy", "each"])
+def test_shadow_aov_is_the_blocked_fraction_of_the_lights(gather):
     """The ``shadow`` AOV keeps its meaning under lgh: the fraction of the lights facing a point that are
     blocked (each chosen light counting the lights it stands for, over its inclusion probability):
     around a box among 3,000 lamps, its mean within 0.03 of every-light shading's, per point within
@@ -362,7 +373,8 @@ def test_shadow_aov_is_the_blocked_fraction_of_the_lights():
     field = prepare_direct(lights)
     assert want.shadow.mean() > 0.1
     for k, bound in ((64, 0.15), (256, 0.08)):
-        got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None, UsdmlSettings(direct_shadow_samples=k, pixel_samples=1))
+        got, _ = shade_lgh_direct(pts, nrm, alb, field, occluded, None,
+                                  UsdmlSettings(direct_shadow_samples=k, pixel_samples=1, direct_gather=gather))
         assert np.abs(got.shadow - want.shadow).mean() < bound, (k, np.abs(got.shadow - want.shadow).mean())
         assert abs(got.shadow.mean() - want.shadow.mean()) < 0.03
         assert got.facing.sum() / want.facing.sum() == pytest.approx(1.0, abs=0.05)
@@ -456,3 +468,53 @@ def test_shadow_samples_rule():
     assert samples_cap(2000) == 64 and samples_cap(100_000) == 1000 and samples_cap(1_000_000) == 1024
     assert rays_per_pass(UsdmlSettings(pixel_samples=4), 130) == 33
     assert rays_per_pass(UsdmlSettings(direct_shadow_samples=32, pixel_samples=4)) == 8
+
+
+# ---------------------------------------------------------------- every light its own light, chosen per frame
+
+def test_the_frame_gathers_from_every_light_where_that_costs_less(monkeypatch):
+    """``usdml:direct:gather`` auto: every grid light (:class:`EachLight`) where N lights times the sum's cost per
+    light (in the hierarchy's visits) is at most the visits the hierarchy's gather makes at the frame's alpha,
+    else the hierarchy; the hierarchy on a GPU and with the Warp kernels; each and hierarchy as asked."""
+    from usdml.lighting import lgh_direct, lgh_native
+    from usdml.lighting.lgh_each import EachLight
+
+    if lgh_native.library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
+    rng = np.random.default_rng(3)
+    lights = _lights(rng.uniform([-15, 1, -15], [15, 6, 15], (3000, 3)), np.full((3000, 3), 0.3, np.float32))
+    pts = rng.uniform(-10, 10, (400, 3)) * [1, 0, 1]
+
+    def choose(**over):
+        field = prepare_direct(lights)
+        stats = lgh_direct.choose_gather(pts, field, UsdmlSettings(**over), "cpu")
+        assert field.chosen and (field.each is None) == (stats["gather"] == "hierarchy")
+        assert field.source is (field.lgh if field.each is None else field.each)
+        return stats
+
+    auto = choose()
+    lanes = lgh_native.each_lanes()
+    assert auto["each_visits"] == pytest.approx(lgh_direct.EACH_VISIT_COSTS[lanes] * 3000)
+    assert auto["gather"] == ("each" if auto["each_visits"] <= auto["hierarchy_visits"] else "hierarchy")
+    assert auto["gather"] == "each" and auto["hierarchy_visits"] > 1000     # 3,000 lamps, most in the near field
+    monkeypatch.setitem(lgh_direct.EACH_VISIT_COSTS, lanes, auto["hierarchy_visits"] / 3000 * 1.01)
+    assert choose()["gather"] == "hierarchy"
+    monkeypatch.setitem(lgh_direct.EACH_VISIT_COSTS, lanes, auto["hierarchy_visits"] / 3000 * 0.99)
+    assert choose()["gather"] == "each"
+    assert choose(lgh_cpu_kernel="warp")["gather"] == "hierarchy"
+    field = prepare_direct(lights)
+    assert lgh_direct.choose_gather(pts, field, UsdmlSettings(), "cuda")["gather"] == "hierarchy"
+    assert choose(direct_gather="hierarchy")["gather"] == "hierarchy"
+    field = prepare_direct(lights)
+    lgh_direct.choose_gather(pts, field, UsdmlSettings(direct_gather="each"), "cuda")
+    assert isinstance(field.each, EachLight) and len(field.each) == 3000
+
+
+def test_compare_says_when_every_light_lit_the_frame():
+    from usdml.compare import format_direct_comparison
+
+    r = {"direct": "lgh", "against": "all", "pixels": 9216, "lights": 100000, "visibility": "exact",
+         "compared_pixels": 2048, "reference_extrapolated": True, "rel_rmse": 0.0292, "speedup": 47.3,
+         "seconds": {"lgh": 0.9, "all": 42.6}, "direct_gather": "each"}
+    assert format_direct_comparison(r).startswith("--direct lgh (every light its own light) vs all on 9,216 pixels")
+    assert format_direct_comparison({**r, "direct_gather": "hierarchy"}).startswith("--direct lgh vs all")

@@ -6,7 +6,7 @@ Usage::
     python tools/make_stages.py --suite --out /tmp/suite --seeds 0-3 --lights 64,1024,100000
     python tools/lgh_suite.py /tmp/suite [--split report] [--gi-vpls 10000] [--gi-lights 64,1024]
         [--direct-lights 100000] [--imageWidth 96] [--direct-width 128] [--reference-pixels 2048]
-        [--lgh-split none,normal] [--json]
+        [--lgh-split none,normal] [--direct-gather hierarchy,each] [--json]
 
 For each suite stage of the split (``report``: odd seeds, never tuned on; ``tune``; ``all``), what
 ``usdml compare`` reports on its start frame with the stage's and usdml's default settings:
@@ -14,9 +14,9 @@ For each suite stage of the split (``report``: odd seeds, never tuned on; ``tune
 * stages with a light count in ``--gi-lights``: ``--gi lgh --against vpl-bruteforce --vpls N`` for each N of
   ``--gi-vpls`` and each ``--lgh-split`` (default: usdml's) (relative RMSE of ``indirect`` over the reference's
   mean; the indirect passes' speed-up);
-* stages with a light count in ``--direct-lights``: ``--direct lgh --against all`` (relative RMSE of ``direct``;
-  the frame's speed-up, the reference on ``--reference-pixels`` pixels with its seconds extrapolated to the
-  frame when that is above 0);
+* stages with a light count in ``--direct-lights``: ``--direct lgh --against all`` for each
+  ``--direct-gather`` (default: usdml's) (relative RMSE of ``direct``; the frame's speed-up, the reference on
+  ``--reference-pixels`` pixels with its seconds extrapolated to the frame when that is above 0);
 
 each with the frame's own estimate of its error, its 95 % interval and whether the interval holds the
 measurement. Rows print as they finish (stderr); ``--json`` writes them all to stdout at the end.
@@ -66,7 +66,8 @@ def _row(kind: str, path: str, info: dict, r: dict, **extra) -> dict:
 
 
 def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], direct_lights: list[int],
-            width: int, direct_width: int, reference_pixels: int, splits: list[str | None] = (None,)) -> list[dict]:
+            width: int, direct_width: int, reference_pixels: int, splits: list[str | None] = (None,),
+            gathers: list[str | None] = (None,)) -> list[dict]:
     from usdml.compare import compare_direct, compare_gi
     from usdml.stage import StageDelegate
 
@@ -84,13 +85,14 @@ def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], d
                                           "lgh_split")},
                         breakdown=r["breakdown"].get("lgh", {})))
                     _tell(rows[-1], time.perf_counter() - t0)
-        if lights in direct_lights:
+        for gather in gathers if lights in direct_lights else ():
             r = compare_direct(StageDelegate(path), "lgh", "all", image_width=direct_width,
-                               reference_pixels=reference_pixels)
+                               reference_pixels=reference_pixels,
+                               overrides={} if gather is None else {"direct_gather": gather})
             rows.append(_row("direct", path, info, r, direct_speedup=r["direct_speedup"],
                              reference_extrapolated=r["reference_extrapolated"],
-                             compared_pixels=r["compared_pixels"],
-                             settings={k: r[k] for k in ("direct_alpha", "direct_shadow_samples")},
+                             compared_pixels=r["compared_pixels"], asked=gather or "default",
+                             settings={k: r[k] for k in ("direct_alpha", "direct_shadow_samples", "direct_gather")},
                              breakdown=r["breakdown"].get("lgh", {})))
             _tell(rows[-1], time.perf_counter() - t0)
     return rows
@@ -101,7 +103,7 @@ def _tell(r: dict, seconds: float) -> None:
            f", estimated {100 * r['estimated_rel_rmse']:.1f} % [{100 * r['estimated_interval'][0]:.1f}, "
            f"{100 * r['estimated_interval'][1]:.1f}] ({'holds' if r['estimate_holds'] else 'MISSES'})")
     what = (f"{r.get('vpls', 0):,} VPLs, split {r['settings'].get('lgh_split')}" if r["mode"] == "gi"
-            else f"{r['lights']:,} lights")
+            else f"{r['lights']:,} lights, {r['settings'].get('direct_gather')}")
     print(f"{r['stage']} --{r['mode']} lgh, {what}: {100 * r['rel_rmse']:.2f} % at {r['speedup']:.1f}x{est} "
           f"({seconds:.0f} s)", file=sys.stderr, flush=True)
 
@@ -119,13 +121,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="--direct: pixels every-light shading runs on, its time extrapolated (0: every pixel)")
     p.add_argument("--lgh-split", default=None, metavar="S[,S...]",
                    help="--gi lgh: each of these --lgh-split values (none, normal) in turn (default: usdml's)")
+    p.add_argument("--direct-gather", default=None, metavar="G[,G...]",
+                   help="--direct lgh: each of these --direct-gather values (hierarchy, each) in turn (default: usdml's)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     if not os.path.isdir(args.folder):
         p.error(f"{args.folder}: no such folder (write the suite with tools/make_stages.py --suite --out DIR)")
     rows = measure(args.folder, args.split, _ints(args.gi_vpls), _ints(args.gi_lights), _ints(args.direct_lights),
                    args.imageWidth, args.direct_width, args.reference_pixels,
-                   args.lgh_split.split(",") if args.lgh_split else [None])
+                   args.lgh_split.split(",") if args.lgh_split else [None],
+                   args.direct_gather.split(",") if args.direct_gather else [None])
     if not rows:
         p.error(f"{args.folder}: no suite stage of split {args.split!r} with those light counts")
     if args.json:

@@ -217,6 +217,8 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
         # auto (0): as the frame chose them
         "direct_shadow_samples": (test.stats.direct_lgh or {}).get("shadow_samples", base.direct_shadow_samples),
         "direct_alpha": base.direct_alpha,
+        # each (every grid light its own light) or hierarchy, as the frame chose
+        "direct_gather": (test.stats.direct_lgh or {}).get("gather", base.direct_gather if direct == "lgh" else None),
         "rel_rmse": rel, "rmse": rmse, "reference_mean": mean, **_estimate_fields(test.stats, "direct", rel),
         "seconds": {direct: test_s, against: ref_s},
         "direct_seconds": {direct: test_shading, against: ref_shading},
@@ -230,7 +232,8 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
 def format_direct_comparison(r: dict) -> str:
     s = r["seconds"]
     extra = f", reference on {r['compared_pixels']:,} pixels, its time extrapolated" if r["reference_extrapolated"] else ""
-    return (f"--direct {r['direct']} vs {r['against']} on {r['pixels']:,} pixels, {r['lights']:,} lights "
+    how = " (every light its own light)" if r.get("direct_gather") == "each" else ""
+    return (f"--direct {r['direct']}{how} vs {r['against']} on {r['pixels']:,} pixels, {r['lights']:,} lights "
             f"({r['visibility']} visibility{extra}): direct rel. RMSE {100 * r['rel_rmse']:.2f} %, "
             f"{s[r['direct']]:.2f} s vs {s[r['against']]:.2f} s per frame ({r['speedup']:.1f}x){_estimate_text(r)}")
 

@@ -344,6 +344,11 @@ _SETTINGS = (
     Param("direct_alpha", float, 4.0, "--direct lgh: blending radius factor alpha, r_l = alpha h_l (the lights "
           "themselves within alpha h_1)", **_LIT, range=Range(0, low_open=True), metavar="ALPHA", applies=_DIRECT_LGH,
           source="measured (usdml): docs/lgh-direct.md (paper 004 uses 1 for VPLs)"),
+    Param("direct_gather", str, "auto", "--direct lgh: what a pixel gathers from: the hierarchy (paper 004), "
+          "every grid light itself summed exactly (each: the hierarchy's limit, on a CPU), or auto: per frame, "
+          "each where its sum costs less than the hierarchy's gather", **_LIT,
+          choices=("auto", "hierarchy", "each"), applies=_DIRECT_LGH,
+          source="measured (usdml): docs/lgh-direct.md, on stages it was not tuned on"),
     Param("direct_shadow_samples", int, 0, "--direct lgh: shadow rays per pixel (shared by its primary rays), "
           "importance-sampled from the lights that reach it; 0: chosen per frame so that the shadows' noise is "
           "about usdml:direct:shadowNoise", **_LIT, range=Range(0), metavar="N",
@@ -508,6 +513,17 @@ _DOCS = {
 
     Larger alpha: more lights exact and finer grid lights farther out (less
     error in the light and in its shadows), more lights visited per pixel.""",
+    "direct_gather": """--direct lgh: what each pixel gathers its light from: the hierarchy over the grid lights (hierarchy, paper 004), every grid light itself (each), or a choice per frame (auto).
+
+    each is the hierarchy's limit: every light's unshadowed term summed
+    exactly (sixteen lights at a time, compiled), and the shadow rays
+    drawn among the lights in proportion to each one's own light at the
+    pixel, so only the shadows' noise is left. Its cost grows with the
+    number of lights, the hierarchy's with the lights near each pixel:
+    auto takes each on a CPU where a pixel's sum over every light costs
+    less than the hierarchy's gather at usdml:direct:alpha (the lights it
+    visits, counted on a few pixels of the frame), and the hierarchy on a
+    GPU or where the extension is not built (docs/lgh-direct.md).""",
     "direct_shadow_samples": """--direct lgh: stochastic shadow rays per pixel, shared by its primary rays (usdml:pixelSamples 4: a quarter each), importance-sampled from the lights and grid lights that reach them (paper 004, Appendix A); 0 chooses them per frame.
 
     More samples, less shadow noise: it falls as one over the square root

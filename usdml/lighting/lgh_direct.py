@@ -27,7 +27,10 @@ one LGH, two light sources. Per frame:
    gathering (Appendix A, stratified), each to a light the chosen grid light stands for and weighed
    by the grid light's irradiance (:data:`SHADOW_TARGETS`); each light the samples chose counts once,
    by its inclusion probability (:func:`usdml.lighting.lgh_lighting.shadow_fraction`'s ``inclusion``),
-   and the shadow ratio scales the unshadowed LGH irradiance. The ratio is filtered (à-trous, §3.3)
+   and the shadow ratio scales the unshadowed LGH irradiance. Where it costs less (``usdml:direct:gather``
+   auto, :func:`choose_gather`), every pixel sums every grid light instead (the hierarchy's limit,
+   :mod:`usdml.lighting.lgh_each`), its rays drawn among the lights by each one's own light at the pixel.
+   The ratio is filtered (à-trous, §3.3)
    only when ``usdml:shadow:filterIterations`` asks (> 0): on the city at night, 100,000 lamps at
    256 px, alpha 3, 32 samples, one iteration took the relative RMSE of ``direct`` from 13.0 to
    25.7 % and the automatic two to 32.9 % (shadows of buildings on streets a few pixels wide).
@@ -64,6 +67,14 @@ SHADOW_TARGETS = "cluster"
 
 #: isotropic-equivalent intensity of a one-sided cosine emitter: I cos = (I / 4) · 4 cos (the LGH lobe)
 COSINE_SHARE = 0.25
+
+#: what a grid light's term in the sum over every light (``usdml:direct:gather`` each, ``kernels/lghq.c``
+#: ``lghq_each``) costs in visits of the hierarchy's gather at usdml:direct:alpha, by the lanes the sum runs on
+#: (:func:`usdml.lighting.lgh_native.each_lanes`; 0: a platform without the function clones, taken as AVX2).
+#: AVX-512: the sum's seconds over the hierarchy's per visit on the suite's six tuning stages at 100,000 lights,
+#: 128 px, both with their own shadow rays (64-121 per pixel): 0.024-0.043 (docs/lgh-direct.md); AVX2 and SSE
+#: scaled as ``--gi lgh``'s VPL sums measured (1.6-1.7 and 3.2 times AVX-512's per light)
+EACH_VISIT_COSTS = {16: 0.03, 8: 0.05, 4: 0.1, 0: 0.05}
 
 #: the automatic shadow samples (``usdml:direct:shadowSamples`` 0, :func:`choose_shadow_samples`): a pilot of
 #: PILOT_SAMPLES rays per point on PILOT_POINTS of the frame's first pass, twice with other seeds
@@ -119,6 +130,15 @@ class DirectField:
     stats: dict = field(default_factory=dict)
     sampler: object | None = None   #: the shadow rays' :class:`ClusterSampler`, made by the frame's first pass
     samples: int | None = None      #: shadow rays per pixel chosen by the frame's first pass (shadowSamples 0)
+    #: every grid light its own light (:class:`usdml.lighting.lgh_each.EachLight`) where the frame's first pass
+    #: chose it (:func:`choose_gather`), else None: the hierarchy
+    each: object | None = None
+    chosen: bool = False            #: whether :func:`choose_gather` has chosen for the frame
+
+    @property
+    def source(self):
+        """What the frame's pixels gather from: :attr:`each` where chosen, else the hierarchy."""
+        return self.lgh if self.each is None else self.each
 
 
 def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> DirectField:
@@ -140,6 +160,36 @@ def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> Dire
     stats["lgh_h1"] = float(lgh.h1)
     stats["grid_light_count"] = int(len(lgh.position))
     return DirectField(grid, rest, lgh, sources, stats)
+
+
+def choose_gather(points: np.ndarray, direct: DirectField, settings, device: str = "cpu") -> dict:
+    """Once per frame (its first pass's ``points``): whether its pixels gather from the hierarchy or from every
+    grid light (``usdml:direct:gather``); sets ``direct.each`` and returns the choice's stats.
+
+    ``auto`` takes every light on a CPU with the compiled sum (:func:`usdml.lighting.lgh_native.each_lanes`)
+    where a point's sum over the N grid lights, ``N ·`` :data:`EACH_VISIT_COSTS` visits, costs no more than the
+    hierarchy's gather at ``usdml:direct:alpha`` (:func:`usdml.lighting.lgh_lighting.lights_visited`: the grid
+    lights and S0 lights a point visits, counted on a few of the points, drawn by the seed)."""
+    from usdml.lighting import lgh_native
+    from usdml.lighting.lgh_each import EachLight
+    from usdml.lighting.lgh_lighting import lights_visited
+
+    direct.chosen = True
+    mode = settings.direct_gather
+    stats: dict = {}
+    if mode == "auto":
+        lanes = lgh_native.each_lanes() if lgh_native.library() is not None else None
+        if device != "cpu" or settings.lgh_cpu_kernel == "warp" or lanes is None or len(points) == 0:
+            mode = "hierarchy"
+        else:
+            visits = float(lights_visited(direct.lgh, points, [settings.direct_alpha], s0_positions=direct.sources[0],
+                                          seed=int(settings.seed))[0])
+            each_visits = EACH_VISIT_COSTS.get(lanes, EACH_VISIT_COSTS[0]) * len(direct.grid)
+            stats.update({"hierarchy_visits": visits, "each_visits": each_visits})
+            mode = "each" if each_visits <= visits else "hierarchy"
+    direct.each = EachLight(direct.sources) if mode == "each" else None
+    stats["gather"] = mode
+    return stats
 
 
 def rays_per_pass(settings, samples: int | None = None) -> int:
@@ -191,7 +241,7 @@ def choose_shadow_samples(points: np.ndarray, normals: np.ndarray, albedo: np.nd
     m = min(n, PILOT_POINTS)
     pick = np.sort(np.random.default_rng([int(settings.seed), 37]).choice(n, m, replace=False))
     geo = normals if geometric is None else geometric
-    runs = [lgh_indirect(points[pick], normals[pick], albedo[pick], direct.lgh, occluded, alpha=settings.direct_alpha,
+    runs = [lgh_indirect(points[pick], normals[pick], albedo[pick], direct.source, occluded, alpha=settings.direct_alpha,
                          samples=PILOT_SAMPLES, seed=int(settings.seed) + 1 + i, meters_per_unit=meters_per_unit,
                          clamp_distance=clamp_distance(direct), filter_iterations=0, device=device,
                          sources=direct.sources, start_level=0, shadow_targets=SHADOW_TARGETS, geometric=geo[pick],
@@ -230,7 +280,10 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
         return rest, stats
     t1 = _time.perf_counter()
     clamp = clamp_distance(direct)
-    if direct.sampler is None:
+    if not direct.chosen:
+        stats.update(choose_gather(points, direct, settings, device))
+        stats["choice_seconds"] = _time.perf_counter() - t1
+    if direct.sampler is None and direct.each is None:
         direct.sampler = ClusterSampler(direct.lgh, *direct.sources, reweight=SHADOW_TARGETS == "member",
                                         meters_per_unit=meters_per_unit, clamp_distance=clamp,
                                         cpu_kernel=settings.lgh_cpu_kernel)
@@ -243,7 +296,7 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
                                                            device=device)
             stats.update(chosen)
         samples = direct.samples
-    r = lgh_indirect(points, normals, albedo, direct.lgh, occluded, alpha=settings.direct_alpha,
+    r = lgh_indirect(points, normals, albedo, direct.source, occluded, alpha=settings.direct_alpha,
                      samples=rays_per_pass(settings, samples), seed=settings.seed, meters_per_unit=meters_per_unit,
                      clamp_distance=clamp, image=image,
                      filter_iterations=max(settings.shadow_filter_iterations, 0), device=device,

@@ -629,7 +629,9 @@ def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarra
         out[lo:hi] = shading.irradiance[lo:hi] * np.clip(ratio, 0.0, 1.0)
         if shading.light_count is not None and len(shading.light_count):
             # B · count of each chosen light: B / f (sample_blend, × the interleave scale) times f times its count
-            count = shading.sample_blend[lo:hi] * shading.sample_lum[lo:hi] * shading.light_count[np.maximum(light, 0)]
+            count = shading.light_count[np.maximum(light, 0)]
+            if shading.sample_blend is not None:     # (every light its own light: B 1, one light each)
+                count = shading.sample_blend[lo:hi] * shading.sample_lum[lo:hi] * count
             c = np.where(ok, count / (runs * np.maximum(incl, 1e-30)), 0.0)
             total_c = c.sum(axis=1)
             visible[lo:hi] = np.where(total_c > 0, (seen[lo:hi] * c).sum(axis=1) / np.maximum(total_c, 1e-30),
