@@ -726,12 +726,15 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
  * (systematic: one uniform u per point, thresholds (s + u) / k of the total), each with its own RGB irradiance over
  * that luminance and the luminance, and the count of lights that reach the point. The lights come as eleven
  * float32 columns (x, y, z, normal x, y, z, intensity r, g, b, luminance of the intensity, isotropic share a), n a
- * multiple of EACH_LANES (the caller pads with lights of no intensity, no normal and a = 0, which add nothing);
+ * multiple of EACH_GROUP (the caller pads with lights of no intensity, no normal and a = 0, which add nothing);
  * `mode` says which terms the lights have (EACH_COSINE: every a is 0; EACH_ISOTROPIC: every a is 1; EACH_MIXED),
  * so that a sum of VPLs takes no square root and one of point lights reads no normals. Lane k sums lights k,
- * k + 16, ... and `snap` keeps each lane's running luminance after every block of 16, so the sum up to a block is
- * 16 floats added in lane order: monotone in the block, which a binary search over blocks then inverts. A point's
- * answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
+ * k + 16, ... of each block of 16; a tile of EACH_TILE points goes through the lights a chunk of EACH_CHUNK at a
+ * time (the chunk's columns from L2 for all but the first pair of points: at a million lights they stream from
+ * memory, and two points a pass were bound by that), and each point keeps its lanes' running luminance at the end
+ * of every group of EACH_GROUP lights. The sum up to a group is those 16 floats added as a tree: monotone in the
+ * group, which a binary search over the groups then inverts; the group's 64 terms are computed again to find the
+ * light. A point's answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
 #define EACH_LANES 16
 /* float terms contracted into fused multiply-adds where the compiler can (this sum is not one of those that
  * must give Warp's bits) */
@@ -785,28 +788,34 @@ EACH_FAST __attribute__((always_inline)) static inline float each_term(
     return (ok ? cs * lobe : 0.0f) / (ok ? den : 1.0f);
 }
 
-/* the running sum up to the end of block b: its 16 lanes' running sums added as a tree (a fixed order, so monotone
- * in b as every lane is; a chain of 16 dependent adds made each draw's binary search latency-bound) */
-static inline double each_block_sum(const float *snap, int64_t b) {
-    const float *v = snap + b * EACH_LANES;
-    double s[EACH_LANES / 2];
-    for (int k = 0; k < EACH_LANES / 2; k++) s[k] = (double)v[k] + (double)v[k + EACH_LANES / 2];
+/* the 16 lanes' running sums added as a tree in float (a fixed order: monotone from block to block as every lane
+ * is, so the blocks' totals can be searched) */
+EACH_FAST __attribute__((always_inline)) static inline float each_lanes_sum(const float *v) {
+    float h[EACH_LANES / 2];
+    for (int k = 0; k < EACH_LANES / 2; k++) h[k] = v[k] + v[k + EACH_LANES / 2];
     for (int w = EACH_LANES / 4; w > 0; w /= 2)
-        for (int k = 0; k < w; k++) s[k] += s[k + w];
-    return s[0];
+        for (int k = 0; k < w; k++) h[k] += h[k + w];
+    return h[0];
 }
 
-/* points taken together through the lights (each light's columns loaded once for all of them: at 100,000 lights
- * the columns outgrow the cache, and one point at a time was bound by the loads) */
+/* points taken together through a block of lights (each light's columns loaded once for all of them: at 100,000
+ * lights the columns outgrow L2, and one point at a time was bound by the loads; four spilled the lanes) */
 #define EACH_POINTS 2
 
-/* point p's irradiance from its lanes' sums, and its shadow draws from its running sums `snap` */
-EACH_FAST static void each_finish(const float *const *light, int64_t n, const int mode, float px, float py,
-                                  float pz, float nx, float ny, float nz, float clamp_d2, float inv_m2, int32_t samples,
-                                  int32_t seed, int64_t first, int64_t p, const float acc[5][EACH_LANES],
-                                  const float *snap, float *irradiance, float *count, int32_t *sample_light,
-                                  float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
-    const int64_t blocks = n / EACH_LANES;
+/* lights per group: a point's running total is kept at the end of each group (a horizontal sum of the lanes per
+ * block of 16 cost a third of the sum), and a draw computes its group's terms again */
+#define EACH_GROUP 64
+
+/* point p's irradiance from its lanes' sums, and its shadow draws from `total`, the running sum of its lights'
+ * luminance at the end of each group of EACH_GROUP lights, in its 16 lanes (each_lanes_sum adds them): a draw's
+ * group is the first whose total exceeds its
+ * threshold, and its light the group's light at which the group's terms, computed again, pass it */
+EACH_FAST __attribute__((always_inline)) static inline void each_finish(
+    const float *const *light, int64_t n, const int mode, float px, float py, float pz, float nx, float ny, float nz,
+    float clamp_d2, float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t p,
+    const float acc[5][EACH_LANES], const float *total, float *restrict totals, float *irradiance, float *count,
+    int32_t *sample_light, float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
+    const int64_t groups = n / EACH_GROUP;
     for (int c = 0; c < 3; c++) {
         double sum = 0.0;
         for (int k = 0; k < EACH_LANES; k++) sum += acc[c][k];
@@ -815,7 +824,9 @@ EACH_FAST static void each_finish(const float *const *light, int64_t n, const in
     double reach = 0.0;
     for (int k = 0; k < EACH_LANES; k++) reach += acc[4][k];
     count[p] = (float)reach;
-    const double total = blocks ? each_block_sum(snap, blocks - 1) : 0.0;
+    if (samples <= 0) return;
+    for (int64_t g = 0; g < groups; g++) totals[g] = each_lanes_sum(total + g * EACH_LANES);  /* (searched in L1/L2) */
+    const double all = groups ? (double)totals[groups - 1] : 0.0;
     uint32_t rng = rand_init(seed, (int32_t)(first + p));
     const float u = samples > 0 ? randf(&rng) : 0.0f;
     int64_t from = 0;
@@ -825,69 +836,106 @@ EACH_FAST static void each_finish(const float *const *light, int64_t n, const in
         sample_light[row] = -1;
         sample_lum[row] = 0.0f;
         sample_weight[3 * row] = sample_weight[3 * row + 1] = sample_weight[3 * row + 2] = 0.0f;
-        if (!(total > 0.0)) continue;
-        const double t = ((double)s + (double)u) / (double)samples * total;
-        int64_t a = from, z = blocks - 1;           /* the first block whose running sum exceeds t */
-        for (int64_t step = 1; a + step < z; step *= 2) {     /* galloping from the last draw's block */
-            if (each_block_sum(snap, a + step - 1) > t) { z = a + step - 1; break; }
+        if (!(all > 0.0)) continue;
+        const double t = ((double)s + (double)u) / (double)samples * all;
+        int64_t a = from, z = groups - 1;           /* the first group whose running sum exceeds t */
+        for (int64_t step = 1; a + step < z; step *= 2) {     /* galloping from the last draw's group */
+            if ((double)totals[a + step - 1] > t) { z = a + step - 1; break; }
             a += step;
         }
         while (a < z) {
             const int64_t m = a + (z - a) / 2;
-            if (each_block_sum(snap, m) > t) z = m; else a = m + 1;
+            if ((double)totals[m] > t) z = m; else a = m + 1;
         }
         from = a;
-        double run = a > 0 ? each_block_sum(snap, a - 1) : 0.0;
+        const int64_t j0 = a * EACH_GROUP;
+        const int size = EACH_GROUP;
+        float f[EACH_GROUP];
+        for (int k = 0; k < size; k++)
+            f[k] = each_term(light, j0 + k, mode, px, py, pz, nx, ny, nz, clamp_d2) * light[9][j0 + k];
+        double run = a > 0 ? (double)totals[a - 1] : 0.0;
         int chosen = -1, last = -1;
-        for (int k = 0; k < EACH_LANES; k++) {
-            const float v = snap[a * EACH_LANES + k] - (a > 0 ? snap[(a - 1) * EACH_LANES + k] : 0.0f);
-            if (!(v > 0.0f)) continue;
+        for (int k = 0; k < size; k++) {
+            if (!(f[k] > 0.0f)) continue;
             last = k;
-            run += v;
+            run += f[k];
             if (run > t) { chosen = k; break; }
         }
-        if (chosen < 0) chosen = last;              /* rounding: the block's last light that adds */
+        if (chosen < 0) chosen = last;              /* rounding: the group's last light that adds */
         if (chosen < 0) continue;
-        const int64_t j = a * EACH_LANES + chosen;
+        const int64_t j = j0 + chosen;
         const float g = each_term(light, j, mode, px, py, pz, nx, ny, nz, clamp_d2) * inv_m2;
-        const float f = g * light[9][j];
-        if (!(f > 0.0f)) continue;
+        const float fj = g * light[9][j];
+        if (!(fj > 0.0f)) continue;
         sample_ok[row] = 1;
         sample_light[row] = (int32_t)j;
-        sample_lum[row] = f;
-        for (int c = 0; c < 3; c++) sample_weight[3 * row + c] = g * light[6 + c][j] / f;
+        sample_lum[row] = fj;
+        for (int c = 0; c < 3; c++) sample_weight[3 * row + c] = g * light[6 + c][j] / fj;
     }
 }
 
-/* points p0 .. hi - 1 in steps of EACH_POINTS, for one `mode` (a constant where it is inlined) */
+/* lights per chunk: a tile's points go through one chunk before the next, so that its columns are read from
+ * memory once per tile and from L2 for its other points (4,096 lights: 180 KB of columns); points per tile */
+#define EACH_CHUNK 4096
+#define EACH_TILE 32
+
+/* points lo .. hi - 1, tile by tile, for one `mode` (a constant where it is inlined); `state` holds a tile's
+ * lanes (EACH_TILE * 5 * EACH_LANES floats) and `total` its points' block totals (EACH_TILE * n / EACH_LANES) */
 EACH_FAST __attribute__((always_inline)) static inline void each_points(
     const float *points, const float *normals, const float *const *light, int64_t n, const int mode, float clamp_d2,
-    float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, float *snap, float *irradiance,
-    float *count, int32_t *sample_light, float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
-    for (int64_t p0 = lo; p0 < hi; p0 += EACH_POINTS) {
-        float px[EACH_POINTS], py[EACH_POINTS], pz[EACH_POINTS], nx[EACH_POINTS], ny[EACH_POINTS], nz[EACH_POINTS];
-        for (int i = 0; i < EACH_POINTS; i++) {     /* past hi: the last point again, not written */
-            const int64_t p = p0 + i < hi ? p0 + i : hi - 1;
-            px[i] = points[3 * p], py[i] = points[3 * p + 1], pz[i] = points[3 * p + 2];
-            nx[i] = normals[3 * p], ny[i] = normals[3 * p + 1], nz[i] = normals[3 * p + 2];
-        }
-        float acc[EACH_POINTS][5][EACH_LANES] = {{{0}}};
-        for (int64_t j = 0; j < n; j += EACH_LANES)
-            for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for every point but the first */
-                for (int k = 0; k < EACH_LANES; k++) {
-                    const float g = each_term(light, j + k, mode, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2);
-                    acc[i][0][k] += g * light[6][j + k];
-                    acc[i][1][k] += g * light[7][j + k];
-                    acc[i][2][k] += g * light[8][j + k];
-                    const float f = g * light[9][j + k];
-                    acc[i][3][k] += f;
-                    acc[i][4][k] += f > 0.0f ? 1.0f : 0.0f;     /* (a padding light has no luminance) */
-                    snap[i * n + j + k] = acc[i][3][k];
+    float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, float *restrict state,
+    float *restrict total, float *restrict totals,
+    float *irradiance, float *count, int32_t *sample_light, float *sample_weight, float *sample_lum,
+    uint8_t *sample_ok) {
+    const int64_t groups = n / EACH_GROUP;
+    for (int64_t t0 = lo; t0 < hi; t0 += EACH_TILE) {
+        const int64_t tile = hi - t0 < EACH_TILE ? hi - t0 : EACH_TILE;
+        memset(state, 0, sizeof(float) * EACH_TILE * 5 * EACH_LANES);
+        for (int64_t c0 = 0; c0 < n; c0 += EACH_CHUNK) {
+            const int64_t c1 = n - c0 < EACH_CHUNK ? n : c0 + EACH_CHUNK;
+            for (int64_t i0 = 0; i0 < tile; i0 += EACH_POINTS) {
+                float px[EACH_POINTS], py[EACH_POINTS], pz[EACH_POINTS], nx[EACH_POINTS], ny[EACH_POINTS],
+                    nz[EACH_POINTS];
+                for (int i = 0; i < EACH_POINTS; i++) {     /* past the tile: its last point again, not kept */
+                    const int64_t p = t0 + (i0 + i < tile ? i0 + i : tile - 1);
+                    px[i] = points[3 * p], py[i] = points[3 * p + 1], pz[i] = points[3 * p + 2];
+                    nx[i] = normals[3 * p], ny[i] = normals[3 * p + 1], nz[i] = normals[3 * p + 2];
                 }
-        for (int i = 0; i < EACH_POINTS && p0 + i < hi; i++)
-            each_finish(light, n, mode, px[i], py[i], pz[i], nx[i], ny[i], nz[i], clamp_d2, inv_m2, samples, seed,
-                        first, p0 + i, (const float(*)[EACH_LANES])acc[i], snap + i * n, irradiance, count,
-                        sample_light, sample_weight, sample_lum, sample_ok);
+                float acc[EACH_POINTS][5][EACH_LANES] = {{{0}}};      /* the chunk's own sums */
+                float base[EACH_POINTS][EACH_LANES];    /* each lane's running luminance before the chunk */
+                for (int i = 0; i < EACH_POINTS; i++)
+                    memcpy(base[i], state + ((i0 + i < tile ? i0 + i : tile - 1) * 5 + 3) * EACH_LANES, sizeof base[i]);
+                for (int64_t g0 = c0; g0 < c1; g0 += EACH_GROUP) {
+                    for (int64_t j = g0; j < g0 + EACH_GROUP; j += EACH_LANES)
+                        for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for the second point */
+                            for (int k = 0; k < EACH_LANES; k++) {
+                                const float g = each_term(light, j + k, mode, px[i], py[i], pz[i], nx[i], ny[i], nz[i],
+                                                          clamp_d2);
+                                acc[i][0][k] += g * light[6][j + k];
+                                acc[i][1][k] += g * light[7][j + k];
+                                acc[i][2][k] += g * light[8][j + k];
+                                const float f = g * light[9][j + k];
+                                acc[i][3][k] += f;
+                                acc[i][4][k] += f > 0.0f ? 1.0f : 0.0f;     /* (a padding light has no luminance) */
+                                /* the group's running totals, lane by lane: written by each of its blocks (the
+                                 * last one's stay), in the loop that sums them (a store after it cost a third) */
+                                total[((i0 + i) * groups + g0 / EACH_GROUP) * EACH_LANES + k] = base[i][k] +
+                                                                                            acc[i][3][k];
+                            }
+                }
+                for (int i = 0; i < EACH_POINTS && i0 + i < tile; i++)
+                    for (int c = 0; c < 5; c++)
+                        for (int k = 0; k < EACH_LANES; k++) state[((i0 + i) * 5 + c) * EACH_LANES + k] += acc[i][c][k];
+            }
+        }
+        for (int64_t i = 0; i < tile; i++) {
+            const int64_t p = t0 + i;
+            each_finish(light, n, mode, points[3 * p], points[3 * p + 1], points[3 * p + 2], normals[3 * p],
+                        normals[3 * p + 1], normals[3 * p + 2], clamp_d2, inv_m2, samples, seed, first, p,
+                        (const float(*)[EACH_LANES])(state + i * 5 * EACH_LANES), total + i * groups * EACH_LANES,
+                        totals, irradiance,
+                        count, sample_light, sample_weight, sample_lum, sample_ok);
+        }
     }
 }
 
@@ -896,19 +944,29 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
                                             int32_t seed, int64_t first, int64_t lo, int64_t hi, float *irradiance,
                                             float *count, int32_t *sample_light, float *sample_weight,
                                             float *sample_lum, uint8_t *sample_ok) {
-    if (n % EACH_LANES || mode < EACH_COSINE || mode > EACH_MIXED) return 0;
-    float *snap = (float *)malloc((size_t)(n > 0 ? n : 1) * EACH_POINTS * sizeof(float));
-    if (!snap) return 0;
+    if (n % EACH_GROUP || mode < EACH_COSINE || mode > EACH_MIXED) return 0;
+    float *state = (float *)malloc(sizeof(float) * EACH_TILE * 5 * EACH_LANES);
+    float *snap = (float *)malloc(sizeof(float) * EACH_LANES * (size_t)EACH_TILE *
+                                  (size_t)(n > 0 ? n / EACH_GROUP : 1));
+    float *totals = (float *)malloc(sizeof(float) * (size_t)(n > 0 ? n / EACH_GROUP : 1));
+    if (!snap || !state || !totals) {
+        free(snap);
+        free(state);
+        free(totals);
+        return 0;
+    }
     if (mode == EACH_COSINE)
-        each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
-                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
+                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else if (mode == EACH_ISOTROPIC)
-        each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
-                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
+                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else
-        each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, snap,
-                    irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
+                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     free(snap);
+    free(state);
+    free(totals);
     return 1;
 }
 

@@ -495,6 +495,10 @@ def test_the_frame_gathers_from_every_light_where_that_costs_less(monkeypatch):
     auto = choose()
     lanes = lgh_native.each_lanes()
     assert auto["each_visits"] == pytest.approx(lgh_direct.EACH_VISIT_COSTS[lanes] * 3000)
+    # above 100,000 lights a light costs fewer visits (the hierarchy's tables outgrow the caches)
+    assert lgh_direct.each_visits(1_000_000, lanes) == pytest.approx(
+        lgh_direct.EACH_VISIT_COSTS[lanes] * 1_000_000 * 10 ** -lgh_direct.EACH_COST_FALL)
+    assert lgh_direct.each_visits(100_000, lanes) == pytest.approx(lgh_direct.EACH_VISIT_COSTS[lanes] * 100_000)
     assert auto["gather"] == ("each" if auto["each_visits"] <= auto["hierarchy_visits"] else "hierarchy")
     assert auto["gather"] == "each" and auto["hierarchy_visits"] > 1000     # 3,000 lamps, most in the near field
     monkeypatch.setitem(lgh_direct.EACH_VISIT_COSTS, lanes, auto["hierarchy_visits"] / 3000 * 1.01)

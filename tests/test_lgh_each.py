@@ -120,6 +120,26 @@ def test_compiled_and_numpy_draw_the_same_lights():
     assert 0.0 <= uniform(3, np.arange(5)).min() and uniform(3, np.arange(5)).max() < 1.0
 
 
+def test_the_compiled_sum_over_chunks_and_tiles():
+    """``lghq_each`` takes its lights in chunks of 4,096 over tiles of 32 points, keeping each point's running sums
+    between chunks: 9,000 point lights (three chunks, the last one padded) at 45 points (a tile and a part), against
+    the NumPy sum and draws of the same lights and uniforms."""
+    if library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
+    rng = np.random.default_rng(21)
+    q = (rng.normal(size=(9000, 3)) * 6).astype(np.float32)
+    inten = rng.uniform(0.01, 1.0, size=(9000, 3)).astype(np.float32)
+    pts = (rng.normal(size=(45, 3)) * 2).astype(np.float32)
+    pn = _unit(rng.normal(size=(45, 3)))
+    lights = EachLight((q, inten, None))
+    a = lights.gather(8, 5, 1.0, 1e-3, compiled=True)(pts, pn, first=7)
+    b = lights.gather(8, 5, 1.0, 1e-3, compiled=False)(pts, pn, first=7)
+    np.testing.assert_allclose(a.irradiance, b.irradiance, rtol=1e-4)
+    np.testing.assert_array_equal(a.count, b.count)
+    assert (a.count > 1000).all() and a.sample_ok.all()
+    assert (a.sample_light == b.sample_light).mean() > 0.99
+
+
 def _square_occluder(points, targets, normals=None, distant=None):
     """Analytic: a unit square at z = 0.5 (|x|, |y| < 1) blocks a segment that crosses it."""
     p, t = np.asarray(points, np.float64), np.asarray(targets, np.float64)

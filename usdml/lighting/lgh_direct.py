@@ -69,12 +69,27 @@ SHADOW_TARGETS = "cluster"
 COSINE_SHARE = 0.25
 
 #: what a grid light's term in the sum over every light (``usdml:direct:gather`` each, ``kernels/lghq.c``
-#: ``lghq_each``) costs in visits of the hierarchy's gather at usdml:direct:alpha, by the lanes the sum runs on
-#: (:func:`usdml.lighting.lgh_native.each_lanes`; 0: a platform without the function clones, taken as AVX2).
-#: AVX-512: the sum's seconds over the hierarchy's per visit on the suite's six tuning stages at 100,000 lights,
-#: 128 px, both with their own shadow rays (64-121 per pixel): 0.024-0.043 (docs/lgh-direct.md); AVX2 and SSE
-#: scaled as ``--gi lgh``'s VPL sums measured (1.6-1.7 and 3.2 times AVX-512's per light)
-EACH_VISIT_COSTS = {16: 0.03, 8: 0.05, 4: 0.1, 0: 0.05}
+#: ``lghq_each``) costs in visits of the hierarchy's gather at usdml:direct:alpha, up to :data:`EACH_COST_LIGHTS`
+#: lights, by the lanes the sum runs on (:func:`usdml.lighting.lgh_native.each_lanes`; 0: a platform without the
+#: function clones, taken as AVX2). AVX-512: the sum's seconds over the hierarchy's per visit on the suite's six
+#: tuning stages at 100,000 lights, 128 px, both with their own shadow rays (64-121 per pixel): 0.025-0.039
+#: (docs/lgh-direct.md); AVX2 and SSE scaled as ``--gi lgh``'s VPL sums measured (1.6-1.7 and 3.2 times
+#: AVX-512's per light)
+EACH_VISIT_COSTS = {16: 0.034, 8: 0.055, 4: 0.11, 0: 0.055}
+#: above this many lights a light's term costs less in the hierarchy's visits, as (lights / this) ** -EACH_COST_FALL:
+#: the hierarchy's tables outgrow the caches while the sum streams its lights in chunks. On the tuning stages at
+#: 1,000,000 lights (256 px) a term cost 0.012-0.018 visits, against 0.025-0.039 at 100,000
+EACH_COST_LIGHTS = 100_000
+EACH_COST_FALL = 0.32
+
+
+def each_visits(lights: int, lanes: int) -> float:
+    """What a point's sum over ``lights`` grid lights costs, in visits of the hierarchy's gather, on ``lanes``
+    (:data:`EACH_VISIT_COSTS`, falling above :data:`EACH_COST_LIGHTS` lights)."""
+    cost = EACH_VISIT_COSTS.get(lanes, EACH_VISIT_COSTS[0])
+    if lights > EACH_COST_LIGHTS:
+        cost *= (lights / EACH_COST_LIGHTS) ** -EACH_COST_FALL
+    return cost * lights
 
 #: the automatic shadow samples (``usdml:direct:shadowSamples`` 0, :func:`choose_shadow_samples`): a pilot of
 #: PILOT_SAMPLES rays per point on PILOT_POINTS of the frame's first pass, twice with other seeds
@@ -167,7 +182,8 @@ def choose_gather(points: np.ndarray, direct: DirectField, settings, device: str
     grid light (``usdml:direct:gather``); sets ``direct.each`` and returns the choice's stats.
 
     ``auto`` takes every light on a CPU with the compiled sum (:func:`usdml.lighting.lgh_native.each_lanes`)
-    where a point's sum over the N grid lights, ``N ·`` :data:`EACH_VISIT_COSTS` visits, costs no more than the
+    where a point's sum over the N grid lights (:func:`each_visits`: ``N ·`` :data:`EACH_VISIT_COSTS` visits up to
+    :data:`EACH_COST_LIGHTS` lights, fewer per light above) costs no more than the
     hierarchy's gather at ``usdml:direct:alpha`` (:func:`usdml.lighting.lgh_lighting.lights_visited`: the grid
     lights and S0 lights a point visits, counted on a few of the points, drawn by the seed)."""
     from usdml.lighting import lgh_native
@@ -184,9 +200,9 @@ def choose_gather(points: np.ndarray, direct: DirectField, settings, device: str
         else:
             visits = float(lights_visited(direct.lgh, points, [settings.direct_alpha], s0_positions=direct.sources[0],
                                           seed=int(settings.seed))[0])
-            each_visits = EACH_VISIT_COSTS.get(lanes, EACH_VISIT_COSTS[0]) * len(direct.grid)
-            stats.update({"hierarchy_visits": visits, "each_visits": each_visits})
-            mode = "each" if each_visits <= visits else "hierarchy"
+            cost = each_visits(len(direct.grid), lanes)
+            stats.update({"hierarchy_visits": visits, "each_visits": cost})
+            mode = "each" if cost <= visits else "hierarchy"
     direct.each = EachLight(direct.sources) if mode == "each" else None
     stats["gather"] = mode
     return stats

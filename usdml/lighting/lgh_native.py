@@ -22,7 +22,7 @@ import numpy as np
 
 from usdml.native import Extension
 
-__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "EachLights", "EACH_LANES", "each_lanes", "guide"]
+__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "EachLights", "EACH_GROUP", "each_lanes", "guide"]
 
 _P = ctypes.c_void_p
 _i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
@@ -221,8 +221,9 @@ class CosineLights:
                                   int(lo), int(hi), out.ctypes.data)
 
 
-#: ``lghq_each`` takes its lights in blocks of this many (:class:`EachLights` pads with lights that add nothing)
-EACH_LANES = 16
+#: ``lghq_each`` takes its lights in groups of this many (``EACH_GROUP``; :class:`EachLights` pads with lights that
+#: add nothing)
+EACH_GROUP = 64
 
 
 def each_lanes() -> int:
@@ -240,12 +241,12 @@ class EachLights:
     """``lghq_each``'s lights: N emitters as the LGH models them (positions, normals, intensities), an isotropic
     share a = 1 - |normal| plus a one-sided cosine lobe about the normal (VPLs and disk lights: unit normals;
     point lights: no normal), as eleven float32 columns (the tenth each intensity's luminance, the eleventh a),
-    padded to a multiple of :data:`EACH_LANES` with lights of no intensity, no normal and a = 0. ``normals``
+    padded to a multiple of :data:`EACH_GROUP` with lights of no intensity, no normal and a = 0. ``normals``
     None: every light isotropic."""
 
     def __init__(self, positions: np.ndarray, intensity: np.ndarray, normals: np.ndarray | None):
         self.n = len(positions)
-        padded = -(-self.n // EACH_LANES) * EACH_LANES
+        padded = -(-self.n // EACH_GROUP) * EACH_GROUP
         self._columns = np.zeros((11, padded), np.float32)
         self._columns[0:3, :self.n] = np.asarray(positions, np.float32).reshape(-1, 3).T
         self._columns[6:9, :self.n] = np.asarray(intensity, np.float32).reshape(-1, 3).T
