@@ -732,7 +732,8 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
  * k + 16, ... of each block of 16; a tile of EACH_TILE points goes through the lights a chunk of EACH_CHUNK at a
  * time (the chunk's columns from L2 for all but the first pair of points: at a million lights they stream from
  * memory, and two points a pass were bound by that), and each point keeps its lanes' running luminance at the end
- * of every group of EACH_GROUP lights. The sum up to a group is those 16 floats added as a tree: monotone in the
+ * of every group of EACH_GROUP lights; a pair of points skips a chunk whose box lies behind both their tangent
+ * planes (every term 0: the same sums). The sum up to a group is those 16 floats added as a tree: monotone in the
  * group, which a binary search over the groups then inverts; the group's 64 terms are computed again to find the
  * light. A point's answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
 #define EACH_LANES 16
@@ -874,6 +875,22 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
     }
 }
 
+/* whether every light in the chunk's box (centre, half extents) lies behind the tangent planes of all the points
+ * (cos θ_s <= 0: each term 0), with a margin for the rounding of the terms' dot products */
+EACH_FAST __attribute__((always_inline)) static inline int each_behind(const float *box, const float *px,
+                                                                      const float *py, const float *pz,
+                                                                      const float *nx, const float *ny,
+                                                                      const float *nz) {
+    for (int i = 0; i < EACH_POINTS; i++) {
+        const float dx = box[0] - px[i], dy = box[1] - py[i], dz = box[2] - pz[i];
+        const float reach = nx[i] * dx + ny[i] * dy + nz[i] * dz + fabsf(nx[i]) * box[3] + fabsf(ny[i]) * box[4] +
+                            fabsf(nz[i]) * box[5];
+        const float scale = fabsf(dx) + fabsf(dy) + fabsf(dz) + box[3] + box[4] + box[5];
+        if (!(reach < -1e-5f * scale)) return 0;
+    }
+    return 1;
+}
+
 /* lights per chunk: a tile's points go through one chunk before the next, so that its columns are read from
  * memory once per tile and from L2 for its other points (4,096 lights: 180 KB of columns); points per tile */
 #define EACH_CHUNK 4096
@@ -883,8 +900,8 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
  * lanes (EACH_TILE * 5 * EACH_LANES floats) and `total` its points' block totals (EACH_TILE * n / EACH_LANES) */
 EACH_FAST __attribute__((always_inline)) static inline void each_points(
     const float *points, const float *normals, const float *const *light, int64_t n, const int mode, float clamp_d2,
-    float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, float *restrict state,
-    float *restrict total, float *restrict totals,
+    float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, const float *box,
+    float *restrict state, float *restrict total, float *restrict totals,
     float *irradiance, float *count, int32_t *sample_light, float *sample_weight, float *sample_lum,
     uint8_t *sample_ok) {
     const int64_t groups = n / EACH_GROUP;
@@ -905,6 +922,13 @@ EACH_FAST __attribute__((always_inline)) static inline void each_points(
                 float base[EACH_POINTS][EACH_LANES];    /* each lane's running luminance before the chunk */
                 for (int i = 0; i < EACH_POINTS; i++)
                     memcpy(base[i], state + ((i0 + i < tile ? i0 + i : tile - 1) * 5 + 3) * EACH_LANES, sizeof base[i]);
+                if (box != NULL && each_behind(box + 6 * (c0 / EACH_CHUNK), px, py, pz, nx, ny, nz)) {
+                    /* every light of the chunk behind both points: each term 0, the totals stay */
+                    for (int i = 0; i < EACH_POINTS; i++)
+                        for (int64_t g0 = c0; g0 < c1; g0 += EACH_GROUP)
+                            memcpy(total + ((i0 + i) * groups + g0 / EACH_GROUP) * EACH_LANES, base[i], sizeof base[i]);
+                    continue;
+                }
                 for (int64_t g0 = c0; g0 < c1; g0 += EACH_GROUP) {
                     for (int64_t j = g0; j < g0 + EACH_GROUP; j += EACH_LANES)
                         for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for the second point */
@@ -939,7 +963,12 @@ EACH_FAST __attribute__((always_inline)) static inline void each_points(
     }
 }
 
+/* the lights per chunk lghq_each's `box` is given for */
+EXPORT int lghq_each_chunk(void) { return EACH_CHUNK; }
+
+/* `box`: each chunk's box of lights (centre x, y, z, half extents x, y, z; n / EACH_CHUNK rounded up), or NULL */
 EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *normals, const float *const *light,
+                                            const float *box,
                                             int64_t n, int32_t mode, float clamp_d2, float inv_m2, int32_t samples,
                                             int32_t seed, int64_t first, int64_t lo, int64_t hi, float *irradiance,
                                             float *count, int32_t *sample_light, float *sample_weight,
@@ -956,14 +985,14 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
         return 0;
     }
     if (mode == EACH_COSINE)
-        each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
-                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
+                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else if (mode == EACH_ISOTROPIC)
-        each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
-                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
+                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else
-        each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, state,
-                    snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+        each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
+                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     free(snap);
     free(state);
     free(totals);

@@ -138,6 +138,23 @@ def test_the_compiled_sum_over_chunks_and_tiles():
     np.testing.assert_array_equal(a.count, b.count)
     assert (a.count > 1000).all() and a.sample_ok.all()
     assert (a.sample_light == b.sample_light).mean() > 0.99
+    # a point skips the chunks of lights behind its tangent plane: the same answers, bit for bit
+    from usdml.lighting.lgh_native import EachLights
+
+    q2 = np.column_stack([rng.uniform(-20, 20, 20000), rng.uniform(0, 4, 20000), rng.uniform(-20, 20, 20000)])
+    sums = EachLights(*(EachLight((q2, np.ones((20000, 3), np.float32), None)).__dict__[k]
+                        for k in ("position", "intensity", "normal")))
+    flat = np.column_stack([rng.uniform(-5, 5, 40), np.zeros(40), rng.uniform(-5, 5, 40)]).astype(np.float32)
+    facing = np.tile(np.float32([1, 0, 0]), (40, 1))          # half the lights behind each point
+    outs = []
+    for cull in (True, False):
+        out = (np.zeros((40, 3), np.float32), np.zeros(40, np.float32), np.zeros((40, 8), np.int32),
+               np.zeros((40, 8, 3), np.float32), np.zeros((40, 8), np.float32), np.zeros((40, 8), np.uint8))
+        sums.gather(flat, facing, 1e-6, 1.0, 8, 3, 0, 0, 40, out, cull=cull)
+        outs.append(out)
+    for x, y in zip(*outs):
+        np.testing.assert_array_equal(x, y)
+    assert (outs[0][1] < 15000).all() and (outs[0][1] > 5000).all()
 
 
 def _square_occluder(points, targets, normals=None, distant=None):

@@ -63,8 +63,9 @@ EXTENSION = Extension("_lghq", {
     "lghq_guide": (None, [_P, _P, _P, _i64, _P]),
     "lghq_cosine_sum": (None, [_P, _P, _P, _i64, ctypes.c_double, _i64, _i64, _P]),
     "lghq_each_lanes": (ctypes.c_int, []),
-    "lghq_each": (ctypes.c_int, [_P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P, _P,
-                                 _P, _P]),
+    "lghq_each_chunk": (ctypes.c_int, []),
+    "lghq_each": (ctypes.c_int, [_P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P,
+                                 _P, _P, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
 
@@ -261,14 +262,27 @@ class EachLights:
         self.padded = padded
         a = self._columns[10, :self.n]
         self.mode = ("cosine" if not (a > 0).any() else "isotropic" if (a == 1.0).all() else "mixed")
+        # each chunk's box (centre, half extents) of the kernel's chunks of lights: a point skips a chunk whose
+        # box lies behind its tangent plane (the lights are in Morton order, so a chunk is a compact region)
+        chunk = int(library().lghq_each_chunk())
+        chunks = -(-padded // chunk)
+        pos = self._columns[:3].T
+        self._box = np.zeros((chunks, 6), np.float32)
+        for c in range(chunks):
+            part = pos[c * chunk:(c + 1) * chunk].astype(np.float64)
+            lo, hi = part.min(axis=0), part.max(axis=0)
+            self._box[c, :3] = 0.5 * (lo + hi)
+            self._box[c, 3:] = 0.5 * (hi - lo) * (1 + 1e-6) + 1e-6 * (np.abs(lo) + np.abs(hi))
 
     def gather(self, points: np.ndarray, normals: np.ndarray, clamp_d2: float, inv_m2: float, samples: int, seed: int,
-               first: int, lo: int, hi: int, out: tuple) -> None:
+               first: int, lo: int, hi: int, out: tuple, cull: bool = True) -> None:
         """Points ``lo .. hi - 1`` (``points``, ``normals``: (P, 3) float32, C-contiguous; point p's random stream
         ``first + p``): ``out = (irradiance (P, 3) f32, count (P,) f32, light (P, k) int32, weight (P, k, 3) f32,
         lum (P, k) f32, ok (P, k) uint8)`` written for those rows (``lghq_each``; count: the lights that reach
-        the point)."""
-        if not library().lghq_each(points.ctypes.data, normals.ctypes.data, self._pointers, self.padded,
+        the point). ``cull``: skip the chunks behind a point (the same answers, bit for bit)."""
+        if not library().lghq_each(points.ctypes.data, normals.ctypes.data, self._pointers,
+                                   self._box.ctypes.data if cull else None,
+                                   self.padded,
                                    EACH_MODES[self.mode], float(clamp_d2), float(inv_m2), int(samples), int(seed),
                                    int(first), int(lo), int(hi), *(a.ctypes.data for a in out)):
             raise MemoryError("lghq_each: no memory for a point's running sums")
