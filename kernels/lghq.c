@@ -717,7 +717,7 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
     }
 }
 
-/* ---- every VPL its own light (--lgh-split each): the hierarchy's limit, summed exactly ---- */
+/* ---- every light its own light (--lgh-split each, --direct-gather each): the hierarchy's limit, summed ---- */
 
 /* Points lo .. hi - 1 of the frame: the unshadowed irradiance of every input light (lghq_cosine_sum's model, in
  * float, generalised as the LGH's lobe: an isotropic share a plus a one-sided cosine lobe 4 max(0, cos θ_l) about
@@ -808,9 +808,9 @@ EACH_FAST __attribute__((always_inline)) static inline float each_lanes_sum(cons
 #define EACH_GROUP 64
 
 /* point p's irradiance from its lanes' sums, and its shadow draws from `total`, the running sum of its lights'
- * luminance at the end of each group of EACH_GROUP lights, in its 16 lanes (each_lanes_sum adds them): a draw's
- * group is the first whose total exceeds its
- * threshold, and its light the group's light at which the group's terms, computed again, pass it */
+ * luminance at the end of each group of EACH_GROUP lights, in its 16 lanes (each_lanes_sum adds them into
+ * `totals`): a draw's group is the first whose total exceeds its threshold, and its light the group's light at
+ * which the group's terms, computed again, pass it */
 EACH_FAST __attribute__((always_inline)) static inline void each_finish(
     const float *const *light, int64_t n, const int mode, float px, float py, float pz, float nx, float ny, float nz,
     float clamp_d2, float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t p,
@@ -829,7 +829,7 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
     for (int64_t g = 0; g < groups; g++) totals[g] = each_lanes_sum(total + g * EACH_LANES);  /* (searched in L1/L2) */
     const double all = groups ? (double)totals[groups - 1] : 0.0;
     uint32_t rng = rand_init(seed, (int32_t)(first + p));
-    const float u = samples > 0 ? randf(&rng) : 0.0f;
+    const float u = randf(&rng);
     int64_t from = 0;
     for (int32_t s = 0; s < samples; s++) {
         const int64_t row = p * samples + s;
@@ -850,13 +850,12 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
         }
         from = a;
         const int64_t j0 = a * EACH_GROUP;
-        const int size = EACH_GROUP;
         float f[EACH_GROUP];
-        for (int k = 0; k < size; k++)
+        for (int k = 0; k < EACH_GROUP; k++)
             f[k] = each_term(light, j0 + k, mode, px, py, pz, nx, ny, nz, clamp_d2) * light[9][j0 + k];
         double run = a > 0 ? (double)totals[a - 1] : 0.0;
         int chosen = -1, last = -1;
-        for (int k = 0; k < size; k++) {
+        for (int k = 0; k < EACH_GROUP; k++) {
             if (!(f[k] > 0.0f)) continue;
             last = k;
             run += f[k];
@@ -897,7 +896,8 @@ EACH_FAST __attribute__((always_inline)) static inline int each_behind(const flo
 #define EACH_TILE 32
 
 /* points lo .. hi - 1, tile by tile, for one `mode` (a constant where it is inlined); `state` holds a tile's
- * lanes (EACH_TILE * 5 * EACH_LANES floats) and `total` its points' block totals (EACH_TILE * n / EACH_LANES) */
+ * lanes (EACH_TILE * 5 * EACH_LANES floats), `total` its points' lanes at the end of each group (EACH_TILE *
+ * n / EACH_GROUP * EACH_LANES) and `totals` one point's group totals (n / EACH_GROUP) */
 EACH_FAST __attribute__((always_inline)) static inline void each_points(
     const float *points, const float *normals, const float *const *light, int64_t n, const int mode, float clamp_d2,
     float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, const float *box,
@@ -975,25 +975,25 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
                                             float *sample_lum, uint8_t *sample_ok) {
     if (n % EACH_GROUP || mode < EACH_COSINE || mode > EACH_MIXED) return 0;
     float *state = (float *)malloc(sizeof(float) * EACH_TILE * 5 * EACH_LANES);
-    float *snap = (float *)malloc(sizeof(float) * EACH_LANES * (size_t)EACH_TILE *
+    float *total = (float *)malloc(sizeof(float) * EACH_LANES * (size_t)EACH_TILE *
                                   (size_t)(n > 0 ? n / EACH_GROUP : 1));
     float *totals = (float *)malloc(sizeof(float) * (size_t)(n > 0 ? n / EACH_GROUP : 1));
-    if (!snap || !state || !totals) {
-        free(snap);
+    if (!total || !state || !totals) {
+        free(total);
         free(state);
         free(totals);
         return 0;
     }
     if (mode == EACH_COSINE)
         each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else if (mode == EACH_ISOTROPIC)
         each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else
         each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, snap, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
-    free(snap);
+                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+    free(total);
     free(state);
     free(totals);
     return 1;

@@ -22,7 +22,7 @@ import numpy as np
 
 from usdml.native import Extension
 
-__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "EachLights", "EACH_GROUP", "each_lanes", "guide"]
+__all__ = ["EXTENSION", "library", "describe", "simd", "Gather", "Members", "sums", "CosineLights", "EachLights", "EACH_GROUP", "each_lanes", "isotropic_share", "guide"]
 
 _P = ctypes.c_void_p
 _i32, _i64, _f32 = ctypes.c_int32, ctypes.c_int64, ctypes.c_float
@@ -238,6 +238,14 @@ def each_lanes() -> int:
 EACH_MODES = {"cosine": 0, "isotropic": 1, "mixed": 2}
 
 
+def isotropic_share(normals: np.ndarray) -> np.ndarray:
+    """``(N,)`` float64: each light's isotropic share in the LGH's lobe, ``a = 1 - |normal|`` (0 for a VPL or a disk
+    light's unit normal, 1 for a point light's zero normal), rounding off a unit normal's float error."""
+    share = np.clip(1.0 - np.sqrt((np.asarray(normals, np.float64).reshape(-1, 3) ** 2).sum(axis=1)), 0.0, 1.0)
+    share[share < 1e-6] = 0.0
+    return share
+
+
 class EachLights:
     """``lghq_each``'s lights: N emitters as the LGH models them (positions, normals, intensities), an isotropic
     share a = 1 - |normal| plus a one-sided cosine lobe about the normal (VPLs and disk lights: unit normals;
@@ -253,8 +261,7 @@ class EachLights:
         self._columns[6:9, :self.n] = np.asarray(intensity, np.float32).reshape(-1, 3).T
         if normals is not None:
             self._columns[3:6, :self.n] = np.asarray(normals, np.float32).reshape(-1, 3).T
-        share = np.clip(1.0 - np.sqrt((self._columns[3:6, :self.n] ** 2).sum(axis=0)), 0.0, 1.0)
-        self._columns[10, :self.n] = np.where(share < 1e-6, 0.0, share)
+        self._columns[10, :self.n] = isotropic_share(self._columns[3:6, :self.n].T)
         lum = np.array([0.2126, 0.7152, 0.0722], np.float32)   # lghq.c's LUMA0..2
         self._columns[9, :self.n] = np.maximum(lum @ self._columns[6:9, :self.n], 0.0)
         self._columns[:3, self.n:] = self._columns[:3, :1] if self.n else 0.0
