@@ -297,3 +297,20 @@ def test_sample_runs_and_guide_table():
             while a + 1 < hi and cum[a + 1] <= x:
                 a += 1
             assert a == want
+
+
+def test_light_runs_counts_each_chosen_samples_light():
+    """light_runs (sorted rows by runs, others sorted first) against counting every pair of a point's samples."""
+    from usdml.lighting.lgh_lighting import light_runs
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        n, k = int(rng.integers(1, 12)), int(rng.integers(1, 30))
+        light = rng.integers(-1, int(rng.integers(1, 9)), (n, k))
+        if trial % 2:                   # every light its own light: the systematic draws come in order
+            light = np.sort(light, axis=1)
+        ok = (light >= 0) & (rng.random((n, k)) < 0.85)
+        pairs = ((light[:, :, None] == light[:, None, :]) & ok[:, None, :]).sum(axis=2)
+        got = light_runs(light, ok)
+        assert np.array_equal(got[ok], pairs[ok])
+        assert (got[~ok] == 1).all()

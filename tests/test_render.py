@@ -463,3 +463,27 @@ def test_exact_overhead_tool_agrees_with_bare_embree(new_stage):
     assert r["queries"] > 0 and r["rounds"] == 2 and r["disagreements"] == 0
     assert r["overhead_cpu"] and r["overhead_wall"] == pytest.approx(
         [a / b for a, b in zip(r["exact_seconds"], r["bare_embree_seconds"])])
+
+
+def test_a_sequence_reads_each_frame_once(new_stage, tmp_path, monkeypatch):
+    """The first frame renders from the snapshot the sequence read to size the image (read once, not twice);
+    every other frame reads its own; the pixels are those of a frame that reads its stage itself."""
+    path = _sequence_stage(new_stage)
+    reads = []
+    real = StageDelegate.snapshot
+
+    def counted(self, time):
+        reads.append(time)
+        return real(self, time)
+
+    monkeypatch.setattr(StageDelegate, "snapshot", counted)
+    out = str(tmp_path / "seq.####.exr")
+    assert main(["render", path, out, "--frames", "1:3", "--imageWidth", "16", "-q"]) == 0
+    assert reads == [1.0, 2.0, 3.0]
+    monkeypatch.setattr(StageDelegate, "snapshot", real)
+    d = StageDelegate(path)
+    alone = FrameRenderer(d, d.usdml_settings).render(1.0, 16, 9, {"color"})
+    given = FrameRenderer(d, d.usdml_settings).render(1.0, 16, 9, {"color"}, snapshot=d.snapshot(1.0))
+    other = FrameRenderer(d, d.usdml_settings).render(1.0, 16, 9, {"color"}, snapshot=d.snapshot(3.0))
+    assert np.array_equal(alone.buffers["color"], given.buffers["color"])
+    assert np.array_equal(alone.buffers["color"], other.buffers["color"])      # a snapshot of another time: read

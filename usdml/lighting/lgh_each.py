@@ -54,6 +54,7 @@ class EachLight:
         #: as noisy as independent draws)
         self.order = morton_order(position.astype(np.float32)) if len(position) else np.zeros(0, np.int64)
         self.position = position[self.order]
+        self.position32 = self.position.astype(np.float32)
         self.intensity = np.asarray(sources[1], np.float32).reshape(-1, 3)[self.order]
         normal = sources[2] if len(sources) > 2 else None
         self.normal = (np.zeros_like(self.intensity) if normal is None else
@@ -112,12 +113,18 @@ class EachGather:
             else:
                 self._numpy(p, nrm, first, out)
         irradiance, count, light, weight, lum, ok = out
-        ok = ok.astype(bool)
-        pos = np.zeros((n, k, 3), np.float32)
-        index = np.full((n, k), -1, np.int64)           # in the order the lights were given
-        if k and ok.any():
-            pos[ok] = self.vpls.position[light[ok]]
-            index[ok] = self.vpls.order[light[ok]]
+        ok = ok.view(bool)
+        # the drawn lights' positions and their places in the order given (row gathers by np.take, the unchosen
+        # samples set apart after: a boolean mask over the n·k samples cost 1.5 s of a million-light frame)
+        if len(self.vpls):
+            at = np.maximum(light, 0)
+            pos = np.take(self.vpls.position32, at, axis=0)
+            index = np.take(self.vpls.order, at).astype(np.int64, copy=False)
+        else:
+            pos, index = np.zeros((n, k, 3), np.float32), np.full((n, k), -1, np.int64)
+        if n and k and not ok.all():
+            pos[~ok] = 0.0
+            index[~ok] = -1
         return LGHShading(irradiance, pos, ok, index, weight, None, count, lum, np.ones(len(self.vpls), np.float32))
 
     def _numpy(self, p: np.ndarray, nrm: np.ndarray, first: int, out: tuple) -> None:

@@ -602,6 +602,33 @@ def shadow_fraction(points: np.ndarray, normals: np.ndarray, shading: LGHShading
     return visible, shadowed, rays
 
 
+def light_runs(light: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``(P, k)`` int: for each of a point's chosen samples (``ok``), how many of its chosen samples drew the same
+    ``light``; 1 where a sample was not chosen. A row's lights sorted first where they are not already (the
+    systematic draws of every light its own light come in order), then counted by runs: linear in k where a
+    comparison of every pair of samples was quadratic (at 87 samples and a million lights, 3.8 s of a frame)."""
+    n, k = light.shape
+    if n == 0 or k == 0:
+        return np.ones((n, k), np.int64)
+    key = np.where(ok, light.astype(np.int64), -1)
+    order = None
+    if k > 1 and not (key[:, 1:] >= key[:, :-1]).all():
+        order = np.argsort(key, axis=1, kind="stable")
+        key = np.take_along_axis(key, order, axis=1)
+    start = np.ones((n, k), bool)
+    start[:, 1:] = key[:, 1:] != key[:, :-1]
+    flat = start.ravel()
+    first = np.flatnonzero(flat)
+    run = np.cumsum(flat) - 1
+    length = np.diff(np.append(first, flat.size))[run].reshape(n, k)
+    runs = np.where(key >= 0, length, 1)
+    if order is not None:
+        back = np.empty_like(runs)
+        np.put_along_axis(back, order, runs, axis=1)
+        runs = back
+    return runs
+
+
 def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarray,
                         visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(shadowed (P, 3), visible (P,))`` by :func:`shadow_fraction`'s ``inclusion`` rule, in blocks of
@@ -611,13 +638,12 @@ def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarra
     n, k = seen.shape
     out = np.empty((n, 3), np.float32)
     visible = visible.copy()
-    step = max(1, (1 << 22) // max(k * k, 1))
+    step = max(1, (1 << 20) // max(k, 1))
     for lo in range(0, n, step):
         hi = min(n, lo + step)
         light = shading.sample_light[lo:hi]
         ok = shading.sample_ok[lo:hi]
-        same = (light[:, :, None] == light[:, None, :]) & ok[:, None, :]
-        runs = np.maximum(same.sum(axis=2), 1).astype(np.float64)        # samples of the sample's light
+        runs = light_runs(light, ok).astype(np.float64)      # samples of the sample's light
         f = shading.sample_lum[lo:hi].astype(np.float64)
         total = shading.irradiance[lo:hi].astype(np.float64) @ LUMA
         incl = np.minimum(1.0, k * f / np.maximum(total, 1e-30)[:, None])

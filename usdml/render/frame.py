@@ -121,11 +121,12 @@ class FrameRenderer:
                                       self.delegate.path)
 
     def render(self, time: float, width: int, height: int, aovs: set[str],
-               progress: Callable[[int], None] | None = None) -> FrameResult:
-        """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels."""
+               progress: Callable[[int], None] | None = None, snapshot: Snapshot | None = None) -> FrameResult:
+        """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels.
+        ``snapshot``: the stage at ``time`` as the caller has just read it (not read again)."""
         stats = FrameStats()
         t0 = _time.perf_counter()
-        snap, lights, camera = self.advance(time, width, height, stats)
+        snap, lights, camera = self.advance(time, width, height, stats, snapshot)
         frame = FrameInputs(snap, lights, width, height)
         samples = self.settings.pixel_samples
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
@@ -157,14 +158,14 @@ class FrameRenderer:
         stats.seconds = _time.perf_counter() - t0
         return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
 
-    def advance(self, time: float, width: int, height: int,
-                stats: FrameStats | None = None) -> tuple[Snapshot, Lights, Camera]:
-        """Move to timecode ``time``: its snapshot, the backends updated with what changed since the last
-        frame, ``(snapshot with the camera conformed to width × height, the frame's lights, that camera)``;
-        seconds of each step into ``stats``."""
+    def advance(self, time: float, width: int, height: int, stats: FrameStats | None = None,
+                snapshot: Snapshot | None = None) -> tuple[Snapshot, Lights, Camera]:
+        """Move to timecode ``time``: its snapshot (``snapshot`` where the caller read it at ``time``), the
+        backends updated with what changed since the last frame, ``(snapshot with the camera conformed to
+        width × height, the frame's lights, that camera)``; seconds of each step into ``stats``."""
         stats = FrameStats() if stats is None else stats
         t0 = _time.perf_counter()
-        snap = self.delegate.snapshot(time)
+        snap = snapshot if snapshot is not None and snapshot.time == time else self.delegate.snapshot(time)
         require_geometry(self.delegate, snap)
         stats.snapshot_seconds = _time.perf_counter() - t0
         seconds = self.backends.update(snap, diff(self._previous, snap))
