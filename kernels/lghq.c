@@ -826,8 +826,11 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
     for (int k = 0; k < EACH_LANES; k++) reach += acc[4][k];
     count[p] = (float)reach;
     if (samples <= 0) return;
-    for (int64_t g = 0; g < groups; g++) totals[g] = each_lanes_sum(total + g * EACH_LANES);  /* (searched in L1/L2) */
-    const double all = groups ? (double)totals[groups - 1] : 0.0;
+    /* a group's total is its lanes added when the search first reads it (a draw reads about log2 of the groups
+     * past the last draw's: at a million lights adding every group's lanes cost more than the draws) */
+    for (int64_t g = 0; g < groups; g++) totals[g] = -1.0f;
+#define EACH_TOTAL(g) (totals[g] >= 0.0f ? totals[g] : (totals[g] = each_lanes_sum(total + (g) * EACH_LANES)))
+    const double all = groups ? (double)EACH_TOTAL(groups - 1) : 0.0;
     uint32_t rng = rand_init(seed, (int32_t)(first + p));
     const float u = randf(&rng);
     int64_t from = 0;
@@ -841,19 +844,19 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
         const double t = ((double)s + (double)u) / (double)samples * all;
         int64_t a = from, z = groups - 1;           /* the first group whose running sum exceeds t */
         for (int64_t step = 1; a + step < z; step *= 2) {     /* galloping from the last draw's group */
-            if ((double)totals[a + step - 1] > t) { z = a + step - 1; break; }
+            if ((double)EACH_TOTAL(a + step - 1) > t) { z = a + step - 1; break; }
             a += step;
         }
         while (a < z) {
             const int64_t m = a + (z - a) / 2;
-            if ((double)totals[m] > t) z = m; else a = m + 1;
+            if ((double)EACH_TOTAL(m) > t) z = m; else a = m + 1;
         }
         from = a;
         const int64_t j0 = a * EACH_GROUP;
         float f[EACH_GROUP];
         for (int k = 0; k < EACH_GROUP; k++)
             f[k] = each_term(light, j0 + k, mode, px, py, pz, nx, ny, nz, clamp_d2) * light[9][j0 + k];
-        double run = a > 0 ? (double)totals[a - 1] : 0.0;
+        double run = a > 0 ? (double)EACH_TOTAL(a - 1) : 0.0;
         int chosen = -1, last = -1;
         for (int k = 0; k < EACH_GROUP; k++) {
             if (!(f[k] > 0.0f)) continue;
@@ -872,6 +875,7 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
         sample_lum[row] = fj;
         for (int c = 0; c < 3; c++) sample_weight[3 * row + c] = g * light[6 + c][j] / fj;
     }
+#undef EACH_TOTAL
 }
 
 /* whether every light in the chunk's box (centre, half extents) lies behind the tangent planes of all the points
@@ -961,6 +965,82 @@ EACH_FAST __attribute__((always_inline)) static inline void each_points(
                         count, sample_light, sample_weight, sample_lum, sample_ok);
         }
     }
+}
+
+/* ---- one step of the edge-avoiding à-trous filter (usdml/lighting/atrous.py) on a CPU ---- */
+
+/* kernels/atrous.py's atrous_step for image rows row0 .. row1 - 1, the same weights in the same order: `values`
+ * (h, w, nc) this step's input, `normal` and `position` (h, w, 3), `valid` (h, w), `inv_scale` (nc), taps `step`
+ * pixels apart; each tap weighs h(dy) h(dx) max(0, n_p.n_q)^sigma_normal exp(-|x_p - x_q|^2 inv_sx2 - dv^2
+ * inv_sv2) (a whole sigma_normal by squaring, another as exp(sigma_normal log(n_p.n_q)); no value term when
+ * inv_sv2 is 0); an invalid pixel is copied and never a tap. The Warp kernel ran a tap in about 50 ns on this CPU
+ * (one launch per band of rows, no vector code, a log and an exp a tap) */
+static const float ATROUS_TAP[3] = {0.375f, 0.25f, 0.0625f};
+
+EXPORT void lghq_atrous_step(const float *values, const float *normal, const float *position, const uint8_t *valid,
+                             const float *inv_scale, int32_t h, int32_t w, int32_t nc, int32_t step,
+                             float sigma_normal, float inv_sx2, float inv_sv2, int32_t row0, int32_t row1,
+                             float *out) {
+    const int32_t power = sigma_normal >= 1.0f && sigma_normal <= 4096.0f &&
+                          sigma_normal == (float)(int32_t)sigma_normal ? (int32_t)sigma_normal : 0;
+    for (int32_t y = row0; y < row1; y++)
+        for (int32_t x = 0; x < w; x++) {
+            const int64_t p = (int64_t)y * w + x;
+            const float *vp = values + p * nc;
+            float *op = out + p * nc;
+            if (!valid[p]) {
+                for (int c = 0; c < nc; c++) op[c] = vp[c];
+                continue;
+            }
+            const float *np_ = normal + 3 * p, *xp = position + 3 * p;
+            for (int c = 0; c < nc; c++) op[c] = 0.0f;
+            float wsum = 0.0f;
+            for (int dy = -2; dy <= 2; dy++) {
+                const int32_t yq = y + dy * step;
+                if (yq < 0 || yq >= h) continue;
+                const float hy = ATROUS_TAP[dy < 0 ? -dy : dy];
+                for (int dx = -2; dx <= 2; dx++) {
+                    const int32_t xq = x + dx * step;
+                    if (xq < 0 || xq >= w) continue;
+                    const int64_t q = (int64_t)yq * w + xq;
+                    if (!valid[q]) continue;
+                    float wn = 1.0f;
+                    if (sigma_normal > 0.0f) {
+                        const float cos_nq = dot3(np_, normal + 3 * q);
+                        if (cos_nq <= 0.0f) continue;
+                        if (power > 0) {            /* a whole power (the default 128): by squaring, no log */
+                            float b = cos_nq;
+                            for (int32_t e = power; e; e >>= 1) {
+                                if (e & 1) wn *= b;
+                                b *= b;
+                            }
+                        } else {
+                            wn = expf(sigma_normal * logf(cos_nq));
+                        }
+                    }
+                    const float *xq3 = position + 3 * q, *vq = values + q * nc;
+                    const float d0 = xp[0] - xq3[0], d1 = xp[1] - xq3[1], d2 = xp[2] - xq3[2];
+                    float dv2 = 0.0f;
+                    if (inv_sv2 != 0.0f)
+                        for (int c = 0; c < nc; c++) {
+                            const float dv = (vp[c] - vq[c]) * inv_scale[c];
+                            dv2 += dv * dv;
+                        }
+                    const float wgt = hy * ATROUS_TAP[dx < 0 ? -dx : dx] * wn *
+                                      expf(-((d0 * d0 + d1 * d1 + d2 * d2) * inv_sx2 + dv2 * inv_sv2));
+                    if (wgt > 0.0f) {
+                        wsum += wgt;
+                        for (int c = 0; c < nc; c++) op[c] += wgt * vq[c];
+                    }
+                }
+            }
+            if (wsum > 0.0f) {      /* (a zero normal can leave nothing: the input kept) */
+                const float inv = 1.0f / wsum;
+                for (int c = 0; c < nc; c++) op[c] *= inv;
+            } else {
+                for (int c = 0; c < nc; c++) op[c] = vp[c];
+            }
+        }
 }
 
 /* the lights per chunk lghq_each's `box` is given for */

@@ -36,19 +36,23 @@ def test_constant_image_unchanged(device):
 
 @pytest.mark.parametrize("channels", [None, 3])
 @pytest.mark.parametrize("sigma_normal", [128.0, 8.0])
-def test_matches_numpy_reference(device, channels, sigma_normal):
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "warp"])
+def test_matches_numpy_reference(device, channels, sigma_normal, compiled):
+    """On a CPU the step is kernels/lghq.c's where it is built (compiled) or the Warp kernel's; on CUDA Warp's."""
     rng = np.random.default_rng(2)
     h, w = 23, 37
     n, p = _gbuffer(h, w, rng)
     valid = rng.random((h, w)) > 0.2
     shape = (h, w) if channels is None else (h, w, channels)
     v = rng.random(shape).astype(np.float32)
+    given = v.copy()
     ref = atrous_filter_reference(v, n, p, valid, sigma_normal=sigma_normal)
     assert np.abs(ref - v).max() > 0.1                   # it does filter
     for bands in (1, 3):
-        out = atrous_filter(v, n, p, valid, sigma_normal=sigma_normal, device=device, bands=bands)
+        out = atrous_filter(v, n, p, valid, sigma_normal=sigma_normal, device=device, bands=bands, compiled=compiled)
         assert out.shape == v.shape and out.dtype == np.float32
         np.testing.assert_allclose(out, ref, atol=1e-5)
+        np.testing.assert_array_equal(v, given)          # the input is left as it was
 
 
 def _corner(h: int, w: int, rng: np.random.Generator, sigma: float = 0.05):

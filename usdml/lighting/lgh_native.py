@@ -66,6 +66,7 @@ EXTENSION = Extension("_lghq", {
     "lghq_each_chunk": (ctypes.c_int, []),
     "lghq_each": (ctypes.c_int, [_P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P,
                                  _P, _P, _P]),
+    "lghq_atrous_step": (None, [_P, _P, _P, _P, _P, _i32, _i32, _i32, _i32, _f32, _f32, _f32, _i32, _i32, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
 
