@@ -905,7 +905,7 @@ EACH_FAST __attribute__((always_inline)) static inline int each_behind(const flo
 EACH_FAST __attribute__((always_inline)) static inline void each_points(
     const float *points, const float *normals, const float *const *light, int64_t n, const int mode, float clamp_d2,
     float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi, const float *box,
-    float *restrict state, float *restrict total, float *restrict totals,
+    const float *group_normal, float *restrict state, float *restrict total, float *restrict totals,
     float *irradiance, float *count, int32_t *sample_light, float *sample_weight, float *sample_lum,
     uint8_t *sample_ok) {
     const int64_t groups = n / EACH_GROUP;
@@ -934,6 +934,21 @@ EACH_FAST __attribute__((always_inline)) static inline void each_points(
                     continue;
                 }
                 for (int64_t g0 = c0; g0 < c1; g0 += EACH_GROUP) {
+                    if (group_normal != NULL) {
+                        /* the group's lights share one unit normal (NaN where they do not) and it is both points'
+                         * normal: cos θ_s and cos θ_l are one dot product and its negation, so every term is 0 */
+                        const float *gn = group_normal + 3 * (g0 / EACH_GROUP);
+                        int same = 1;
+                        for (int i = 0; i < EACH_POINTS; i++)
+                            same &= nx[i] == gn[0] && ny[i] == gn[1] && nz[i] == gn[2];
+                        if (same) {
+                            for (int i = 0; i < EACH_POINTS; i++)
+                                for (int k = 0; k < EACH_LANES; k++)
+                                    total[((i0 + i) * groups + g0 / EACH_GROUP) * EACH_LANES + k] = base[i][k] +
+                                                                                                acc[i][3][k];
+                            continue;
+                        }
+                    }
                     for (int64_t j = g0; j < g0 + EACH_GROUP; j += EACH_LANES)
                         for (int i = 0; i < EACH_POINTS; i++)    /* the block's lights from L1 for the second point */
                             for (int k = 0; k < EACH_LANES; k++) {
@@ -1046,9 +1061,11 @@ EXPORT void lghq_atrous_step(const float *values, const float *normal, const flo
 /* the lights per chunk lghq_each's `box` is given for */
 EXPORT int lghq_each_chunk(void) { return EACH_CHUNK; }
 
-/* `box`: each chunk's box of lights (centre x, y, z, half extents x, y, z; n / EACH_CHUNK rounded up), or NULL */
+/* `box`: each chunk's box of lights (centre x, y, z, half extents x, y, z; n / EACH_CHUNK rounded up), or NULL;
+ * `group_normal`: each group's one unit normal where its lights share it and have a = 0, else NaN (n / EACH_GROUP
+ * by 3), or NULL */
 EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *normals, const float *const *light,
-                                            const float *box,
+                                            const float *box, const float *group_normal,
                                             int64_t n, int32_t mode, float clamp_d2, float inv_m2, int32_t samples,
                                             int32_t seed, int64_t first, int64_t lo, int64_t hi, float *irradiance,
                                             float *count, int32_t *sample_light, float *sample_weight,
@@ -1066,13 +1083,13 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
     }
     if (mode == EACH_COSINE)
         each_points(points, normals, light, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+                    group_normal, state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else if (mode == EACH_ISOTROPIC)
         each_points(points, normals, light, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+                    group_normal, state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     else
         each_points(points, normals, light, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi, box,
-                    state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
+                    group_normal, state, total, totals, irradiance, count, sample_light, sample_weight, sample_lum, sample_ok);
     free(total);
     free(state);
     free(totals);

@@ -157,6 +157,46 @@ def test_the_compiled_sum_over_chunks_and_tiles():
     assert (outs[0][1] < 15000).all() and (outs[0][1] > 5000).all()
 
 
+def test_a_floors_vpls_are_skipped_by_the_floors_points():
+    """VPLs on a floor and on a wall (cosine emitters, two normal classes) and points on the floor: the lights come
+    ordered by class, a group whose one normal is both points' normal is skipped (every term there is 0: cos θ_s
+    and cos θ_l are one dot product and its negation), with the same answers bit for bit, and the sums and counts
+    are NumPy's, where the floor's own VPLs reach no floor point."""
+    if library() is None:
+        pytest.skip("the compiled LGH kernels are not built here")
+    from usdml.lighting.lgh_each import CLASS_LIGHTS
+    from usdml.lighting.lgh_native import EachLights
+
+    rng = np.random.default_rng(8)
+    nf, nw = 3000, 1100
+    floor = np.column_stack([rng.uniform(-4, 4, nf), np.zeros(nf), rng.uniform(-4, 4, nf)])
+    wall = np.column_stack([np.full(nw, -4.0), rng.uniform(0, 3, nw), rng.uniform(-4, 4, nw)])
+    q = np.concatenate([floor, wall])[rng.permutation(nf + nw)]
+    up = (q[:, 1] == 0) & (q[:, 0] > -4.0)
+    n_l = np.where(up[:, None], np.float32([0, 1, 0]), np.float32([1, 0, 0])).astype(np.float32)
+    flux = rng.uniform(0.1, 1.0, (nf + nw, 3)).astype(np.float32)
+    lights = EachLight((q, flux, n_l))
+    assert nf >= CLASS_LIGHTS and (lights.normal[:nf] == [0, 1, 0]).all()     # the floor's class first
+    pts = np.column_stack([rng.uniform(-3, 3, 50), np.zeros(50), rng.uniform(-3, 3, 50)]).astype(np.float32)
+    pn = np.tile(np.float32([0, 1, 0]), (50, 1))
+    sums = EachLights(lights.position, lights.intensity, lights.normal)
+    assert sums.shared > 0.6
+    outs = []
+    for cull in (True, False):
+        out = (np.zeros((50, 3), np.float32), np.zeros(50, np.float32), np.zeros((50, 8), np.int32),
+               np.zeros((50, 8, 3), np.float32), np.zeros((50, 8), np.float32), np.zeros((50, 8), np.uint8))
+        sums.gather(pts, pn, 1e-6, 1.0, 8, 3, 0, 0, 50, out, cull=cull)
+        outs.append(out)
+    for x, y in zip(*outs):
+        np.testing.assert_array_equal(x, y)
+    a = lights.gather(8, 3, 1.0, 1e-3, compiled=True)(pts, pn)
+    b = lights.gather(8, 3, 1.0, 1e-3, compiled=False)(pts, pn)
+    np.testing.assert_allclose(a.irradiance, b.irradiance, rtol=1e-4)
+    np.testing.assert_array_equal(a.count, b.count)
+    assert (a.count <= nw).all() and (a.count > 0.3 * nw).all()                # the wall's VPLs only
+    assert not np.isin(a.sample_light[a.sample_ok], np.flatnonzero(up)).any()   # (in the order given)
+
+
 def _square_occluder(points, targets, normals=None, distant=None):
     """Analytic: a unit square at z = 0.5 (|x|, |y| < 1) blocks a segment that crosses it."""
     p, t = np.asarray(points, np.float64), np.asarray(targets, np.float64)

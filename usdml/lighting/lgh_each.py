@@ -36,6 +36,35 @@ from usdml.parallel import cpu_workers, run_parallel, spans
 #: lights a NumPy block holds at once, times its points (the fallback's memory: about 40 bytes each)
 _PAIRS = 1 << 21
 
+#: the fewest lights that share one unit normal, bit for bit, to be a normal class (:func:`light_order`)
+CLASS_LIGHTS = 256
+
+
+def light_order(position: np.ndarray, normal: np.ndarray | None) -> np.ndarray:
+    """The order :class:`EachLight` takes its lights in: each class of at least :data:`CLASS_LIGHTS` lights that share
+    one unit normal (the VPLs on one flat floor or wall), the largest first, then every other light; within each,
+    Morton order of the positions. A point on such a floor gets nothing from the floor's own VPLs (one of its
+    cosines is at most 0 wherever its normal is theirs), and ``lghq_each`` skips a group of lights whose shared
+    normal is the point's (``EachLights``' group normals); in Morton order alone the open suite stages' floors mixed
+    with their boxes' faces in most groups (32 % of the pairs skippable at 10,000 VPLs, 56 % by classes)."""
+    from usdml.zorder import morton_order
+
+    if not len(position):
+        return np.zeros(0, np.int64)
+    morton = morton_order(np.asarray(position, np.float32))
+    if normal is None:
+        return morton
+    nrm = np.ascontiguousarray(np.asarray(normal, np.float32).reshape(-1, 3)[morton])
+    keys, inverse, counts = np.unique(nrm.view(np.dtype((np.void, 12))).ravel(), return_inverse=True,
+                                      return_counts=True)
+    unit = isotropic_share(keys.view(np.float32).reshape(-1, 3)) == 0.0
+    big = np.flatnonzero((counts >= CLASS_LIGHTS) & unit)
+    if not len(big):
+        return morton
+    rank = np.full(len(keys), len(big), np.int64)                  # the rest after the classes
+    rank[big[np.argsort(-counts[big], kind="stable")]] = np.arange(len(big))
+    return morton[np.argsort(rank[inverse.ravel()], kind="stable")]
+
 
 class EachLight:
     """The lights as a hierarchy of one level of themselves: what :func:`usdml.lighting.lgh_lighting.lgh_indirect`
@@ -46,17 +75,15 @@ class EachLight:
     levels: tuple = ()
 
     def __init__(self, sources: tuple):
-        from usdml.zorder import morton_order
-
         position = np.asarray(sources[0], np.float64).reshape(-1, 3)
-        #: the lights in Morton order of their positions: the systematic draws run through them in this order, so a
-        #: point's k draws are spread over space as a grid's would be (in the order given, often random, they were
-        #: as noisy as independent draws)
-        self.order = morton_order(position.astype(np.float32)) if len(position) else np.zeros(0, np.int64)
+        normal = sources[2] if len(sources) > 2 else None
+        #: the lights by normal class, each in Morton order of their positions (:func:`light_order`): the systematic
+        #: draws run through them in this order, so a point's k draws are spread over space as a grid's would be (in
+        #: the order given, often random, they were as noisy as independent draws)
+        self.order = light_order(position, normal)
         self.position = position[self.order]
         self.position32 = self.position.astype(np.float32)
         self.intensity = np.asarray(sources[1], np.float32).reshape(-1, 3)[self.order]
-        normal = sources[2] if len(sources) > 2 else None
         self.normal = (np.zeros_like(self.intensity) if normal is None else
                        np.asarray(normal, np.float32).reshape(-1, 3)[self.order])
         #: each light's isotropic share, the LGH lobe's 1 - |normal| (0 for a VPL, 1 for a point light)

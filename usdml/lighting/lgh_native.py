@@ -64,8 +64,8 @@ EXTENSION = Extension("_lghq", {
     "lghq_cosine_sum": (None, [_P, _P, _P, _i64, ctypes.c_double, _i64, _i64, _P]),
     "lghq_each_lanes": (ctypes.c_int, []),
     "lghq_each_chunk": (ctypes.c_int, []),
-    "lghq_each": (ctypes.c_int, [_P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P, _P,
-                                 _P, _P, _P]),
+    "lghq_each": (ctypes.c_int, [_P, _P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P,
+                                 _P, _P, _P, _P]),
     "lghq_atrous_step": (None, [_P, _P, _P, _P, _P, _i32, _i32, _i32, _i32, _f32, _f32, _f32, _i32, _i32, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
@@ -281,15 +281,26 @@ class EachLights:
             lo, hi = part.min(axis=0), part.max(axis=0)
             self._box[c, :3] = 0.5 * (lo + hi)
             self._box[c, 3:] = 0.5 * (hi - lo) * (1 + 1e-6) + 1e-6 * (np.abs(lo) + np.abs(hi))
+        # each group's one unit normal where all its lights have it (and a = 0), else NaN (equal to no normal): a
+        # pair of points whose normals are that one skips the group (each term's cos θ_s or cos θ_l is then at
+        # most 0: the same dot product, negated)
+        groups = padded // EACH_GROUP
+        nrm = self._columns[3:6].T.reshape(groups, EACH_GROUP, 3)
+        same = (nrm == nrm[:, :1]).all(axis=(1, 2)) & (self._columns[10].reshape(groups, EACH_GROUP) == 0).all(1)
+        same &= np.abs((nrm[:, 0] ** 2).sum(1) - 1.0) < 1e-5
+        self._group_normal = np.ascontiguousarray(np.where(same[:, None], nrm[:, 0], np.nan), np.float32)
+        self.shared = float(same.mean()) if groups else 0.0    # the groups with one normal
 
     def gather(self, points: np.ndarray, normals: np.ndarray, clamp_d2: float, inv_m2: float, samples: int, seed: int,
                first: int, lo: int, hi: int, out: tuple, cull: bool = True) -> None:
         """Points ``lo .. hi - 1`` (``points``, ``normals``: (P, 3) float32, C-contiguous; point p's random stream
         ``first + p``): ``out = (irradiance (P, 3) f32, count (P,) f32, light (P, k) int32, weight (P, k, 3) f32,
         lum (P, k) f32, ok (P, k) uint8)`` written for those rows (``lghq_each``; count: the lights that reach
-        the point). ``cull``: skip the chunks behind a point (the same answers, bit for bit)."""
+        the point). ``cull``: skip the chunks behind a point and the groups whose one normal is the point's (the same
+        answers, bit for bit)."""
         if not library().lghq_each(points.ctypes.data, normals.ctypes.data, self._pointers,
                                    self._box.ctypes.data if cull else None,
+                                   self._group_normal.ctypes.data if cull else None,
                                    self.padded,
                                    EACH_MODES[self.mode], float(clamp_d2), float(inv_m2), int(samples), int(seed),
                                    int(first), int(lo), int(hi), *(a.ctypes.data for a in out)):
