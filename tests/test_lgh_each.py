@@ -120,6 +120,21 @@ def test_compiled_and_numpy_draw_the_same_lights():
     assert 0.0 <= uniform(3, np.arange(5)).min() and uniform(3, np.arange(5)).max() < 1.0
 
 
+def _culled_and_not(sums, pts: np.ndarray, pn: np.ndarray, k: int = 8) -> list[tuple]:
+    """``EachLights.gather`` of every point with and without its skips (chunks behind the points, groups of the
+    points' own normal), asserted the same bit for bit: the two outputs."""
+    n = len(pts)
+    outs = []
+    for cull in (True, False):
+        out = (np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros((n, k), np.int32),
+               np.zeros((n, k, 3), np.float32), np.zeros((n, k), np.float32), np.zeros((n, k), np.uint8))
+        sums.gather(pts, pn, 1e-6, 1.0, k, 3, 0, 0, n, out, cull=cull)
+        outs.append(out)
+    for x, y in zip(*outs):
+        np.testing.assert_array_equal(x, y)
+    return outs
+
+
 def test_the_compiled_sum_over_chunks_and_tiles():
     """``lghq_each`` takes its lights in chunks of 4,096 over tiles of 32 points, keeping each point's running sums
     between chunks: 9,000 point lights (three chunks, the last one padded) at 45 points (a tile and a part), against
@@ -146,14 +161,7 @@ def test_the_compiled_sum_over_chunks_and_tiles():
                         for k in ("position", "intensity", "normal")))
     flat = np.column_stack([rng.uniform(-5, 5, 40), np.zeros(40), rng.uniform(-5, 5, 40)]).astype(np.float32)
     facing = np.tile(np.float32([1, 0, 0]), (40, 1))          # half the lights behind each point
-    outs = []
-    for cull in (True, False):
-        out = (np.zeros((40, 3), np.float32), np.zeros(40, np.float32), np.zeros((40, 8), np.int32),
-               np.zeros((40, 8, 3), np.float32), np.zeros((40, 8), np.float32), np.zeros((40, 8), np.uint8))
-        sums.gather(flat, facing, 1e-6, 1.0, 8, 3, 0, 0, 40, out, cull=cull)
-        outs.append(out)
-    for x, y in zip(*outs):
-        np.testing.assert_array_equal(x, y)
+    outs = _culled_and_not(sums, flat, facing)
     assert (outs[0][1] < 15000).all() and (outs[0][1] > 5000).all()
 
 
@@ -181,14 +189,7 @@ def test_a_floors_vpls_are_skipped_by_the_floors_points():
     pn = np.tile(np.float32([0, 1, 0]), (50, 1))
     sums = EachLights(lights.position, lights.intensity, lights.normal)
     assert sums.shared > 0.6
-    outs = []
-    for cull in (True, False):
-        out = (np.zeros((50, 3), np.float32), np.zeros(50, np.float32), np.zeros((50, 8), np.int32),
-               np.zeros((50, 8, 3), np.float32), np.zeros((50, 8), np.float32), np.zeros((50, 8), np.uint8))
-        sums.gather(pts, pn, 1e-6, 1.0, 8, 3, 0, 0, 50, out, cull=cull)
-        outs.append(out)
-    for x, y in zip(*outs):
-        np.testing.assert_array_equal(x, y)
+    _culled_and_not(sums, pts, pn)
     a = lights.gather(8, 3, 1.0, 1e-3, compiled=True)(pts, pn)
     b = lights.gather(8, 3, 1.0, 1e-3, compiled=False)(pts, pn)
     np.testing.assert_allclose(a.irradiance, b.irradiance, rtol=1e-4)
