@@ -647,10 +647,12 @@ def _inclusion_estimate(shading: LGHShading, seen: np.ndarray, weight: np.ndarra
         f = shading.sample_lum[lo:hi].astype(np.float64)
         total = shading.irradiance[lo:hi].astype(np.float64) @ LUMA
         incl = np.minimum(1.0, k * f / np.maximum(total, 1e-30)[:, None])
-        # each sample carries e_i / (n_i π_i): summed over a light's n_i samples, e_i / π_i once
-        w = np.where(ok, f / (runs * np.maximum(incl, 1e-30)), 0.0)[:, :, None] * weight[lo:hi]
-        num = np.einsum("pk,pkc->pc", seen[lo:hi], w)
-        den = w.sum(axis=1)
+        # each sample carries e_i / (n_i π_i): summed over a light's n_i samples, e_i / π_i once (its RGB e_i / f_i
+        # is `weight`, contracted with the per-sample scale without a (P, k, 3) product)
+        scale = np.where(ok, f / (runs * np.maximum(incl, 1e-30)), 0.0)
+        block = weight[lo:hi].astype(np.float64)
+        num = np.einsum("pk,pkc->pc", seen[lo:hi] * scale, block)
+        den = np.einsum("pk,pkc->pc", scale, block)
         ratio = np.where(den > 0, num / np.maximum(den, 1e-30), 1.0)
         out[lo:hi] = shading.irradiance[lo:hi] * np.clip(ratio, 0.0, 1.0)
         if shading.light_count is not None and len(shading.light_count):
