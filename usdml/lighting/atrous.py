@@ -42,10 +42,11 @@ image are skipped (the weights are renormalised), so nothing leaks in from the b
 Devices and threads
 -------------------
 One iteration is one Warp kernel (:func:`usdml.kernels.atrous.atrous_step`). On ``cuda`` each iteration is
-one launch. Warp runs a CPU launch on one thread, so on ``cpu`` the image is split into ``bands`` row
-bands (default: one per core), launched concurrently from a thread pool (Warp's CPU launch releases
-the GIL); every band reads the whole previous iteration and writes only its own rows, and the bands of
-one iteration finish before the next starts.
+one launch. On ``cpu`` it is the same step in C (``kernels/lghq.c``'s ``lghq_atrous_step``, about a quarter
+of the Warp kernel's time a tap on this CPU) where that extension is built, else the Warp kernel (Warp
+runs a CPU launch on one thread); either way the image is split into ``bands`` row bands (default: one per
+core), run concurrently from a thread pool (both let go of the GIL); every band reads the whole previous
+iteration and writes only its own rows, and the bands of one iteration finish before the next starts.
 
 Interleaved sampling (paper 004 §4)
 -----------------------------------
