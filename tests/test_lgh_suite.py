@@ -32,3 +32,11 @@ def test_an_empty_folder_is_a_one_line_error(tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "tools" / "lgh_suite.py"), str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "no suite stage" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_direct_rows_at_a_height_of_their_own(tmp_path):
+    """--direct-height: the frame conformed to that height (the suite's 16:9 cameras at 512x512, issue 37's frame)."""
+    stage_suite.make_suite_stage(str(tmp_path), "interior", 64, 1)
+    rows = lgh_suite.measure(str(tmp_path), "report", [], [], [64], 16, 16, 0, direct_height=16)
+    assert len(rows) == 1 and rows[0]["mode"] == "direct" and list(rows[0]["resolution"]) == [16, 16]
+    assert rows[0]["compared_pixels"] > 0

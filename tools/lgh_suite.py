@@ -5,7 +5,7 @@ Usage::
 
     python tools/make_stages.py --suite --out /tmp/suite --seeds 0-3 --lights 64,1024,100000
     python tools/lgh_suite.py /tmp/suite [--split report] [--gi-vpls 10000] [--gi-lights 64,1024]
-        [--direct-lights 100000] [--imageWidth 96] [--direct-width 128] [--reference-pixels 2048]
+        [--direct-lights 100000] [--imageWidth 96] [--direct-width 128] [--direct-height 0] [--reference-pixels 2048]
         [--lgh-split none,normal] [--direct-gather hierarchy,each] [--json]
 
 For each suite stage of the split (``report``: odd seeds, never tuned on; ``tune``; ``all``), what
@@ -67,7 +67,7 @@ def _row(kind: str, path: str, info: dict, r: dict, **extra) -> dict:
 
 def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], direct_lights: list[int],
             width: int, direct_width: int, reference_pixels: int, splits: list[str | None] = (None,),
-            gathers: list[str | None] = (None,)) -> list[dict]:
+            gathers: list[str | None] = (None,), direct_height: int = 0) -> list[dict]:
     from usdml.compare import compare_direct, compare_gi
     from usdml.stage import StageDelegate
 
@@ -87,6 +87,7 @@ def measure(folder: str, which: str, gi_vpls: list[int], gi_lights: list[int], d
                     _tell(rows[-1], time.perf_counter() - t0)
         for gather in gathers if lights in direct_lights else ():
             r = compare_direct(StageDelegate(path), "lgh", "all", image_width=direct_width,
+                               image_height=direct_height or None,
                                reference_pixels=reference_pixels,
                                overrides={} if gather is None else {"direct_gather": gather})
             rows.append(_row("direct", path, info, r, direct_speedup=r["direct_speedup"],
@@ -117,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--direct-lights", default="100000", metavar="N[,N...]", help="stages measured with --direct lgh")
     p.add_argument("--imageWidth", type=int, default=96, help="--gi lgh width (%(default)s)")
     p.add_argument("--direct-width", type=int, default=128, help="--direct lgh width (%(default)s)")
+    p.add_argument("--direct-height", type=int, default=0,
+                   help="--direct lgh height, the camera conformed to it (0: the camera's aspect)")
     p.add_argument("--reference-pixels", type=int, default=2048,
                    help="--direct: pixels every-light shading runs on, its time extrapolated (0: every pixel)")
     p.add_argument("--lgh-split", default=None, metavar="S[,S...]",
@@ -130,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = measure(args.folder, args.split, _ints(args.gi_vpls), _ints(args.gi_lights), _ints(args.direct_lights),
                    args.imageWidth, args.direct_width, args.reference_pixels,
                    args.lgh_split.split(",") if args.lgh_split else [None],
-                   args.direct_gather.split(",") if args.direct_gather else [None])
+                   args.direct_gather.split(",") if args.direct_gather else [None], args.direct_height)
     if not rows:
         p.error(f"{args.folder}: no suite stage of split {args.split!r} with those light counts")
     if args.json:

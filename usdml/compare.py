@@ -166,13 +166,14 @@ def _reference_subset(delegate: StageDelegate, settings, frame: float, width: in
 
 def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = "all", frame: float | None = None,
                    image_width: int = 128, device: str = "cpu", png_prefix: str | None = None,
-                   overrides: dict | None = None, reference_pixels: int = 0) -> dict:
+                   overrides: dict | None = None, reference_pixels: int = 0, image_height: int | None = None) -> dict:
     """``--direct lgh --against all``: the frame's ``direct`` AOV both ways, one primary ray per pixel
     (the pixel centre, the same G-buffer), with the relative RMSE of ``direct`` (over the pixels that
     see geometry and RGB, over the reference's mean), each way's seconds (the frame, and its direct
     light), and the speed-up. With ``reference_pixels`` N > 0 the reference shades only N hit pixels
     drawn at random, and its seconds are extrapolated to every hit pixel (``reference_extrapolated``):
-    every-light shading of 100,000 lights costs minutes per 256-pixel frame."""
+    every-light shading of 100,000 lights costs minutes per 256-pixel frame. ``image_height``: the frame's height
+    (the camera conformed to it, as a RenderSettings resolution does), default the camera's aspect."""
     choices = ("all", "lgh")
     if direct not in choices or against not in choices or direct == against:
         raise UsdmlError(f"--direct and --against must be two different direct-lighting methods ({', '.join(choices)})")
@@ -183,6 +184,7 @@ def compare_direct(delegate: StageDelegate, direct: str = "lgh", against: str = 
     _warn_ignored(overrides, base.updated(direct=direct))
     snap = delegate.snapshot(frame)
     width, height = snap.camera.resolution(image_width)
+    height = height if image_height is None else int(image_height)
     from usdml.lighting.gi import warm_up
 
     warm = warm_up(device)
