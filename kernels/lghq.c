@@ -733,9 +733,10 @@ COSINE_NO_TRAP COSINE_CLONES EXPORT void lghq_cosine_sum(const float *points, co
  * time (the chunk's columns from L2 for all but the first pair of points: at a million lights they stream from
  * memory, and two points a pass were bound by that), and each point keeps its lanes' running luminance at the end
  * of every group of EACH_GROUP lights; a pair of points skips a chunk whose box lies behind both their tangent
- * planes (every term 0: the same sums). The sum up to a group is those 16 floats added as a tree: monotone in the
- * group, which a binary search over the groups then inverts; the group's 64 terms are computed again to find the
- * light. A point's answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
+ * planes, and a group whose lights share one unit normal that is both points' normal (cos θ_s and cos θ_l one dot
+ * product and its negation): every term there is 0, the same sums. The sum up to a group is those 16 floats added
+ * as a tree (when the draws' search first reads it): monotone in the group, which a binary search over the groups
+ * then inverts; the group's 64 terms are computed again to find the light. A point's answer is the same on any thread; its random stream is seed and first + p (Warp's PCG). */
 #define EACH_LANES 16
 /* float terms contracted into fused multiply-adds where the compiler can (this sum is not one of those that
  * must give Warp's bits) */
