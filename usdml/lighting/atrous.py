@@ -67,7 +67,7 @@ import math
 
 import numpy as np
 
-from usdml.parallel import cpu_workers, run_parallel
+from usdml.parallel import cpu_workers, run_bands
 
 SIGMA_NORMAL = 128.0    # Schied et al. 2017
 SIGMA_POSITION = 2.0    # × median pixel footprint × 2^i
@@ -215,21 +215,19 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     valid_wp = wp.array(valid.astype(np.uint8), dtype=wp.uint8, device=dev)
     inv_scale = wp.array(_channel_inv_scale(v, valid).astype(np.float32), dtype=float, device=dev)
 
-    bands = max(1, min(cpu_workers(dev, bands), h))
-    edges = np.linspace(0, h, bands + 1).round().astype(int)
-    rows = [(int(r0), int(r1)) for r0, r1 in zip(edges[:-1], edges[1:]) if r1 > r0]
+    bands = cpu_workers(dev, bands)
     # compile (or load from the kernel cache) once, before any thread launches
     wp.load_module(kernels, device=dev)
 
-    def launch(i: int, a, b, r0: int, r1: int) -> None:
+    def launch(i: int, a, b, r0: int, rows: int) -> None:
         inv_sx2, inv_sv2 = _level_params(i, sigma_position, footprint, sigma_value)
-        wp.launch(kernels.atrous_step, dim=(r1 - r0, w), device=dev,
+        wp.launch(kernels.atrous_step, dim=(rows, w), device=dev,
                   inputs=[a, n_wp, x_wp, valid_wp, inv_scale, 2 ** i, float(sigma_normal), inv_sx2, inv_sv2, r0],
                   outputs=[b])
 
     for i in range(iterations):
         # every band of level i is written before level i + 1 reads it
-        run_parallel(lambda band, i=i, a=src, b=dst: launch(i, a, b, *band), rows, bands)
+        run_bands(h, lambda r0, rows, i=i, a=src, b=dst: launch(i, a, b, r0, rows), bands, 1)
         src, dst = dst, src
     return src.numpy().reshape(out_shape)
 
@@ -250,18 +248,15 @@ def _compiled_filter(v: np.ndarray, normal: np.ndarray, pos: np.ndarray, valid: 
     x32 = np.ascontiguousarray(pos, np.float32)
     ok = np.ascontiguousarray(valid, np.uint8)
     inv_scale = np.ascontiguousarray(_channel_inv_scale(v, valid), np.float32)
-    bands = max(1, min(bands, h))
-    edges = np.linspace(0, h, bands + 1).round().astype(int)
-    rows = [(int(r0), int(r1)) for r0, r1 in zip(edges[:-1], edges[1:]) if r1 > r0]
     for i in range(iterations):
         inv_sx2, inv_sv2 = _level_params(i, sigma_position, footprint, sigma_value)
 
-        def band(r, a=src, b=dst, i=i, inv_sx2=inv_sx2, inv_sv2=inv_sv2):
+        def band(r0, rows, a=src, b=dst, i=i, inv_sx2=inv_sx2, inv_sv2=inv_sv2):
             lib.lghq_atrous_step(a.ctypes.data, n32.ctypes.data, x32.ctypes.data, ok.ctypes.data,
                                  inv_scale.ctypes.data, h, w, c, 2 ** i, float(sigma_normal), inv_sx2, inv_sv2,
-                                 r[0], r[1], b.ctypes.data)
+                                 r0, r0 + rows, b.ctypes.data)
 
-        run_parallel(band, rows, len(rows))
+        run_bands(h, band, bands, 1)
         src, dst = dst, src
     return src
 
