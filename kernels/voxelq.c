@@ -619,16 +619,17 @@ void vq_query(const VQScene *s, const VQRule *r, int64_t first, int64_t count, c
 }
 
 /* vq_query's queries (its inputs and ``kernel``), each answered with whether its answer is certain:
- * out[first + i] = blocked (vq_query's answer) | uncertain << 1. Uncertain: the five rays of the
- * query disagree, the centre one and the rows ``thick`` voxels to either side of it along the bin
+ * out[first + i] = blocked (vq_query's answer) | uncertain << 1. Uncertain at a width: the five rays of
+ * the query disagree, the centre one and the rows that many voxels to either side of it along the bin
  * grid's u and v axes, looked up for each of the centre ray's pieces over the same voxels (outside
- * the grid: free), each ray blocked when any array blocks it. The shifted rays visit the instances
- * whose world boxes grown by thick of the largest instance voxel (inst_voxel) the segment meets. */
+ * the grid: free), each ray blocked when any array blocks it; uncertain at any of the ``n_widths``
+ * (at most 4) ``widths``, all looked up in one pass. The shifted rays visit the instances whose world
+ * boxes grown by the widest width of the largest instance voxel (inst_voxel) the segment meets. */
 void vq_query_refine(const VQScene *s, const VQRule *r, int64_t first, int64_t count, const void *pts, const void *tgt,
-                     const void *nrm, const void *distant, float thick, int32_t kernel, int32_t f64_mask,
-                     int32_t distant_u8, uint8_t *out) {
+                     const void *nrm, const void *distant, const float *widths, int32_t n_widths, int32_t kernel,
+                     int32_t f64_mask, int32_t distant_u8, uint8_t *out) {
     SoA b = query_inputs(first, pts, tgt, nrm, distant, f64_mask, distant_u8);
-    Rays R = make_rays(&thick, 1);
+    Rays R = make_rays(widths, n_widths);
     pick(kernel).refine(s, r, (int)count, &b, &R, out + first);
 }
 
@@ -705,6 +706,19 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
               int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
               int32_t *blocked, int32_t *facing) {
     shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, NULL, radiance, blocked, facing);
+}
+
+/* the caller's answers to vq_shade_refine's list: entry k (of n; point list_point[k], term list_rgb[3 k ..])
+ * free[k] != 0: its light added to the point's radiance, else the point's blocked count + 1. Entries of one
+ * point are added in list order: the sums of NumPy's bincount over the same entries. */
+void vq_list_apply(int64_t n, const int32_t *list_point, const float *list_rgb, const uint8_t *free_, float *radiance,
+                   int32_t *blocked) {
+    for (int64_t k = 0; k < n; k++) {
+        int32_t i = list_point[k];
+        if (free_[k])
+            for (int c = 0; c < 3; c++) radiance[3 * (int64_t)i + c] += list_rgb[3 * k + c];
+        else blocked[i]++;
+    }
 }
 
 /* vq_shade with the refinement's rule (vq_query_refine's, over the ``n_widths`` widths ``widths``, at

@@ -326,3 +326,27 @@ def test_query_refine_checks_its_output_and_reads_any_first_ray():
         assert empty[0].shape == (0,) and empty[1].dtype == bool
     finally:
         b.close()
+
+
+@pytest.mark.parametrize("isa", ISAS)
+def test_several_widths_in_one_pass_flag_their_union(isa):
+    """``thick`` as several widths (a level's, ``occluded_uncertain``): one pass of the kernel flags what each
+    width's own pass flags, together, with the same answers; more than four widths is an error."""
+    from usdml.visibility.voxel import THICK, widened
+
+    rng = np.random.default_rng(31)
+    b = native(isa)
+    try:
+        for scene in ("occluder", "instances"):
+            snap = scene_frames(scene)[0]
+            b.update(snap, diff(None, snap))
+            o, t, nm, di = mixed_queries(rng, lights(rng), 200, 2000)
+            for level in range(1, len(THICK) + 1):
+                blocked, uncertain = b.occluded_uncertain(o, t, normals=nm, distant=di, level=level)
+                ref_b, ref_u = widened(lambda w: b._native_refine(o, t, nm, di, w), level)
+                assert np.array_equal(blocked, ref_b) and np.array_equal(uncertain, ref_u), (scene, level)
+            assert 0.01 < uncertain.mean() < 0.9
+        with pytest.raises(ValueError, match="1 to 4 widths"):
+            b._native.query_refine(b._native_rule(), 0, 4, o, t, nm, di, [1.0] * 5, np.zeros(len(o), np.uint8))
+    finally:
+        b.close()

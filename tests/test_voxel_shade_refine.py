@@ -196,3 +196,31 @@ def test_without_the_compiled_kernel_it_is_not_implemented():
             b.shade_refined(**job, level=1, near=None, resolve=lambda *a: None)
     finally:
         b.close()
+
+
+def test_list_apply_adds_the_free_and_counts_the_rest():
+    """``NativeScene.list_apply``: against NumPy's sums over the same entries, repeated points included; a wrong
+    count of answers is an error."""
+    from usdml.visibility.voxel_native import ShadeList
+
+    b = backend("occluder")
+    try:
+        rng = np.random.default_rng(3)
+        listing = ShadeList(5000)
+        listing.count = 4000
+        listing.point[:4000] = rng.integers(0, 300, 4000)
+        listing.rgb[:4000] = rng.random((4000, 3))
+        free = rng.random(4000) < 0.6
+        rad = rng.random((300, 3)).astype(F)
+        blocked = rng.integers(0, 5, 300).astype(np.int32)
+        want_rad, want_blocked = rad.astype(np.float64), blocked.copy()
+        p = listing.point[:4000]
+        np.add.at(want_rad, p[free], listing.rgb[:4000][free])
+        np.add.at(want_blocked, p[~free], 1)
+        b._native.list_apply(listing, free, rad, blocked)
+        np.testing.assert_allclose(rad, want_rad, rtol=1e-5)
+        assert np.array_equal(blocked, want_blocked)
+        with pytest.raises(ValueError, match="answers"):
+            b._native.list_apply(listing, free[:10], rad, blocked)
+    finally:
+        b.close()

@@ -348,7 +348,12 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
             ref = exact.occluded(*args, **kw)
             ref_s += _time.perf_counter() - t0
             t0 = _time.perf_counter()
-            got = matrix[pixel, light] if matrix is not None else approx.occluded(*args, **kw)
+            if matrix is not None:
+                got = matrix[pixel, light]
+            elif refined is not None:     # the rows' points, as a render's pass gives them (the blind zone's probes)
+                got = approx.answer(*args, starts=pixel, **kw)[0]
+            else:
+                got = approx.occluded(*args, **kw)
             got_s += _time.perf_counter() - t0
             if near_far and (got & ~ref).any():
                 dist = approx.hit_distances(*args, **kw)

@@ -215,8 +215,10 @@ class Refined(VisibilityBackend):
             self._blind_zone(origins, targets, normals, distant, blocked, uncertain, reach, starts)
         redo = np.flatnonzero(uncertain)
         if len(redo):
-            blocked[redo] = self.exact.occluded(origins[redo], targets[redo],
-                                                normals=None if normals is None else np.asarray(normals)[redo],
+            # np.take: a row gather several times faster than fancy indexing on (N, 3) arrays
+            blocked[redo] = self.exact.occluded(np.take(origins, redo, axis=0), np.take(targets, redo, axis=0),
+                                                normals=None if normals is None else
+                                                np.take(np.asarray(normals), redo, axis=0),
                                                 distant=distant[redo])
             self._count("refined", len(redo))
         return blocked, uncertain
@@ -298,10 +300,11 @@ class Refined(VisibilityBackend):
                 rows = np.flatnonzero(kind == k)
                 if not len(rows):
                     continue
-                o = points[point[rows]].astype(np.float64)
-                t = toward[light[rows]]
-                d = distant_light[light[rows]]
-                nrm = normals[point[rows]]
+                at, li = point[rows], light[rows]
+                o = np.take(points, at, axis=0).astype(np.float64)
+                t = np.take(toward, li, axis=0)
+                d = distant_light[li]
+                nrm = np.take(normals, at, axis=0)
                 if k == 1:
                     t, d = _short(o, t, d, reach), np.zeros(len(rows), bool)
                 free[rows] = ~self.exact.occluded(o, t, normals=nrm, distant=d)

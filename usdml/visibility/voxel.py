@@ -662,12 +662,12 @@ class VoxelBackend(VisibilityBackend):
         distant = np.zeros(n, bool) if distant is None else np.ascontiguousarray(as_flags(distant, "distant", n))
         return origins, targets, normals, distant
 
-    def _native_refine(self, origins, targets, normals, distant, thick: float) -> tuple[np.ndarray, np.ndarray]:
+    def _native_refine(self, origins, targets, normals, distant, thick) -> tuple[np.ndarray, np.ndarray]:
         """``REFINE``'s thick-ray rule by the compiled kernel (``vq_query_refine``): ``(blocked, uncertain)``,
         two ``(N,) bool``: :meth:`occluded`'s answers (the very same) and whether each is uncertain: the
         rays through the rows ``thick`` voxels to either side of the query's own (along its direction bin's
-        two grid axes, over the same voxels, in every array it visits) and it do not all answer alike.
-        Arguments as :meth:`occluded`."""
+        two grid axes, over the same voxels, in every array it visits) and it do not all answer alike; with
+        several widths (at most 4), at any of them, all looked up in one pass. Arguments as :meth:`occluded`."""
         origins, targets, normals, distant = self._native_inputs(origins, targets, normals, distant)
         n = len(origins)
         code = np.zeros(n, np.uint8)
@@ -688,15 +688,14 @@ class VoxelBackend(VisibilityBackend):
         """``REFINE``: the thick-ray rule (:func:`usdml.visibility.refine.thick_ray`) at each width of ``THICK`` up
         to ``level``'s (a wider rule alone can step over a thin occluder a narrower one meets: the union keeps
         every level a superset of the one below)."""
-        refine = getattr(self, "_native_refine", None)
-        if self._native is not None and refine is not None:
-            def rule(width):
-                return refine(origins, targets, normals, distant, width)
-        else:
-            from usdml.visibility.refine import thick_ray
+        if self._native is not None:
+            # every width up to the level's in one pass of the compiled kernel (one pass per width cost
+            # level 2 0.76 exact rays a query on a tuning city, against 0.52 in one)
+            return self._native_refine(origins, targets, normals, distant, THICK[:min(max(level, 1), len(THICK))])
+        from usdml.visibility.refine import thick_ray
 
-            def rule(width):
-                return thick_ray(self.occluded, origins, targets, normals, distant, width * self.reference_voxel)
+        def rule(width):
+            return thick_ray(self.occluded, origins, targets, normals, distant, width * self.reference_voxel)
         return widened(rule, level)
 
     def blind_reach(self, level: int) -> float:
@@ -837,12 +836,11 @@ class VoxelBackend(VisibilityBackend):
                 pi, li, rgb, kind = listing.entries()
                 if len(pi):
                     free = np.asarray(resolve(order[pi], li.copy(), kind.copy()), bool)
-                    lo, span = t * SHADE_TILE, min(n_p, nxt * SHADE_TILE) - t * SHADE_TILE
-                    local = pi - lo
-                    for k in range(3):
-                        rad[lo:lo + span, k] += np.bincount(local[free], rgb[free, k], span).astype(np.float32)
-                    blocked[lo:lo + span] += np.bincount(local[~free], minlength=span).astype(np.int32)
-                    kinds += np.bincount(kind, minlength=2)[:2]
+                    # each free entry's light added to its point, the others counted blocked (in C: four
+                    # bincounts over the list cost a tenth of the refined frame)
+                    self._native.list_apply(listing, free, rad, blocked)
+                    near_n = int(np.count_nonzero(kind))
+                    kinds += (len(kind) - near_n, near_n)
                 t = nxt
             with lock:
                 stats["uncertain"] += int(kinds[0])

@@ -95,12 +95,13 @@ EXTENSION = Extension("_voxelq", {
     "vq_query": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P, _P,
                         _P, ctypes.c_int32, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, _P]),
     "vq_query_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P,
-                               _P, _P, ctypes.c_float, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P]),
+                               _P, _P, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P]),
     "vq_shade": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
                         ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P]),
     "vq_shade_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
                                ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P,
                                ctypes.c_int32, _P, _P, _P, _P, _P, _P, _P, _P, ctypes.c_int64, _P, _P, _P]),
+    "vq_list_apply": (None, [ctypes.c_int64, _P, _P, _P, _P, _P]),
     "vq_rotate_point": (None, [_P, _P, _P, ctypes.c_int32, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P,
                                ctypes.c_int32, ctypes.c_int64, _P]),
     "vq_build_bvh": (ctypes.c_int32, [ctypes.c_int32, _P, _P, _P, _P, _P]),
@@ -300,17 +301,22 @@ class NativeScene:
                           out.ctypes.data if flags else None)
 
     def query_refine(self, rule: _Rule, first: int, count: int, origins: np.ndarray, targets: np.ndarray,
-                     normals: np.ndarray, distant: np.ndarray, thick: float, out: np.ndarray) -> None:
+                     normals: np.ndarray, distant: np.ndarray, thick, out: np.ndarray) -> None:
         """``out[first:first + count]`` (uint8), queries ``first ..`` of :meth:`query`'s inputs: bit 0 whether
-        each ray is blocked (:meth:`query`'s answer), bit 1 whether that answer is uncertain: the rays
-        through the rows ``thick`` voxels to either side of its own (along the direction bin's two grid
-        axes, over the same voxels; ``voxelq.c``'s ``vq_query_refine``) do not all answer as it does."""
+        each ray is blocked (:meth:`query`'s answer), bit 1 whether that answer is uncertain: at a width of
+        ``thick`` (one, or a sequence of at most 4, all looked up in one pass), the rays through the rows that
+        many voxels to either side of its own (along the direction bin's two grid axes, over the same voxels;
+        ``voxelq.c``'s ``vq_query_refine``) do not all answer as it does."""
         f64 = self._input_kinds(origins, targets, normals, distant)
         if out.dtype != np.uint8 or not out.flags.c_contiguous:
             raise TypeError("query_refine output must be C-contiguous uint8")
+        widths = np.ascontiguousarray(np.atleast_1d(np.asarray(thick, np.float32)))
+        if not 1 <= len(widths) <= 4:
+            raise ValueError(f"query_refine takes 1 to 4 widths, got {len(widths)}")
         self.lib.vq_query_refine(ctypes.byref(self.scene), ctypes.byref(rule), int(first), int(count),
                                  origins.ctypes.data, targets.ctypes.data, normals.ctypes.data, distant.ctypes.data,
-                                 float(thick), self.kernel, f64, int(distant.dtype == np.bool_), out.ctypes.data)
+                                 widths.ctypes.data, len(widths), self.kernel, f64, int(distant.dtype == np.bool_),
+                                 out.ctypes.data)
 
     def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
               first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
@@ -348,6 +354,20 @@ class NativeScene:
         listing.count = int(count[0])
         listing.queries += int(queries[0])
         return int(resume[0])
+
+
+    def list_apply(self, listing: "ShadeList", free: np.ndarray, radiance: np.ndarray, blocked: np.ndarray) -> None:
+        """The caller's answers to ``listing``'s entries (``free``, (count,) bool; ``voxelq.c``'s
+        ``vq_list_apply``): each free entry's term added to its point's ``radiance`` ((P, 3) float32), the point's
+        ``blocked`` (int32) counted up for the others, in list order."""
+        free = np.ascontiguousarray(free, np.bool_)
+        if len(free) != listing.count:
+            raise ValueError(f"list_apply: {len(free)} answers for {listing.count} entries")
+        if radiance.dtype != np.float32 or blocked.dtype != np.int32 or not (radiance.flags.c_contiguous
+                                                                               and blocked.flags.c_contiguous):
+            raise TypeError("list_apply: radiance must be C-contiguous float32, blocked int32")
+        self.lib.vq_list_apply(listing.count, listing.point.ctypes.data, listing.rgb.ctypes.data, free.ctypes.data,
+                               radiance.ctypes.data, blocked.ctypes.data)
 
 
 class ShadeList:
