@@ -245,6 +245,27 @@ def test_budget_estimate_holds_on_every_sample_stage(stage):
     assert hi <= 0.01 or r["refine_level"] == "exact"
 
 
+def test_budget_goes_exact_where_the_rule_costs_more(new_stage, tmp_path, capsys):
+    """The octree's rule costs more than an exact ray a query (``refine_costs``): a budget the coarse octree does
+    not hold alone is held by exact answers, with one warning line naming the frame and why, the exact pixels."""
+    from usdml.visibility import make_backend
+
+    assert make_backend("svo").refine_cost(1) >= 1.0 > make_backend("voxel").refine_cost(1)
+    path = _square_stage(new_stage)
+    flags = ["--imageWidth", "40", "--pixel-samples", "1"]
+    assert main(["render", path, str(tmp_path / "exact.exr"), *flags]) == 0
+    capsys.readouterr()
+    assert main(["render", path, str(tmp_path / "svo.exr"), *flags, "--visibility", "svo", "--svo-resolution", "32",
+                 "--error-budget", "0.003", "--json"]) == 0
+    captured = capsys.readouterr()
+    warning = [line for line in captured.err.splitlines() if "--error-budget" in line]
+    assert len(warning) == 1 and "frame 1" in warning[0] and "exact alone is faster" in warning[0], captured.err
+    assert "rule costs 5.8 exact rays a query at level 1" in warning[0]
+    e = json.loads(captured.out)["estimates"]["1"]
+    assert e["level"] == "exact" and not e["met"] and set(e["levels"]) == {"0"} and e["levels"]["0"] > 0.003
+    np.testing.assert_array_equal(_pixels(tmp_path / "exact.exr")["pixels"], _pixels(tmp_path / "svo.exr")["pixels"])
+
+
 def test_fused_refined_shading_matches_refined_queries(new_stage):
     """A frame under a budget shades in the voxel backend's fused kernel (uncertain and blind-zone pairs handed
     back and traced exactly): the same light as NumPy shading over the refined queries."""

@@ -5,8 +5,10 @@ Per frame, before the direct light is shaded, one sample of its pixel–light pa
 (no refinement), 1, 2, ... (:class:`usdml.visibility.refine.Refined`: its rule widened step by step); the
 frame is shaded at the first level whose estimated 95 % upper bound of ε_v is at most ``E``, and carries
 that level's estimate. When no level of the backend's rule gets there, or a level would re-ask
-more than :data:`MAX_REFINED` of the sample's answers of the exact backend (slower than exact alone), every
-answer of the frame is exact (the limit, where ε_v is 0) and one warning line names the frame. ``E = 0`` is that limit at once: the exact
+more than :data:`MAX_REFINED` of the sample's answers of the exact backend, or its rule alone costs an exact
+ray a query or more (the backend's ``refine_costs``: the octree's NumPy thick ray) -- slower than exact alone
+either way -- every answer of the frame is exact (the limit, where ε_v is 0) and one warning line names the
+frame. ``E = 0`` is that limit at once: the exact
 backend's pixels. ``E = 1`` (the default) is no budget: the backend as it is.
 
 The sample is larger than a plain frame's estimate (:data:`PIXELS_PER_BUDGET` / ``E`` pixels, from
@@ -71,7 +73,11 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
                         LIGHTS, shared)
     tried: dict[str, float] = {}
     chosen, est, share = None, None, 0.0
+    cost = 0.0
     for level in range(0, refined.approx.refine_levels + 1):
+        cost = refined.approx.refine_cost(level)
+        if cost >= 1.0:
+            break
         refined.reset()
         est = sample.estimate(lambda o, t, level=level, **kw: refined.answer(o, t, level=level, **kw)[0])
         tried[str(level)] = est.eps_v_hi
@@ -84,8 +90,13 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
     met = chosen is not None
     if not met:
         chosen = EXACT
-        why = (f"it re-asks {100 * share:.0f} % of the answers at level {level} (exact alone is faster)"
-               if share > MAX_REFINED else f"estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule")
+        if cost >= 1.0:
+            why = (f"estimated eps_v up to {100 * est.eps_v_hi:.2f} % at level {level - 1}, and its rule costs "
+                   f"{cost:g} exact rays a query at level {level} (exact alone is faster)")
+        elif share > MAX_REFINED:
+            why = f"it re-asks {100 * share:.0f} % of the answers at level {level} (exact alone is faster)"
+        else:
+            why = f"estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule"
         log.warning(f"{where}: frame {time:g}: --error-budget {budget:g} not met by {refined.approx.name}'s "
                     f"refinement ({why}); every answer of the frame is exact")
         est = VisibilityEstimate(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, est.pixels, est.pairs, est.queries, False)

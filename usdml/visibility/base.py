@@ -204,6 +204,11 @@ class VisibilityBackend(abc.ABC):
     stats: Mapping = MappingProxyType({})
     #: ``REFINE``: how many times :meth:`occluded_uncertain`'s rule can be widened (levels 1 .. this)
     refine_levels: int = 0
+    #: ``REFINE``: per level (1, 2, ...), a lower bound on what one query costs by the level's rule alone, in
+    #: exact shadow rays, where the backend has one that held on every stage measured (empty: none). Under
+    #: ``--error-budget`` a level costing an exact ray or more is not used: exact alone is faster
+    #: (:mod:`usdml.render.budget`)
+    refine_costs: tuple[float, ...] = ()
     #: point-light pairs handed to one :meth:`occluded` call by :meth:`occluded_matrix`; bounds its
     #: temporary memory (about 200 bytes per pair, so ~200 MB at 2^20)
     matrix_chunk_pairs: int = 1 << 20
@@ -365,6 +370,12 @@ class VisibilityBackend(abc.ABC):
         ``refine_levels``; a higher level flags a superset). Arguments as :meth:`occluded`. Backends that do
         not declare it raise ``NotImplementedError``."""
         raise NotImplementedError(f"the {self.name or type(self).__name__} backend does not say which answers are uncertain")
+
+    def refine_cost(self, level: int) -> float:
+        """``REFINE``: :attr:`refine_costs` at ``level`` (the last one beyond them; 0 where none is declared)."""
+        if level < 1 or not self.refine_costs:
+            return 0.0
+        return float(self.refine_costs[min(level, len(self.refine_costs)) - 1])
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
