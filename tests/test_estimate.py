@@ -197,3 +197,23 @@ def test_shared_lights_interval():
         ex.close()
         ap.close()
     assert np.mean(held, axis=0).min() >= 0.85, np.mean(held, axis=0)
+
+
+def test_facing_pairs_among_is_the_filtered_list():
+    """``facing_pairs(among=)`` (the budget's sample: each pixel's drawn lights) yields the very queries of
+    filtering every facing pair by the mask, in the same order (the city's 1,024 lights, random points)."""
+    from usdml.lighting.direct import facing_pairs
+
+    snap = StageDelegate(str(STAGES / "city.usda")).snapshot(1.0)
+    rng = np.random.default_rng(5)
+    n = 3000
+    pts = rng.uniform(-40, 40, (n, 3)) * [1, 0, 1] + [0, 0.5, 0]
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    among = rng.random((n, len(snap.lights))) < 0.05
+    every = [np.concatenate(a) for a in zip(*facing_pairs(pts, nrm, snap.lights))]
+    keep = among[every[4], every[5]]
+    got = [np.concatenate(a) for a in zip(*facing_pairs(pts, nrm, snap.lights, among=among))]
+    assert 1000 < len(got[0]) < keep.size
+    for want, have in zip(every, got):
+        np.testing.assert_array_equal(want[keep], have)

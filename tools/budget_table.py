@@ -93,6 +93,11 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
                 row["frame_seconds"], shadow, row["frame_estimate_seconds"] = _frame(d, s, w, h)
                 row["frame_estimate_share"] = row["frame_estimate_seconds"] / max(row["frame_seconds"], 1e-9)
                 row["frame_speedup"] = exact_frame / max(row["frame_seconds"], 1e-9)
+                row["exact_frame_seconds"] = exact_frame
+                # the shadow AOV against the exact backend's, over the frame's pixels (0 where nothing is hit)
+                row["shadow_mean_abs"] = float(abs(shadow - exact_shadow).mean())
+                row["shadow_bias"] = float((shadow - exact_shadow).mean())
+                row["frame_width"] = [w, h]
             if exact_cold is not None:
                 # a user's first render: arrays built, every frame of ``cold`` (--frames)
                 row["cold_frames"] = cold
@@ -100,11 +105,6 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
                                                                              "--error-budget", f"{budget:g}"])
                 row["exact_cold_seconds"] = exact_cold
                 row["cold_speedup"] = exact_cold / row["cold_seconds"]
-                row["exact_frame_seconds"] = exact_frame
-                # the shadow AOV against the exact backend's, over the frame's pixels (0 where nothing is hit)
-                row["shadow_mean_abs"] = float(abs(shadow - exact_shadow).mean())
-                row["shadow_bias"] = float((shadow - exact_shadow).mean())
-                row["frame_width"] = [w, h]
             rows.append(row)
             print(f"{stage} {backend} budget {budget:g}: eps_v {100 * r['eps_v']:.3f} % (estimate "
                   f"{100 * r['estimated_eps_v']:.3f} % [{100 * lo:.3f}, {100 * hi:.3f}]), {r['speedup']:.2f}x exact, "

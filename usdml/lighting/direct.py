@@ -92,16 +92,19 @@ def shadow_queries(live: np.ndarray, directions, table: LightTable, lights: Ligh
     return pi, li, targets, dist
 
 
-def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights, geometric: np.ndarray | None = None):
+def facing_pairs(points: np.ndarray, normals: np.ndarray, lights: Lights, geometric: np.ndarray | None = None,
+                 among: np.ndarray | None = None):
     """Yield ``(origins, targets, normals, distant, point_index, light_index)`` of every shadow query
-    of :func:`shade_direct`, by block (``normals`` of the queries: the geometric ones when given)."""
+    of :func:`shade_direct`, by block (``normals`` of the queries: the geometric ones when given);
+    ``among``: (P, L) bool, only those pairs (the same queries in the same order as filtering all of them)."""
     table = LightTable(lights)     # units do not change which pairs face each other
     step = max(1, PAIRS_PER_CHUNK // max(len(lights), 1))
     offset = normals if geometric is None else geometric
     for lo in range(0, len(points), step):
         hi = min(len(points), lo + step)
         g, _, w = _geometry(points[lo:hi], normals[lo:hi], table, None if geometric is None else geometric[lo:hi])
-        pi, li, targets, dist = shadow_queries(g > 0, w, table, lights)
+        live = g > 0 if among is None else (g > 0) & among[lo:hi]
+        pi, li, targets, dist = shadow_queries(live, w, table, lights)
         yield points[lo + pi], targets, offset[lo + pi], dist, lo + pi, li
 
 

@@ -187,9 +187,8 @@ class PairSample:
             keys = rng.random((m, n_l))
             chosen = np.zeros((m, n_l), bool)
             np.put_along_axis(chosen, np.argpartition(keys, self.k - 1, axis=1)[:, :self.k], True, axis=1)
-            for origin, target, normal, distant, px, li in facing_pairs(pts, nrm, lights, geo):
-                keep = chosen[px, li]
-                blocks.append((origin[keep], target[keep], normal[keep], distant[keep], px[keep], li[keep]))
+            # the facing test on every pair, the queries made of the drawn ones only
+            blocks = list(facing_pairs(pts, nrm, lights, geo, among=chosen))
         else:
             draws = rng.integers(0, n_l, (m, self.k))
             for i in range(m):
