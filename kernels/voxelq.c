@@ -710,7 +710,8 @@ void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float 
 
 /* the caller's answers to vq_shade_refine's list: entry k (of n; point list_point[k], term list_rgb[3 k ..])
  * free[k] != 0: its light added to the point's radiance, else the point's blocked count + 1. Entries of one
- * point are added in list order: the sums of NumPy's bincount over the same entries. */
+ * point are added in list order, in float32 as the kernel adds its certain lights (the list's order is the
+ * same whatever the bands: the same pixels on any number of threads). */
 void vq_list_apply(int64_t n, const int32_t *list_point, const float *list_rgb, const uint8_t *free_, float *radiance,
                    int32_t *blocked) {
     for (int64_t k = 0; k < n; k++) {

@@ -355,7 +355,6 @@ class NativeScene:
         listing.queries += int(queries[0])
         return int(resume[0])
 
-
     def list_apply(self, listing: "ShadeList", free: np.ndarray, radiance: np.ndarray, blocked: np.ndarray) -> None:
         """The caller's answers to ``listing``'s entries (``free``, (count,) bool; ``voxelq.c``'s
         ``vq_list_apply``): each free entry's term added to its point's ``radiance`` ((P, 3) float32), the point's
