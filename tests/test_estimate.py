@@ -3,6 +3,7 @@ holds the measured ε_v and ε_s (``usdml compare``) on every sample stage, on a
 reaches the EXR header, ``render --json`` and ``Recorder``'s result."""
 
 import json
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -167,35 +168,43 @@ def test_which_frames_estimate():
             r.close()
 
 
-def test_shared_lights_interval():
-    """A ``LIGHT_MAJOR`` backend's estimate (lights drawn once for every sampled pixel) over many draws:
-    its interval holds the measured values nearly always (95 % nominal, pixels and lights both sampled)."""
-    from usdml.render.estimate import estimate_visibility
+@contextmanager
+def _boxes_frame(backend: str, width: int, over: dict):
+    """boxes.usda's frame 1 at ``width``: ``(lights, exact, approx, points, normals, geometric)`` of its hit
+    pixels, the backends brought to the frame (closed after)."""
     from usdml.render.frame import conform_camera
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
     from usdml.visibility import ExactBackend, make_backend
 
     d = StageDelegate(str(STAGES / "boxes.usda"))
-    r = compare_visibility(d, "insm", image_width=40)
     snap = d.snapshot(1)
-    w, h = snap.camera.resolution(40)
-    ex, ap = ExactBackend(), make_backend("insm", d.usdml_settings.updated(visibility="insm"), "cpu")
+    w, h = snap.camera.resolution(width)
+    ex, ap = ExactBackend(), make_backend(backend, d.usdml_settings.updated(visibility=backend, **over), "cpu")
     try:
         ex.update(snap, diff(None, snap))
         ap.update(snap, diff(None, snap))
         gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, w, h)), ex, w, h)
         hit = gb.hit.ravel()
-        p, n, g = (getattr(gb, a).reshape(-1, 3)[hit] for a in ("position", "normal", "geometric"))
-        held = []
-        for seed in range(20):
-            e = estimate_visibility(p, n, g, snap.lights, ex, ap, np.random.default_rng(seed), pixels=128,
-                                    shared_lights=8)
-            assert e.pairs == 128 * 8 and not e.exact_per_pixel
-            held.append((e.eps_v_lo <= r["eps_v"] <= e.eps_v_hi, e.eps_s_lo <= r["eps_s"] <= e.eps_s_hi))
+        yield (snap.lights, ex, ap, *(getattr(gb, a).reshape(-1, 3)[hit] for a in ("position", "normal", "geometric")))
     finally:
         ex.close()
         ap.close()
+
+
+def test_shared_lights_interval():
+    """A ``LIGHT_MAJOR`` backend's estimate (lights drawn once for every sampled pixel) over many draws:
+    its interval holds the measured values nearly always (95 % nominal, pixels and lights both sampled)."""
+    from usdml.render.estimate import estimate_visibility
+
+    r = compare_visibility(StageDelegate(str(STAGES / "boxes.usda")), "insm", image_width=40)
+    held = []
+    with _boxes_frame("insm", 40, {}) as (lights, ex, ap, p, n, g):
+        for seed in range(20):
+            e = estimate_visibility(p, n, g, lights, ex, ap, np.random.default_rng(seed), pixels=128,
+                                    shared_lights=8)
+            assert e.pairs == 128 * 8 and not e.exact_per_pixel
+            held.append((e.eps_v_lo <= r["eps_v"] <= e.eps_v_hi, e.eps_s_lo <= r["eps_s"] <= e.eps_s_hi))
     assert np.mean(held, axis=0).min() >= 0.85, np.mean(held, axis=0)
 
 
@@ -217,3 +226,28 @@ def test_facing_pairs_among_is_the_filtered_list():
     assert 1000 < len(got[0]) < keep.size
     for want, have in zip(every, got):
         np.testing.assert_array_equal(want[keep], have)
+
+
+def test_a_frame_sampled_whole_is_measured():
+    """A frame whose every pair fits the sample (every hit pixel sampled, pixels × lights within the sample's
+    pairs) is traced whole: its estimate is the measured ε_v and ε_s themselves, with no interval around them
+    (a bound of about 4 / pixels would refuse a budget a small frame meets), more lights than a pixel's draw."""
+    from usdml.render.estimate import estimate_visibility
+
+    over = dict(voxel_resolution=16, direction_step=6.0)
+    r = compare_visibility(StageDelegate(str(STAGES / "boxes.usda")), "voxel", image_width=24, overrides=over)
+    with _boxes_frame("voxel", 24, over) as (lights, ex, ap, p, n, g):
+        n_hit, n_l = len(p), len(lights)
+        per_pixel = n_l // 4
+        assert n_l > per_pixel
+        # the sample's pairs (pixels × lights a pixel) hold the frame's: more pixels asked than it has
+        whole = estimate_visibility(p, n, g, lights, ex, ap, np.random.default_rng(0),
+                                    pixels=-(-n_hit * n_l // per_pixel), lights_per_pixel=per_pixel)
+        drawn = estimate_visibility(p, n, g, lights, ex, ap, np.random.default_rng(0), pixels=n_hit,
+                                    lights_per_pixel=per_pixel)
+    assert r["eps_v"] > 0.01 and r["pixels"] == n_hit
+    assert whole.exact_per_pixel and whole.pairs == n_hit * n_l
+    assert whole.eps_v_lo == whole.eps_v == whole.eps_v_hi == pytest.approx(r["eps_v"], rel=1e-9)
+    assert whole.eps_s_lo == whole.eps_s == whole.eps_s_hi == pytest.approx(r["eps_s"], rel=1e-9)
+    # a pixel's draw of fewer lights than the frame has: a sample, and an interval
+    assert not drawn.exact_per_pixel and drawn.eps_v_hi > drawn.eps_v_lo

@@ -299,3 +299,38 @@ def test_fused_refined_shading_matches_refined_queries(new_stage):
     assert counts["queries"] == fused.queries > 0 and counts["refined"] > 0
     np.testing.assert_allclose(fused.radiance, plain.radiance, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(fused.shadow, plain.shadow, atol=1e-6)
+
+
+def _open_ground(new_stage, n: int = 200) -> str:
+    """The bare ground lit by ``n`` point-like lights high over it: nothing to shadow, every answer certain."""
+
+    def lights(stage):
+        for i in range(n):
+            s = UsdLux.SphereLight.Define(stage, f"/World/light{i}")
+            s.CreateRadiusAttr(0.001)
+            s.CreateIntensityAttr(1e4)
+            s.AddTranslateOp().Set((-18 + 36 * (i % 20) / 19, 12 + i // 20, -18 + 36 * (i // 20) / 9))
+    return ground_stage(new_stage, lights)
+
+
+def test_budget_on_a_small_frame(new_stage, tmp_path, capsys):
+    """A frame whose every pair fits the budget's sample is traced whole: 16² pixels × 200 lights, no wrong
+    answer, the budget met at level 0 with the measured ε_v (0, no interval). At 32² the sample draws lights,
+    and with no wrong answer its bound is its size's (about 4 / pixels, over 0.003): one warning line says the
+    sample is too small, no wider rule is tried, and the frame's answers are exact."""
+    path = _open_ground(new_stage)
+    flags = ["--visibility", "voxel", "--voxel-resolution", "32", "--direction-step", "6", "--pixel-samples", "1",
+             "--error-budget", "0.003", "--json"]
+    assert main(["render", path, str(tmp_path / "a.exr"), "--imageWidth", "16", *flags]) == 0
+    captured = capsys.readouterr()
+    assert "--error-budget" not in captured.err, captured.err
+    e = json.loads(captured.out)["estimates"]["1"]
+    assert e["met"] and e["level"] == 0 and e["exact_per_pixel"] and e["pairs"] == 256 * 200
+    assert e["eps_v"] == e["eps_v_hi"] == 0.0
+    assert main(["render", path, str(tmp_path / "b.exr"), "--imageWidth", "32", *flags]) == 0
+    captured = capsys.readouterr()
+    warning = [line for line in captured.err.splitlines() if "--error-budget" in line]
+    assert len(warning) == 1 and "frame 1" in warning[0] and "1,024 pixels found no wrong answer" in warning[0], \
+        captured.err
+    e = json.loads(captured.out)["estimates"]["1"]
+    assert not e["met"] and e["level"] == "exact" and set(e["levels"]) == {"0"} and e["levels"]["0"] > 0.003

@@ -87,6 +87,8 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
         if est.eps_v_hi <= budget:
             chosen = level
             break
+        if est.eps_v == 0:      # no wrong answer: the bound is the sample's size, which no wider rule lowers
+            break
     met = chosen is not None
     if not met:
         chosen = EXACT
@@ -95,6 +97,9 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
                    f"{cost:g} exact rays a query at level {level} (exact alone is faster)")
         elif share > MAX_REFINED:
             why = f"it re-asks {100 * share:.0f} % of the answers at level {level} (exact alone is faster)"
+        elif est.eps_v == 0:
+            why = (f"its sample of {est.pixels:,} pixels found no wrong answer, which bounds eps_v at "
+                   f"{100 * est.eps_v_hi:.2f} % only: too few pixels to show the budget")
         else:
             why = f"estimated eps_v up to {100 * est.eps_v_hi:.2f} % at its widest rule"
         log.warning(f"{where}: frame {time:g}: --error-budget {budget:g} not met by {refined.approx.name}'s "

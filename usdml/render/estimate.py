@@ -6,8 +6,9 @@ Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–l
 * pixels: ``pixels`` (128 to 256, as the frame's own work allows: :data:`BUDGET`) of the frame's hit pixels,
   stratified over the image (the hit pixels in scan order cut into that many equal runs, one pixel drawn
   in each), seeded by the render's seed and the timecode;
-* lights: at each of them, every light when the frame has at most ``lights``, else ``lights`` lights drawn
-  uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
+* lights: at each of them, every light when the frame has at most ``lights`` (or when every hit pixel is
+  sampled and all their pairs are no more than ``pixels`` × ``lights``: the whole frame), else ``lights``
+  lights drawn uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
 * each sampled pair is answered by the exact backend and by the shadow backend (``occluded``).
 
 A ``LIGHT_MAJOR`` backend (``insm``: a map per light, built anew for every call) would build a map for
@@ -175,7 +176,11 @@ class PairSample:
         pts, nrm = points[pick], normals[pick]
         geo = None if geometric is None else geometric[pick]
         self.shared = shared is not None and n_l > shared
-        self.every = not self.shared and n_l <= lights_per_pixel
+        # a frame whose every pair fits the sample's pairs (every hit pixel sampled) is traced whole: its
+        # measured error, not a bound of it (an upper end of 4 / pixels with no error would refuse a budget
+        # a small frame meets)
+        whole = m == n_hit and m * n_l <= pixels * lights_per_pixel
+        self.every = not self.shared and (n_l <= lights_per_pixel or whole)
         self.k = shared if self.shared else (n_l if self.every else lights_per_pixel)
         self.fpc = (1.0 - m / n_hit) if (self.every and n_hit) else 1.0
         blocks = []
