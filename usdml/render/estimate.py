@@ -128,6 +128,16 @@ def sample_pixels(n_hit: int, pixels: int, rng: np.random.Generator) -> np.ndarr
     return np.minimum(pick, n_hit - 1)
 
 
+def subsets(rng: np.random.Generator, rows: int, n: int, k: int) -> np.ndarray:
+    """``(rows, k)``: each row a uniformly random ``k``-subset of ``range(n)`` (Floyd's algorithm, vectorized
+    over the rows: ``k`` draws a row, where random keys over every element and a partition cost ``rows × n``)."""
+    out = np.empty((rows, k), np.int64)
+    for c, j in enumerate(range(n - k, n)):
+        t = rng.integers(0, j + 1, size=rows)
+        out[:, c] = np.where((out[:, :c] == t[:, None]).any(axis=1), j, t)
+    return out
+
+
 def frame_rng(seed: int, time: float) -> np.random.Generator:
     """The estimate's generator for a frame: the render's seed and the timecode (to the millisecond)."""
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, int(round(time * 1000)) & 0xFFFFFFFF, 36])
@@ -189,9 +199,8 @@ class PairSample:
             blocks = list(facing_pairs(pts, nrm, drawn, geo))
         elif n_l <= DENSE_LIGHTS:
             # each pixel its own ``k`` lights without replacement: every pair's facing test, the drawn kept
-            keys = rng.random((m, n_l))
             chosen = np.zeros((m, n_l), bool)
-            np.put_along_axis(chosen, np.argpartition(keys, self.k - 1, axis=1)[:, :self.k], True, axis=1)
+            np.put_along_axis(chosen, subsets(rng, m, n_l, self.k), True, axis=1)
             # the facing test on every pair, the queries made of the drawn ones only
             blocks = list(facing_pairs(pts, nrm, lights, geo, among=chosen))
         else:
