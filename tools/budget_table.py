@@ -10,8 +10,9 @@ backend as it is), 0 every answer exact.
 
 With ``--bench``, also ``usdml bench`` (median of passes; refinement included) per (backend, budget); with
 ``--frame-width W``, the seconds of whole frames rendered at W pixels wide, each budget against ``exact``
-(``usdml.bench.steady_frame``: the fewest seconds of frames 2-4 rendered after frame 1 by one renderer, one
-primary ray per pixel; the shadow AOV and the estimate's seconds of frame 2).
+(``usdml.bench.steady_frame``: frames 2-4 after frame 1, each rendered by the budget's renderer and then by
+exact's, one primary ray per pixel; the medians of the seconds and of the pairs' ratios; the shadow AOV and the
+estimate's seconds of frame 2).
 
 Usage (``--from docs/data/budget.json --plot docs/images/budget`` redraws the docs' chart from its data)::
 
@@ -25,29 +26,42 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 
 def _numbers(text: str, kind=float) -> list:
     return [kind(x) for x in text.split(",") if x.strip()]
 
 
-def _frame(delegate, settings, width: int, height: int, frames: int = 3):
-    """Seconds of a steady frame, the fewest over the ``frames`` frames after the first (a frame's seconds vary
-    by a tenth from run to run on this machine), the second frame's ``shadow`` AOV and the seconds of its
-    estimate (with a budget: the level's choice, sample and sweep)."""
+def _frames(delegate, settings, exact_settings, width: int, height: int, frames: int = 3) -> dict:
+    """A steady frame of ``settings`` against ``exact_settings``'s, in turn: frame 1 by each renderer, then
+    frames 2, 3, ... (``frames`` of them), each rendered by one renderer and then the other, so that the
+    ratios are pair by pair (the machine's speed drifts by a tenth between runs). The medians of each side's
+    seconds and of the pairs' ratios, frame 2's ``shadow`` AOVs and the seconds of its estimate (with a budget:
+    the level's choice, sample and sweep)."""
     import time
 
     from usdml.bench import next_frame, steady_frame
 
-    with steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height,
-                      frozenset({"color", "shadow"})) as (result, seconds, r):
+    aovs = frozenset({"color", "shadow"})
+    with steady_frame(delegate, exact_settings.updated(pixel_samples=1), delegate.start_time, width, height,
+                      aovs) as (exact_result, exact_s, er), \
+            steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height,
+                         aovs) as (result, seconds, r):
         estimate = result.stats.estimate or {}
-        best, time_code = seconds, next_frame(delegate, delegate.start_time)
+        pairs, time_code = [(seconds, exact_s)], next_frame(delegate, delegate.start_time)
         for _ in range(frames - 1):
             time_code = next_frame(delegate, time_code)
-            t0 = time.perf_counter()
-            r.render(time_code, width, height, {"color", "shadow"})
-            best = min(best, time.perf_counter() - t0)
-        return best, result.buffers["shadow"], estimate.get("seconds", 0.0)
+            pair = []
+            for renderer in (r, er):
+                t0 = time.perf_counter()
+                renderer.render(time_code, width, height, set(aovs))
+                pair.append(time.perf_counter() - t0)
+            pairs.append(tuple(pair))
+        got, ref = np.array(pairs).T
+        return {"frame_seconds": float(np.median(got)), "exact_frame_seconds": float(np.median(ref)),
+                "frame_speedup": float(np.median(ref / got)), "frame_estimate_seconds": estimate.get("seconds", 0.0),
+                "shadow": result.buffers["shadow"], "exact_shadow": exact_result.buffers["shadow"]}
 
 
 def cold_render(stage: str, width: int, frames: str, flags: list[str]) -> float:
@@ -75,10 +89,8 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
 
     d = StageDelegate(stage)
     rows = []
-    exact_frame = None
     if frame_width:
         w, h = d.snapshot(d.start_time).camera.resolution(frame_width)
-        exact_frame, exact_shadow, _ = _frame(d, d.usdml_settings.updated(visibility="exact"), w, h)
     exact_cold = cold_render(stage, frame_width, cold, ["--visibility", "exact"]) if cold and frame_width else None
     for backend in backends:
         for budget in budgets:
@@ -99,11 +111,11 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
                 row["bench_speedup"] = b["speedup_vs_exact"]
                 row["bench_disagreement"] = b["disagreement_vs_exact"]
             if frame_width:
-                s = d.usdml_settings.updated(visibility=backend, error_budget=budget)
-                row["frame_seconds"], shadow, row["frame_estimate_seconds"] = _frame(d, s, w, h)
+                f = _frames(d, d.usdml_settings.updated(visibility=backend, error_budget=budget),
+                            d.usdml_settings.updated(visibility="exact"), w, h)
+                shadow, exact_shadow = f.pop("shadow"), f.pop("exact_shadow")
+                row.update(f)
                 row["frame_estimate_share"] = row["frame_estimate_seconds"] / max(row["frame_seconds"], 1e-9)
-                row["frame_speedup"] = exact_frame / max(row["frame_seconds"], 1e-9)
-                row["exact_frame_seconds"] = exact_frame
                 # the shadow AOV against the exact backend's, over the frame's pixels (0 where nothing is hit)
                 row["shadow_mean_abs"] = float(abs(shadow - exact_shadow).mean())
                 row["shadow_bias"] = float((shadow - exact_shadow).mean())
@@ -120,7 +132,8 @@ def measure(stage: str, backends: list[str], budgets: list[float], width: int, b
                   f"{100 * r['estimated_eps_v']:.3f} % [{100 * lo:.3f}, {100 * hi:.3f}]), {r['speedup']:.2f}x exact, "
                   f"level {r['refine_level']}, refined {100 * r['refined_fraction']:.1f} %"
                   + (f", bench {row['bench_speedup']:.2f}x" if bench else "")
-                  + (f", frame {row['frame_seconds']:.1f} s vs {exact_frame:.1f} s, shadow AOV off by "
+                  + (f", frame {row['frame_seconds']:.1f} s vs {row['exact_frame_seconds']:.1f} s "
+                     f"({row['frame_speedup']:.2f}x), shadow AOV off by "
                      f"{row['shadow_mean_abs']:.4f}" if frame_width else ""),
                   file=sys.stderr)
     return rows
