@@ -8,7 +8,8 @@ Paper 000 §6.1 measures ``ε_v`` and ``ε_s`` by tracing every facing pixel–l
   in each), seeded by the render's seed and the timecode;
 * lights: at each of them, every light when the frame has at most ``lights`` (or when every hit pixel is
   sampled and all their pairs are no more than ``pixels`` × ``lights``: the whole frame), else ``lights``
-  lights drawn uniformly with replacement, its own draw per pixel; a non-facing light counts as answered right;
+  lights drawn uniformly, its own draw per pixel (without replacement up to :data:`DENSE_LIGHTS` lights,
+  :func:`subsets`; with replacement beyond); a non-facing light counts as answered right;
 * each sampled pair is answered by the exact backend and by the shadow backend (``occluded``).
 
 A ``LIGHT_MAJOR`` backend (``insm``: a map per light, built anew for every call) would build a map for
