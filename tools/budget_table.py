@@ -10,9 +10,10 @@ backend as it is), 0 every answer exact.
 
 With ``--bench``, also ``usdml bench`` (median of passes; refinement included) per (backend, budget); with
 ``--frame-width W``, the seconds of whole frames rendered at W pixels wide, each budget against ``exact``
-(``usdml.bench.steady_frame``: frames 2-4 after frame 1, each rendered by the budget's renderer and then by
-exact's, one primary ray per pixel; the medians of the seconds and of the pairs' ratios; the shadow AOV and the
-estimate's seconds of frame 2).
+(``usdml.bench.steady_frame``: frames 2-4 after frame 1, one primary ray per pixel, by exact's renderer and the
+budget's: frames 1-2 by exact's and then by the budget's, frames 3-4 by the budget's and then by exact's in
+turn; the medians of the seconds and of the pairs' ratios; the shadow AOV and the estimate's seconds of
+frame 2).
 
 Usage (``--from docs/data/budget.json --plot docs/images/budget`` redraws the docs' chart from its data)::
 
@@ -34,9 +35,9 @@ def _numbers(text: str, kind=float) -> list:
 
 
 def _frames(delegate, settings, exact_settings, width: int, height: int, frames: int = 3) -> dict:
-    """A steady frame of ``settings`` against ``exact_settings``'s, in turn: frame 1 by each renderer, then
-    frames 2, 3, ... (``frames`` of them), each rendered by one renderer and then the other, so that the
-    ratios are pair by pair (the machine's speed drifts by a tenth between runs). The medians of each side's
+    """A steady frame of ``settings`` against ``exact_settings``'s, pair by pair (the machine's speed drifts by a
+    tenth between runs): frames 1 and 2 by exact's renderer and then by the other (``steady_frame`` each), then
+    the next ``frames - 1`` frames by the other and then by exact's, in turn. The medians of each side's
     seconds and of the pairs' ratios, frame 2's ``shadow`` AOVs and the seconds of its estimate (with a budget:
     the level's choice, sample and sweep)."""
     import time
