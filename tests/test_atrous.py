@@ -38,7 +38,7 @@ def test_constant_image_unchanged(device):
 @pytest.mark.parametrize("sigma_normal", [128.0, 8.0])
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "warp"])
 def test_matches_numpy_reference(device, channels, sigma_normal, compiled):
-    """On a CPU the step is kernels/lghq.c's where it is built (compiled) or the Warp kernel's; on CUDA Warp's."""
+    """On a CPU the step is kernels/lgh/lghq.c's where it is built (compiled) or the Warp kernel's; on CUDA Warp's."""
     rng = np.random.default_rng(2)
     h, w = 23, 37
     n, p = _gbuffer(h, w, rng)

@@ -14,8 +14,8 @@ import pytest
 from usdml.cache import Cache, parse_size, size_limit
 from usdml.cli import main
 from usdml.errors import UsdmlError
-from usdml.visibility import voxel_codec
-from usdml.visibility.voxel_array import cached_array
+from usdml.visibility.voxel import codec as voxel_codec
+from usdml.visibility.voxel.array import cached_array
 
 from voxel_reference import box, city_tris
 
@@ -55,7 +55,7 @@ def test_voxel_arrays_are_stored_as_their_set_bits(tmp_path):
 
 def test_codec_handles_full_rows_and_an_empty_array():
     """Rows with 256+ bits (uint16 counts) and an empty array round-trip; damaged streams are refused."""
-    from usdml.visibility.voxel_grid import RowLayout
+    from usdml.visibility.voxel.grid import RowLayout
 
     layout = RowLayout.make(512)
     words = np.zeros(3 * layout.words, np.uint32)
@@ -71,14 +71,14 @@ def test_codec_handles_full_rows_and_an_empty_array():
 
 @pytest.mark.parametrize("resolution", [64, 512])
 def test_compiled_and_warp_coders_write_and_read_the_same_bytes(resolution):
-    """kernels/voxcodec.c against the Warp kernels: the same stream from the same words (a box city's
+    """kernels/voxel/voxcodec.c against the Warp kernels: the same stream from the same words (a box city's
     array, and rows of 256+ bits with uint16 counts), each decoding the other's, and each refusing a
     stream whose bit leaves its row."""
     if voxel_codec.EXTENSION.library() is None:
         if os.environ.get("USDML_REQUIRE_NATIVE") == "1":
-            pytest.fail(f"kernels/voxcodec.c is not built: {voxel_codec.EXTENSION.load()[1]}")
+            pytest.fail(f"kernels/voxel/voxcodec.c is not built: {voxel_codec.EXTENSION.load()[1]}")
         pytest.skip("the compiled coder is not built (no C compiler at install)")
-    from usdml.visibility.voxel_grid import RowLayout
+    from usdml.visibility.voxel.grid import RowLayout
 
     if resolution == 64:
         points, tris = _tris_mesh(city_tris(np.random.default_rng(7)))

@@ -20,12 +20,16 @@ ARCH = 75
 
 
 def _kernel_modules() -> list[str]:
-    """The Warp kernel modules (not the compiled C extension ``_voxelq``, which is CPU code)."""
-    return sorted(m.name for m in pkgutil.iter_modules(usdml.kernels.__path__) if not m.name.startswith("_"))
+    """The Warp kernel modules, in the folder of each method and beside them (not the packages, nor the
+    compiled C extensions such as ``voxel._voxelq``, which are CPU code)."""
+    found = pkgutil.walk_packages(usdml.kernels.__path__, "usdml.kernels.")
+    return sorted(m.name.removeprefix("usdml.kernels.") for m in found
+                  if not m.ispkg and not m.name.rpartition(".")[2].startswith("_"))
 
 
 def test_every_kernel_module_is_checked():
-    assert {"voxel", "voxel_rotate", "direct_shading", "lgh", "lgh_lighting", "atrous", "svo", "insm"} <= set(_kernel_modules())
+    assert {"voxel.query", "voxel.rotate", "voxel.shading", "voxel.codec", "lgh.build", "lgh.shading", "atrous",
+            "svo.octree", "insm.maps", "shadow_rays"} <= set(_kernel_modules())
 
 
 @pytest.mark.parametrize("name", _kernel_modules())

@@ -8,8 +8,8 @@ import pytest
 from conftest import STAGES
 from usdml.cli import main
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh import build_lgh
-from usdml.lighting.lgh_lighting import lgh_indirect
+from usdml.lighting.lgh.build import build_lgh
+from usdml.lighting.lgh.shading import lgh_indirect
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
@@ -156,7 +156,7 @@ def test_shading_block_by_block_gives_the_pixels_of_one_call(cornell, monkeypatc
     point's and every sample's random stream is numbered as in one whole-frame call, so blocks of 7 points,
     or of any size, give what lgh_lighting and shadow_fraction give on the whole frame (bit for bit but for
     einsum's rounding)."""
-    from usdml.lighting import lgh_lighting as module
+    from usdml.lighting.lgh import shading as module
 
     snap, ex, gb, pts, nrm, alb, vpls = cornell
     intensity = vpls.flux / np.float32(4 * np.pi)

@@ -10,9 +10,9 @@ import pytest
 from usdml.lighting.direct import shade_with
 from usdml.scene import LightType, diff
 from usdml.visibility import ExactBackend
-from usdml.visibility import insm_mesh
-from usdml.visibility.insm import InsmBackend, kernels, light_views, take_lights
-from usdml.visibility.insm_mesh import View, clusters, connected_edges, insm_views, reference_viewpoints, triangulate
+from usdml.visibility.insm import mesh as insm_mesh
+from usdml.visibility.insm.backend import InsmBackend, kernels, light_views, take_lights
+from usdml.visibility.insm.mesh import View, clusters, connected_edges, insm_views, reference_viewpoints, triangulate
 
 from backend_scenes import lights, scene_frames, surface_points
 
@@ -175,7 +175,7 @@ def _snapshot_and_points(scene="occluder"):
 
 
 def test_compiled_maps_answer_as_the_warp_kernels():
-    from usdml.visibility import insm_native
+    from usdml.visibility.insm import native as insm_native
     if insm_native.library() is None:
         pytest.skip(insm_native.describe())
     snap, pts, nrm = _snapshot_and_points()

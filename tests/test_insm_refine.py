@@ -1,7 +1,7 @@
 """The insm backend's REFINE rule (issue 36 item 1): its answers are :meth:`occluded`'s, its levels nest, and
 on a floating square over a ground (a closed-form shadow, no code shared with the backend) the answers it
 calls certain are right and those it gets wrong are flagged. Both CPU paths: the compiled maps' rule and the
-Warp kernels' simpler one (usdml.visibility.insm, "Refinement")."""
+Warp kernels' simpler one (usdml.visibility.insm.backend, "Refinement")."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from usdml.scene import Lights, LightType, diff
-from usdml.visibility import insm_native
-from usdml.visibility.insm import InsmBackend
+from usdml.visibility.insm import native as insm_native
+from usdml.visibility.insm.backend import InsmBackend
 
 from plain_scenes import snapshot, soup
 

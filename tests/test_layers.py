@@ -125,7 +125,7 @@ def violations() -> list[str]:
 
 
 def test_every_module_has_a_layer():
-    assert "usdml.visibility.base" in MODULES and "usdml.kernels.voxel" in MODULES
+    assert "usdml.visibility.base" in MODULES and "usdml.kernels.voxel.query" in MODULES
     assert [m for m in MODULES if layer_of(m) is None] == []
 
 
@@ -139,3 +139,25 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
     source.write_text("def f():\n    from usdml.lighting.direct import shade_direct\n    from usdml.parallel import _x\n")
     found = list(imports(source, "usdml.visibility.m"))
     assert (2, "usdml.lighting.direct", "shade_direct") in found and (3, "usdml.parallel", "_x") in found
+
+
+#: the methods (a paper each) that own a folder: the visibility backends but the reference, and the LGH
+METHOD_FOLDERS = {"usdml.visibility": ("voxel", "svo", "insm"), "usdml.lighting": ("lgh",),
+                  "usdml.kernels": ("voxel", "svo", "insm", "lgh")}
+
+
+def test_each_method_lives_in_its_folder():
+    """A method's modules, Python or C, are in its folder (``usdml/visibility/voxel/``, ``kernels/voxel/``), not
+    beside the folder with the method's name in front (``voxel_array.py``); every registered backend but the
+    reference has its folder."""
+    from usdml.visibility.registry import backend_names
+
+    assert set(backend_names()) - {"exact"} <= set(METHOD_FOLDERS["usdml.visibility"])
+    flat = []
+    for package, methods in METHOD_FOLDERS.items():
+        folder = MODULES[package].parent
+        for method in methods:
+            assert (folder / method / "__init__.py").is_file(), f"{package}.{method} is not a folder"
+            flat += [p.name for p in folder.iterdir() if p.is_file() and p.name.startswith(method)]
+    c_files = {p.name for p in PACKAGE_DIRS["usdml.kernels"].iterdir() if p.suffix in (".c", ".h")}
+    assert flat == [] and c_files == set()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from usdml.errors import UsdmlError
-from usdml.lighting.lgh import MAX_LEVELS, auto_levels, build_lgh, count_s1
+from usdml.lighting.lgh.build import MAX_LEVELS, auto_levels, build_lgh, count_s1
 
 wp = pytest.importorskip("warp")
 wp.config.quiet = True
@@ -246,7 +246,7 @@ def test_no_lights(device):
 def test_split_scatter_matches_one_launch(monkeypatch, on_planes):
     # enough lights that the CPU scatter is split over concurrent x-slabs of one grid, then the lights
     # near the slab boundaries; lights exactly on grid planes test the float32 / float64 cell margin
-    import usdml.lighting.lgh as lgh_module
+    import usdml.lighting.lgh.build as lgh_module
 
     p, inten = random_lights(150_000, seed=8)
     if on_planes:

@@ -10,9 +10,9 @@ import pytest
 
 from conftest import ROOT, gi_frame
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh import build_lgh, build_lgh_split
-from usdml.lighting.lgh_choice import PILOT_ALPHAS, choose
-from usdml.lighting.lgh_lighting import AUTO_SHADOW_SAMPLES, auto_shadow_samples, lgh_indirect, lights_visited
+from usdml.lighting.lgh.build import build_lgh, build_lgh_split
+from usdml.lighting.lgh.choice import PILOT_ALPHAS, choose
+from usdml.lighting.lgh.shading import AUTO_SHADOW_SAMPLES, auto_shadow_samples, lgh_indirect, lights_visited
 
 
 def _planes(n, rng):
@@ -28,7 +28,7 @@ def _planes(n, rng):
 
 
 def _plain_count(lgh, points, alpha, s0):
-    """The lights the compiled gather walks (``kernels/lghq.c``, ``collect``), one point and light at a time."""
+    """The lights the compiled gather walks (``kernels/lgh/lghq.c``, ``collect``), one point and light at a time."""
     total = 0
     top = max(lv.level for lv in lgh.levels)     # a split hierarchy lists each level once per normal class
     for q in points:
@@ -120,7 +120,7 @@ def test_auto_choice_holds_its_pilot_target_over_every_vpl(interior):
     smallest α whose pilot error is within target; over the whole image, against every VPL by brute force's own
     code (unshadowed, no code shared with the pilot's sum), within 1.6 times the target, and the α before it on
     the pilot's grid (tried and refused) errs more there."""
-    from usdml.lighting.lgh_choice import PILOT_TARGET
+    from usdml.lighting.lgh.choice import PILOT_TARGET
 
     snap, pts, nrm, alb, vpls = interior
     intensity = vpls.flux / np.float32(4 * np.pi)

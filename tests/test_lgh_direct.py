@@ -17,7 +17,7 @@ from pxr import Sdf, UsdGeom, UsdLux, Vt
 
 from conftest import ALBEDO, add_cube_mesh, ground_stage
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh_direct import COSINE_SHARE, grid_mask, grid_sources, prepare_direct, shade_lgh_direct
+from usdml.lighting.lgh.direct import COSINE_SHARE, grid_mask, grid_sources, prepare_direct, shade_lgh_direct
 from usdml.render.frame import FrameRenderer
 from usdml.scene import Lights, LightType
 from usdml.settings import UsdmlSettings
@@ -383,7 +383,7 @@ def test_shadow_aov_is_the_blocked_fraction_of_the_lights(gather):
 def test_shadow_rays_are_per_pixel():
     """``usdml:direct:shadowSamples`` rays per pixel, shared by its primary rays: 64 at 4 pixel samples
     is 16 per primary ray, 64 at 1; at least one."""
-    from usdml.lighting.lgh_direct import rays_per_pass
+    from usdml.lighting.lgh.direct import rays_per_pass
 
     assert rays_per_pass(UsdmlSettings(direct_shadow_samples=64, pixel_samples=4)) == 16
     assert rays_per_pass(UsdmlSettings(direct_shadow_samples=64, pixel_samples=1)) == 64
@@ -417,7 +417,7 @@ def test_shadow_samples_chosen_for_the_noise():
     fixed 64 rays leave 4.6 % relative RMSE (over the 4 % bound); the default takes more rays (the cap, one per
     100 lights: 130) and is within it (3.1 %); the pilot's noise at 64 rays is within 25 % of the error 64 rays
     measure (4.5 % against 4.6 %: the hierarchy's own error is small)."""
-    from usdml.lighting.lgh_direct import samples_cap
+    from usdml.lighting.lgh.direct import samples_cap
 
     rng = np.random.default_rng(5)
     plates = np.column_stack([rng.uniform(1.5, 4.0, 8), rng.uniform(-10, 6, 8), np.zeros(8),
@@ -459,7 +459,7 @@ def test_shadow_samples_chosen_for_the_noise():
 def test_shadow_samples_rule():
     """k = 64 (noise / target)² within [64, cap]; the cap one ray per 100 grid lights, never below 64 nor above
     1,024; the count is per pixel, shared by its primary rays."""
-    from usdml.lighting.lgh_direct import rays_per_pass, samples_cap, samples_for_noise
+    from usdml.lighting.lgh.direct import rays_per_pass, samples_cap, samples_for_noise
 
     assert samples_for_noise(0.06, 0.03) == 256
     assert samples_for_noise(0.045, 0.03) == 144
@@ -476,8 +476,9 @@ def test_the_frame_gathers_from_every_light_where_that_costs_less(monkeypatch):
     """``usdml:direct:gather`` auto: every grid light (:class:`EachLight`) where N lights times the sum's cost per
     light (in the hierarchy's visits) is at most the visits the hierarchy's gather makes at the frame's alpha,
     else the hierarchy; the hierarchy on a GPU and with the Warp kernels; each and hierarchy as asked."""
-    from usdml.lighting import lgh_direct, lgh_native
-    from usdml.lighting.lgh_each import EachLight
+    from usdml.lighting.lgh import direct as lgh_direct
+    from usdml.lighting.lgh import native as lgh_native
+    from usdml.lighting.lgh.each import EachLight
 
     if lgh_native.library() is None:
         pytest.skip("the compiled LGH kernels are not built here")

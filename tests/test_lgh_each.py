@@ -1,13 +1,13 @@
-"""Every VPL its own light (``--lgh-split each``, usdml.lighting.lgh_each): the sum against analytic Lambertian
+"""Every VPL its own light (``--lgh-split each``, usdml.lighting.lgh.each): the sum against analytic Lambertian
 emitters, the shadow draws against the lights' own shares, the shadowed estimate against an analytic occluder
 (no code shared with the kernel), the frame's choice, and a frame against brute force."""
 
 import numpy as np
 import pytest
 
-from usdml.lighting.lgh_each import EachLight, uniform
-from usdml.lighting.lgh_lighting import LUMA, shadow_fraction
-from usdml.lighting.lgh_native import library
+from usdml.lighting.lgh.each import EachLight, uniform
+from usdml.lighting.lgh.shading import LUMA, shadow_fraction
+from usdml.lighting.lgh.native import library
 
 COMPILED = [True, pytest.param(False, id="numpy")]
 
@@ -154,7 +154,7 @@ def test_the_compiled_sum_over_chunks_and_tiles():
     assert (a.count > 1000).all() and a.sample_ok.all()
     assert (a.sample_light == b.sample_light).mean() > 0.99
     # a point skips the chunks of lights behind its tangent plane: the same answers, bit for bit
-    from usdml.lighting.lgh_native import EachLights
+    from usdml.lighting.lgh.native import EachLights
 
     q2 = np.column_stack([rng.uniform(-20, 20, 20000), rng.uniform(0, 4, 20000), rng.uniform(-20, 20, 20000)])
     sums = EachLights(*(EachLight((q2, np.ones((20000, 3), np.float32), None)).__dict__[k]
@@ -172,8 +172,8 @@ def test_a_floors_vpls_are_skipped_by_the_floors_points():
     are NumPy's, where the floor's own VPLs reach no floor point."""
     if library() is None:
         pytest.skip("the compiled LGH kernels are not built here")
-    from usdml.lighting.lgh_each import CLASS_LIGHTS
-    from usdml.lighting.lgh_native import EachLights
+    from usdml.lighting.lgh.each import CLASS_LIGHTS
+    from usdml.lighting.lgh.native import EachLights
 
     rng = np.random.default_rng(8)
     nf, nw = 3000, 1100
@@ -239,8 +239,8 @@ def test_the_frame_chooses_every_vpl_where_no_alpha_costs_less():
     """``choose(each=True)``: every VPL where no hierarchy's α fits under its cost (no pilot, no split one
     built); the hierarchy's cheapest α within target where one does; ``--lgh-split each`` whatever the rest, and
     an explicit α or split never."""
-    from usdml.lighting.lgh import build_lgh, build_lgh_split
-    from usdml.lighting.lgh_choice import choose
+    from usdml.lighting.lgh.build import build_lgh, build_lgh_split
+    from usdml.lighting.lgh.choice import choose
     from test_lgh_split import _ground_and_wall
 
     pos, inten, nrm, pts, pn = _ground_and_wall(500)
@@ -286,8 +286,8 @@ def test_the_sums_lanes_are_the_cpus():
     """``lghq_each_lanes`` (which function clone runs) against the CPU's flags where Linux lists them."""
     from pathlib import Path
 
-    from usdml.lighting.lgh_choice import EACH_VISIT_COSTS, each_visit_cost
-    from usdml.lighting.lgh_native import each_lanes
+    from usdml.lighting.lgh.choice import EACH_VISIT_COSTS, each_visit_cost
+    from usdml.lighting.lgh.native import each_lanes
 
     if library() is None:
         pytest.skip("the compiled LGH kernels are not built here")

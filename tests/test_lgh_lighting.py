@@ -7,8 +7,8 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
-from usdml.kernels.lgh_lighting import blend  # noqa: E402
-from usdml.lighting.lgh_lighting import LUMA, lgh_lighting  # noqa: E402
+from usdml.kernels.lgh.shading import blend  # noqa: E402
+from usdml.lighting.lgh.shading import LUMA, lgh_lighting  # noqa: E402
 
 
 @wp.kernel
@@ -80,7 +80,7 @@ def test_member_weights_leave_out_vpls_that_face_away(device):
     down) behind an occluder: weighing by luminance alone sees half the cluster blocked; weighing each
     sample by its own VPL's irradiance (``reweight``) sees the light unshadowed and casts no ray to the
     VPL facing away."""
-    from usdml.lighting.lgh_lighting import ClusterSampler, shadow_fraction
+    from usdml.lighting.lgh.shading import ClusterSampler, shadow_fraction
 
     vpl = np.array([[-0.5, 5, 0], [0.5, 5, 0]], np.float32)
     inten = np.ones((2, 3), np.float32)
@@ -130,7 +130,7 @@ def test_interleaved_sampling_is_unbiased_over_a_tile(device):
 
 def _random_lights(seed: int, lights: int, points: int):
     """Lights in a 4 x 2 x 4 box over points on a floor facing up, and a 3-level LGH over the lights."""
-    from usdml.lighting.lgh import build_lgh
+    from usdml.lighting.lgh.build import build_lgh
 
     rng = np.random.default_rng(seed)
     pos = rng.uniform([-2, 1, -2], [2, 3, 2], (lights, 3)).astype(np.float32)
@@ -159,7 +159,7 @@ def test_s0_start_is_exact_when_every_light_is_in_its_reach(device):
 
 def test_s0_samples_point_at_the_input_lights(device):
     """A shadow sample drawn on an S0 light carries index M + i and the light's own position."""
-    from usdml.lighting.lgh_lighting import ClusterSampler
+    from usdml.lighting.lgh.shading import ClusterSampler
 
     lights, inten, lgh, pts, nrm = _random_lights(8, 200, 400)
     out = lgh_lighting(pts, nrm, lgh, device=device, alpha=2.0, samples=4, clamp_distance=0.05, s0=(lights, inten))
@@ -176,7 +176,7 @@ def test_s0_samples_point_at_the_input_lights(device):
 def test_shadowed_estimate_is_unbiased_per_colour_channel(device):
     """A red light that is blocked and a green one that is not: the shadowed estimate F · mean(V e / f)
     averages to the green light's irradiance alone; a luminance visibility fraction would tint it."""
-    from usdml.lighting.lgh_lighting import shadow_fraction
+    from usdml.lighting.lgh.shading import shadow_fraction
 
     lights = np.array([[-1, 4, 0], [1, 4, 0]], np.float32)
     inten = np.array([[4, 0, 0], [0, 1, 0]], np.float32)
@@ -196,7 +196,7 @@ def test_shadowed_estimate_is_unbiased_per_colour_channel(device):
 
 
 def test_filter_iterations_follow_the_samples():
-    from usdml.lighting.lgh_lighting import filter_iterations_for
+    from usdml.lighting.lgh.shading import filter_iterations_for
 
     assert [filter_iterations_for(k) for k in (1, 4, 8, 16, 32, 64, 1024)] == [4, 3, 3, 2, 2, 1, 0]
 
@@ -219,7 +219,7 @@ def _blend_np(level, top, d, r):
 def test_gather_visits_every_grid_light_that_counts(alpha, start, device):
     """The kernel visits only the vertices near a point; the sum must equal the blended sum over every
     grid light of every level (and every input light as S0), computed without any window."""
-    from usdml.lighting.lgh import build_lgh
+    from usdml.lighting.lgh.build import build_lgh
 
     rng = np.random.default_rng(11)
     lights = rng.uniform([-3, 0, -3], [3, 2, 3], (2000, 3)).astype(np.float32)
@@ -250,7 +250,7 @@ def test_one_cosine_emitter_is_lambertian_at_every_distance(start, device):
     """A VPL with a normal is the Lambertian emitter Φ·cos θ_l / π (I = Φ/4π, lobe 4·max(0, cos θ_l)) on
     every level: its grid lights share its position and normal, and the blending weights sum to one.
     Analytic reference: E = Φ cos θ_l cos θ_s / (π d²)."""
-    from usdml.lighting.lgh import build_lgh
+    from usdml.lighting.lgh.build import build_lgh
 
     q = np.array([[0.3, 0.2, -0.1]], np.float32)
     n_l = np.array([[0.0, 0.6, 0.8]], np.float32)
@@ -273,7 +273,7 @@ def test_one_cosine_emitter_is_lambertian_at_every_distance(start, device):
 def test_sample_runs_and_guide_table():
     """sample_runs numbers a point's consecutive samples on one light; the guide table's cut points
     lead a forward step to the row a binary search over the group finds, for any draw."""
-    from usdml.lighting.lgh_lighting import _guide_table, sample_runs
+    from usdml.lighting.lgh.shading import _guide_table, sample_runs
 
     rank, length = sample_runs(np.array([5, 5, 7, 7, 7, 5, 5, 2]), 4)      # two points of 4 samples
     np.testing.assert_array_equal(rank, [0, 1, 0, 1, 0, 0, 1, 0])
@@ -284,7 +284,7 @@ def test_sample_runs_and_guide_table():
     cum = np.concatenate([[0.0], np.cumsum(w)])
     start, stop = np.array([0, 7, 7, 150]), np.array([7, 7, 150, 300])       # an empty group among them
     guide = _guide_table(cum, start, stop)
-    # kernels/lghq.c's table (where built) is NumPy's, cut point for cut point
+    # kernels/lgh/lghq.c's table (where built) is NumPy's, cut point for cut point
     np.testing.assert_array_equal(guide, _guide_table(cum, start, stop, compiled=False))
     for lo, hi in zip(start, stop):
         if hi <= lo:
@@ -301,7 +301,7 @@ def test_sample_runs_and_guide_table():
 
 def test_light_runs_counts_each_chosen_samples_light():
     """light_runs (sorted rows by runs, others sorted first) against counting every pair of a point's samples."""
-    from usdml.lighting.lgh_lighting import light_runs
+    from usdml.lighting.lgh.shading import light_runs
 
     rng = np.random.default_rng(3)
     for trial in range(60):

@@ -1,4 +1,4 @@
-"""The LGH's compiled CPU kernels (kernels/lghq.c) against the Warp kernels they stand in for: the same
+"""The LGH's compiled CPU kernels (kernels/lgh/lghq.c) against the Warp kernels they stand in for: the same
 gather (sums, picks, jittered positions), the same member draws and weights, bit for bit, with the light
 terms 8 at a time (AVX2) or one at a time; and the same frame through lgh_indirect."""
 
@@ -9,14 +9,14 @@ import pytest
 
 pytest.importorskip("warp")
 
-from usdml.lighting import lgh_lighting as m  # noqa: E402
-from usdml.lighting import lgh_native  # noqa: E402
-from usdml.lighting.lgh import build_lgh  # noqa: E402
+from usdml.lighting.lgh import shading as m  # noqa: E402
+from usdml.lighting.lgh import native as lgh_native  # noqa: E402
+from usdml.lighting.lgh.build import build_lgh  # noqa: E402
 
 #: CI sets USDML_REQUIRE_NATIVE=1 so that a failed build fails these tests instead of skipping them
 if lgh_native.library() is None and os.environ.get("USDML_REQUIRE_NATIVE") == "1":
     raise RuntimeError(f"USDML_REQUIRE_NATIVE=1 but the LGH's CPU path is {lgh_native.describe()}")
-pytestmark = pytest.mark.skipif(lgh_native.library() is None, reason="kernels/lghq.c was not built")
+pytestmark = pytest.mark.skipif(lgh_native.library() is None, reason="kernels/lgh/lghq.c was not built")
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,7 @@ def test_compiled_gather_is_the_warp_gather_bit_for_bit(frame, k, stratified, ji
 def test_compiled_gather_of_a_split_hierarchy_is_the_warp_gather_bit_for_bit(frame):
     """One hierarchy per normal class (--lgh-split normal): each level listed once per class, blended as its
     level, in both kernels."""
-    from usdml.lighting.lgh import build_lgh_split
+    from usdml.lighting.lgh.build import build_lgh_split
 
     snap, ex, gb, pts, nrm, alb, _, sources = frame
     lgh = build_lgh_split(sources[0], sources[1], sources[2])

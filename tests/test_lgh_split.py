@@ -1,4 +1,4 @@
-"""One LGH per VPL normal class on one grid (``--lgh-split normal``, usdml.lighting.lgh.build_lgh_split):
+"""One LGH per VPL normal class on one grid (``--lgh-split normal``, usdml.lighting.lgh.build.build_lgh_split):
 the hierarchy's own invariants, the gather against a window-free NumPy sum over every entry, the shadow
 rays' member draws, and a ground beside a wall lit against the exact sum of its cosine emitters."""
 
@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip("warp")
 
-from usdml.lighting.lgh import NORMAL_CLASSES, build_lgh, build_lgh_split, normal_class  # noqa: E402
-from usdml.lighting.lgh_lighting import ClusterSampler, lgh_lighting  # noqa: E402
+from usdml.lighting.lgh.build import NORMAL_CLASSES, build_lgh, build_lgh_split, normal_class  # noqa: E402
+from usdml.lighting.lgh.shading import ClusterSampler, lgh_lighting  # noqa: E402
 from test_lgh_lighting import _blend_np  # noqa: E402  (NumPy copy of the kernel's blending)
 
 
@@ -146,11 +146,11 @@ def test_a_corner_is_lit_as_its_vpls_light_it_when_split(device):
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_the_pilot_sum_is_a_cosine_emitter(compiled):
-    """vpl_irradiance (kernels/lghq.c's and NumPy's) against the analytic Lambertian emitters
+    """vpl_irradiance (kernels/lgh/lghq.c's and NumPy's) against the analytic Lambertian emitters
     E = Σ Φ cos θ_l cos θ_s / (π d²), I = Φ/4π: thirteen lights, so the compiled sum's lanes of eight and its
     remainder both count."""
-    from usdml.lighting.lgh_choice import vpl_irradiance
-    from usdml.lighting.lgh_native import library
+    from usdml.lighting.lgh.choice import vpl_irradiance
+    from usdml.lighting.lgh.native import library
 
     if compiled and library() is None:
         pytest.skip("the compiled LGH kernels are not built here")
@@ -172,10 +172,10 @@ def test_the_pilot_sum_is_a_cosine_emitter(compiled):
 
 
 def test_the_compiled_pilot_sum_is_numpys_with_clamped_and_coincident_lights():
-    """kernels/lghq.c's sum (lanes of eight, four threads' blocks) and the NumPy one, where lights sit on points
+    """kernels/lgh/lghq.c's sum (lanes of eight, four threads' blocks) and the NumPy one, where lights sit on points
     and within the clamp distance of them."""
-    from usdml.lighting.lgh_choice import vpl_irradiance
-    from usdml.lighting.lgh_native import library
+    from usdml.lighting.lgh.choice import vpl_irradiance
+    from usdml.lighting.lgh.native import library
 
     if library() is None:
         pytest.skip("the compiled LGH kernels are not built here")
@@ -197,7 +197,7 @@ def test_auto_split_is_not_built_where_it_cannot_fit_the_budget():
     """A split hierarchy visits more lights than the single one: where the single one's smallest alpha
     already nears the visit budget, ``--lgh-split auto`` keeps it without building the split one; forced
     splits are used as asked."""
-    from usdml.lighting.lgh_choice import choose
+    from usdml.lighting.lgh.choice import choose
 
     pos, inten, nrm, pts, pn = _ground_and_wall(500)
     one = build_lgh(pos, inten, normal=nrm)
@@ -213,7 +213,7 @@ def test_auto_split_is_not_built_where_it_cannot_fit_the_budget():
     assert forced.split == "normal" and forced.lgh is split and forced.alpha == 1.5
     # a budget every alpha fits: the split hierarchy, which lights this corner as its VPLs do
     # (test_a_corner_is_lit_as_its_vpls_light_it_when_split), at the first alpha the pilot finds within target
-    from usdml.lighting.lgh_choice import PILOT_TARGET
+    from usdml.lighting.lgh.choice import PILOT_TARGET
 
     wide = choose(one, lambda: split, pts, pn, (pos, inten, nrm), clamp_distance=0.05, fraction=10.0)
     assert wide.split == "normal" and wide.lgh is split, wide.candidates

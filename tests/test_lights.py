@@ -187,14 +187,14 @@ def test_light_table_flags(new_stage):
     assert table.flags.dtype == np.int32
     assert table.flags.tolist() == [F.ONE_SIDED | F.SHAPED | F.FOCUSED | F.CASTS_SHADOWS, F.DISTANT,
                                     F.ONE_SIDED | F.CASTS_SHADOWS, F.CYLINDER | F.CASTS_SHADOWS, F.CASTS_SHADOWS]
-    # the Warp kernels test these numbers (usdml.kernels.voxel.light_term)
+    # the Warp kernels test these numbers (usdml.kernels.voxel.query.light_term)
     assert [int(f) for f in F] == [1, 2, 4, 8, 16, 32]
 
 
 def test_light_flags_are_the_bits_the_shading_kernel_reads():
     """One set of light flags: ``LightFlag`` composes them (``LightTable.flags``), the Warp kernel names the
     same bits as constants."""
-    from usdml.kernels import direct_shading
+    from usdml.kernels.voxel import shading as direct_shading
 
     for flag in LightFlag:
         assert int(getattr(direct_shading, flag.name)) == int(flag), flag.name

@@ -4,9 +4,11 @@ import ctypes
 
 import pytest
 
-from usdml.lighting import lgh_native
+from usdml.lighting.lgh import native as lgh_native
 from usdml.native import Extension, kernel_label, path_line
-from usdml.visibility import insm_native, svo_native, voxel_native
+from usdml.visibility.insm import native as insm_native
+from usdml.visibility.svo import native as svo_native
+from usdml.visibility.voxel import native as voxel_native
 
 WRAPPERS = [voxel_native, svo_native, insm_native, lgh_native]
 

@@ -54,7 +54,8 @@ def test_backends_read_the_table_and_have_no_defaults_of_their_own():
     """A backend's knobs are settings: built without any it reads the table's defaults (0 standing for the
     automatic choice where there is one), its constructor names no default of a setting, and a field given
     by name wins."""
-    from usdml.visibility import backend_class, voxel
+    from usdml.visibility import backend_class
+    from usdml.visibility.voxel import backend as voxel
 
     b = voxel.VoxelBackend(cache=False)
     s = UsdmlSettings()

@@ -12,9 +12,10 @@ import pytest
 
 from usdml.errors import UsdmlError
 from usdml.scene import diff
-from usdml.visibility import make_backend, svo_native
-from usdml.visibility.svo import SvoBackend, auto_resolution
-from usdml.visibility.svo_tree import build_tree, top_level, top_table, tree_from_bricks, voxelize_bricks
+from usdml.visibility import make_backend
+from usdml.visibility.svo import native as svo_native
+from usdml.visibility.svo.backend import SvoBackend, auto_resolution
+from usdml.visibility.svo.tree import build_tree, top_level, top_table, tree_from_bricks, voxelize_bricks
 
 from backend_scenes import lights, queries, scene_frames, surface_points
 from plain_scenes import prototype, snapshot, soup, translate, rot_y
@@ -75,7 +76,7 @@ def test_octree_holds_exactly_the_voxelized_bricks():
     rng = np.random.default_rng(4)
     tris = random_triangles(rng, n=30)
     depth = 6
-    from usdml.visibility.svo_tree import grid_for
+    from usdml.visibility.svo.tree import grid_for
     lo, h, _ = grid_for(tris.reshape(-1, 3), np.arange(90).reshape(-1, 3), depth)
     masks = voxelize_bricks(tris.reshape(-1, 3), np.arange(90).reshape(-1, 3), lo, h, depth)
     nodes, bricks, levels = tree_from_bricks(masks, depth)
@@ -314,7 +315,7 @@ def test_a_machine_without_the_compiled_walk_gets_warp(monkeypatch):
 
 
 def test_a_resolution_that_cannot_be_built_is_refused_in_one_line(monkeypatch):
-    from usdml.visibility import voxel_array
+    from usdml.visibility.voxel import array as voxel_array
     monkeypatch.setattr(voxel_array, "available_memory", lambda: 2**30)
     with pytest.raises(UsdmlError, match=r"--svo-resolution 2048: building the octree needs .* lower --svo-resolution"):
         SvoBackend(svo_resolution=2048, cache=False, **QUIET).update(scene_frames("occluder")[0])

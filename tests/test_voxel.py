@@ -16,8 +16,8 @@ from usdml.cache import Cache, CacheCorrupt
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, LightType, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel_array import CORE, array_cost, build_array, cached_array
-from usdml.visibility.voxel_grid import DirectionBins, RowLayout, surface_samples, worst_case_angle
+from usdml.visibility.voxel.array import CORE, array_cost, build_array, cached_array
+from usdml.visibility.voxel.grid import DirectionBins, RowLayout, surface_samples, worst_case_angle
 
 from conftest import ROOT
 from plain_scenes import prototype, rot_y, snapshot, soup, translate
@@ -459,7 +459,7 @@ def test_bench_orders_queries_as_the_shading_kernel_asks_them():
 
 
 def test_core_bounds_trims_a_ground_to_the_horizon_and_counts_what_reaches_out():
-    from usdml.visibility.voxel_grid import core_bounds
+    from usdml.visibility.voxel.grid import core_bounds
 
     rng = np.random.default_rng(2)
     # 2,000 small triangles in the unit cube, and a ground of two huge triangles far past them
@@ -476,7 +476,7 @@ def test_core_bounds_trims_a_ground_to_the_horizon_and_counts_what_reaches_out()
 
 
 def test_clip_to_box_keeps_inside_drops_outside_and_cuts_crossing_triangles():
-    from usdml.visibility.voxel_grid import clip_to_box
+    from usdml.visibility.voxel.grid import clip_to_box
 
     pts = np.array([[0.2, 0.2, 0.5], [0.8, 0.2, 0.5], [0.5, 0.8, 0.5],       # inside
                     [3, 3, 3], [4, 3, 3], [3, 4, 3],                         # outside

@@ -1,4 +1,4 @@
-"""The compiled CPU voxel kernel (``kernels/voxelq.c``, ``usdml.visibility.voxel_native``) answers as
+"""The compiled CPU voxel kernel (``kernels/voxel/voxelq.c``, ``usdml.visibility.voxel.native``) answers as
 the Warp kernels do, with every instruction set it has, and a machine without it gets Warp.
 
 The two share the rule, not the code path: the compiled one folds the world -> array -> bin maps into
@@ -22,8 +22,9 @@ from usdml.errors import UsdmlError
 from usdml.lighting.direct import shade_with
 from usdml.scene import diff
 from usdml.settings import UsdmlSettings
-from usdml.visibility import make_backend, voxel_native
-from usdml.visibility.voxel import VoxelBackend
+from usdml.visibility import make_backend
+from usdml.visibility.voxel import native as voxel_native
+from usdml.visibility.voxel.backend import VoxelBackend
 
 from backend_scenes import lights, queries, scene_frames, surface_points
 
@@ -160,7 +161,7 @@ def test_blocked_flags_are_the_distances_answers_across_chunks(isa):
 @pytest.mark.parametrize("isa", ISAS)
 @pytest.mark.parametrize("scene", ["occluder", "instances"])
 def test_native_shading_equals_the_warp_shading_kernel(scene, isa):
-    """Alg. 3 (``vq_shade``) against ``kernels.direct_shading.shade_tiles``: the same light sums."""
+    """Alg. 3 (``vq_shade``) against ``kernels.voxel.shading.shade_tiles``: the same light sums."""
     rng = np.random.default_rng(5)
     lit = lights(rng, 40)
     warp, native = backends(isa)
@@ -212,7 +213,7 @@ def test_widths_and_names_follow_the_instruction_set():
 
 def test_native_alg5_rotation_sets_the_same_bits_as_warp():
     """Alg. 5's point mapping by the compiled kernel (``rotate_point``): the same integer rule, the same words."""
-    from usdml.visibility.voxel_rotate import rotate_array
+    from usdml.visibility.voxel.rotate import rotate_array
 
     from voxel_reference import box
 

@@ -18,8 +18,9 @@ import pytest
 
 from usdml.scene import diff
 from usdml.settings import UsdmlSettings
-from usdml.visibility import make_backend, voxel_native
-from usdml.visibility.voxel_native import NativeScene
+from usdml.visibility import make_backend
+from usdml.visibility.voxel import native as voxel_native
+from usdml.visibility.voxel.native import NativeScene
 
 from backend_scenes import lights, queries, scene_frames, surface_points
 from test_voxel_native import volume_queries
@@ -332,7 +333,7 @@ def test_query_refine_checks_its_output_and_reads_any_first_ray():
 def test_several_widths_in_one_pass_flag_their_union(isa):
     """``thick`` as several widths (a level's, ``occluded_uncertain``): one pass of the kernel flags what each
     width's own pass flags, together, with the same answers; more than four widths is an error."""
-    from usdml.visibility.voxel import THICK, widened
+    from usdml.visibility.voxel.backend import THICK, widened
 
     rng = np.random.default_rng(31)
     b = native(isa)

@@ -14,9 +14,9 @@ import pytest
 from usdml.errors import UsdmlError
 from usdml.scene import Lights, diff
 from usdml.visibility import ExactBackend, VoxelBackend
-from usdml.visibility.voxel_array import array_cube, build_array
-from usdml.visibility.voxel_grid import DirectionBins, RowLayout
-from usdml.visibility.voxel_rotate import RotationTables, reference_occupied, rotate_array
+from usdml.visibility.voxel.array import array_cube, build_array
+from usdml.visibility.voxel.grid import DirectionBins, RowLayout
+from usdml.visibility.voxel.rotate import RotationTables, reference_occupied, rotate_array
 
 from plain_scenes import prototype, rot_y, snapshot, soup, translate
 from voxel_reference import box, centre_line_voxels, ground_queries, set_voxels
@@ -274,7 +274,7 @@ def test_unknown_rebuild_or_mapping_is_refused():
 def test_conservative_mapping_keeps_the_longer_skip():
     """Thin surfaces skip at most MAX_SKIP voxels to leave the surface; the conservative mapping's
     thicker per-frame surfaces need CONSERVATIVE_MAX_SKIP; a given max_skip wins."""
-    from usdml.visibility.voxel import CONSERVATIVE_MAX_SKIP, MAX_SKIP
+    from usdml.visibility.voxel.backend import CONSERVATIVE_MAX_SKIP, MAX_SKIP
 
     assert VoxelBackend(**QUIET).max_skip == MAX_SKIP < CONSERVATIVE_MAX_SKIP
     assert VoxelBackend(voxel_mapping="conservative", **QUIET).max_skip == CONSERVATIVE_MAX_SKIP
@@ -365,7 +365,7 @@ def test_a_deforming_mesh_that_empties_and_comes_back():
 
 
 def test_voxel_packing_round_trips_up_to_the_largest_resolution():
-    from usdml.visibility.voxel_rotate import MAX_RESOLUTION, row_groups
+    from usdml.visibility.voxel.rotate import MAX_RESOLUTION, row_groups
 
     ijl = np.array([[0, 0, 0], [MAX_RESOLUTION - 1] * 3, [5, MAX_RESOLUTION - 1, 7], [5, MAX_RESOLUTION - 1, 2]])
     row_ij, row_start, depth = (a.astype(np.int64) for a in row_groups(ijl))

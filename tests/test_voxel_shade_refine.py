@@ -19,8 +19,9 @@ import pytest
 from usdml.lighting.direct import facing_pairs, shade_direct
 from usdml.scene import diff
 from usdml.scene.light_table import LightTable
-from usdml.visibility import make_backend, voxel_native
-from usdml.visibility.voxel import SHADE_TILE
+from usdml.visibility import make_backend
+from usdml.visibility.voxel import native as voxel_native
+from usdml.visibility.voxel.backend import SHADE_TILE
 
 from backend_scenes import lights, scene_frames, surface_points
 # the settings, instruction sets and private cache of the refinement's kernel tests
@@ -201,7 +202,7 @@ def test_without_the_compiled_kernel_it_is_not_implemented():
 def test_list_apply_adds_the_free_and_counts_the_rest():
     """``NativeScene.list_apply``: against NumPy's sums over the same entries, repeated points included; a wrong
     count of answers is an error."""
-    from usdml.visibility.voxel_native import ShadeList
+    from usdml.visibility.voxel.native import ShadeList
 
     b = backend("occluder")
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from usdml.visibility import ExactBackend
-from usdml.visibility.voxel_grid import RowLayout
+from usdml.visibility.voxel.grid import RowLayout
 
 from plain_scenes import snapshot, soup
 

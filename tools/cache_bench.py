@@ -62,7 +62,8 @@ def stage_arrays(stage: str, resolution: int, step: float, rounds: int) -> list[
     from usdml.cache import Cache
     from usdml.render.sequence import build_messages
     from usdml.stage import StageDelegate
-    from usdml.visibility import make_backend, voxel_codec
+    from usdml.visibility import make_backend
+    from usdml.visibility.voxel import codec as voxel_codec
     from usdml.scene import diff
 
     delegate = StageDelegate(stage)

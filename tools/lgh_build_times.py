@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from gi_frame import open_frame
     from usdml.lighting.gi import warm_up
-    from usdml.lighting.lgh import build_lgh
+    from usdml.lighting.lgh.build import build_lgh
     from usdml.lighting.vpl import generate_vpls
 
     _, frame, snap, renderer, lights = open_frame(args.stage, args.frame)

@@ -41,7 +41,9 @@ def main(argv: list[str] | None = None) -> int:
     from usdml.render.gbuffer import build_gbuffer
     from usdml.scene import diff
     from usdml.stage import StageDelegate
-    from usdml.visibility import ExactBackend, make_backend, svo_native, voxel_native
+    from usdml.visibility import ExactBackend, make_backend
+    from usdml.visibility.svo import native as svo_native
+    from usdml.visibility.voxel import native as voxel_native
 
     native_lib = voxel_native if args.backend == "voxel" else svo_native
     delegate = StageDelegate(args.stage)

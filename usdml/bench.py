@@ -24,7 +24,7 @@ from usdml.visibility import ExactBackend, make_backend
 from usdml.render.budget import active, choose_level
 from usdml.visibility.base import REFINE, all_members
 from usdml.visibility.refine import Refined
-from usdml.visibility.voxel import SHADE_TILE
+from usdml.visibility.voxel.backend import SHADE_TILE
 from usdml.zorder import morton_order
 
 
@@ -66,7 +66,7 @@ def query_set(snap, gb) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
 
 def shading_order(points: np.ndarray, point_index: np.ndarray, light_index: np.ndarray,
                   tile: int = SHADE_TILE) -> np.ndarray:
-    """The permutation putting (point, light) queries in the order ``kernels.direct_shading.shade_tiles`` asks
+    """The permutation putting (point, light) queries in the order ``kernels.voxel.shading.shade_tiles`` asks
     them on CPU: ``points`` along a Z-order curve in tiles of ``tile``, each tile light by light.
     (Rays from neighbouring points to one light share direction bins and rows; measured on the city
     at 160 px, 128³ / 2°: voxel 7.1 M queries/s in pixel-by-pixel order, 12.0 M/s in this one;

@@ -7,7 +7,7 @@ An entry is one file ``<root>/<kind>/<key[:2]>/<key>.bin``:
   the array compressed by zlib in chunks of ``ZCHUNK`` bytes (``chunks``: their compressed sizes), so
   that chunks are compressed and expanded on every core. ``digest`` is a blake2b of the stored
   (compressed) bytes, checked before anything is expanded. Callers whose data zlib alone would not
-  shrink enough store a compact form of it (a voxel array: :mod:`usdml.visibility.voxel_codec`).
+  shrink enough store a compact form of it (a voxel array: :mod:`usdml.visibility.voxel.codec`).
 * The key is a hash the caller makes of everything the data depends on (geometry hash, parameters,
   format version), so a changed mesh or setting never reads a stale entry.
 * Writes go to a temporary file in the same folder, then ``os.replace``: readers on any process or

@@ -31,7 +31,7 @@ def _render_settings(snap: Snapshot) -> dict | None:
 
 def _lgh_cpu_path() -> str:
     """The CPU path of the LGH's gather and shadow targets (``--gi lgh``, ``--direct lgh``)."""
-    from usdml.lighting import lgh_native
+    from usdml.lighting.lgh import native as lgh_native
 
     return lgh_native.describe()
 

@@ -2,8 +2,8 @@
 
 ``pip install`` builds each C file as an optional extension ``usdml.kernels.<name>`` (setup.py); without a
 C compiler it is skipped and the backends run their Warp kernels instead. A wrapper module
-(:mod:`usdml.visibility.voxel_native`, :mod:`usdml.visibility.svo_native`,
-:mod:`usdml.visibility.insm_native`, :mod:`usdml.lighting.lgh_native`) declares its extension's C
+(:mod:`usdml.visibility.voxel.native`, :mod:`usdml.visibility.svo.native`,
+:mod:`usdml.visibility.insm.native`, :mod:`usdml.lighting.lgh.native`) declares its extension's C
 functions as an :class:`Extension` and wraps them; opening the library, declaring the signatures once and
 saying why a library is missing happen here, as do the instruction-set names the kernels share (each C
 file picks AVX-512, AVX2 or scalar code at run time, so one build serves every x86-64 CPU).
@@ -39,7 +39,7 @@ class Extension:
 
     Parameters
     ----------
-    name : the extension's module name under ``usdml.kernels`` (``"_voxelq"``).
+    name : the extension's module name under ``usdml.kernels`` (``"voxel._voxelq"``: the folder of its method, then its name).
     functions : ``{C name: (restype, [argtypes])}``, set on the library when it is first opened.
     on_load : called once with the opened library (a setting the library keeps, say).
     """

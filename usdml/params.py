@@ -280,7 +280,7 @@ _SETTINGS = (
     Param("voxel_mapping", str, "point", "Alg. 5: a rotated voxel sets the voxel of its centre (point, the paper) "
           "or every voxel it overlaps (conservative)", **_VIS, choices=("point", "conservative"), applies=_VOXEL,
           source="paper 000, Alg. 5"),
-    # leaving the surface (usdml.visibility.voxel's module doc): usdml's measured rule, not the paper's
+    # leaving the surface (usdml.visibility.voxel.backend's module doc): usdml's measured rule, not the paper's
     Param("voxel_normal_offset", float, 1.0, "voxels (of the static array) a shadow ray starts off its surface, "
           "along the normal turned toward the light", **_VIS, range=Range(0), metavar="VOXELS", applies=_VOXEL,
           source="measured (usdml)"),

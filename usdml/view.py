@@ -83,7 +83,7 @@ def occupied_voxels(snap, resolution: int, bounds: tuple | None = None) -> tuple
     the voxel size."""
     from usdml.scene import world_geometry
     from usdml.visibility.base import all_members
-    from usdml.visibility.svo_tree import cube_grid, svo_bounds, voxelize_bricks
+    from usdml.visibility.svo.tree import cube_grid, svo_bounds, voxelize_bricks
 
     members = all_members(snap)
     pts, tris = world_geometry(snap, members)
@@ -137,7 +137,7 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     delegate.check_time(t)
     snap = delegate.snapshot(t)
     # framed on the scene's detail: a ground to the horizon does not shrink the rest to a speck
-    from usdml.visibility.insm import insm_box
+    from usdml.visibility.insm.backend import insm_box
     bounds = insm_box(snap)
     lo, hi = (np.zeros(3), np.ones(3)) if bounds is None else (np.asarray(bounds[0]), np.asarray(bounds[1]))
     if "cameras" in show and snap.camera is not None:       # and the render camera, to see where it looks from

@@ -42,7 +42,7 @@ image are skipped (the weights are renormalised), so nothing leaks in from the b
 Devices and threads
 -------------------
 One iteration is one Warp kernel (:func:`usdml.kernels.atrous.atrous_step`). On ``cuda`` each iteration is
-one launch. On ``cpu`` it is the same step in C (``kernels/lghq.c``'s ``lghq_atrous_step``, about a quarter
+one launch. On ``cpu`` it is the same step in C (``kernels/lgh/lghq.c``'s ``lghq_atrous_step``, about a quarter
 of the Warp kernel's time a tap on this CPU) where that extension is built, else the Warp kernel (Warp
 runs a CPU launch on one thread); either way the image is split into ``bands`` row bands (default: one per
 core), run concurrently from a thread pool (both let go of the GIL); every band reads the whole previous
@@ -184,7 +184,7 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     bands : int, optional
         CPU only: row bands launched concurrently (default: one per core, ``usdml.parallel.cpu_workers``).
     compiled : bool
-        CPU only: each iteration by ``kernels/lghq.c`` (``lghq_atrous_step``, the Warp kernel's weights in C)
+        CPU only: each iteration by ``kernels/lgh/lghq.c`` (``lghq_atrous_step``, the Warp kernel's weights in C)
         where that library is built; False: the Warp kernel.
 
     Returns
@@ -203,7 +203,7 @@ def atrous_filter(values: np.ndarray, normal: np.ndarray, position: np.ndarray, 
     dev = wp.get_device(device)
     h, w, _ = v.shape
     if dev.is_cpu and compiled:
-        from usdml.lighting import lgh_native
+        from usdml.lighting.lgh import native as lgh_native
 
         if lgh_native.library() is not None:
             return _compiled_filter(v, normal, pos, valid, iterations, sigma_normal, sigma_position, sigma_value,
@@ -238,7 +238,7 @@ def _compiled_filter(v: np.ndarray, normal: np.ndarray, pos: np.ndarray, valid: 
     """:func:`atrous_filter`'s iterations on a CPU by ``lghq_atrous_step`` (row bands on the thread pool, every band
     of an iteration written before the next reads it): ``(H, W, C)`` float32. The Warp kernel cost about 50 ns a
     tap on this CPU (8 ms of a 96×54 frame's pass at 6 channels, two iterations)."""
-    from usdml.lighting import lgh_native
+    from usdml.lighting.lgh import native as lgh_native
 
     lib = lgh_native.library()
     h, w, c = v.shape

@@ -7,7 +7,7 @@ own surface: 0.44 of path tracing's indirect energy on a closed box, 0.49 in the
 geometry term ``1 / max(d², d_c²)`` with ``d_c`` half the S1 grid spacing, and Lambertian receivers.
 Brute force gathers them as one-sided cosine lights; ``svo`` gathers a sixteenth of them per pixel
 (interleaved 4×4 tiles, × 16) with the same emission and clamp; the LGH aggregates their normals into each grid
-light's lobe (:func:`usdml.kernels.lgh_lighting.lobe_factor`). So the difference between the two is the
+light's lobe (:func:`usdml.kernels.lgh.shading.lobe_factor`). So the difference between the two is the
 hierarchy's approximation and its stochastic, filtered shadows, which is what
 ``usdml compare --gi lgh --against vpl-bruteforce`` measures."""
 
@@ -20,9 +20,9 @@ from typing import Callable
 import numpy as np
 
 from usdml.lighting.direct import shade_direct
-from usdml.lighting.lgh import build_lgh, build_lgh_split, s1_spacing
-from usdml.lighting.lgh_choice import choose as choose_hierarchy
-from usdml.lighting.lgh_lighting import (AUTO_VPLS_PER_RAY, EACH_VPLS_PER_RAY, auto_shadow_samples, cluster_sampler,
+from usdml.lighting.lgh.build import build_lgh, build_lgh_split, s1_spacing
+from usdml.lighting.lgh.choice import choose as choose_hierarchy
+from usdml.lighting.lgh.shading import (AUTO_VPLS_PER_RAY, EACH_VPLS_PER_RAY, auto_shadow_samples, cluster_sampler,
                                          lgh_indirect)
 from usdml.lighting.vpl import generate_vpls
 from usdml.scene import Lights, Snapshot
@@ -39,7 +39,9 @@ def warm_up(device: str = "cpu") -> float:
     """Load the Warp kernels of the LGH path on ``device`` (done once per process on the first frame
     otherwise: ~0.2 s here, more than a whole cornell frame's indirect pass). Returns the seconds."""
     t0 = _time.perf_counter()
-    from usdml.kernels import atrous, lgh, lgh_lighting, warp
+    from usdml.kernels import atrous, warp
+    from usdml.kernels.lgh import build as lgh
+    from usdml.kernels.lgh import shading as lgh_lighting
 
     wp = warp()
     for module in (lgh, lgh_lighting, atrous):
@@ -58,7 +60,7 @@ class VPLField:
     stats: dict = field(default_factory=dict)
     clamp: float = 0.0              #: geometry-term clamp distance d_c, scene units: half the S1 spacing
     #: ``--gi lgh``, made by the frame's first pass for the rest (with the settings they were made for): the
-    #: hierarchy and ``--lgh-alpha`` chosen (:func:`usdml.lighting.lgh_choice.choose`), the candidates it
+    #: hierarchy and ``--lgh-alpha`` chosen (:func:`usdml.lighting.lgh.choice.choose`), the candidates it
     #: weighed, the shadow rays' ``ClusterSampler`` and the passes' gathers
     frame_choices: dict = field(default_factory=dict)
     #: makes the hierarchy split by VPL normal over the same VPLs (``--lgh-split``; the frame's choice calls
@@ -67,7 +69,7 @@ class VPLField:
     _split: object | None = field(default=None, repr=False)
 
     def split_lgh(self):
-        """The hierarchy split by VPL normal (:func:`usdml.lighting.lgh.build_lgh_split`), made on first use."""
+        """The hierarchy split by VPL normal (:func:`usdml.lighting.lgh.build.build_lgh_split`), made on first use."""
         if self._split is None:
             self._split = self.build_split()
         return self._split
@@ -93,7 +95,7 @@ def prepare_vpls(snap: Snapshot, exact, lights: Lights, settings: UsdmlSettings,
         stats["lgh_seconds"] = _time.perf_counter() - t1
         return VPLField(vpls, None, intensity, stats, clamp)
     # --lgh-split normal: the split hierarchy; none and auto: the single one (auto makes the split one only
-    # if the frame's choice needs it, usdml.lighting.lgh_choice)
+    # if the frame's choice needs it, usdml.lighting.lgh.choice)
     split = settings.lgh_split == "normal"
     lgh = (build_lgh_split(vpls.position, intensity, vpls.normal, levels=settings.lgh_levels, device=device) if split
            else build_lgh(vpls.position, intensity, levels=settings.lgh_levels, device=device, normal=vpls.normal))

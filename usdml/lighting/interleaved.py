@@ -19,7 +19,7 @@ The pipeline (paper 003, §3 and Fig. 2)
   ``Φ_VPL`` is ``Φ/π``, and a Lambertian receiver of albedo ρ leaves ``ρ/π · Σ Φ/π · G · V``.
   :func:`clamped_geometry` is Eq. 2-4 with d in metres; the clamp ``B = d_c²`` with ``d_c`` the
   brute force's clamp distance (half the S1 spacing of the LGH over the same VPLs,
-  :func:`usdml.lighting.lgh.s1_spacing`), so both methods clamp the same singularity the same way.
+  :func:`usdml.lighting.lgh.build.s1_spacing`), so both methods clamp the same singularity the same way.
   As in direct shading, a VPL behind the receiver's geometric normal gives nothing, and pairs with
   G = 0 cast no ray (the paper's "avoid a fruitless V term evaluation").
 * **Visibility**: ``occluded`` of the backend the frame renderer owns for ``--gi svo``

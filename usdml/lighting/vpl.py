@@ -75,7 +75,7 @@ VPLs as lights (:meth:`VPLs.as_lights`)
 * ``isotropic=False`` (what :mod:`usdml.lighting.gi` uses): DISK lights of radius 0 with ``axis = normal``
   and ``intensity = flux / π``, so direct shading's one-sided ``max(0, cos θ_l)`` profile makes them the
   exact Lambertian re-emission (no leaks, correct lobe). The LGH takes the same VPLs as ``flux / 4π``
-  plus their normals (:func:`usdml.lighting.lgh.build_lgh`).
+  plus their normals (:func:`usdml.lighting.lgh.build.build_lgh`).
 * ``isotropic=True`` (paper 004's grid lights): POINT lights, ``intensity = flux / 4π``. Half of each
   VPL's power then goes into the back hemisphere, into its own surface, and is lost wherever the
   surface is closed: measured against path tracing with the same bounces, isotropic VPLs carried 0.44

@@ -20,7 +20,7 @@ class FrameStats:
     shading_seconds: float = 0.0            #: direct light (and the camera light)
     shadow_queries: int = 0                 #: the direct light's shadow rays
     gi_seconds: float | None = None         #: ``--gi``: VPLs and their LGH, and the gathers of every pass
-    #: ``--direct lgh``: the frame's hierarchy (:func:`usdml.lighting.lgh_direct.prepare_direct`) and its
+    #: ``--direct lgh``: the frame's hierarchy (:func:`usdml.lighting.lgh.direct.prepare_direct`) and its
     #: shading, numbers summed over passes
     direct_lgh: dict | None = None
     camera_light: bool = False              #: lit by usdrecord's camera light (the stage had no lights)

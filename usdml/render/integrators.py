@@ -8,7 +8,7 @@ Direct (:func:`direct_integrator`), per pass a G-buffer and its :class:`usdml.li
   every pass's points shaded by one call, so the backend's per-light structures (paper 001's maps) are
   built once per frame, not once per pass;
 * :class:`LghDirect` (``--direct lgh``): one hierarchy over the frame's lights
-  (:mod:`usdml.lighting.lgh_direct`), gathered in every pass.
+  (:mod:`usdml.lighting.lgh.direct`), gathered in every pass.
 
 Indirect (:func:`gi_integrator`): :class:`NoGI` (``--gi none``), or :class:`VplGI`: the frame's VPLs (and
 their LGH) made once, gathered in every pass by ``--gi``'s method (:func:`usdml.lighting.gi.indirect_gather`).
@@ -138,7 +138,7 @@ class LghDirect(EveryLight):
         self._told_no_grid = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
-        from usdml.lighting.lgh_direct import prepare_direct
+        from usdml.lighting.lgh.direct import prepare_direct
         from usdml.render.lighting_estimate import direct_estimator
 
         self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
@@ -159,7 +159,7 @@ class LghDirect(EveryLight):
 
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
-        from usdml.lighting.lgh_direct import shade_lgh_direct
+        from usdml.lighting.lgh.direct import shade_lgh_direct
 
         shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
 

@@ -163,7 +163,7 @@ class Emitters:
 
     @classmethod
     def of_lights(cls, lights: Lights, meters_per_unit: float = 1.0, min_distance: float = 0.0) -> "Emitters":
-        """``--direct lgh``'s grid lights (:func:`usdml.lighting.lgh_direct.grid_mask`: points, spheres, disks,
+        """``--direct lgh``'s grid lights (:func:`usdml.lighting.lgh.direct.grid_mask`: points, spheres, disks,
         rects without shaping or focus)."""
         kind = np.asarray(lights.type)
         if (np.isin(kind, (LightType.DISTANT, LightType.CYLINDER)).any() or (lights.cone_angle < 180.0).any()
@@ -661,7 +661,7 @@ def gi_estimator(field, frame, occluded, settings) -> FrameEstimator | None:
 
 def direct_estimator(field, frame, shadow, settings) -> FrameEstimator | None:
     """``--direct lgh``: the estimator of a frame's direct light from its
-    :class:`usdml.lighting.lgh_direct.DirectField` (the grid lights against every-light shading with the
+    :class:`usdml.lighting.lgh.direct.DirectField` (the grid lights against every-light shading with the
     ``shadow`` backend, the every-light rest shaded alike on both sides); None without grid lights."""
     if field is None or field.lgh is None or len(field.grid) == 0:
         return None

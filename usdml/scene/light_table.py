@@ -1,8 +1,8 @@
 """The frame's lights packed for shading: UsdLux's rules as per-light float32 constants, written once.
 
 :class:`LightTable` is what every direct shading reads, the NumPy one (:mod:`usdml.lighting.direct`)
-and the fused kernels of the visibility backends (``kernels/direct_shading.py``, ``kernels/light_term.h``
-through :func:`usdml.visibility.voxel_native.compiled_lights`); it lives in the render index so that
+and the fused kernels of the visibility backends (``kernels/voxel/shading.py``, ``kernels/include/light_term.h``
+through :func:`usdml.visibility.voxel.native.compiled_lights`); it lives in the render index so that
 both layers take it from below. Shaping follows UsdLux: zero outside the cone half-angle, a smoothstep
 from ``cos(angle)`` to ``cos(angle·(1−softness))`` across the cone edge, and focus as
 ``focusTint + (1 − focusTint)·cos^focus θ_l`` (θ_l the angle between the light's axis and the direction
@@ -42,7 +42,7 @@ def smoothstep_cone(cos_l: np.ndarray, cone_deg: np.ndarray, softness: np.ndarra
 
 class LightFlag(IntFlag):
     """Bits of :attr:`LightTable.flags`, what the shading needs to know of each light's kind; the Warp
-    kernels (``usdml.kernels.direct_shading``) and ``kernels/light_term.h`` test the same bits."""
+    kernels (``usdml.kernels.voxel.shading``) and ``kernels/include/light_term.h`` test the same bits."""
 
     DISTANT = 1         #: a distant light: direction ``-axis``, no falloff
     ONE_SIDED = 2       #: disk or rect: ``max(0, cos θ_l)`` emission profile

@@ -16,7 +16,7 @@ __all__ = ["VisibilityBackend", "ExactBackend", "VoxelBackend", "make_backend", 
            "backend_class", "backend_names"]
 
 _LAZY = {"VisibilityBackend": "usdml.visibility.base", "ExactBackend": "usdml.visibility.exact",
-         "VoxelBackend": "usdml.visibility.voxel"}
+         "VoxelBackend": "usdml.visibility.voxel.backend"}
 
 
 def __getattr__(name: str):
