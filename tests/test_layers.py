@@ -8,7 +8,7 @@ package, at module level or inside a function, read from the source with ``ast``
 
 A layer may import its own modules, the layers :data:`MAY_IMPORT` names, the leaves and the package
 itself; nothing climbs back. Leaves (errors, parameters and settings, the cache, the thread pool, the
-native loader, the backends' name registry, ...) hold no rendering and import only leaves, so any layer
+native loader, the backends' name registry, the methods' parameter rows, ...) hold no rendering and import only leaves, so any layer
 may use them. ``kernels/`` (installed as ``usdml.kernels``) imports only itself. No module imports a
 private name (``_x``) of another usdml module (issue 20).
 """
@@ -37,7 +37,10 @@ LAYER_OF = {
     # leaves: no rendering, only other leaves imported
     "usdml.errors": "leaf", "usdml.params": "leaf", "usdml.settings": "leaf", "usdml.outputs": "leaf",
     "usdml.zorder": "leaf", "usdml.cache": "leaf", "usdml.parallel": "leaf", "usdml.native": "leaf",
-    "usdml.schemas": "leaf", "usdml.visibility.registry": "leaf",
+    "usdml.schemas": "leaf", "usdml.visibility.registry": "leaf", "usdml.param": "leaf",
+    # a method's rows of the parameter table, in its folder: they import only usdml.param
+    "usdml.visibility.voxel.params": "leaf", "usdml.visibility.svo.params": "leaf",
+    "usdml.visibility.insm.params": "leaf", "usdml.lighting.lgh.params": "leaf",
 }
 
 #: the layers each layer may import besides its own, the leaves and the package (``usdml``: the version, and

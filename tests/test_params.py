@@ -50,6 +50,32 @@ def test_every_row_is_a_field_an_attribute_and_a_flag():
     assert PARAMS["visibility"].choices == backend_names()
 
 
+def test_each_method_declares_its_rows_in_its_folder():
+    """A method's settings are declared in its folder (issue 54): the voxel, svo and insm backends' rows through
+    the registry, the LGH's among the lighting rows; usdml/params.py keeps the frame-wide ones, and the table
+    holds each row once, the backends' right after ``visibility``."""
+    from usdml import params
+    from usdml.lighting.lgh import params as lgh
+    from usdml.visibility import registry
+    from usdml.visibility.insm import params as insm
+    from usdml.visibility.svo import params as svo
+    from usdml.visibility.voxel import params as voxel
+
+    owned = {"voxel": voxel.PARAMS, "svo": svo.PARAMS, "insm": insm.PARAMS}
+    for name, rows in owned.items():
+        assert registry.PARAMS[name] == f"usdml.visibility.{name}.params:PARAMS"
+        assert all(p.field.startswith(name) or name == "voxel" for p in rows)
+    fields = list(PARAMS)
+    backend_rows = [p.field for name in registry.backend_names() for p in owned.get(name, ())]
+    assert fields[:1 + len(backend_rows)] == ["visibility", *backend_rows]
+    assert {f for f in fields if f.startswith(("voxel_", "svo_", "insm_"))} <= set(backend_rows)
+    lgh_rows = [p.field for p in (*lgh.DIRECT, *lgh.HIERARCHY, *lgh.SHADOWS)]
+    assert {f for f in fields if f.startswith(("lgh_", "direct_"))} <= set(lgh_rows) <= set(fields)
+    own = {p.field for p in params._SETTINGS} - set(lgh_rows)
+    assert own.isdisjoint(backend_rows) and len(fields) == len(set(fields))
+    assert {"error_budget", "direct", "gi", "pixel_samples", "seed"} <= own
+
+
 def test_backends_read_the_table_and_have_no_defaults_of_their_own():
     """A backend's knobs are settings: built without any it reads the table's defaults (0 standing for the
     automatic choice where there is one), its constructor names no default of a setting, and a field given

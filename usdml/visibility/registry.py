@@ -21,16 +21,23 @@ BACKENDS: dict[str, str] = {
     "insm": "usdml.visibility.insm:InsmBackend",
 }
 
-#: name -> the parameter rows (:class:`usdml.params.Param`) a registered backend adds to the table
-PARAMS: dict[str, tuple] = {}
+#: name -> the parameter rows (:class:`usdml.param.Param`) a registered backend adds to the table: a tuple of rows,
+#: or ``"module:NAME"`` naming one, imported when the table is built (a built-in backend declares its rows in its
+#: folder, a leaf module that imports only :mod:`usdml.param`)
+PARAMS: dict[str, tuple | str] = {
+    "voxel": "usdml.visibility.voxel.params:PARAMS",
+    "svo": "usdml.visibility.svo.params:PARAMS",
+    "insm": "usdml.visibility.insm.params:PARAMS",
+}
 
 
-def register(name: str, target: str, params: tuple = ()) -> None:
+def register(name: str, target: str, params: tuple | str = ()) -> None:
     """Register backend ``name`` as ``target`` (``"module:Class"``), with its own settings: ``params``,
-    rows of :class:`usdml.params.Param` (group ``usdml.params.VISIBILITY``) that join the table, its
-    flags and :class:`usdml.settings.UsdmlSettings` (read as attributes, their defaults until set)."""
+    rows of :class:`usdml.param.Param` (group ``usdml.param.VISIBILITY``), or ``"module:NAME"`` naming them,
+    that join the table, its flags and :class:`usdml.settings.UsdmlSettings` (read as attributes, their
+    defaults until set)."""
     BACKENDS[name] = target
-    PARAMS[name] = tuple(params)
+    PARAMS[name] = params if isinstance(params, str) else tuple(params)
 
 
 def unregister(name: str) -> None:
@@ -51,7 +58,15 @@ def backend_names() -> tuple[str, ...]:
 
 def backend_params() -> tuple:
     """The parameter rows the registered backends declare, in registry order."""
-    return tuple(p for n in BACKENDS for p in PARAMS.get(n, ()))
+    return tuple(p for n in BACKENDS for p in _rows(PARAMS.get(n, ())))
+
+
+def _rows(params: tuple | str) -> tuple:
+    """A backend's rows: as given, or the ``"module:NAME"`` they were named by, imported."""
+    if not isinstance(params, str):
+        return params
+    module, _, name = params.partition(":")
+    return tuple(getattr(importlib.import_module(module), name))
 
 
 def backend_class(name: str):
