@@ -3,6 +3,9 @@ render camera highlighted, bad flags one line; skipped cleanly where VTK cannot 
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -63,12 +66,35 @@ def test_bad_view_flags_are_one_line(tmp_path, capsys):
     assert "--window-size" in capsys.readouterr().err
     assert main(["view", stage]) != 0
     assert "--png" in capsys.readouterr().err
+    assert main(["view", stage, "--octree-resolution", "12", "--png", str(tmp_path / "x.png")]) == 2
+    assert "--octree-resolution 12: give a power of two" in capsys.readouterr().err
+
+
+def _usdml_view(*argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "usdml.cli", "view", str(STAGES / "cornell.usda"), *map(str, argv)],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_the_old_voxel_resolution_name_is_refused_in_one_line(tmp_path):
+    """On usdml render --voxel-resolution is the voxel arrays' resolution: usdml view does not take it as
+    another name for --octree-resolution, and says so."""
+    run = _usdml_view("--show", "voxels", "--voxel-resolution", "16", "--png", tmp_path / "x.png")
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.startswith("usdml: error: usdml view: --voxel-resolution is now --octree-resolution")
+    assert len(run.stderr.splitlines()) == 1 and not (tmp_path / "x.png").exists(), run.stderr
+
+
+def test_octree_resolution_draws_the_voxels(offscreen, tmp_path):
+    run = _usdml_view("--show", "voxels", "--octree-resolution", "8", "--png", tmp_path / "v.png",
+                      "--window-size", "64,48")
+    assert run.returncode == 0, run.stderr
+    assert "voxels " in run.stdout and (tmp_path / "v.png").exists(), run.stdout
 
 
 def test_voxels_vpls_and_lgh_layers(offscreen, tmp_path, capsys):
     stage = str(STAGES / "cornell.usda")
     png = tmp_path / "vox.png"
-    assert main(["view", stage, "--show", "voxels", "--voxel-resolution", "16", "--png", str(png),
+    assert main(["view", stage, "--show", "voxels", "--octree-resolution", "16", "--png", str(png),
                  "--window-size", "200,160"]) == 0
     out = capsys.readouterr().out
     voxels = int(out.split("voxels ")[1].split()[0])

@@ -35,8 +35,9 @@ renderer's defaults were tuned: no repeated building assets, no regular grid, no
   1.6-2.4 m above a street, near one end, looking down it and dollying 2-4 m over the shot (no
   parked car within 9 m of it).
 
-Conventions are make_stages.py's (imported from it): metersPerUnit 1, upAxis Y, 24 fps, defaultPrim
-</World>, a 35 mm lens on a 36 x 20.25 mm back, </Render/Settings> named by ``renderSettingsPrimPath``.
+Conventions are stage_build.py's (imported from it, as make_stages.py does): metersPerUnit 1, upAxis Y,
+24 fps, defaultPrim </World>, a 35 mm lens on a 36 x 20.25 mm back, </Render/Settings> named by
+``renderSettingsPrimPath``.
 Deterministic: the same seed and budget give the same bytes (no timestamps, every value rounded).
 
 Seeds: **even seeds are for tuning, odd seeds for reporting** (issues 36/37: tune on one half,
@@ -55,9 +56,9 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from make_stages import (UP, MeshBuilder, add_facade, calibrate_intensity, define_camera,  # noqa: E402
-                         define_light_instancer, define_mesh, define_render_settings, frame_times,
-                         new_stage, regular_polygon, settled)
+from make_stages import add_facade  # noqa: E402
+from stage_build import (UP, MeshBuilder, calibrate_intensity, define_camera, define_light_instancer,  # noqa: E402
+                         define_mesh, define_render_settings, frame_times, new_stage, regular_polygon, settled)
 
 DEFAULT_TRIANGLES = 200_000
 #: side of the city (m) at the default budget; it scales with the square root of the budget
@@ -98,7 +99,7 @@ LEAF, BARK, GRASS = rgb(0.20, 0.38, 0.16), rgb(0.35, 0.25, 0.16), rgb(0.26, 0.40
 # --------------------------------------------------------------------------
 
 class Builder(MeshBuilder):
-    """make_stages' MeshBuilder with a pure-Python polygon add (the city has ~100k polygons) and
+    """stage_build's MeshBuilder with a pure-Python polygon add (the city has ~100k polygons) and
     ``append`` to flatten a prop into a bigger mesh."""
 
     def add_poly(self, pts, color, outward):

@@ -31,7 +31,7 @@ import numpy as np
 from pxr import Gf, UsdGeom, UsdLux, Vt
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from make_stages import (BULBS, MeshBuilder, calibrate_intensity, define_camera, define_mesh,  # noqa: E402
+from stage_build import (BULBS, MeshBuilder, calibrate_intensity, define_camera, define_mesh,  # noqa: E402
                          define_render_settings, new_stage, settled, settled_points)
 
 KINDS = ("open", "canyon", "interior")

@@ -35,6 +35,19 @@ class _Parser(argparse.ArgumentParser):
         raise _ArgumentError(f"{self.prog}: {message}; see {self.prog} --help")
 
 
+class _Renamed(argparse.Action):
+    """A flag a command no longer takes under this name: refused in one line naming the new one (not an
+    alias, where the old name means something else on another command). Hidden from the help."""
+
+    def __init__(self, option_strings, dest, *, new: str, why: str, **kwargs) -> None:
+        super().__init__(option_strings, argparse.SUPPRESS, nargs="?", default=argparse.SUPPRESS,
+                         help=argparse.SUPPRESS)
+        self.new, self.why = new, why
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} is now {self.new} ({self.why}); give {self.new} N")
+
+
 def _add_quiet_arg(p: argparse.ArgumentParser) -> None:
     # SUPPRESS: not given after the command, the value before it (or False) stays
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="do not print warnings")
@@ -139,7 +152,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
         raise UsdmlError(f"--window-size {w},{h}: use 16 to 8192 pixels a side")
     drawn = view(args.stage, args.png, frame=args.frame, camera=args.camera,
                  show=tuple(s for s in args.show.split(",") if s), window_size=(w, h), interactive=args.interactive,
-                 voxel_resolution=args.voxel_resolution, lgh_level=args.lgh_level)
+                 octree_resolution=args.octree_resolution, lgh_level=args.lgh_level)
     print(", ".join(f"{k} {v}" for k, v in drawn.items() if k not in ("stage", "png")) + (f" -> {args.png}" if args.png else ""))
     return 0
 
@@ -310,8 +323,11 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--show", default="geometry,cameras,lights",
                       help="comma-separated: geometry, instances, cameras, lights, voxels, vpls, lgh "
                       "(default: %(default)s)")
-    view.add_argument("--voxel-resolution", type=int, default=64, metavar="N",
-                      help="voxels: the octree's occupied voxels at N^3, a power of two (default: %(default)s)")
+    view.add_argument("--octree-resolution", type=int, default=64, metavar="N",
+                      help="voxels: the sparse voxel octree's occupied voxels at N^3, a power of two from 8 up "
+                      "(default: %(default)s)")
+    view.add_argument("--voxel-resolution", action=_Renamed, new="--octree-resolution",
+                      why="--voxel-resolution is usdml render's voxel arrays' resolution")
     view.add_argument("--lgh-level", type=int, default=1, metavar="L",
                       help="lgh: the grid lights of level L, 1 = S1 (default: %(default)s)")
     view.add_argument("--png", help="write the picture here (off-screen)")
@@ -386,7 +402,7 @@ def _unrecognized(parser: argparse.ArgumentParser, argv: list[str] | None, messa
 
     sub = subs.choices[command]
     unknown = message[len(prefix):].split("; see ")[0]
-    flags = [o for a in sub._actions for o in a.option_strings if o.startswith("--")]
+    flags = [o for a in sub._actions if not isinstance(a, _Renamed) for o in a.option_strings if o.startswith("--")]
     hints = []
     for given in (u.split("=")[0] for u in unknown.split() if u.startswith("--")):
         longer = [f for f in flags if f.startswith(given)]       # an abbreviation: name the flags it starts

@@ -104,16 +104,19 @@ def occupied_voxels(snap, resolution: int, bounds: tuple | None = None) -> tuple
 
 def view(stage: str, png: str | None, *, frame: float | None = None, camera: str | None = None,
          show: tuple[str, ...] = ("geometry", "cameras", "lights"), window_size: tuple[int, int] = (1280, 720),
-         interactive: bool = False, voxel_resolution: int = 64, lgh_level: int = 1, settings=None) -> dict:
+         interactive: bool = False, octree_resolution: int = 64, lgh_level: int = 1, settings=None) -> dict:
     """Draw ``show`` (:data:`LAYERS`) of ``stage`` at ``frame`` (default: its start) to ``png``, or in a
     window; returns what was drawn (counts) and where.
 
-    ``voxels``: the octree's occupied voxels at ``voxel_resolution``³ (a power of two); ``vpls``: the
-    frame's VPLs (``settings``' VPL count, bounces and seed; the stage's when None) coloured by flux;
-    ``lgh``: the grid lights of LGH level ``lgh_level`` (1 = S1) built over them."""
+    ``voxels``: the sparse voxel octree's occupied voxels at ``octree_resolution``³ (a power of two from 8
+    up; not the voxel arrays' ``voxel_resolution`` of ``usdml render``); ``vpls``: the frame's VPLs
+    (``settings``' VPL count, bounces and seed; the stage's when None) coloured by flux; ``lgh``: the grid
+    lights of LGH level ``lgh_level`` (1 = S1) built over them."""
     unknown = [s for s in show if s not in LAYERS]
     if unknown:
         raise UsdmlError(f"--show {','.join(unknown)}: usdml view draws {', '.join(LAYERS)}")
+    if octree_resolution < 8 or octree_resolution & (octree_resolution - 1):
+        raise UsdmlError(f"--octree-resolution {octree_resolution}: give a power of two from 8 up, e.g. 64")
     if png is None and not interactive:
         raise UsdmlError("give --png OUT.png (or --interactive where a display exists)")
     if png is not None and not interactive:
@@ -217,9 +220,7 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
             plotter.add_mesh(pv.Arrow(start, -d / np.linalg.norm(d), scale=0.25 * size), color=colour[i])
         drawn["lights"] = int(len(L))
     if "voxels" in show:
-        if voxel_resolution < 8 or voxel_resolution & (voxel_resolution - 1):
-            raise UsdmlError(f"--voxel-resolution {voxel_resolution}: give a power of two from 8 up")
-        centres, h = occupied_voxels(snap, voxel_resolution, bounds)
+        centres, h = occupied_voxels(snap, octree_resolution, bounds)
         if len(centres):
             cubes = pv.PolyData(centres).glyph(geom=pv.Cube(x_length=h, y_length=h, z_length=h), scale=False,
                                                orient=False)
