@@ -23,8 +23,9 @@ from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_
 from usdml.errors import UsdmlError, log
 from usdml.outputs import make_output_folder
 from usdml.params import DEFAULT_WIDTH, ignored
+from usdml.render.estimate import VisibilityEstimate
 from usdml.render.estimate import header as estimate_header
-from usdml.render.lighting_estimate import frame_estimates, frame_headers
+from usdml.render.lighting_estimate import LightingEstimate, frame_estimates, frame_headers
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.settings import RenderOptions, UsdmlSettings
@@ -234,8 +235,8 @@ def render_sequence(job: RenderJob) -> dict:
     identities = [frame_settings(settings.as_dict(), layers=p.layers, **common) for p in products]
     digests = [settings_digest(i) for i in identities]
     written, skipped, stale, recovered, seconds = [], [], [], [], []
-    estimates: dict[float, dict] = {}       # frame -> its visibility error estimate (usdml.render.estimate)
-    lighting: dict[float, dict] = {}        # frame -> {gi, direct}: its LGH error estimates (.lighting_estimate)
+    estimates: dict[float, VisibilityEstimate] = {}     # frame -> its visibility error estimate
+    lighting: dict[float, dict[str, LightingEstimate]] = {}     # frame -> {gi, direct}: its LGH error estimates
     since = job.resume_since
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
@@ -266,12 +267,12 @@ def render_sequence(job: RenderJob) -> dict:
                               timecode=f, stage=stage_file, settings=settings_json(identity),
                               metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
                                         "usdml:camera": result.camera.path or "(framing)",
-                                        **(estimate_header(result.stats.estimate) if result.stats.estimate
+                                        **(estimate_header(result.stats.estimate) if result.stats.estimate is not None
                                            else {}), **frame_headers(result.stats)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
-                if result.stats.estimate:
+                if result.stats.estimate is not None:
                     estimates[f] = result.stats.estimate
                 if frame_estimates(result.stats):
                     lighting[f] = frame_estimates(result.stats)
@@ -292,8 +293,8 @@ def render_sequence(job: RenderJob) -> dict:
         if job.preview else [],
         "skippedOutputs": [p.paths[f] for f in skipped for p in products],
         "settingsDigest": digests,
-        "estimates": {f"{f:g}": e for f, e in estimates.items()},
-        "lightingEstimates": {f"{f:g}": e for f, e in lighting.items()},
+        "estimates": {f"{f:g}": e.as_dict() for f, e in estimates.items()},
+        "lightingEstimates": {f"{f:g}": {k: e.as_dict() for k, e in kinds.items()} for f, kinds in lighting.items()},
     }
 
 
