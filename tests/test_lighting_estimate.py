@@ -144,13 +144,13 @@ def test_interval_holds_the_error_measured_over_every_pixel(case, lamp_path):
     got = frame(path, width, **test)
     want = measured(got, frame(path, width, **reference), aov)
     e = getattr(got.stats, f"estimate_{kind}")
-    assert e["rel_rmse_lo"] <= want <= e["rel_rmse_hi"], (want, e)
-    assert e["rel_rmse_lo"] <= e["rel_rmse"] <= e["rel_rmse_hi"] and e["rel_bias_lo"] <= e["rel_bias"] <= e["rel_bias_hi"]
+    assert e.rel_rmse_lo <= want <= e.rel_rmse_hi, (want, e)
+    assert e.rel_rmse_lo <= e.rel_rmse <= e.rel_rmse_hi and e.rel_bias_lo <= e.rel_bias <= e.rel_bias_hi
     if case.endswith("each"):
-        assert e["rel_rmse_hi"] < 2.5 * want       # an upper bound that says something
+        assert e.rel_rmse_hi < 2.5 * want       # an upper bound that says something
     else:
-        assert 0 < e["rel_rmse_lo"] and e["rel_rmse_hi"] < 2 * want        # an interval that says something
-    assert e["pixels"] == 192 and e["rays"] > 0 and e["seconds"] > 0
+        assert 0 < e.rel_rmse_lo and e.rel_rmse_hi < 2 * want        # an interval that says something
+    assert e.pixels == 192 and e.rays > 0 and e.seconds > 0
     assert getattr(got.stats, f"estimate_{'direct' if kind == 'gi' else 'gi'}") is None
 
 
@@ -161,11 +161,11 @@ def test_an_exact_lgh_estimates_about_zero(new_stage):
     noise, clipped at 0; over the reference's mean, compare's definition), where the default LGH's is about 19 %."""
     one = lamp_stage(new_stage, lamps(1))
     e = frame(one, 32, direct="lgh").stats.estimate_direct
-    assert e["rel_rmse_hi"] < 1e-4 and abs(e["rel_bias"]) < 1e-4
+    assert e.rel_rmse_hi < 1e-4 and abs(e.rel_bias) < 1e-4
     exact = dict(vpl_count=16, lgh_start_level=0, lgh_alpha=1000.0, shadow_samples=1024, shadow_filter_iterations=0)
     got = frame(STAGES / "cornell.usda", 32, gi="lgh", **exact)
     assert measured(got, frame(STAGES / "cornell.usda", 32, gi="vpl-bruteforce", **exact), "indirect") < 0.002
-    assert got.stats.estimate_gi["rel_rmse"] < 0.03 and got.stats.estimate_gi["rel_rmse_hi"] < 0.05
+    assert got.stats.estimate_gi.rel_rmse < 0.03 and got.stats.estimate_gi.rel_rmse_hi < 0.05
 
 
 # ------------------------------------------------------------------------------------------- the outputs

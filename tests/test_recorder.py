@@ -4,8 +4,10 @@ validation and messages, sequences with resume, warnings collected, the example 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +17,10 @@ from conftest import ROOT, add_cube_mesh, add_quad, ground_stage
 from pxr import Usd, UsdGeom, UsdLux
 from usdml.aov.exr import read_exr
 from usdml.cli import main
+from usdml.render.budget import BudgetEstimate
+from usdml.render.estimate import VisibilityEstimate
+from usdml.render.lighting_estimate import LightingEstimate
+from usdml.render.result import DaskRun, SequenceResult
 
 pytest.importorskip("embreex")
 
@@ -29,6 +35,13 @@ def _shot(new_stage) -> str:
     return ground_stage(new_stage, scene)
 
 
+def _result(**fields) -> SequenceResult:
+    """A render's result with nothing in it but ``fields``."""
+    return SequenceResult(**{**dict(stage="s.usda", frames=[], skipped=[], stale=[], recovered=[], resolution=(1, 1),
+                                    seconds_per_frame=0.0, seconds=0.0, visibility="exact", outputs=[], previews=[],
+                                    skipped_outputs=[], settings_digest=[]), **fields})
+
+
 def test_frames_reach_the_job_as_floats(monkeypatch):
     """Timecodes go to the RenderJob as floats (a FrameSpec string as it is), not through FrameSpec text."""
     import usdml.render.sequence as sequence
@@ -37,8 +50,7 @@ def test_frames_reach_the_job_as_floats(monkeypatch):
 
     def fake(job):
         jobs.append(job)
-        return {"outputs": [], "frames": [], "skipped": [], "seconds": 0.0, "secondsPerFrame": 0.0,
-                "resolution": [1, 1], "stale": [], "previews": [], "skippedOutputs": []}
+        return _result()
     monkeypatch.setattr(sequence, "render_sequence", fake)
     rec = usdml.Recorder()
     rec.record_sequence("s.usda", [1, 12345.678], "o.####.exr")
@@ -150,6 +162,61 @@ def test_a_result_lists_the_files_this_call_wrote(new_stage, tmp_path):
     wider = record("1:3", width=12)
     assert wider.stale == [1.0, 2.0, 3.0] and wider.skipped == [] and wider.skipped_files == []
     assert wider.files == files("exr", 1, 2, 3)
+
+
+#: the keys of ``usdml render --json`` (docs/rendering.md), in their order; on Dask the run's
+SUMMARY_KEYS = ["stage", "frames", "skipped", "stale", "recovered", "resolution", "secondsPerFrame", "seconds",
+                "visibility", "outputs", "previews", "skippedOutputs", "settingsDigest", "estimates", "lightingEstimates"]
+DASK_KEYS = ["stage", "frames", "failed", "skipped", "stale", "rerun", "errors", "resolution", "visibility",
+             "secondsPerFrame", "seconds", "startupSeconds", "workers", "scheduler", "chunkSize", "retries",
+             "threadsPerWorker", "outputs", "previews", "skippedOutputs", "estimates", "lightingEstimates"]
+
+
+def test_the_typed_result_is_the_summary_and_the_record(monkeypatch):
+    """``render_sequence``'s :class:`SequenceResult` makes the JSON summary (its documented keys, timecodes as
+    FrameSpec text only there) and ``RecordResult``'s fields (timecodes as the floats they were: 12345.678, which
+    ``f"{f:g}"`` would turn into 12345.7)."""
+    import usdml.render.sequence as sequence
+
+    visibility = VisibilityEstimate(0.1, 0.05, 0.2, 0.01, 0.0, 0.02, 128, 2048, 1500, False, 0.5)
+    budget = BudgetEstimate(**visibility.as_dict(), budget=0.01, level=2, met=True, levels={"0": 0.3, "2": 0.008},
+                            refined_fraction=0.1, near_fraction=0.02)
+    lighting = LightingEstimate(0.1, 0.05, 0.15, -0.01, -0.02, 0.0, 192, 600, 24000, 19000, 0.25)
+    result = _result(frames=[1.0, 12345.678], resolution=(24, 14), seconds_per_frame=0.5, seconds=1.25,
+                     outputs=["o.0001.exr", "o.12345.678.exr"], settings_digest=["sha256:0"],
+                     estimates={1.0: visibility, 12345.678: budget}, lighting_estimates={1.0: {"gi": lighting}},
+                     warnings=["a warning"])
+    summary = result.as_json()
+    assert list(summary) == SUMMARY_KEYS
+    assert summary["resolution"] == [24, 14] and summary["secondsPerFrame"] == 0.5
+    assert summary["estimates"] == {"1": visibility.as_dict(), "12345.7": budget.as_dict()}
+    assert list(budget.as_dict())[-6:] == ["budget", "level", "met", "levels", "refined_fraction", "near_fraction"]
+    assert "refined_fraction" not in BudgetEstimate(**visibility.as_dict()).as_dict()     # before the frame's passes
+    assert summary["lightingEstimates"] == {"1": {"gi": lighting.as_dict()}}
+    json.dumps(summary)
+
+    monkeypatch.setattr(sequence, "render_sequence", lambda job: result)
+    record = usdml.Recorder().record_sequence("s.usda", [1, 12345.678], "o.####.exr")
+    assert record.frames == [1.0, 12345.678] and record.files == result.outputs and record.resolution == [24, 14]
+    assert (record.seconds, record.seconds_per_frame, record.warnings) == (1.25, 0.5, ["a warning"])
+    assert record.estimates == {1.0: visibility.as_dict(), 12345.678: budget.as_dict()}
+    assert record.lighting_estimates == {1.0: {"gi": lighting.as_dict()}}
+    assert record.summary == summary and record.failed == [] and record.rerun is None
+
+    run = DaskRun(failed=[2.0], rerun="2", errors={2.0: "boom"}, startup_seconds=1.0, workers=2, scheduler=None,
+                  chunk_size=1, retries=0, threads_per_worker=1)
+    on_dask = replace(result, dask=run).as_json()
+    assert list(on_dask) == DASK_KEYS and on_dask["errors"] == {"2": "boom"}
+    record = usdml.RecordResult.of(replace(result, dask=run))
+    assert record.failed == [2.0] and record.rerun == "2" and record.summary == on_dask
+
+
+def test_the_json_summary_has_the_documented_keys(new_stage, tmp_path, capsys):
+    path = _shot(new_stage)
+    assert main(["render", path, str(tmp_path / "keys.exr"), "--imageWidth", "8", "--pixel-samples", "1", "--json",
+                 "-q"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert list(summary) == SUMMARY_KEYS and summary["frames"] == [1.0] and summary["resolution"] == [8, 8]
 
 
 def test_the_example_script_relights_a_shot(new_stage, tmp_path):

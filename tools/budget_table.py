@@ -49,7 +49,7 @@ def _frames(delegate, settings, exact_settings, width: int, height: int, frames:
                       aovs) as (exact_result, exact_s, er), \
             steady_frame(delegate, settings.updated(pixel_samples=1), delegate.start_time, width, height,
                          aovs) as (result, seconds, r):
-        estimate = result.stats.estimate or {}
+        estimate = result.stats.estimate
         pairs, time_code = [(seconds, exact_s)], next_frame(delegate, delegate.start_time)
         for _ in range(frames - 1):
             time_code = next_frame(delegate, time_code)
@@ -61,7 +61,7 @@ def _frames(delegate, settings, exact_settings, width: int, height: int, frames:
             pairs.append(tuple(pair))
         got, ref = np.array(pairs).T
         return {"frame_seconds": float(np.median(got)), "exact_frame_seconds": float(np.median(ref)),
-                "frame_speedup": float(np.median(ref / got)), "frame_estimate_seconds": estimate.get("seconds", 0.0),
+                "frame_speedup": float(np.median(ref / got)), "frame_estimate_seconds": estimate.seconds if estimate is not None else 0.0,
                 "shadow": result.buffers["shadow"], "exact_shadow": exact_result.buffers["shadow"]}
 
 

@@ -236,9 +236,9 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
         # frame's per-frame array, in place as a sequence render does)
         if name in refined:
             r = refined[name]
-            results[-1].update(error_budget=r.budget["budget"], refine_level=r.budget["level"],
-                               estimated_eps_v=r.budget["eps_v"],
-                               estimated_eps_v_interval=[r.budget["eps_v_lo"], r.budget["eps_v_hi"]], **r.fractions())
+            results[-1].update(error_budget=r.budget.budget, refine_level=r.budget.level,
+                               estimated_eps_v=r.budget.eps_v,
+                               estimated_eps_v_interval=[r.budget.eps_v_lo, r.budget.eps_v_hi], **r.fractions())
         results[-1].update(backend.describe())
         results[-1].update(backend.per_frame_rebuild_seconds(snap))
         if backend is not exact:

@@ -47,11 +47,11 @@ def _estimate_fields(stats, kind: str, measured: float) -> dict:
     from usdml.render.lighting_estimate import frame_estimates
 
     e = frame_estimates(stats).get(kind)
-    if not e:
+    if e is None:
         return {}
-    lo, hi = float(e["rel_rmse_lo"]), float(e["rel_rmse_hi"])
-    return {"estimated_rel_rmse": float(e["rel_rmse"]), "estimated_rel_rmse_interval": [lo, hi],
-            "estimate_holds": bool(lo <= measured <= hi), "estimate": dict(e)}
+    lo, hi = float(e.rel_rmse_lo), float(e.rel_rmse_hi)
+    return {"estimated_rel_rmse": float(e.rel_rmse), "estimated_rel_rmse_interval": [lo, hi],
+            "estimate_holds": bool(lo <= measured <= hi), "estimate": e.as_dict()}
 
 
 def _estimate_text(r: dict) -> str:
@@ -364,12 +364,12 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         # the estimate a render of this frame reports, on the same G-buffer and lights
         estimate = budget if budget is not None else estimate_visibility(points, gb.normal.reshape(-1, 3)[hit], geometric, snap.lights, exact, approx,
                                        frame_rng(settings.seed, frame),
-                                       frame_pairs=n_px * len(snap.lights) * settings.pixel_samples).as_dict()
+                                       frame_pairs=n_px * len(snap.lights) * settings.pixel_samples)
         refinement = {"error_budget": settings.error_budget, "refined_fraction": 0.0, "near_fraction": 0.0,
                       "refine_level": 0}
         if refined is not None:
             got_s += budget_s
-            refinement.update(refined.fractions(), refine_level=budget["level"], budget_seconds=budget_s)
+            refinement.update(refined.fractions(), refine_level=budget.level, budget_seconds=budget_s)
     finally:
         exact.close()
         (refined.approx if refined is not None else approx).close()
@@ -406,9 +406,9 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
         "wrongly_hidden_far": float((wrong_hidden.sum() - hidden_near) / nq),
         "near_voxels": NEAR_VOXELS,
         "seconds": {backend: got_s, against: ref_s}, "speedup": ref_s / got_s if got_s > 0 else float("inf"),
-        "estimated_eps_v": estimate["eps_v"], "estimated_eps_v_interval": [estimate["eps_v_lo"], estimate["eps_v_hi"]],
-        "estimated_eps_s": estimate["eps_s"], "estimated_eps_s_interval": [estimate["eps_s_lo"], estimate["eps_s_hi"]],
-        "estimate": estimate,
+        "estimated_eps_v": estimate.eps_v, "estimated_eps_v_interval": [estimate.eps_v_lo, estimate.eps_v_hi],
+        "estimated_eps_s": estimate.eps_s, "estimated_eps_s_interval": [estimate.eps_s_lo, estimate.eps_s_hi],
+        "estimate": estimate.as_dict(),
         **refinement,
         "build_seconds": build, "heatmap": heatmap, "plot": None if not plot else [f"{plot}.heatmap.png", f"{plot}.hist.png"],
     }

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 log = logging.getLogger("usdml")
 
@@ -29,6 +31,28 @@ class Warnings:
         self._seen.add(message)
         self.messages.append(message)
         log.warning(message)
+
+
+class _Collect(logging.Handler):
+    """The ``usdml`` logger's warnings (and errors), as their messages."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@contextmanager
+def collect_warnings() -> Iterator[list[str]]:
+    """The messages the ``usdml`` logger warns with while the block runs (a render's ``warnings``)."""
+    collect = _Collect()
+    log.addHandler(collect)
+    try:
+        yield collect.messages
+    finally:
+        log.removeHandler(collect)
 
 
 def tf_message(e: Exception) -> str:

@@ -28,13 +28,16 @@ class (:func:`usdml.cli.main` makes one), so a script and the command line rende
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from numbers import Number
+from typing import TYPE_CHECKING
 
 from usdml import params
 from usdml.aov.naming import timecodes
-from usdml.errors import UsdmlError
+from usdml.errors import UsdmlError, collect_warnings
+
+if TYPE_CHECKING:       # the render layer is imported when a recorder renders, not with ``import usdml``
+    from usdml.render.result import SequenceResult
 
 __all__ = ["Recorder", "RecordResult", "RENDER_OPTIONS"]
 
@@ -71,6 +74,18 @@ class RecordResult:
     #: fields), by timecode
     lighting_estimates: dict[float, dict] = field(default_factory=dict)
 
+    @classmethod
+    def of(cls, result: SequenceResult) -> RecordResult:
+        """The record of a render (:class:`usdml.render.result.SequenceResult`), ``summary`` its JSON."""
+        run = result.dask
+        return cls(files=list(result.outputs), frames=list(result.frames), skipped=list(result.skipped),
+                   seconds=result.seconds, seconds_per_frame=result.seconds_per_frame,
+                   resolution=list(result.resolution), warnings=list(result.warnings),
+                   failed=list(run.failed) if run else [], rerun=run.rerun if run else None,
+                   summary=result.as_json(), stale=list(result.stale), previews=list(result.previews),
+                   skipped_files=list(result.skipped_outputs), estimates=result.estimate_fields(),
+                   lighting_estimates=result.lighting_estimate_fields())
+
 
 def check_width(width: int | None, name: str = "--imageWidth") -> None:
     """A one-line error for an image width outside ``1 .. MAX_WIDTH`` (``name``: how the user gave it)."""
@@ -98,17 +113,6 @@ def job_frames(frames) -> str | list[float] | None:
     if frames is None or isinstance(frames, str):
         return frames
     return timecodes([frames] if isinstance(frames, Number) else frames)
-
-
-class _Collect(logging.Handler):
-    """The ``usdml`` logger's warnings during one call."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.messages: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.messages.append(record.getMessage())
 
 
 class Recorder:
@@ -153,35 +157,22 @@ class Recorder:
 
         job = RenderJob(**self.options, stage=stage, output=output_path, frames=job_frames(frames), resume=resume,
                         overrides=dict(self.overrides), single_file=single_file)
-        collect = _Collect()
-        logger = logging.getLogger("usdml")
-        logger.addHandler(collect)
-        try:
-            if job.workers is not None or job.scheduler is not None:
-                summary = self._on_dask(job)
-            else:
-                summary = render_sequence(job)
-        finally:
-            logger.removeHandler(collect)
-        return RecordResult(files=list(summary["outputs"]), frames=list(summary["frames"]),
-                            skipped=list(summary["skipped"]), seconds=summary["seconds"],
-                            seconds_per_frame=summary["secondsPerFrame"], resolution=list(summary["resolution"]),
-                            warnings=collect.messages, failed=list(summary.get("failed", [])),
-                            rerun=summary.get("rerun"), summary=summary, stale=list(summary["stale"]),
-                            previews=list(summary["previews"]), skipped_files=list(summary["skippedOutputs"]),
-                            estimates={float(f): e for f, e in summary.get("estimates", {}).items()},
-                            lighting_estimates={float(f): e for f, e in summary.get("lightingEstimates", {}).items()})
+        on_dask = job.workers is not None or job.scheduler is not None
+        return RecordResult.of(self._on_dask(job) if on_dask else render_sequence(job))
 
-    def _on_dask(self, job) -> dict:
-        """The job's frames as chunks on Dask (:mod:`usdml.render.farm`)."""
+    def _on_dask(self, job) -> SequenceResult:
+        """The job's frames as chunks on Dask (:mod:`usdml.render.farm`); the warnings of reading the stage here
+        before the run's."""
         from usdml.aov.naming import frame_spec
         from usdml.render.farm import render_on_dask
         from usdml.stage import StageDelegate
 
-        delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
-                                 purposes=job.purposes, implicit_detail=job.implicit_detail)
-        frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
-        for f in frames:
-            delegate.check_time(f)
-        return render_on_dask(job, frames)
+        with collect_warnings() as warnings:
+            delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
+                                     purposes=job.purposes, implicit_detail=job.implicit_detail)
+            frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
+            for f in frames:
+                delegate.check_time(f)
+        result = render_on_dask(job, frames)
+        return replace(result, warnings=warnings + result.warnings)
 

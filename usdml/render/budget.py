@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time as _time
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -44,6 +45,24 @@ OFF = 1.0
 MAX_REFINED = 0.5
 
 
+@dataclass
+class BudgetEstimate(VisibilityEstimate):
+    """A frame's estimate under ``--error-budget``: the chosen level's (module doc), with the budget's choice."""
+
+    budget: float = OFF
+    level: int | str = 0                #: the refinement level; ``"exact"``: every answer of the frame exact
+    met: bool = True                    #: a level of the rule held the budget
+    levels: dict[str, float] = field(default_factory=dict)     #: each tried level's ``eps_v_hi``
+    #: of the frame's queries, those re-asked of the exact backend and those in the blind zone (after its
+    #: passes: :meth:`usdml.visibility.refine.Refined.fractions`; None before)
+    refined_fraction: float | None = None
+    near_fraction: float | None = None
+
+    def as_dict(self) -> dict:
+        """The fields by name, the fractions once the frame has them."""
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
 def active(budget: float, shadow: VisibilityBackend, primary: VisibilityBackend) -> bool:
     """Whether a budget refines anything: under 1, and an approximate shadow backend."""
     return budget < OFF and shadow is not primary
@@ -57,17 +76,16 @@ def sample_pixels(budget: float) -> int:
 
 
 def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None,
-                 lights: Lights, budget: float, seed: int, time: float, where: str) -> dict:
+                 lights: Lights, budget: float, seed: int, time: float, where: str) -> BudgetEstimate:
     """Set ``refined.level`` for the frame at ``time`` (module doc) from its first pass's hit pixels; return the
-    frame's estimate (:class:`usdml.render.estimate.VisibilityEstimate`'s fields) with ``budget``, ``level``
-    (``"exact"`` at the limit), ``met`` (a level of the rule held the budget) and ``levels`` (each tried
-    level's ``eps_v_hi``). ``where`` starts the warning (the stage)."""
+    frame's estimate with ``budget``, ``level`` (``"exact"`` at the limit), ``met`` (a level of the rule held the
+    budget) and ``levels`` (each tried level's ``eps_v_hi``). ``where`` starts the warning (the stage)."""
     t0 = _time.perf_counter()
     exact = refined.exact
     if budget <= 0 or len(lights) == 0 or len(points) == 0:
         refined.level = EXACT if budget <= 0 else 0
         est = VisibilityEstimate(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, True)
-        return {**est.as_dict(), "budget": budget, "level": "exact" if budget <= 0 else 0, "met": True, "levels": {}}
+        return BudgetEstimate(**est.as_dict(), budget=budget, level="exact" if budget <= 0 else 0, met=True)
     shared = SHARED_LIGHTS if refined.approx.supports(LIGHT_MAJOR) else None
     sample = PairSample(points, normals, geometric, lights, exact, frame_rng(seed, time), sample_pixels(budget),
                         LIGHTS, shared)
@@ -108,5 +126,5 @@ def choose_level(refined: Refined, points: np.ndarray, normals: np.ndarray, geom
     refined.level = chosen
     refined.reset()
     est.seconds = _time.perf_counter() - t0
-    return {**est.as_dict(), "budget": budget, "level": "exact" if chosen == EXACT else chosen, "met": met,
-            "levels": tried}
+    return BudgetEstimate(**est.as_dict(), budget=budget, level="exact" if chosen == EXACT else chosen, met=met,
+                          levels=tried)

@@ -297,13 +297,14 @@ HEADER_KEYS = ("eps_v", "eps_v_lo", "eps_v_hi", "eps_s", "eps_s_lo", "eps_s_hi",
 BUDGET_KEYS = ("budget", "level", "refined_fraction", "near_fraction")
 
 
-def header(estimate: dict) -> dict:
-    """``usdml:estimate:<key>`` attributes of an estimate (:meth:`VisibilityEstimate.as_dict`, with
-    :data:`BUDGET_KEYS` under ``--error-budget``) for the EXR."""
-    out = {f"usdml:estimate:{k}": (int(estimate[k]) if k in ("pixels", "pairs") else float(estimate[k]))
+def header(estimate: VisibilityEstimate) -> dict:
+    """``usdml:estimate:<key>`` attributes of an estimate for the EXR: :data:`HEADER_KEYS`, and :data:`BUDGET_KEYS`
+    under ``--error-budget`` (:class:`usdml.render.budget.BudgetEstimate`)."""
+    values = estimate.as_dict()
+    out = {f"usdml:estimate:{k}": (int(values[k]) if k in ("pixels", "pairs") else float(values[k]))
            for k in HEADER_KEYS}
     for k in BUDGET_KEYS:
-        if k in estimate:
-            value = estimate[k]
+        if k in values:
+            value = values[k]
             out[f"usdml:estimate:{k}"] = (-1 if value == "exact" else int(value)) if k == "level" else float(value)
     return out

@@ -15,9 +15,10 @@ cluster (DESIGN.md, "Scale-out").
 * Structures built per prototype (voxel arrays, octrees) go through the content-addressed cache on a
   path every worker reads (``USDML_CACHE_DIR``); each is written to a temporary file and renamed, so
   workers that build the same one at once both leave one complete file.
-* The summary: frames done (by this run, a killed attempt's included), failed, skipped and stale
-  (``--resume``), each failure's message, and a FrameSpec that renders the failed frames again;
-  ``usdml render`` exits non-zero when a frame failed.
+* The result (:class:`usdml.render.result.SequenceResult` with a :class:`~usdml.render.result.DaskRun`):
+  frames done (by this run, a killed attempt's included), failed, skipped and stale (``--resume``), each
+  failure's message, and a FrameSpec that renders the failed frames again; ``usdml render`` exits non-zero
+  when a frame failed.
 
 Frames are the same pixels as a one-process render: a frame depends only on the stage, the settings
 and the seed.
@@ -31,9 +32,11 @@ import sys
 import time
 import time as _time
 from dataclasses import asdict, replace
+from typing import NamedTuple
 
-from usdml.errors import UsdmlError
+from usdml.errors import UsdmlError, collect_warnings
 from usdml.parallel import THREADS_ENV
+from usdml.render.result import DaskRun, SequenceResult
 
 log = logging.getLogger("usdml")
 
@@ -55,7 +58,15 @@ def rerun_spec(frames: list[float]) -> str:
     return ",".join(f"{f:g}" for f in sorted(frames))
 
 
-def render_chunk(job: dict, frames: list[float], nthreads: int) -> dict:
+class Chunk(NamedTuple):
+    """What a task sends back (:func:`render_chunk`)."""
+
+    result: SequenceResult
+    seconds: float          #: the chunk's render in the worker
+    worker: int             #: the worker's process id
+
+
+def render_chunk(job: dict, frames: list[float], nthreads: int) -> Chunk:
     """One task: ``frames`` of the job (a :class:`RenderJob` as a dict, ``resume_since`` the run's start)
     in this worker: a retry skips the frames an earlier attempt of this run finished."""
     from usdml.render.sequence import RenderJob, render_sequence
@@ -63,16 +74,20 @@ def render_chunk(job: dict, frames: list[float], nthreads: int) -> dict:
     os.environ[THREADS_ENV] = str(max(1, int(nthreads)))
     rj = RenderJob(**dict(job, frames=[float(f) for f in frames]))
     t0 = _time.perf_counter()
-    summary = render_sequence(rj)
-    summary["chunkSeconds"] = _time.perf_counter() - t0
-    summary["worker"] = os.getpid()
-    return summary
+    result = render_sequence(rj)
+    return Chunk(result, _time.perf_counter() - t0, os.getpid())
 
 
-def render_on_dask(job, frames: list[float]) -> dict:
+def render_on_dask(job, frames: list[float]) -> SequenceResult:
     """Render ``frames`` of ``job`` (a :class:`usdml.render.sequence.RenderJob` whose stage is a path) on
     Dask (module doc) as its options ``workers``, ``scheduler``, ``chunk_size``, ``retries`` and
-    ``nthreads`` say; returns the summary."""
+    ``nthreads`` say; the result's ``warnings`` are this process's (a worker's stay in its log)."""
+    with collect_warnings() as warnings:
+        result = _render_on_dask(job, frames)
+    return replace(result, warnings=list(warnings))
+
+
+def _render_on_dask(job, frames: list[float]) -> SequenceResult:
     workers, scheduler, chunk_size, retries, nthreads = (job.workers, job.scheduler, job.chunk_size, job.retries,
                                                          job.nthreads)
     try:
@@ -108,8 +123,8 @@ def render_on_dask(job, frames: list[float]) -> dict:
     print(f"usdml: dask: {len(client.scheduler_info()['workers'])} worker(s) ready in {startup:.1f} s", file=sys.stderr,
           flush=True)
     done, failed, skipped, stale, errors, seconds = [], [], [], [], {}, []
-    files = {"outputs": [], "previews": [], "skippedOutputs": []}
-    resolution, visibility = [0, 0], ""
+    outputs, previews, skipped_outputs, digests = [], [], [], []
+    resolution, visibility = (0, 0), ""
     estimates, lighting = {}, {}
     try:
         futures = {}
@@ -120,29 +135,31 @@ def render_on_dask(job, frames: list[float]) -> dict:
         for fut in as_completed(futures):
             part = futures[fut]
             try:
-                summary = fut.result()
+                chunk = fut.result()
             except Exception as e:          # the chunk's last attempt failed (or its workers kept dying)
                 message = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
                 for f in part:
-                    errors[f"{f:g}"] = message
+                    errors[f] = message
                     log.warning(f"frame {f:g} failed: {message}")
                 failed.extend(part)
                 continue
-            for f in summary["frames"]:           # a line per frame as chunks come back
-                print(f"usdml: frame {f:g} done (worker pid {summary['worker']}, chunk {rerun_spec(part)}, "
-                      f"{summary['chunkSeconds']:.1f} s)", file=sys.stderr, flush=True)
+            got = chunk.result
+            for f in got.frames:           # a line per frame as chunks come back
+                print(f"usdml: frame {f:g} done (worker pid {chunk.worker}, chunk {rerun_spec(part)}, "
+                      f"{chunk.seconds:.1f} s)", file=sys.stderr, flush=True)
             # frames a chunk did not render: finished by its earlier attempt in this run (recovered), or
             # (--resume) before the run
-            done.extend(summary["frames"] + summary["recovered"])
-            skipped.extend(summary["skipped"])
-            stale.extend(summary["stale"])
-            for key, paths in files.items():
-                paths.extend(summary[key])
-            if summary["frames"]:
-                seconds.append(summary["chunkSeconds"] / len(summary["frames"]))
-            resolution, visibility = summary["resolution"], summary["visibility"]
-            estimates.update(summary.get("estimates", {}))
-            lighting.update(summary.get("lightingEstimates", {}))
+            done.extend(got.frames + got.recovered)
+            skipped.extend(got.skipped)
+            stale.extend(got.stale)
+            outputs.extend(got.outputs)
+            previews.extend(got.previews)
+            skipped_outputs.extend(got.skipped_outputs)
+            if got.frames:
+                seconds.append(chunk.seconds / len(got.frames))
+            resolution, visibility, digests = got.resolution, got.visibility, got.settings_digest
+            estimates.update(got.estimates)
+            lighting.update(got.lighting_estimates)
     finally:
         client.close()
         if cluster is not None:
@@ -152,14 +169,14 @@ def render_on_dask(job, frames: list[float]) -> dict:
     failed.sort(key=order.get)
     skipped.sort(key=order.get)
     stale.sort(key=order.get)
-    return {
-        "stage": stage, "frames": done, "failed": failed, "skipped": skipped, "stale": stale,
-        "rerun": rerun_spec(failed) if failed else None, "errors": errors,
-        "resolution": resolution, "visibility": visibility,
-        "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
-        "seconds": _time.perf_counter() - started, "startupSeconds": startup,
-        "workers": workers, "scheduler": scheduler, "chunkSize": chunk_size, "retries": retries,
-        "threadsPerWorker": threads, **{key: sorted(paths) for key, paths in files.items()},
-        "estimates": {f"{f:g}": estimates[f"{f:g}"] for f in done if f"{f:g}" in estimates},
-        "lightingEstimates": {f"{f:g}": lighting[f"{f:g}"] for f in done if f"{f:g}" in lighting},
-    }
+    run = DaskRun(failed=failed, rerun=rerun_spec(failed) if failed else None, errors=errors,
+                  startup_seconds=startup, workers=workers, scheduler=scheduler, chunk_size=chunk_size,
+                  retries=retries, threads_per_worker=threads)
+    # recovered frames are in ``frames``: a chunk's retry finished them for this run
+    return SequenceResult(
+        stage=stage, frames=done, skipped=skipped, stale=stale, recovered=[], resolution=resolution,
+        seconds_per_frame=(sum(seconds) / len(seconds)) if seconds else 0.0, seconds=_time.perf_counter() - started,
+        visibility=visibility, outputs=sorted(outputs), previews=sorted(previews),
+        skipped_outputs=sorted(skipped_outputs), settings_digest=digests,
+        estimates={f: estimates[f] for f in done if f in estimates},
+        lighting_estimates={f: lighting[f] for f in done if f in lighting}, dask=run)

@@ -140,7 +140,7 @@ class FrameRenderer:
                 stats.estimate = estimate_visibility(
                     surface.position, surface.normal, surface.geometric, lights, self.backends.primary,
                     self.backends.shadow, frame_rng(self.settings.seed, time),
-                    frame_pairs=len(surface.position) * len(lights) * samples).as_dict()
+                    frame_pairs=len(surface.position) * len(lights) * samples)
             if self.camera_light and len(lights) == 0:
                 t1 = _time.perf_counter()
                 self._light_by_camera(direct, surface, camera, snap.time, stats)
@@ -151,7 +151,7 @@ class FrameRenderer:
             stats.shadow_queries += direct.queries
             image.add(self._buffers(gb, surface.hit, direct, indirect, camera, aovs), offsets)
         if self.backends.refined is not None and stats.estimate is not None:
-            stats.estimate.update(self.backends.refined.fractions())
+            stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, is_dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:       # the estimates' modules import the lighting layer; the annotations only name them
+    from usdml.render.estimate import VisibilityEstimate
+    from usdml.render.lighting_estimate import LightingEstimate
 
 
 @dataclass
@@ -27,23 +32,24 @@ class FrameStats:
     gi: dict | None = None                  #: ``--gi``: the last pass's gather (``GIResult.stats``, usdml.lighting.gi)
     #: approximate ``--visibility`` with ``--direct all``: ε_v and ε_s estimated from a sample of the first
     #: pass's pairs traced exactly, with 95 % intervals and the seconds it took
-    #: (:class:`usdml.render.estimate.VisibilityEstimate`)
-    estimate: dict | None = None
+    #: (:class:`usdml.render.estimate.VisibilityEstimate`; under ``--error-budget`` a
+    #: :class:`usdml.render.budget.BudgetEstimate`)
+    estimate: VisibilityEstimate | None = None
     #: ``--gi lgh`` / ``--direct lgh``: the LGH's relative RMSE and bias against brute force estimated from a
-    #: sample of pixels, with 95 % intervals (:class:`usdml.render.lighting_estimate.LightingEstimate`)
-    estimate_gi: dict | None = None
-    estimate_direct: dict | None = None
+    #: sample of pixels, with 95 % intervals
+    estimate_gi: LightingEstimate | None = None
+    estimate_direct: LightingEstimate | None = None
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel
     seconds: float = 0.0                    #: the whole frame
 
     def as_dict(self) -> dict:
-        """JSON-able: the fields that applied (class doc), nested dicts copied."""
+        """JSON-able: the fields that applied (class doc), nested dicts copied, the estimates as their ``as_dict()``."""
         out = {}
         for f in fields(self):
             value = getattr(self, f.name)
             if value is None or (f.name == "camera_light" and not value):
                 continue
-            out[f.name] = dict(value) if isinstance(value, dict) else value
+            out[f.name] = value.as_dict() if is_dataclass(value) else dict(value) if isinstance(value, dict) else value
         return out

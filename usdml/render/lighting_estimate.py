@@ -116,9 +116,9 @@ class LightingEstimate:
 HEADER_KEYS = ("rel_rmse", "rel_rmse_lo", "rel_rmse_hi", "rel_bias", "rel_bias_lo", "rel_bias_hi", "pixels")
 
 
-def header(kind: str, estimate: dict) -> dict:
+def header(kind: str, estimate: LightingEstimate) -> dict:
     """``usdml:estimate:<kind>:<key>`` attributes (``kind`` gi or direct) of an estimate for the EXR."""
-    return {f"usdml:estimate:{kind}:{k}": (int(estimate[k]) if k == "pixels" else float(estimate[k]))
+    return {f"usdml:estimate:{kind}:{k}": (int(getattr(estimate, k)) if k == "pixels" else float(getattr(estimate, k)))
             for k in HEADER_KEYS}
 
 
@@ -132,7 +132,7 @@ def frame_headers(stats) -> dict:
     return out
 
 
-def frame_estimates(stats) -> dict:
+def frame_estimates(stats) -> dict[str, LightingEstimate]:
     """``{"gi": ..., "direct": ...}``: the lighting estimates a frame carries (empty: none)."""
     return {kind: e for kind in STREAM if (e := getattr(stats, f"estimate_{kind}", None))}
 
@@ -578,14 +578,14 @@ class FrameEstimator:
         self.parts: list[tuple] = []
         self.seconds = _time.perf_counter() - t0
 
-    def add_surface(self, surface, radiance: np.ndarray) -> dict | None:
+    def add_surface(self, surface, radiance: np.ndarray) -> LightingEstimate | None:
         """:meth:`add` of a pass's :class:`usdml.render.integrators.Surface` and the LGH's radiance there."""
         return self.add(surface.hit, surface.position, surface.normal, surface.geometric, surface.albedo, radiance)
 
     def add(self, hit: np.ndarray, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None,
-            albedo: np.ndarray, approx: np.ndarray) -> dict | None:
+            albedo: np.ndarray, approx: np.ndarray) -> LightingEstimate | None:
         """One pass: its hit mask ``(H·W,)``, its hit points' arrays in scan order, the LGH's radiance there.
-        Returns the estimate (:meth:`LightingEstimate.as_dict`) after the frame's last pass, else None."""
+        Returns the estimate after the frame's last pass, else None."""
         t0 = _time.perf_counter()
         if self.pick is None:
             # the first pass's hit pixels and those next to them (a later pass may hit them: silhouettes)
@@ -612,7 +612,7 @@ class FrameEstimator:
         self.seconds += _time.perf_counter() - t0
         return self.finish() if self.done == self.passes else None
 
-    def finish(self) -> dict:
+    def finish(self) -> LightingEstimate:
         """The estimate from the collected passes (module doc)."""
         t0 = _time.perf_counter()
         n = len(self.pick)
@@ -630,7 +630,7 @@ class FrameEstimator:
         e = a - b
         stats = interval_stats(*(x * self.weight for x in per_pixel(e, b, v, self.passes)))
         self.seconds += _time.perf_counter() - t0
-        return LightingEstimate(*stats, n, len(pts), len(pts) * self.draws, rays, self.seconds).as_dict()
+        return LightingEstimate(*stats, n, len(pts), len(pts) * self.draws, rays, self.seconds)
 
 
 def per_pixel(e: np.ndarray, b: np.ndarray, v: np.ndarray, passes: int) -> tuple[np.ndarray, ...]:

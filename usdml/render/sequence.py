@@ -13,20 +13,22 @@ from __future__ import annotations
 import os
 import sys
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from tqdm import tqdm
 
 from usdml.aov.exr import camera_matrices, exr_attribute, is_complete_exr, write_exr, write_png_preview
 from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
-from usdml.errors import UsdmlError, log
+from usdml.errors import UsdmlError, collect_warnings, log
 from usdml.outputs import make_output_folder
 from usdml.params import DEFAULT_WIDTH, ignored
+from usdml.render.estimate import VisibilityEstimate
 from usdml.render.estimate import header as estimate_header
-from usdml.render.lighting_estimate import frame_estimates, frame_headers
+from usdml.render.lighting_estimate import LightingEstimate, frame_estimates, frame_headers
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
+from usdml.render.result import SequenceResult
 from usdml.settings import RenderOptions, UsdmlSettings
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry
@@ -195,15 +197,16 @@ def build_messages() -> dict:
     return {"report": report, "progress": progress}
 
 
-def render_sequence(job: RenderJob) -> dict:
-    """Render every frame of ``job``; returns a summary:
+def render_sequence(job: RenderJob) -> SequenceResult:
+    """Render every frame of ``job``; returns what it did (:class:`usdml.render.result.SequenceResult`: the
+    frames rendered, skipped, stale and recovered, the files, the seconds, the estimates, and the warnings
+    the ``usdml`` logger gave meanwhile)."""
+    with collect_warnings() as warnings:
+        result = _render_sequence(job)
+    return replace(result, warnings=list(warnings))
 
-    ``frames`` rendered by this call; ``skipped`` (``resume``): complete with these settings, left alone;
-    ``stale`` (``resume``): complete but made with other settings, rendered again (also in ``frames``);
-    ``recovered`` (``resume_since``): complete with these settings and written since then, by an earlier
-    attempt of this run; ``outputs`` the EXR files of ``frames`` and ``recovered``, ``previews`` their PNGs
-    (``preview``), ``skippedOutputs`` the files of ``skipped``; ``resolution``, ``secondsPerFrame``, ``seconds``,
-    ``visibility``, ``settingsDigest`` (per product, :mod:`usdml.render.identity`)."""
+
+def _render_sequence(job: RenderJob) -> SequenceResult:
     started = _time.perf_counter()
     delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                              purposes=job.purposes, implicit_detail=job.implicit_detail)
@@ -234,8 +237,8 @@ def render_sequence(job: RenderJob) -> dict:
     identities = [frame_settings(settings.as_dict(), layers=p.layers, **common) for p in products]
     digests = [settings_digest(i) for i in identities]
     written, skipped, stale, recovered, seconds = [], [], [], [], []
-    estimates: dict[float, dict] = {}       # frame -> its visibility error estimate (usdml.render.estimate)
-    lighting: dict[float, dict] = {}        # frame -> {gi, direct}: its LGH error estimates (.lighting_estimate)
+    estimates: dict[float, VisibilityEstimate] = {}     # frame -> its visibility error estimate
+    lighting: dict[float, dict[str, LightingEstimate]] = {}     # frame -> {gi, direct}: its LGH error estimates
     since = job.resume_since
     try:
         with tqdm(total=len(frames), desc="frames", unit="frame", disable=None, file=sys.stderr) as bar:
@@ -266,12 +269,12 @@ def render_sequence(job: RenderJob) -> dict:
                               timecode=f, stage=stage_file, settings=settings_json(identity),
                               metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
                                         "usdml:camera": result.camera.path or "(framing)",
-                                        **(estimate_header(result.stats.estimate) if result.stats.estimate
+                                        **(estimate_header(result.stats.estimate) if result.stats.estimate is not None
                                            else {}), **frame_headers(result.stats)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
-                if result.stats.estimate:
+                if result.stats.estimate is not None:
                     estimates[f] = result.stats.estimate
                 if frame_estimates(result.stats):
                     lighting[f] = frame_estimates(result.stats)
@@ -282,19 +285,15 @@ def render_sequence(job: RenderJob) -> dict:
     total = _time.perf_counter() - started
     order = {f: i for i, f in enumerate(frames)}
     mine = sorted(written + recovered, key=order.get)        # the frames whose files this run wrote
-    return {
-        "stage": delegate.path, "frames": written, "skipped": skipped, "stale": stale, "recovered": recovered,
-        "resolution": [width, height],
-        "secondsPerFrame": (sum(seconds) / len(seconds)) if seconds else 0.0,
-        "seconds": total, "visibility": settings.visibility,
-        "outputs": [p.paths[f] for f in mine for p in products],
-        "previews": [q for f in mine for p in products if os.path.isfile(q := _preview_path(p.paths[f]))]
+    return SequenceResult(
+        stage=delegate.path, frames=written, skipped=skipped, stale=stale, recovered=recovered,
+        resolution=(width, height), seconds_per_frame=(sum(seconds) / len(seconds)) if seconds else 0.0,
+        seconds=total, visibility=settings.visibility,
+        outputs=[p.paths[f] for f in mine for p in products],
+        previews=[q for f in mine for p in products if os.path.isfile(q := _preview_path(p.paths[f]))]
         if job.preview else [],
-        "skippedOutputs": [p.paths[f] for f in skipped for p in products],
-        "settingsDigest": digests,
-        "estimates": {f"{f:g}": e for f, e in estimates.items()},
-        "lightingEstimates": {f"{f:g}": e for f, e in lighting.items()},
-    }
+        skipped_outputs=[p.paths[f] for f in skipped for p in products],
+        settings_digest=digests, estimates=estimates, lighting_estimates=lighting)
 
 
 def _preview_path(exr_path: str) -> str:
