@@ -449,6 +449,50 @@ def test_bench_times_bare_embree_on_the_exact_backends_rays(new_stage, tmp_path,
     assert "bare embreex on the same rays" in lines[0] and "x bare embreex" in lines[1]
 
 
+def test_bench_and_compare_set_up_backends_as_a_render(new_stage, tmp_path, monkeypatch):
+    """usdml.render.backends.Backends with QUERY_ROLES (compare --visibility, bench): no --gi svo backend; a
+    shared exact backend is updated and closed by its own Backends only; --error-budget on a backend that cannot
+    refine warns (a render), says nothing (bench) or is Refined's error (compare)."""
+    from usdml.errors import log
+    from usdml.render.backends import QUERY_ROLES, Backends
+    from usdml.scene import diff
+    from usdml.visibility import registry
+
+    (tmp_path / "plain_backend.py").write_text(
+        "from usdml.visibility.exact import ExactBackend\n\n\n"
+        "class PlainBackend(ExactBackend):\n"
+        "    name = 'plain'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    warnings = []
+    monkeypatch.setattr(log, "warning", warnings.append)
+    snap = StageDelegate(_cube_on_ground(new_stage)).snapshot(1.0)
+    first = Backends(UsdmlSettings().updated(gi="svo"), roles=QUERY_ROLES)
+    assert first.gi is None and first.shadow is first.primary is first.configured
+    registry.register("plain", "plain_backend:PlainBackend")
+    try:
+        settings = UsdmlSettings().updated(visibility="plain", error_budget=0.01)
+        with pytest.raises(ValueError, match="plain backend does not say"):
+            Backends(settings, roles=QUERY_ROLES, unrefinable="raise")
+        assert not warnings
+        Backends(settings, roles=QUERY_ROLES).close()
+        assert warnings == ["--error-budget is ignored: the plain backend does not say which of its answers are "
+                            "uncertain"]
+        other = Backends(settings, roles=QUERY_ROLES, primary=first.primary, unrefinable="ignore")
+        assert len(warnings) == 1 and other.refined is None and other.shadow is other.configured
+        assert other.primary is first.primary and other.shadow.name == "plain"
+        assert set(first.update(snap, diff(None, snap))) == {"primary"}
+        calls = []
+        monkeypatch.setattr(first.primary, "update", lambda *a: calls.append("update"))
+        monkeypatch.setattr(first.primary, "close", lambda: calls.append("close"))
+        assert set(other.update(snap, diff(None, snap))) == {"shadow"}
+        other.close()
+        assert calls == []
+    finally:
+        registry.unregister("plain")
+    first.close()
+    assert calls == ["close"]
+
+
 def test_exact_overhead_tool_agrees_with_bare_embree(new_stage):
     """tools/exact_overhead.py: rounds of exact and bare embreex, same answers, ratios from the seconds."""
     import json

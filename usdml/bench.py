@@ -10,19 +10,18 @@ from __future__ import annotations
 
 import time as _time
 from contextlib import contextmanager
-from dataclasses import replace
 
 import numpy as np
 
 from usdml.lighting.direct import facing_pairs
-from usdml.render.frame import FrameRenderer, conform_camera
-from usdml.render.gbuffer import build_gbuffer
+from usdml.render.backends import QUERY_ROLES, Backends
+from usdml.render.budget import choose_level
+from usdml.render.frame import FrameRenderer, centre_gbuffer
 from usdml.scene import diff, world_geometry
 from usdml.stage import StageDelegate
 from usdml.stage.delegate import require_geometry, require_lights
-from usdml.visibility import ExactBackend, make_backend
-from usdml.render.budget import active, choose_level
-from usdml.visibility.base import REFINE, all_members
+from usdml.visibility import ExactBackend
+from usdml.visibility.base import all_members
 from usdml.visibility.refine import Refined
 from usdml.visibility.voxel.backend import SHADE_TILE
 from usdml.zorder import morton_order
@@ -153,20 +152,23 @@ class BareEmbree:
         return seconds, blocked
 
 
-def exact_queries(delegate: StageDelegate, image_width: int, frame: float, command: str = "bench"):
+def exact_queries(delegate: StageDelegate, image_width: int, frame: float, command: str = "bench", settings=None):
     """What ``usdml bench`` times, from the exact backend: ``(snapshot, exact backend (updated; the
     caller closes it), its build seconds, (width, height), G-buffer, (origins, targets, normals,
-    distant, point index))``, the queries as :func:`query_set` gives them. ``command`` names the caller in errors."""
+    distant, point index))``, the queries as :func:`query_set` gives them. ``command`` names the caller in errors;
+    ``settings``: the run's (default the stage's), of which the exact backend reads none.
+
+    The exact backend is the ``primary`` of a :class:`usdml.render.backends.Backends` set up as a render's, and
+    the G-buffer a render's at the pixel centres (:func:`usdml.render.frame.centre_gbuffer`)."""
     snap = delegate.snapshot(frame)
     require_geometry(delegate, snap)
     require_lights(delegate, snap, command)
     width, height = snap.camera.resolution(image_width)
-    exact = ExactBackend()
-    t0 = _time.perf_counter()
-    exact.update(snap, diff(None, snap))
-    build = _time.perf_counter() - t0
-    gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
-    return snap, exact, build, (width, height), gb, query_set(snap, gb)
+    settings = settings if settings is not None else delegate.usdml_settings
+    backends = Backends(settings.updated(visibility=ExactBackend.name), roles=QUERY_ROLES)
+    build = backends.update(snap, diff(None, snap))["primary"]
+    _, gb = centre_gbuffer(snap, backends.primary, width, height)
+    return snap, backends.primary, build, (width, height), gb, query_set(snap, gb)
 
 
 def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: int = 512,
@@ -181,34 +183,34 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
     ``device`` is the Warp device the backends other than ``exact`` (Embree, on the CPU) run on."""
     stage = delegate.path
     frame = delegate.start_time if frame is None else frame
-    snap, exact, exact_build, (width, height), gb, queries = exact_queries(delegate, image_width, frame)
+    base = settings if settings is not None else delegate.usdml_settings
+    snap, exact, exact_build, (width, height), gb, queries = exact_queries(delegate, image_width, frame,
+                                                                            settings=base)
     origins, targets, normals, distant, point_index = queries
     bare = BareEmbree(snap, exact, *queries[:4])
     built = {}
+    held = {}       # name -> its Backends (usdml.render.backends), all sharing ``exact``
     for name in dict.fromkeys(["exact"] + list(backends)):
         if name == "exact":
             built[name] = (exact, exact_build)
             continue
-        base = settings if settings is not None else delegate.usdml_settings
-        backend = make_backend(name, base.updated(visibility=name), device, **(backend_options or {}))
-        t0 = _time.perf_counter()
-        backend.update(snap, diff(None, snap))
-        built[name] = (backend, _time.perf_counter() - t0)
+        # --error-budget on a backend that cannot refine: timed as it is, as ever
+        held[name] = Backends(base.updated(visibility=name), device, backend_options, roles=QUERY_ROLES,
+                              primary=exact, unrefinable="ignore")
+        built[name] = (held[name].configured, held[name].update(snap, diff(None, snap))["shadow"])
     # passes taken in turn (bare embreex, exact, the others, again ...), so that a machine whose speed
     # drifts (shared cores, a CPU quota) slows every backend alike; each backend's median is reported
     runs = {"bare": bare.timed_run}
-    refined = {}
+    refined = {name: b.refined for name, b in held.items() if b.refined is not None}
     for name, (backend, _) in built.items():
         # a few queries first: kernel modules load and caches fill outside the timing
         backend.occluded(origins[:WARMUP], targets[:WARMUP], normals=normals[:WARMUP], distant=distant[:WARMUP])
         runs[name] = (lambda b: lambda: b.occluded(origins, targets, normals=normals, distant=distant))(backend)
-        budget = (settings if settings is not None else delegate.usdml_settings).error_budget
-        if active(budget, backend, exact) and backend.supports(REFINE):
+        if name in refined:
             # --error-budget: each pass chooses the frame's level from its sample as a render does, then answers
             # every query refined (usdml.render.budget): both timed
-            refined[name] = Refined(backend, exact)
-            runs[name] = _budgeted(refined[name], gb, snap, budget, delegate, frame, origins, targets, normals,
-                                   distant, point_index)
+            runs[name] = _budgeted(refined[name], gb, snap, base.error_budget, delegate, frame, origins, targets,
+                                   normals, distant, point_index)
     timed = interleaved_passes(runs)
     bare_seconds, bare_blocked, _ = timed["bare"]
     results = []
@@ -241,8 +243,8 @@ def bench_visibility(delegate: StageDelegate, backends: list[str], image_width: 
                                estimated_eps_v_interval=[r.budget.eps_v_lo, r.budget.eps_v_hi], **r.fractions())
         results[-1].update(backend.describe())
         results[-1].update(backend.per_frame_rebuild_seconds(snap))
-        if backend is not exact:
-            backend.close()
+        if name in held:
+            held[name].close()
     exact.close()
     if "exact" not in backends:
         results = [r for r in results if r["backend"] != "exact"] or results

@@ -147,12 +147,12 @@ def _reference_subset(delegate: StageDelegate, settings, frame: float, width: in
     radiance, seconds of the shading, hit pixels)``; the frame set up as a render does
     (:meth:`FrameRenderer.advance`)."""
     from usdml.lighting.direct import shade_with
-    from usdml.render.gbuffer import build_gbuffer
+    from usdml.render.frame import centre_gbuffer
 
     renderer = FrameRenderer(delegate, settings, device)
     try:
         snap, lights, _ = renderer.advance(frame, width, height)
-        gb = build_gbuffer(snap, renderer.backends.primary, width, height)
+        _, gb = centre_gbuffer(snap, renderer.backends.primary, width, height)
         hit = np.flatnonzero(gb.hit.ravel())
         pick = np.sort(np.random.default_rng(seed).choice(hit, min(pixels, len(hit)), replace=False))
         t0 = _time.perf_counter()
@@ -269,15 +269,13 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     Wrongly hidden queries are split into near-field (the approximation's first occupied voxel within
     ``NEAR_VOXELS`` of the ray's start) and far-field, the lever DESIGN.md points at.
     """
-    from dataclasses import replace
-
     from usdml.lighting.direct import facing_pairs
+    from usdml.render.backends import QUERY_ROLES, Backends
     from usdml.render.estimate import estimate_visibility, frame_rng
-    from usdml.render.frame import conform_camera
-    from usdml.render.gbuffer import build_gbuffer
+    from usdml.render.frame import centre_gbuffer
     from usdml.scene import LightType, diff
     from usdml.stage.delegate import require_geometry, require_lights
-    from usdml.visibility import ExactBackend, backend_names, make_backend
+    from usdml.visibility import ExactBackend, backend_names
     from usdml.visibility.base import HIT_DISTANCES, LIGHT_MAJOR
 
     if against != ExactBackend.name:
@@ -300,19 +298,16 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     require_geometry(delegate, snap)
     require_lights(delegate, snap, "compare")
     width, height = snap.camera.resolution(image_width)
-    exact = ExactBackend()
-    approx = make_backend(backend, settings, device, **(backend_options or {}))
-    from usdml.render.budget import active, choose_level
-    from usdml.visibility.refine import Refined
+    # as a render's (usdml.render.backends), without --gi svo's rays; --error-budget on a backend that cannot
+    # refine is Refined's error
+    backends = Backends(settings, device, backend_options, roles=QUERY_ROLES, unrefinable="raise")
+    exact, approx, refined = backends.primary, backends.configured, backends.refined
+    from usdml.render.budget import choose_level
 
-    refined = Refined(approx, exact) if active(settings.error_budget, approx, exact) else None
     near_far = approx.supports(HIT_DISTANCES) and refined is None
     try:
-        exact.update(snap, diff(None, snap))
-        t0 = _time.perf_counter()
-        approx.update(snap, diff(None, snap))
-        build = _time.perf_counter() - t0
-        gb = build_gbuffer(replace(snap, camera=conform_camera(snap.camera, width, height)), exact, width, height)
+        build = backends.update(snap, diff(None, snap))["shadow"]
+        _, gb = centre_gbuffer(snap, exact, width, height)
         hit = gb.hit.ravel()
         n_px = int(hit.sum())
         budget = None
@@ -371,8 +366,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
             got_s += budget_s
             refinement.update(refined.fractions(), refine_level=budget.level, budget_seconds=budget_s)
     finally:
-        exact.close()
-        (refined.approx if refined is not None else approx).close()
+        backends.close()
     n_l = len(snap.lights)
     wrong_hidden, wrong_visible = counts["hidden"], counts["visible"]
     eps_v = (wrong_hidden + wrong_visible) / max(n_l, 1)

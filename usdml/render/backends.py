@@ -9,6 +9,10 @@ Roles:
   ``svo`` unless told otherwise; one of the others when it has that name); None for every other ``--gi``.
 
 Each backend is made once, updated once per frame and closed once, however many roles it holds.
+
+``usdml compare --visibility`` and ``usdml bench`` set their backends up here too, with the roles of
+:data:`QUERY_ROLES` (``usdml bench``: one ``Backends`` per backend it times, every one sharing the exact
+backend of the first).
 """
 
 from __future__ import annotations
@@ -21,6 +25,11 @@ from usdml.visibility import ExactBackend, make_backend
 from usdml.visibility.base import VisibilityBackend
 
 ROLES = ("primary", "shadow", "gi")
+#: the roles of a comparison of shadow queries against exact (``usdml compare --visibility``, ``usdml bench``)
+QUERY_ROLES = ("primary", "shadow")
+#: what ``--error-budget`` does with a shadow backend that does not declare ``REFINE``: a render's warning,
+#: nothing (``usdml bench``), or :class:`usdml.visibility.refine.Refined`'s ``ValueError`` (``usdml compare``)
+UNREFINABLE = ("warn", "ignore", "raise")
 
 
 class Backends:
@@ -28,12 +37,18 @@ class Backends:
 
     ``options`` (``report``, ``progress``: :mod:`usdml.visibility.base`) go to the shadow backend;
     ``gi_visibility`` names the backend of ``--gi svo``'s rays (default
-    :data:`usdml.lighting.interleaved.GI_VISIBILITY`).
+    :data:`usdml.lighting.interleaved.GI_VISIBILITY`). ``roles``: :data:`ROLES`, or :data:`QUERY_ROLES` for no
+    ``gi`` backend; ``primary``: the exact backend of another ``Backends`` (``usdml bench``: one for every
+    backend it times), held here but neither updated nor closed; ``unrefinable``: one of :data:`UNREFINABLE`.
     """
 
     def __init__(self, settings: UsdmlSettings, device: str = "cpu", options: dict | None = None,
-                 gi_visibility: str | None = None):
-        self._roles: dict[str, VisibilityBackend | None] = {"primary": ExactBackend()}
+                 gi_visibility: str | None = None, *, roles: tuple[str, ...] = ROLES,
+                 primary: VisibilityBackend | None = None, unrefinable: str = "warn"):
+        if unrefinable not in UNREFINABLE:
+            raise ValueError(f"unrefinable={unrefinable!r}: one of {', '.join(UNREFINABLE)}")
+        self._shared = primary
+        self._roles: dict[str, VisibilityBackend | None] = {"primary": ExactBackend() if primary is None else primary}
         self._roles["shadow"] = self._named(settings.visibility) or \
             make_backend(settings.visibility, settings, device, **(options or {}))
         self._roles["gi"] = None
@@ -48,12 +63,12 @@ class Backends:
             from usdml.visibility.refine import Refined
 
             shadow = self._roles["shadow"]
-            if shadow.supports(REFINE):
+            if shadow.supports(REFINE) or unrefinable == "raise":
                 self.refined = Refined(shadow, self._roles["primary"])
-            else:
+            elif unrefinable == "warn":
                 log.warning(f"--error-budget is ignored: the {shadow.name} backend does not say which of its answers "
                             "are uncertain")
-        if settings.gi == "svo":
+        if "gi" in roles and settings.gi == "svo":
             from usdml.lighting.interleaved import GI_VISIBILITY, gi_visibility_backend
 
             name = gi_visibility or GI_VISIBILITY
@@ -67,6 +82,11 @@ class Backends:
     def shadow(self) -> VisibilityBackend:
         """The direct light's shadow rays: the configured backend, refined under ``--error-budget``."""
         return self.refined or self._roles["shadow"]
+
+    @property
+    def configured(self) -> VisibilityBackend:
+        """The ``--visibility`` backend itself: :attr:`shadow` without the ``--error-budget`` refinement."""
+        return self._roles["shadow"]
 
     @property
     def gi(self) -> VisibilityBackend | None:
@@ -86,15 +106,19 @@ class Backends:
 
     def update(self, snapshot: Snapshot, changes: Changes) -> dict[str, float]:
         """Each backend brought to ``snapshot`` once, rebuilding what ``changes`` names; returns the seconds
-        of each update under the first role its backend holds (a role sharing another's backend has none)."""
+        of each update under the first role its backend holds (a role sharing another's backend has none; a
+        shared ``primary`` is updated by its own ``Backends``)."""
         seconds = {}
         for role, backend in self.owners():
+            if backend is self._shared:
+                continue
             t0 = _time.perf_counter()
             backend.update(snapshot, changes)
             seconds[role] = _time.perf_counter() - t0
         return seconds
 
     def close(self) -> None:
-        """Release every backend once."""
+        """Release every backend once (a shared ``primary``: its own ``Backends`` does)."""
         for _, backend in self.owners():
-            backend.close()
+            if backend is not self._shared:
+                backend.close()

@@ -22,7 +22,7 @@ from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
-from usdml.render.gbuffer import GBuffer, pixel_offsets
+from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
@@ -56,6 +56,14 @@ def conform_camera(camera: Camera, width: int, height: int) -> Camera:
     if aspect > camera.aspect:
         return replace(camera, horizontal_aperture=camera.vertical_aperture * aspect)
     return replace(camera, vertical_aperture=camera.horizontal_aperture / aspect)
+
+
+def centre_gbuffer(snap: Snapshot, primary, width: int, height: int) -> tuple[Snapshot, GBuffer]:
+    """One frame's G-buffer as ``usdml compare`` and ``usdml bench`` ask their queries on it: one primary ray
+    through each pixel centre of ``width`` × ``height``, traced by ``primary`` (the exact backend, updated to
+    ``snap``). Returns ``(snap with its camera conformed to the image, as a render's, the G-buffer)``."""
+    snap = replace(snap, camera=conform_camera(snap.camera, width, height))
+    return snap, build_gbuffer(snap, primary, width, height)
 
 
 @dataclass
