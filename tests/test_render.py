@@ -14,6 +14,7 @@ import usdml
 from conftest import ALBEDO, add_cube_mesh, add_quad, assert_direct, ground_stage, render_aovs
 from usdml.aov.exr import is_complete_exr, read_exr, write_exr
 from usdml.cli import main
+from usdml.errors import UsdmlError
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
@@ -471,7 +472,8 @@ def test_bench_and_compare_set_up_backends_as_a_render(new_stage, tmp_path, monk
     registry.register("plain", "plain_backend:PlainBackend")
     try:
         settings = UsdmlSettings().updated(visibility="plain", error_budget=0.01)
-        with pytest.raises(ValueError, match="plain backend does not say"):
+        with pytest.raises(UsdmlError, match="plain backend does not say which of its answers are uncertain; leave "
+                                             "--error-budget out, or use voxel, svo or insm"):
             Backends(settings, roles=QUERY_ROLES, unrefinable="raise")
         assert not warnings
         Backends(settings, roles=QUERY_ROLES).close()

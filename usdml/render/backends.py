@@ -28,7 +28,7 @@ ROLES = ("primary", "shadow", "gi")
 #: the roles of a comparison of shadow queries against exact (``usdml compare --visibility``, ``usdml bench``)
 QUERY_ROLES = ("primary", "shadow")
 #: what ``--error-budget`` does with a shadow backend that does not declare ``REFINE``: a render's warning,
-#: nothing (``usdml bench``), or :class:`usdml.visibility.refine.Refined`'s ``ValueError`` (``usdml compare``)
+#: nothing (``usdml bench``), or a one-line :class:`usdml.errors.UsdmlError` (``usdml compare``)
 UNREFINABLE = ("warn", "ignore", "raise")
 
 
@@ -58,13 +58,20 @@ class Backends:
         from usdml.render.budget import active
 
         if active(settings.error_budget, self._roles["shadow"], self._roles["primary"]):
-            from usdml.errors import log
+            from usdml.errors import UsdmlError, log
+            from usdml.visibility import backend_class, backend_names
             from usdml.visibility.base import REFINE
             from usdml.visibility.refine import Refined
 
             shadow = self._roles["shadow"]
-            if shadow.supports(REFINE) or unrefinable == "raise":
+            if shadow.supports(REFINE):
                 self.refined = Refined(shadow, self._roles["primary"])
+            elif unrefinable == "raise":
+                able = [n for n in backend_names() if n != "exact" and backend_class(n).supports(REFINE)]
+                use = f", or use {', '.join(able[:-1])} or {able[-1]}" if len(able) > 1 else ""
+                self.close()
+                raise UsdmlError(f"--error-budget: the {shadow.name} backend does not say which of its answers are "
+                                 f"uncertain; leave --error-budget out{use}")
             elif unrefinable == "warn":
                 log.warning(f"--error-budget is ignored: the {shadow.name} backend does not say which of its answers "
                             "are uncertain")
