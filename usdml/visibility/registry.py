@@ -1,4 +1,4 @@
-"""The visibility backends usdml knows, by name: a backend is one module plus one line here.
+"""The visibility backends usdml knows, by name: a backend is a folder (or a module) plus one line here.
 
 A leaf module (nothing of usdml but :mod:`usdml.errors` is imported), so the parameter table, the
 command line and the schema can list the names without importing Embree or Warp. Each entry is
