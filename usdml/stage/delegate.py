@@ -11,7 +11,9 @@ own ``skel:animationSource``) get one prototype per pose.
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +24,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
-from usdml.stage.diagnostics import usd_diagnostics
+from usdml.stage.diagnostics import composition_message, usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
@@ -151,10 +153,11 @@ class StageDelegate:
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
         self._unsupported_seen: set[str] = set()
         self.unsupported: dict[str, int] = {}
-        with usd_diagnostics(self.warn, self.path):     # USD's warnings while opening and composing
+        with self._diagnostics():     # USD's warnings while opening and composing
             self.stage = opened if opened is not None else open_stage(path)
-            for err in self.stage.GetCompositionErrors():
-                self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
+            # an open stage's were said when it was opened; a stage opened here says them again (the same lines)
+            for err in sorted(self.stage.GetCompositionErrors(), key=lambda e: e.rootSite.path):
+                self.warn(composition_message(str(err.rootSite.path), str(err).strip().splitlines()[0], self.path))
             self.settings_prim = settings_prim(self.stage, render_settings_path)
             self.usdml_settings = read_usdml_settings(self.settings_prim)
             self.has_time_range = self.stage.HasAuthoredTimeCodeRange()
@@ -183,6 +186,12 @@ class StageDelegate:
             self._mesh_ids: dict[str, int] = {}
             self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
             self._assign_mesh_ids()
+
+    @contextlib.contextmanager
+    def _diagnostics(self) -> Iterator[None]:
+        """usdml's warnings and USD's (:func:`usd_diagnostics`) of the block, each cause once (``Warnings.grouped``)."""
+        with self.warn.grouped(), usd_diagnostics(self.warn, self.path):
+            yield
 
     # ----------------------------------------------------------------------------------------------
     def _assign_mesh_ids(self) -> None:
@@ -234,7 +243,7 @@ class StageDelegate:
     # ----------------------------------------------------------------------------------------------
     def snapshot(self, time: float) -> Snapshot:
         """The render index at ``time`` (a timecode of the stage)."""
-        with usd_diagnostics(self.warn, self.path):
+        with self._diagnostics():
             return self._snapshot(time)
 
     def _snapshot(self, time: float) -> Snapshot:
