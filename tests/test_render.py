@@ -399,6 +399,35 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     assert not r.render(1, 8, 8, {"color"}).stats.camera_light
 
 
+def test_a_black_or_empty_frame_says_so_and_what_to_check(new_stage, tmp_path, capsys):
+    """A line per frame whose color is 0 everywhere, naming the frame and the likely cause (issue 55)."""
+    def blank(path, *flags) -> list[str]:
+        capsys.readouterr()
+        assert main(["render", path, str(tmp_path / "o.exr"), "--imageWidth", "8", "--pixel-samples", "1", *flags]) == 0
+        return [line for line in capsys.readouterr().err.splitlines() if "frame 1 is" in line]
+
+    dark = ground_stage(new_stage, lambda stage: None)
+    assert blank(dark) == []                                        # the camera light
+    (line,) = blank(dark, "--disableCameraLight")
+    assert line == (f"usdml: warning: {dark}: frame 1 is black (color 0 everywhere): the stage has no lights here and "
+                    "--disableCameraLight turned usdrecord's light at the eye off; add a UsdLux light")
+
+    def sun(name: str, rotate_x: float) -> str:
+        return ground_stage(lambda **kw: new_stage(name, **kw),
+                            lambda s: UsdLux.DistantLight.Define(s, "/World/sun").AddRotateXOp().Set(rotate_x))
+
+    below = sun("below.usda", 90)
+    assert "no light reaches what the camera sees; check the lights" in blank(below)[0]     # lit from below
+    above = sun("above.usda", -90)
+    assert blank(above) == []
+    stage = Usd.Stage.Open(above)
+    stage.GetPrimAtPath("/World/main_cam").GetAttribute("xformOp:rotateX").Set(90.0)     # looking at the sky
+    stage.Save()
+    assert blank(above) == [f"usdml: warning: {above}: frame 1 is empty (alpha 0 everywhere): no geometry in the "
+                            "camera's view; check the camera (/World/main_cam: where it looks, its clipping range) "
+                            "and the geometry's visibility, purpose and activation"]
+
+
 def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):
     """A dome of radiance L gives irradiance π·L on an open upward plane: direct = albedo · L."""
     def light(stage):

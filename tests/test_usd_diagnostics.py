@@ -66,7 +66,7 @@ def _usdml(*argv) -> subprocess.CompletedProcess:
 def _lit(new_stage, name: str = "s.usda"):
     stage = new_stage(name)
     add_quad(stage, "/World/ground", size=4)
-    UsdLux.DistantLight.Define(stage, "/World/sun")
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-60)
     return stage
 
 
