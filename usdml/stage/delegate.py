@@ -152,6 +152,7 @@ class StageDelegate:
         self._gprim = {"detail": int(implicit_detail), "materials": MaterialResolver(self.warn)}
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
         self._unsupported_seen: set[str] = set()
+        self._told_outside = False        # check_times' warning, once
         self.unsupported: dict[str, int] = {}
         with self._diagnostics():     # USD's warnings while opening and composing
             self.stage = opened if opened is not None else open_stage(path)
@@ -213,12 +214,24 @@ class StageDelegate:
         return self._mesh_ids.setdefault(path, len(self._mesh_ids))
 
     def check_time(self, time: float) -> None:
-        if not np.isfinite(time):
-            raise UsdmlError(f"time {time} is not a finite timecode")
+        """:meth:`check_times` of one timecode."""
+        self.check_times([time])
+
+    def check_times(self, times: list[float]) -> None:
+        """Raise for a timecode that is not finite. Any other renders, as usdrecord renders it: USD holds each
+        attribute's first and last sample outside them, so a static stage (startTimeCode = endTimeCode) is the
+        same picture at every frame. Frames outside an animated stage's range are one warning per stage."""
+        for time in times:
+            if not np.isfinite(time):
+                raise UsdmlError(f"time {time} is not a finite timecode")
         lo, hi = self.start_time, self.end_time
-        if self.has_time_range and not (lo - 1e-9 <= time <= hi + 1e-9):
-            raise UsdmlError(f"time {time:g} is outside the stage's range [{lo:g}, {hi:g}] "
-                             f"(startTimeCode/endTimeCode of {self.path}); pick a time within it")
+        outside = [t for t in times if not lo - 1e-9 <= t <= hi + 1e-9]
+        if outside and self.has_time_range and hi > lo and not self._told_outside:
+            self._told_outside = True
+            which = (f"time {outside[0]:g} is" if len(outside) == 1 else
+                     f"{len(outside)} frames ({outside[0]:g} ... {outside[-1]:g}) are")
+            self.warn(f"{self.path}: {which} outside the stage's range [{lo:g}, {hi:g}] (startTimeCode/endTimeCode); "
+                      "rendered with the values USD holds there (each attribute's first or last time sample)")
 
     @property
     def camera_prim(self) -> Usd.Prim | None:
