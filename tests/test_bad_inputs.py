@@ -209,6 +209,55 @@ def test_no_cuda_driver_warning_on_a_cpu_machine(tmp_path):
         assert "CUDA driver" not in run.stderr and "Warp CUDA" not in run.stderr, run.stderr
 
 
+def test_the_first_render_with_a_fresh_warp_cache_prints_only_usdml_lines(tmp_path):
+    """Issue 55: the driver line still came once, on the first command after the install; with a fresh Warp
+    kernel cache (the kernels compiled) and fresh usdml cache, every line on stderr is usdml's."""
+    env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+    env.update(HOME=str(tmp_path), WARP_CACHE_PATH=str(tmp_path / "warp"), USDML_CACHE_DIR=str(tmp_path / "usdml"))
+    run = subprocess.run([sys.executable, "-m", "usdml.cli", "render", str(STAGES / "boxes.usda"),
+                          str(tmp_path / "x.exr"), "--imageWidth", "32"], capture_output=True, text=True, env=env,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert any((tmp_path / "warp").rglob("*.o")), "the kernels were not compiled into the fresh cache"
+    assert all(line.startswith("usdml:") for line in run.stderr.splitlines()), run.stderr
+
+
+def test_warp_starts_once_and_its_other_lines_are_usdml_warnings(monkeypatch, capfd, caplog):
+    """What Warp's native start-up writes to descriptor 2 but the driver line is a ``usdml`` warning; threads
+    asking for Warp together start it once, and descriptor 2 is the terminal's again after."""
+    import logging
+    import threading
+
+    import warp
+
+    import usdml.kernels as kernels
+    from usdml.errors import collect_warnings
+
+    starts = []
+
+    def native_init():
+        starts.append(threading.current_thread().name)
+        os.write(2, f"Warp CUDA warning: {kernels.NO_DRIVER}. GPU execution will not be available.\n".encode())
+        os.write(2, b"Warp: something else\n")
+
+    monkeypatch.setattr(kernels, "_ready", False)
+    monkeypatch.setattr(warp, "init", native_init)
+    log = logging.getLogger("usdml")
+    monkeypatch.setattr(log, "handlers", [])            # the warnings go to the collector alone, not to stderr
+    monkeypatch.setattr(log, "propagate", False)
+    caplog.set_level(logging.WARNING, logger="usdml")     # not an earlier -q's level
+    capfd.readouterr()
+    with collect_warnings() as warnings:
+        threads = [threading.Thread(target=kernels.warp) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    os.write(2, b"after\n")
+    assert len(starts) == 1 and capfd.readouterr().err == "after\n"
+    assert warnings == ["Warp: Warp: something else"]
+
+
 # ------------------------------------------------------------------------- 4. options that do nothing
 
 @pytest.mark.parametrize("extra, needle", [

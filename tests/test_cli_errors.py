@@ -70,12 +70,16 @@ def test_no_renderable_geometry(capsys, new_stage):
     _assert_one_error(capsys, [stage.GetRootLayer().realPath], r"no renderable geometry")
 
 
-def test_time_outside_the_stage(capsys, new_stage):
+def test_time_outside_the_stage_is_a_warning_and_a_time_that_is_not_finite_an_error(capsys, new_stage):
     stage = new_stage(start=1, end=24)
     add_cube_mesh(stage, "/box")
     stage.Save()
-    _assert_one_error(capsys, [stage.GetRootLayer().realPath, "--time", "30"],
-                      r"time 30 is outside the stage's range \[1, 24\]")
+    path = stage.GetRootLayer().realPath
+    code, out, err = _run(capsys, path, "--time", "30")        # USD holds the last samples there (issue 55)
+    assert code == 0 and err.splitlines() == [
+        f"usdml: warning: {path}: time 30 is outside the stage's range [1, 24] (startTimeCode/endTimeCode); rendered "
+        "with the values USD holds there (each attribute's first or last time sample)"]
+    _assert_one_error(capsys, [path, "--time", "nan"], r"time nan is not a finite timecode")
 
 
 def test_swapped_time_range_is_used_the_right_way_round(capsys, new_stage):

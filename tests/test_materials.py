@@ -369,7 +369,8 @@ def test_missing_texture_uses_fallback_and_warns(new_stage, tmp_path):
     r = MaterialResolver(log)
     assert np.allclose(albedo(r, quad), [0.2, 0.4, 0.6])
     assert np.allclose(albedo(r, quad), [0.2, 0.4, 0.6])
-    assert len(log) == 1 and "/World/Looks/m" in log[0] and "nope.png" in log[0] and "fallback" in log[0]
+    assert len(log) == 1 and "/World/Looks/m" in log[0] and "nope.png" in log[0]
+    assert "using its inputs:fallback (0.2, 0.4, 0.6, 1) (fix the asset path)" in log[0]     # the value used
 
 
 def test_unreadable_texture_and_udim_warn(new_stage, tmp_path):
@@ -386,6 +387,8 @@ def test_unreadable_texture_and_udim_warn(new_stage, tmp_path):
     assert np.allclose(albedo(r, q1), [0, 0, 0])           # UsdUVTexture's spec fallback (0, 0, 0, 1)
     assert np.allclose(albedo(r, q2), [0.5, 0.25, 0.125])  # the diffuseColor's own value
     assert len(log) == 2 and "junk.png" in log[0] and "UDIM" in log[1]
+    # issue 55: "using its inputs:fallback" of an unauthored fallback made a frame black without saying so
+    assert "using the UsdUVTexture's inputs:fallback (0, 0, 0, 1), unauthored: the spec's default black" in log[0]
 
 
 def test_missing_st_primvar_uses_reader_fallback(new_stage, tmp_path):
@@ -552,3 +555,27 @@ def test_textures_are_sampled_per_pixel(tmp_path):
                               + fy[i] * ((1 - fx[j]) * texels[b, c] + fx[j] * texels[b, d]))
     np.testing.assert_allclose(albedo, expected, atol=1e-5)
     assert len(np.unique(albedo.reshape(-1, 3).round(4), axis=0)) > 16    # not a blend of 4 corners
+
+
+def test_a_missing_texture_that_blacks_out_the_frame_says_so(new_stage, tmp_path):
+    """Issue 55: a missing texture with an unauthored fallback made a whole frame black while the warning said
+    only "using its inputs:fallback"; now it names the value, and the black frame is a warning of its own."""
+    import subprocess
+    import sys
+
+    from pxr import UsdLux
+
+    stage = new_stage(start=1, end=1)
+    quad = quad_with_st(stage, "/World/q", [(0, 0), (0, 1), (1, 1), (1, 0)])
+    bind(quad, textured_material(stage, "/World/Looks/wood", "./wood.png")[0])
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-60)
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", path, str(tmp_path / "o.exr"), "--imageWidth",
+                        "16", "--pixel-samples", "1"], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stderr.splitlines() == [
+        "usdml: warning: /World/Looks/wood: /World/Looks/wood/tex.inputs:file @./wood.png@ does not resolve (missing "
+        "file?); using its inputs:fallback (0, 0, 0, 1), unauthored: the spec's default black (fix the asset path)",
+        f"usdml: warning: {path}: frame 1 is black (color 0 everywhere): every surface in view has a black albedo; "
+        "check the materials (a diffuseColor of 0, a texture that does not load and whose inputs:fallback is the "
+        "spec's black)"]

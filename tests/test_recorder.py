@@ -166,10 +166,11 @@ def test_a_result_lists_the_files_this_call_wrote(new_stage, tmp_path):
 
 #: the keys of ``usdml render --json`` (docs/rendering.md), in their order; on Dask the run's
 SUMMARY_KEYS = ["stage", "frames", "skipped", "stale", "recovered", "resolution", "secondsPerFrame", "seconds",
-                "visibility", "outputs", "previews", "skippedOutputs", "settingsDigest", "estimates", "lightingEstimates"]
+                "visibility", "outputs", "previews", "skippedOutputs", "settingsDigest", "estimates", "lightingEstimates",
+                "warnings"]
 DASK_KEYS = ["stage", "frames", "failed", "skipped", "stale", "rerun", "errors", "resolution", "visibility",
              "secondsPerFrame", "seconds", "startupSeconds", "workers", "scheduler", "chunkSize", "retries",
-             "threadsPerWorker", "outputs", "previews", "skippedOutputs", "estimates", "lightingEstimates"]
+             "threadsPerWorker", "outputs", "previews", "skippedOutputs", "estimates", "lightingEstimates", "warnings"]
 
 
 def test_the_typed_result_is_the_summary_and_the_record(monkeypatch):

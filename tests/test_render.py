@@ -289,7 +289,6 @@ def test_time_sampled_product_name(new_stage, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--frames", "9"], "outside the stage's range"),
     (["--frames", "1:x"], "FrameSpec"),
     (["--imageWidth", "0"], "--imageWidth 0"),
     (["--visibility", "octree"], "unknown visibility backend 'octree'"),
@@ -305,6 +304,31 @@ def test_render_errors(new_stage, tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert code == 2 and message in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_frames_outside_the_stage_range_render_as_usdrecord_renders_them(new_stage, tmp_path):
+    """Issue 55: frames 1:2 of a stage whose range is 1 to 1 were refused; USD holds the values outside the
+    range and usdrecord renders them. Outside an animated stage's range they are one warning."""
+    import subprocess
+    import sys
+
+    still = new_stage("still.usda", start=1, end=1)
+    add_quad(still, "/World/ground", size=10)
+    UsdLux.SphereLight.Define(still, "/World/lamp").AddTranslateOp().Set((0, 3, 0))
+    still.Save()
+    result = usdml.Recorder(image_width=8, pixel_samples=1).record_sequence(
+        still.GetRootLayer().realPath, "1:2", str(tmp_path / "still.####.exr"))
+    assert result.frames == [1.0, 2.0] and not result.warnings
+    assert [os.path.basename(f) for f in result.files] == ["still.0001.exr", "still.0002.exr"]
+    path = _sequence_stage(new_stage)                  # frames 1 to 4, the lamp moving
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", path, str(tmp_path / "o.####.exr"), "--frames",
+                        "3:6", "--imageWidth", "8", "--pixel-samples", "1"], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.startswith("rendered 4 frame(s)")
+    assert r.stderr.splitlines() == [
+        f"usdml: warning: {path}: 2 frames (5 ... 6) are outside the stage's range [1, 4] (startTimeCode/endTimeCode); "
+        "rendered with the values USD holds there (each attribute's first or last time sample)"]
+    color = {f: read_exr(tmp_path / f"o.000{f}.exr")[0]["color"] for f in (4, 6)}
+    assert np.array_equal(color[4], color[6])                   # the last samples held
 
 
 def test_output_must_be_exr_and_a_product_name_becomes_one(new_stage, tmp_path, capsys, monkeypatch):
@@ -398,6 +422,35 @@ def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, cap
     d = StageDelegate(lit)
     r = FrameRenderer(d, UsdmlSettings())
     assert not r.render(1, 8, 8, {"color"}).stats.camera_light
+
+
+def test_a_black_or_empty_frame_says_so_and_what_to_check(new_stage, tmp_path, capsys):
+    """A line per frame whose color is 0 everywhere, naming the frame and the likely cause (issue 55)."""
+    def blank(path, *flags) -> list[str]:
+        capsys.readouterr()
+        assert main(["render", path, str(tmp_path / "o.exr"), "--imageWidth", "8", "--pixel-samples", "1", *flags]) == 0
+        return [line for line in capsys.readouterr().err.splitlines() if "frame 1 is" in line]
+
+    dark = ground_stage(new_stage, lambda stage: None)
+    assert blank(dark) == []                                        # the camera light
+    (line,) = blank(dark, "--disableCameraLight")
+    assert line == (f"usdml: warning: {dark}: frame 1 is black (color 0 everywhere): the stage has no lights here and "
+                    "--disableCameraLight turned usdrecord's light at the eye off; add a UsdLux light")
+
+    def sun(name: str, rotate_x: float) -> str:
+        return ground_stage(lambda **kw: new_stage(name, **kw),
+                            lambda s: UsdLux.DistantLight.Define(s, "/World/sun").AddRotateXOp().Set(rotate_x))
+
+    below = sun("below.usda", 90)
+    assert "no light reaches what the camera sees; check the lights" in blank(below)[0]     # lit from below
+    above = sun("above.usda", -90)
+    assert blank(above) == []
+    stage = Usd.Stage.Open(above)
+    stage.GetPrimAtPath("/World/main_cam").GetAttribute("xformOp:rotateX").Set(90.0)     # looking at the sky
+    stage.Save()
+    assert blank(above) == [f"usdml: warning: {above}: frame 1 is empty (alpha 0 everywhere): no geometry in the "
+                            "camera's view; check the camera (/World/main_cam: where it looks, its clipping range) "
+                            "and the geometry's visibility, purpose and activation"]
 
 
 def test_constant_dome_on_an_unoccluded_upward_plane(new_stage):

@@ -89,8 +89,8 @@ def _update_over(delegate, backend, frames) -> None:
     from usdml.stage.delegate import require_geometry
 
     previous = None
+    delegate.check_times(frames)
     for f in frames:
-        delegate.check_time(f)
         snap = delegate.snapshot(f)
         require_geometry(delegate, snap)
         backend.update(snap, diff(previous, snap))

@@ -171,8 +171,7 @@ class Recorder:
             delegate = StageDelegate(job.stage, camera=job.camera, render_settings_path=job.render_settings,
                                      purposes=job.purposes, implicit_detail=job.implicit_detail)
             frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
-            for f in frames:
-                delegate.check_time(f)
+            delegate.check_times(frames)
         result = render_on_dask(job, frames)
         return replace(result, warnings=warnings + result.warnings)
 

@@ -66,6 +66,26 @@ def centre_gbuffer(snap: Snapshot, primary, width: int, height: int) -> tuple[Sn
     return snap, build_gbuffer(snap, primary, width, height)
 
 
+def blank_frame(hit: bool, lit: bool, albedo: bool, lights: int, camera: Camera) -> str | None:
+    """What a frame whose ``color`` is the same everywhere says, and the cause to check: empty (no primary ray hit
+    anything: alpha 0 everywhere) or black (``lit``: no light on any hit; ``albedo``: some hit has a non-zero
+    albedo; ``lights``: the frame's lights, the camera light aside); None when some pixel has colour."""
+    if not hit:
+        return (f"is empty (alpha 0 everywhere): no geometry in the camera's view; check the camera "
+                f"({camera.path or 'the framing camera'}: where it looks, its clipping range) and the geometry's "
+                "visibility, purpose and activation")
+    if lit:
+        return None
+    if not albedo:
+        return ("is black (color 0 everywhere): every surface in view has a black albedo; check the materials (a "
+                "diffuseColor of 0, a texture that does not load and whose inputs:fallback is the spec's black)")
+    if lights == 0:
+        return ("is black (color 0 everywhere): the stage has no lights here and --disableCameraLight turned "
+                "usdrecord's light at the eye off; add a UsdLux light")
+    return ("is black (color 0 everywhere): no light reaches what the camera sees; check the lights (intensity, "
+            "exposure, where they point, what shadows them) and whether the camera is inside closed geometry")
+
+
 @dataclass
 class FrameResult:
     time: float
@@ -141,6 +161,7 @@ class FrameRenderer:
         self.indirect.prepare(frame, stats)     # once for every pass of the frame
         self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
+        hit = lit = albedo = False      # any pixel: hit, lit, with a non-zero albedo (blank_frame)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
         for i, (offsets, (gb, surface, direct)) in enumerate(
                 zip(passes, self.direct.passes(frame, passes, stats, pixel_progress))):
@@ -157,9 +178,14 @@ class FrameRenderer:
             if pixel_progress is not None:
                 pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
             stats.shadow_queries += direct.queries
+            hit, lit = hit or bool(surface.hit.any()), lit or bool(direct.radiance.any() or np.any(indirect))
+            albedo = albedo or bool(surface.albedo.any())
             image.add(self._buffers(gb, surface.hit, direct, indirect, camera, aovs), offsets)
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
+        blank = blank_frame(hit, lit, albedo, len(lights), camera)
+        if blank:
+            log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples

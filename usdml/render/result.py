@@ -67,7 +67,8 @@ class SequenceResult:
     def as_json(self) -> dict:
         """``usdml render --json``'s summary: camelCase keys, timecodes as FrameSpec text (``f"{f:g}"``) where
         they are keys; on Dask the run's keys (``failed``, ``rerun``, ``errors``, ``startupSeconds`` ...) in place
-        of ``recovered`` and ``settingsDigest``."""
+        of ``recovered`` and ``settingsDigest``; ``warnings`` every message, also those the command printed once
+        for several prims."""
         files = {"outputs": list(self.outputs), "previews": list(self.previews),
                  "skippedOutputs": list(self.skipped_outputs)}
         estimates = {"estimates": {f"{f:g}": e for f, e in self.estimate_fields().items()},
@@ -77,7 +78,7 @@ class SequenceResult:
             return {"stage": self.stage, "frames": list(self.frames), "skipped": list(self.skipped),
                     "stale": list(self.stale), "recovered": list(self.recovered), "resolution": resolution,
                     "secondsPerFrame": self.seconds_per_frame, "seconds": self.seconds, "visibility": self.visibility,
-                    **files, "settingsDigest": list(self.settings_digest), **estimates}
+                    **files, "settingsDigest": list(self.settings_digest), **estimates, "warnings": list(self.warnings)}
         run = self.dask
         return {"stage": self.stage, "frames": list(self.frames), "failed": list(run.failed),
                 "skipped": list(self.skipped), "stale": list(self.stale), "rerun": run.rerun,
@@ -85,4 +86,4 @@ class SequenceResult:
                 "resolution": resolution, "visibility": self.visibility, "secondsPerFrame": self.seconds_per_frame,
                 "seconds": self.seconds, "startupSeconds": run.startup_seconds, "workers": run.workers,
                 "scheduler": run.scheduler, "chunkSize": run.chunk_size, "retries": run.retries,
-                "threadsPerWorker": run.threads_per_worker, **files, **estimates}
+                "threadsPerWorker": run.threads_per_worker, **files, **estimates, "warnings": list(self.warnings)}

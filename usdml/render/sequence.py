@@ -216,8 +216,7 @@ def _render_sequence(job: RenderJob) -> SequenceResult:
         log.warning(message)
     check_device(job.device)
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
-    for f in frames:
-        delegate.check_time(f)
+    delegate.check_times(frames)
     products = plan_products(delegate, job, frames)
     t_first = _time.perf_counter()
     first = delegate.snapshot(frames[0])

@@ -11,7 +11,9 @@ own ``skel:animationSource``) get one prototype per pose.
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +24,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
-from usdml.stage.diagnostics import usd_diagnostics
+from usdml.stage.diagnostics import composition_message, usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
@@ -150,11 +152,13 @@ class StageDelegate:
         self._gprim = {"detail": int(implicit_detail), "materials": MaterialResolver(self.warn)}
         self._purposes = None if purposes is None else {str(p) for p in purposes} | {"default"}
         self._unsupported_seen: set[str] = set()
+        self._told_outside = False        # check_times' warning, once
         self.unsupported: dict[str, int] = {}
-        with usd_diagnostics(self.warn, self.path):     # USD's warnings while opening and composing
+        with self._diagnostics():     # USD's warnings while opening and composing
             self.stage = opened if opened is not None else open_stage(path)
-            for err in self.stage.GetCompositionErrors():
-                self.warn(f"{self.path}: composition error: {str(err).strip().splitlines()[0]}")
+            # an open stage's were said when it was opened; a stage opened here says them again (the same lines)
+            for err in sorted(self.stage.GetCompositionErrors(), key=lambda e: e.rootSite.path):
+                self.warn(composition_message(str(err.rootSite.path), str(err).strip().splitlines()[0], self.path))
             self.settings_prim = settings_prim(self.stage, render_settings_path)
             self.usdml_settings = read_usdml_settings(self.settings_prim)
             self.has_time_range = self.stage.HasAuthoredTimeCodeRange()
@@ -184,6 +188,12 @@ class StageDelegate:
             self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
             self._assign_mesh_ids()
 
+    @contextlib.contextmanager
+    def _diagnostics(self) -> Iterator[None]:
+        """usdml's warnings and USD's (:func:`usd_diagnostics`) of the block, each cause once (``Warnings.grouped``)."""
+        with self.warn.grouped(), usd_diagnostics(self.warn, self.path):
+            yield
+
     # ----------------------------------------------------------------------------------------------
     def _assign_mesh_ids(self) -> None:
         """primIds from one pass over the stage and its prototypes, so they do not depend on frames.
@@ -204,12 +214,24 @@ class StageDelegate:
         return self._mesh_ids.setdefault(path, len(self._mesh_ids))
 
     def check_time(self, time: float) -> None:
-        if not np.isfinite(time):
-            raise UsdmlError(f"time {time} is not a finite timecode")
+        """:meth:`check_times` of one timecode."""
+        self.check_times([time])
+
+    def check_times(self, times: list[float]) -> None:
+        """Raise for a timecode that is not finite. Any other renders, as usdrecord renders it: USD holds each
+        attribute's first and last sample outside them, so a static stage (startTimeCode = endTimeCode) is the
+        same picture at every frame. Frames outside an animated stage's range are one warning per stage."""
+        for time in times:
+            if not np.isfinite(time):
+                raise UsdmlError(f"time {time} is not a finite timecode")
         lo, hi = self.start_time, self.end_time
-        if self.has_time_range and not (lo - 1e-9 <= time <= hi + 1e-9):
-            raise UsdmlError(f"time {time:g} is outside the stage's range [{lo:g}, {hi:g}] "
-                             f"(startTimeCode/endTimeCode of {self.path}); pick a time within it")
+        outside = [t for t in times if not lo - 1e-9 <= t <= hi + 1e-9]
+        if outside and self.has_time_range and hi > lo and not self._told_outside:
+            self._told_outside = True
+            which = (f"time {outside[0]:g} is" if len(outside) == 1 else
+                     f"{len(outside)} frames ({outside[0]:g} ... {outside[-1]:g}) are")
+            self.warn(f"{self.path}: {which} outside the stage's range [{lo:g}, {hi:g}] (startTimeCode/endTimeCode); "
+                      "rendered with the values USD holds there (each attribute's first or last time sample)")
 
     @property
     def camera_prim(self) -> Usd.Prim | None:
@@ -234,7 +256,7 @@ class StageDelegate:
     # ----------------------------------------------------------------------------------------------
     def snapshot(self, time: float) -> Snapshot:
         """The render index at ``time`` (a timecode of the stage)."""
-        with usd_diagnostics(self.warn, self.path):
+        with self._diagnostics():
             return self._snapshot(time)
 
     def _snapshot(self, time: float) -> Snapshot:

@@ -5,19 +5,40 @@ straight to stderr. While :func:`usd_diagnostics` is active, a ``UsdUtils.Coales
 collects them instead (Tf prints nothing while a delegate is registered) and they are re-issued through
 usdml's ``warn``, without the C++ location. Tf *errors* are untouched: that delegate ignores them, and
 the Python bindings turn an error raised by a call into ``Tf.ErrorException`` as before.
+
+A composition error is said twice by USD: as a warning while the stage is composed (``In </World/P9>: Could not
+open asset @missing.usda@ ... (instantiating stage on stage @shot.usda@ <0x55...>)``) and in
+``Usd.Stage.GetCompositionErrors``. Both become the same line, :func:`composition_message`'s, so a warning
+collector that keeps each message once keeps one of them.
 """
 
 from __future__ import annotations
 
 import contextlib
+import re
 from collections.abc import Callable, Iterator
 
 from pxr import UsdUtils
 
+#: UsdStage's report of its composition errors: ``In </Prim>: `` (none for a layer stack's), the error, and
+#: what the stage was doing (``(instantiating stage on stage @shot.usda@ <0x55...>)``)
+_COMPOSING = re.compile(r"^(?:In <(?P<path>[^<>]*)>: )?(?P<error>.*) \([^()]* on stage @[^@]*@ <[^<>]*>\)$")
+
+
+def composition_message(path: str, error: str, where: str) -> str:
+    """One composition error's line: ``/Prim: composition error: ...`` (``where``, the stage's file, for one
+    at the pseudo-root: a sublayer that does not load)."""
+    subject = path if path.startswith("/") and path != "/" else where
+    return f"{subject}: composition error: {' '.join(error.split())}"
+
 
 def usd_message(commentary: str, where: str) -> str:
-    """One warning line: ``/Prim/Path: message`` for USD's ``/Prim/Path -- message``, else ``where: message``."""
+    """One warning line: ``/Prim/Path: message`` for USD's ``/Prim/Path -- message``, a composition error as
+    :func:`composition_message`, else ``where: message``."""
     text = " ".join(commentary.split())
+    composing = _COMPOSING.match(text)
+    if composing:
+        return composition_message(composing["path"] or "", composing["error"], where)
     path, sep, rest = text.partition(" -- ")
     if sep and path.startswith("/") and " " not in path:
         return f"{path}: {rest}"

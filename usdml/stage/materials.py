@@ -33,7 +33,7 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   ``maketx``) and otherwise means ``repeat``, which is what Storm does for files without metadata.
 * ``inputs:scale`` / ``inputs:bias`` apply to the linear rgba sample: ``rgba * scale + bias``.
   A file that cannot be read gives ``inputs:fallback`` (authored, else the spec's (0, 0, 0, 1)),
-  used as the node's output as is, with one warning. UDIM sets are not read: the diffuseColor's
+  used as the node's output as is, with one warning naming the value used. UDIM sets are not read: the diffuseColor's
   constant value is used instead, with a warning.
 """
 
@@ -248,6 +248,13 @@ def _vec(v, n: int) -> np.ndarray:
     return np.concatenate([a[:n], np.zeros(max(0, n - a.size), np.float32)])
 
 
+def fallback_words(fallback: np.ndarray, authored: bool) -> str:
+    """How a warning names the ``inputs:fallback`` a UsdUVTexture gives in place of its file: the value, and when
+    it is not authored, that it is the spec's black (a whole material, a whole frame black)."""
+    values = ", ".join(f"{v:g}" for v in fallback)
+    return f"inputs:fallback ({values})" + ("" if authored else ", unauthored: the spec's default black")
+
+
 class MaterialResolver:
     """Resolves bound UsdPreviewSurface diffuse colours; caches per stage: bindings, surfaces, textures.
 
@@ -363,15 +370,16 @@ class MaterialResolver:
         texture = (ctx.lookup, ctx.st.reshape(-1, 3, 2)) if ctx.lookup is not None else None
         return np.ascontiguousarray(np.clip(out, 0.0, 1.0), np.float32), texture
 
-    def texture(self, path: str, material: str) -> Texture | None:
-        """The image at resolved ``path``, read once; None (one warning) when it cannot be read."""
+    def texture(self, path: str, material: str, fallback: str = "inputs:fallback") -> Texture | None:
+        """The image at resolved ``path``, read once; None (one warning, saying what is used instead: ``fallback``,
+        :func:`fallback_words`) when it cannot be read."""
         if path not in self._textures:
             try:
                 self._textures[path] = read_texture(path)
             except OSError as e:
                 msg = " ".join(str(e).split())
                 self._warn_once(material, "read:" + path, f"{material}: cannot read texture {path} ({msg}); "
-                                "using the UsdUVTexture's inputs:fallback (fix or convert the file)")
+                                f"using the UsdUVTexture's {fallback} (fix or convert the file)")
                 self._textures[path] = None
         return self._textures[path]
 
@@ -490,7 +498,9 @@ class _Eval:
         """(N, 4) rgba of a UsdUVTexture node at every corner, after scale and bias; None means use
         the diffuseColor ``constant`` (an unsupported UDIM set)."""
         name = str(node.GetPath())
-        fallback = _vec(_value(node, "fallback", self.time, TEXTURE_FALLBACK), 4)
+        authored = _value(node, "fallback", self.time, None)
+        fallback = _vec(TEXTURE_FALLBACK if authored is None else authored, 4)
+        using = fallback_words(fallback, authored is not None)
         asset = _value(node, "file", self.time, None)
         raw_path = getattr(asset, "path", "") or ""
         resolved = getattr(asset, "resolvedPath", "") or ""
@@ -499,13 +509,13 @@ class _Eval:
                       "read; using the diffuseColor value (bake the tiles into one texture)")
             return None
         if not raw_path:
-            self.warn("nofile:" + name, f"{name} has no inputs:file; using its inputs:fallback")
+            self.warn("nofile:" + name, f"{name} has no inputs:file; using its {using}")
             return np.broadcast_to(fallback, (self.n_corners, 4))
         if not resolved:
             self.warn("missing:" + name, f"{name}.inputs:file @{raw_path}@ does not resolve (missing file?); "
-                      "using its inputs:fallback (fix the asset path)")
+                      f"using its {using} (fix the asset path)")
             return np.broadcast_to(fallback, (self.n_corners, 4))
-        tex = self.r.texture(resolved, self.material)
+        tex = self.r.texture(resolved, self.material, using)
         if tex is None:
             return np.broadcast_to(fallback, (self.n_corners, 4))
 
