@@ -177,3 +177,14 @@ def test_output_folder_that_takes_no_file(new_stage, capsys):
     assert main(["render", _lit_box(new_stage), "/proc/x.#.exr", "--frames", "1", "--imageWidth", "8"]) == 2
     (line,) = _errors(capsys.readouterr().err)
     assert line.startswith("usdml: error: /proc/x.1.exr: cannot write the file (") and "writable output folder" in line
+
+
+def test_workers_and_scheduler_are_refused_before_the_stage_is_read(tmp_path):
+    """Issue 55, item 4: ``--workers 2 --scheduler tcp://...`` waited ten seconds for the scheduler before
+    failing; two ways of running the frames is one line at once, before the stage (here none) is read."""
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", str(tmp_path / "nope.usda"), "out.####.exr",
+                        "--workers", "2", "--scheduler", "tcp://127.0.0.1:9"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        "usdml: error: --workers 2 and --scheduler tcp://127.0.0.1:9: two ways of running the frames; give "
+        "--workers N (a local cluster) or --scheduler ADDRESS (a running one), not both"]
