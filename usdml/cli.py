@@ -262,12 +262,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
-    """``usdml cache list|clean``: what the on-disk cache holds, and emptying it."""
+    """``usdml cache [list|clean]``: what the on-disk cache holds (with no action too), and emptying it."""
     from usdml.cache import Cache
     from usdml.errors import UsdmlError
 
     cache = Cache(args.cache)
     if args.action == "list":
+        if args.older_than is not None:
+            logging.getLogger("usdml").warning("--older-than is ignored: it applies to usdml cache clean")
         entries = cache.entries()
         total = sum(e.bytes for e in entries)
         if args.json:
@@ -377,8 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
     bake.set_defaults(run=_cmd_bake)
 
     cache = sub.add_parser("cache", help="list or empty the on-disk cache of voxel arrays and octrees")
-    cache.add_argument("action", choices=("list", "clean"), help="list: entries, sizes, last use; clean: remove "
-                       "entries (all of them unless --older-than)")
+    cache.add_argument("action", nargs="?", choices=("list", "clean"), default="list",
+                       help="list: entries, sizes, last use (the default); clean: remove entries (all of them unless "
+                       "--older-than)")
     cache.add_argument("--older-than", type=float, metavar="DAYS", help="clean: only entries last used more than "
                        "DAYS days ago")
     cache.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
