@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
+import warnings
 
 from usdml.params import (BAKE, BENCH, COMPARE, INFO, RENDER, add_cmdline_args, options_from_args,
                           overrides_from_args, purpose_list)
@@ -424,6 +426,16 @@ class _OneLine(logging.Handler):
         print(f"usdml: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning (pyvista's, Dask's, NumPy's ...) as one ``usdml: warning:`` line through the ``usdml``
+    logger, so ``-q`` hides it with usdml's own: the package whose category it is (else the file and line
+    that warned), the message's first line and the category."""
+    text = next((part.strip() for part in str(message).splitlines() if part.strip()), "")
+    package = category.__module__.partition(".")[0]
+    where = package if package != "builtins" else f"{os.path.basename(filename)}:{lineno}"
+    logging.getLogger("usdml").warning(f"{where}: {text} ({category.__name__})")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -447,7 +459,9 @@ def main(argv: list[str] | None = None) -> int:
     from usdml.errors import UsdmlError
 
     try:
-        return args.run(args)
+        with warnings.catch_warnings():       # restored on return: main() may run inside a script or a test
+            warnings.showwarning = _warning_line
+            return args.run(args)
     except UsdmlError as e:
         print(f"usdml: error: {e}", file=sys.stderr)
         return 2
