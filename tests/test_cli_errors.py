@@ -213,7 +213,7 @@ def test_every_missing_thing_says_what_to_do(capsys, new_stage, tmp_path):
                       r"no RenderSettings prim at /Render/Nope; the stage has no RenderSettings prim \(omit "
                       r"--renderSettingsPrimPath\)$")
     _assert_one_error(capsys, [path, "--renderSettingsPrimPath", "/Render"],
-                      r"/Render is a Scope, not RenderSettings; the stage has no RenderSettings prim")
+                      r"/Render is a prim of type Scope, not RenderSettings; the stage has no RenderSettings prim")
     _assert_one_error(capsys, [path, "--renderSettingsPrimPath", "Render"],
                       r"'Render' is not an absolute prim path; the stage has no RenderSettings prim")
     _assert_one_error(capsys, [path, "--camera", "/not a path"], r"is not a valid prim path; the stage has no camera")

@@ -19,8 +19,8 @@ def settings_prim(stage: Usd.Stage, explicit: str | None) -> Usd.Prim | None:
         raise UsdmlError(f"{where}: {path!r} is not an absolute prim path; {_settings_choices(stage, explicit)}")
     prim = stage.GetPrimAtPath(path)
     if not prim or not prim.IsA(UsdRender.Settings):
-        what = f"{path} is a {prim.GetTypeName() or 'typeless prim'}, not RenderSettings" if prim else \
-            f"no RenderSettings prim at {path}"
+        kind = f"a prim of type {prim.GetTypeName()}" if prim and prim.GetTypeName() else "a typeless prim"
+        what = f"{path} is {kind}, not RenderSettings" if prim else f"no RenderSettings prim at {path}"
         raise UsdmlError(f"{where}: {what}; {_settings_choices(stage, explicit)}")
     return prim
 
