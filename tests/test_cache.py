@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -158,3 +160,14 @@ def test_usdml_cache_list_and_clean(tmp_path, monkeypatch, capsys):
     assert main(["cache", "list"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("usdml: error: USDML_CACHE_SIZE=")
+
+
+def test_usdml_cache_alone_lists(tmp_path):
+    """Issue 55, item 7: ``usdml cache`` with no action refused ("the following arguments are required:
+    action"); it lists, as ``usdml cache list`` does and the README describes."""
+    _aged(Cache(tmp_path), "a", 0)
+    env = {**os.environ, "USDML_CACHE_DIR": str(tmp_path)}
+    alone, listed = (subprocess.run([sys.executable, "-m", "usdml.cli", "cache", *action], capture_output=True,
+                                    text=True, env=env) for action in ([], ["list"]))
+    assert alone.returncode == 0 and alone.stderr == ""
+    assert alone.stdout == listed.stdout and alone.stdout.splitlines()[-1].startswith("1 entry, ")

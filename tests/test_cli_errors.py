@@ -181,3 +181,55 @@ def test_output_folder_that_takes_no_file(new_stage, capsys):
     assert main(["render", _lit_box(new_stage), "/proc/x.#.exr", "--frames", "1", "--imageWidth", "8"]) == 2
     (line,) = _errors(capsys.readouterr().err)
     assert line.startswith("usdml: error: /proc/x.1.exr: cannot write the file (") and "writable output folder" in line
+
+
+def test_workers_and_scheduler_are_refused_before_the_stage_is_read(tmp_path):
+    """Issue 55, item 4: ``--workers 2 --scheduler tcp://...`` waited ten seconds for the scheduler before
+    failing; two ways of running the frames is one line at once, before the stage (here none) is read."""
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", str(tmp_path / "nope.usda"), "out.####.exr",
+                        "--workers", "2", "--scheduler", "tcp://127.0.0.1:9"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        "usdml: error: --workers 2 and --scheduler tcp://127.0.0.1:9: two ways of running the frames; give "
+        "--workers N (a local cluster) or --scheduler ADDRESS (a running one), not both"]
+
+
+def test_a_missing_render_settings_prim_lists_the_stage_s(tmp_path):
+    """Issue 55, item 5: ``--renderSettingsPrimPath`` naming no RenderSettings says which there are, as
+    ``--camera`` lists cameras, and how to give one."""
+    boxes = os.path.join(os.path.dirname(__file__), "..", "stages", "boxes.usda")
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "info", boxes, "--renderSettingsPrimPath", "/Render/Nope"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        "usdml: error: --renderSettingsPrimPath: no RenderSettings prim at /Render/Nope; RenderSettings on the "
+        "stage: /Render/Settings (give one with --renderSettingsPrimPath)"]
+
+
+def test_every_missing_thing_says_what_to_do(capsys, new_stage, tmp_path):
+    """Issue 55, item 5: each "no X at Y" error ends in "; what to do"."""
+    stage = new_stage()
+    add_cube_mesh(stage, "/box")
+    stage.DefinePrim("/Render", "Scope")
+    stage.Save()
+    path = stage.GetRootLayer().realPath
+    _assert_one_error(capsys, [path, "--renderSettingsPrimPath", "/Render/Nope"],
+                      r"no RenderSettings prim at /Render/Nope; the stage has no RenderSettings prim \(omit "
+                      r"--renderSettingsPrimPath\)$")
+    _assert_one_error(capsys, [path, "--renderSettingsPrimPath", "/Render"],
+                      r"/Render is a prim of type Scope, not RenderSettings; the stage has no RenderSettings prim")
+    _assert_one_error(capsys, [path, "--renderSettingsPrimPath", "Render"],
+                      r"'Render' is not an absolute prim path; the stage has no RenderSettings prim")
+    _assert_one_error(capsys, [path, "--camera", "/not a path"], r"is not a valid prim path; the stage has no camera")
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Gone")
+    stage.Save()
+    _assert_one_error(capsys, [path], r"the stage's renderSettingsPrimPath metadata: no RenderSettings prim at "
+                                      r"/Render/Gone; .* \(fix or remove its renderSettingsPrimPath metadata\)$")
+    from usdml.aov.exr import read_exr
+    from usdml.aov.naming import frame_spec
+    from usdml.errors import UsdmlError
+
+    with pytest.raises(UsdmlError, match=r"no such EXR file; check the path$"):
+        read_exr(tmp_path / "nope.exr")
+    with pytest.raises(UsdmlError, match=r"no start timecode; give --frames \(e\.g\. --frames 1\) or author"):
+        frame_spec(None, None, None)

@@ -119,3 +119,43 @@ def test_the_pipeline_example_runs_as_written(tmp_path):
     assert run.returncode == 0, run.stderr
     assert "['out/park.0012.exr']" in run.stdout
     assert sorted(p.name for p in (tmp_path / "out").glob("*.exr")) == [f"park.00{f}.exr" for f in (12, 13, 14)]
+
+
+def test_the_readme_s_speed_up_is_measured_with_its_command_as_written():
+    """Issue 55, item 10: the README's figure for its sample render is what that command gives, run as written
+    with and without ``--visibility voxel`` (tools/command_timing.py), on the machine the data names; editing
+    the command in the README asks for a new measurement."""
+    import json
+
+    text = (ROOT / "README.md").read_text()
+    command = re.search(r"```sh\n\.venv/bin/(usdml render [^\n]*)\n", text).group(1)
+    data = json.loads((ROOT / "docs" / "data" / "readme-render.json").read_text())
+    (run,) = data["runs"]
+    assert run["output"]["command"] == command and run["command"].endswith("-- " + command.removeprefix("usdml render "))
+    machine = run["output"]["machine"]
+    assert machine["cpu"] and machine["cores"] >= 1 and machine["vector"]
+    assert {(r["visibility"], r["cache"]) for r in run["output"]["runs"]} == {
+        ("exact", "empty"), ("voxel", "empty"), ("voxel", "full")}
+
+
+def test_command_timing_times_each_frame_of_a_command(new_stage, tmp_path):
+    """tools/command_timing.py on a two-frame render: the command's seconds and CPU seconds, each frame's, the
+    machine."""
+    import json
+
+    from conftest import add_quad
+    from pxr import UsdLux
+
+    stage = new_stage(start=1, end=2)
+    add_quad(stage, "/World/ground", size=4)
+    UsdLux.SphereLight.Define(stage, "/World/bulb").AddTranslateOp().Set((0, 2, 0))
+    stage.Save()
+    run = subprocess.run([sys.executable, str(ROOT / "tools" / "command_timing.py"), "--visibility", "exact", "--json",
+                          "--", stage.GetRootLayer().realPath, str(tmp_path / "f.####.exr"), "--frames", "1:2",
+                          "--imageWidth", "8", "--preview"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    (r,) = out["runs"]
+    assert r["frames"] == [1.0, 2.0] and len(r["frame_seconds"]) == 2 and min(r["frame_seconds"]) > 0
+    assert r["seconds"] > sum(r["frame_seconds"]) * 0.5 and r["cpu_seconds"] > 0
+    assert out["machine"]["cores"] == os.cpu_count()

@@ -1,4 +1,4 @@
-"""Anti-aliasing: ``--pixel-samples N`` stratified primary rays per pixel, box filter (issue 18, item 4).
+"""Anti-aliasing: ``--pixel-samples N`` correlated multi-jittered primary rays per pixel, box filter (issue 18, item 4).
 
 References: pixel coverage of a straight edge integrated numerically on a fine grid (no usdml code),
 and the geometry of the stage itself for the AOVs taken from the ray nearest the pixel centre.
@@ -6,12 +6,15 @@ and the geometry of the stage itself for the AOVs taken from the ray nearest the
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pxr import Gf, UsdGeom, UsdLux
 
 from conftest import add_cube_mesh, add_quad
 from usdml.cli import main
+from usdml.params import PARAMS
 from usdml.render.frame import FrameRenderer
 from usdml.render.gbuffer import pixel_offsets
 from usdml.settings import UsdmlSettings
@@ -90,6 +93,25 @@ def test_offsets_are_stratified_in_cells_and_in_thin_rows_and_columns():
         assert sorted((p[:, 1] * 16).astype(int)) == list(range(16))
     assert not np.allclose(passes[0], passes[1])            # each pixel its own pattern
     assert np.array_equal(np.concatenate(list(pixel_offsets(2, 2, 1, 0))), np.full((4, 2), 0.5))
+
+
+def test_offsets_are_correlated_multi_jittered_as_every_text_says():
+    """Issue 55, item 11a: ``--help`` said "an s x s stratified grid", the README "correlated multi-jittered". The
+    offsets are Kensler's correlated multi-jittered pattern: beyond one ray per cell and per thin row and column
+    (above), the rays of a grid row share one sub-column and those of a grid column one sub-row (one permutation
+    per pixel, shared by the rows: the "correlated"); the help, the schema and the README say so."""
+    s = 4
+    passes = np.stack(list(pixel_offsets(5, 3, s * s, seed=7)), axis=1)      # (pixels, 16, 2)
+    cells, subs = (passes * s).astype(int), (passes * s * s).astype(int) % s
+    for cell, sub in zip(cells, subs):
+        for k in range(s):
+            assert len(set(sub[cell[:, 1] == k, 0])) == 1                   # row k: one sub-column
+            assert len(set(sub[cell[:, 0] == k, 1])) == 1                   # column k: one sub-row
+    row = PARAMS["pixel_samples"]
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = next(t for t in readme.splitlines() if "**Anti-aliasing**" in t)
+    for text in (row.help, row.doc, line):
+        assert "correlated multi-jittered" in text and "stratified" not in text, text
 
 
 def _box_on_ground(new_stage):

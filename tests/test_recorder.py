@@ -119,6 +119,10 @@ def test_settings_are_checked_as_the_command_line_checks_them(new_stage, capsys)
         usdml.Recorder(image_width=0)
     with pytest.raises(usdml.UsdmlError, match="no such file"):
         usdml.Recorder().record("/nope/shot.usda", 1, "/tmp/x.exr")
+    # two ways of running the frames (issue 55, item 4): refused when the recorder is made, as the flags are
+    with pytest.raises(usdml.UsdmlError, match=r"^Recorder: workers=2 and scheduler='tcp://h:8786': two ways of "
+                                               r"running the frames; give workers .* or scheduler .*, not both$"):
+        usdml.Recorder(workers=2, scheduler="tcp://h:8786")
 
 
 def test_a_sequence_resumes_and_warnings_come_back(new_stage, tmp_path):

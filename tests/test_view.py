@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
+from pxr import UsdLux
 
-from conftest import STAGES
+from conftest import STAGES, add_cube_mesh
 from usdml.cli import main
 
 pytest.importorskip("pyvista")
@@ -107,3 +109,37 @@ def test_voxels_vpls_and_lgh_layers(offscreen, tmp_path, capsys):
     assert "vpls " in out and "lgh_level 2" in out
     assert main(["view", stage, "--show", "lgh", "--lgh-level", "99", "--png", str(tmp_path / "w.png")]) != 0
     assert "--lgh-level 99" in capsys.readouterr().err
+
+
+def test_a_distant_light_draws_without_a_warning(offscreen, new_stage, tmp_path):
+    """Issue 55, item 8: a distant light's arrow printed pyvista's four-line deprecation warning (positional
+    ``pv.Arrow`` arguments) on every ``usdml view``, ``-q`` or not."""
+    stage = new_stage()
+    add_cube_mesh(stage, "/World/box")
+    UsdLux.DistantLight.Define(stage, "/World/sun")
+    stage.Save()
+    run = subprocess.run([sys.executable, "-m", "usdml.cli", "view", stage.GetRootLayer().realPath, "--png",
+                          str(tmp_path / "sun.png"), "--window-size", "64,48"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0 and run.stderr == "", run.stderr
+    assert "lights 1" in run.stdout
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_a_third_party_warning_is_one_line_and_q_hides_it(monkeypatch, capsys, quiet):
+    """Issue 55, item 8: a Python warning of a library usdml calls (pyvista's here) is one ``usdml: warning:``
+    line, as usdml's own, and ``-q`` hides it."""
+    from pyvista.core.errors import PyVistaDeprecationWarning
+
+    def warns(*args, **kwargs):
+        warnings.warn("\nArguments 'start' must be passed as keyword arguments to function 'Arrow'.\nFrom version "
+                      "0.50, passing these as positional arguments will result in a TypeError.",
+                      PyVistaDeprecationWarning)
+        return {}
+
+    monkeypatch.setattr("usdml.view.view", warns)
+    assert main(["view", str(STAGES / "cornell.usda"), "--png", "x.png", *(["-q"] if quiet else [])]) == 0
+    err = capsys.readouterr().err
+    assert err.splitlines() == ([] if quiet else [
+        "usdml: warning: pyvista: Arguments 'start' must be passed as keyword arguments to function 'Arrow'. "
+        "(PyVistaDeprecationWarning)"])

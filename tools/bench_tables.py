@@ -553,6 +553,25 @@ def cache_rows(data: dict) -> list[str]:
                    "raw words s", "load vs raw", "first render s, voxel / exact"], rows)
 
 
+def command_timing(data: dict) -> list[str]:
+    """``tools/command_timing.py --json``: a render command as a user runs it, per backend and cache state: the
+    command's seconds (and CPU seconds), its frames' and the speed-ups over exact's run, on the machine the data
+    names."""
+    rows = []
+    for run in _runs(data):
+        m = run["output"]["machine"]
+        for r in run["output"]["runs"]:
+            first, *later = r["frame_seconds"]
+            ratio = {k: f"{r[k + '_speedup_vs_exact']:.1f}×" if k + "_speedup_vs_exact" in r else "1×"
+                     for k in ("command", "cpu", "later_frames")}
+            rows.append([f"`{r['visibility']}`", r["cache"], f"{r['seconds']:.1f} ({r['cpu_seconds']:.1f})",
+                         f"{first:.1f}; " + ", ".join(f"{s:.1f}" for s in later),
+                         f"{ratio['command']} ({ratio['cpu']})", ratio["later_frames"],
+                         f"{m['cpu']}, {m['cores']} cores, {m['vector']}; {r['load_average']:.1f}"])
+    return _table(["backend", "cache", "command s (CPU s)", "frame s (first; later)", "vs exact, command (CPU s)",
+                   "vs exact, later frames", "machine; load average before the run"], rows)
+
+
 RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
@@ -561,7 +580,7 @@ RENDERERS = {
     "gi-svo": gi_svo, "insm": insm_rows, "insm-dynamic": insm_dynamic, "insm-frame": frame_speed,
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
     "budget": budget_rows, "lgh-suite": lgh_suite_rows,
-    "lgh-suite-pt": lgh_pathtrace_rows, "lgh-split": lgh_split_rows,
+    "lgh-suite-pt": lgh_pathtrace_rows, "lgh-split": lgh_split_rows, "readme-render": command_timing,
 }
 
 
@@ -599,6 +618,11 @@ FIGURES: dict[str, tuple[str, str, str]] = {
     "city-voxel-matrix-128-2-eps-v": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "eps_v"), "p2"),
     "city-voxel-matrix-128-2-eps-s": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "eps_s"), "p2"),
     "city-voxel-frame-vs-exact": ("frame-speed", "runs.0.output.0.voxel_speedup_vs_exact", "x1"),
+    # the README's render command as written (320 px, 4 rays per pixel, frames 1:3), exact and voxel, whole commands
+    **{f"city-readme-voxel-{name}-vs-exact": ("readme-render", f"runs.0.output.runs.[visibility=voxel,cache={cache}]"
+                                                               f".{field}_speedup_vs_exact", "x1")
+       for name, cache, field in (("command", "full", "command"), ("first-command", "empty", "command"),
+                                  ("later-frames", "full", "later_frames"))},
     "city-voxel-matrix-128-6-build-s": (_MATRIX[0], _MATRIX[1].format(128, 6.0, "build_seconds"), "s1"),
     "city-voxel-matrix-128-2-build-s": (_MATRIX[0], _MATRIX[1].format(128, 2.0, "build_seconds"), "s0"),
     # Alg. 5 against Alg. 1 on the creature (the per-frame array's rebuild)

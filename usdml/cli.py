@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
+import warnings
 
 from usdml.params import (BAKE, BENCH, COMPARE, INFO, RENDER, add_cmdline_args, options_from_args,
                           overrides_from_args, purpose_list)
@@ -262,12 +264,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
-    """``usdml cache list|clean``: what the on-disk cache holds, and emptying it."""
+    """``usdml cache [list|clean]``: what the on-disk cache holds (with no action too), and emptying it."""
     from usdml.cache import Cache
     from usdml.errors import UsdmlError
 
     cache = Cache(args.cache)
     if args.action == "list":
+        if args.older_than is not None:
+            logging.getLogger("usdml").warning("--older-than is ignored: it applies to usdml cache clean")
         entries = cache.entries()
         total = sum(e.bytes for e in entries)
         if args.json:
@@ -377,8 +381,9 @@ def build_parser() -> argparse.ArgumentParser:
     bake.set_defaults(run=_cmd_bake)
 
     cache = sub.add_parser("cache", help="list or empty the on-disk cache of voxel arrays and octrees")
-    cache.add_argument("action", choices=("list", "clean"), help="list: entries, sizes, last use; clean: remove "
-                       "entries (all of them unless --older-than)")
+    cache.add_argument("action", nargs="?", choices=("list", "clean"), default="list",
+                       help="list: entries, sizes, last use (the default); clean: remove entries (all of them unless "
+                       "--older-than)")
     cache.add_argument("--older-than", type=float, metavar="DAYS", help="clean: only entries last used more than "
                        "DAYS days ago")
     cache.add_argument("--cache", metavar="DIR", help="cache folder (default: $USDML_CACHE_DIR, else ~/.cache/usdml)")
@@ -421,6 +426,16 @@ class _OneLine(logging.Handler):
         print(f"usdml: {record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning (pyvista's, Dask's, NumPy's ...) as one ``usdml: warning:`` line through the ``usdml``
+    logger, so ``-q`` hides it with usdml's own: the package whose category it is (else the file and line
+    that warned), the message's first line and the category."""
+    text = next((part.strip() for part in str(message).splitlines() if part.strip()), "")
+    package = category.__module__.partition(".")[0]
+    where = package if package != "builtins" else f"{os.path.basename(filename)}:{lineno}"
+    logging.getLogger("usdml").warning(f"{where}: {text} ({category.__name__})")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -444,7 +459,9 @@ def main(argv: list[str] | None = None) -> int:
     from usdml.errors import UsdmlError
 
     try:
-        return args.run(args)
+        with warnings.catch_warnings():       # restored on return: main() may run inside a script or a test
+            warnings.showwarning = _warning_line
+            return args.run(args)
     except UsdmlError as e:
         print(f"usdml: error: {e}", file=sys.stderr)
         return 2

@@ -56,7 +56,7 @@ def _square(n: int) -> bool:
     return s * s == n and 1 <= n <= MAX_PIXEL_SAMPLES
 
 
-_SQUARE_RULE = f"a square number from 1 to {MAX_PIXEL_SAMPLES} (1, 4, 9, 16, ...: an s x s stratified grid)"
+_SQUARE_RULE = f"a square number from 1 to {MAX_PIXEL_SAMPLES} (1, 4, 9, 16, ...: s x s rays)"
 
 
 def _names(value) -> bool:
@@ -142,8 +142,8 @@ _SETTINGS = (
     # -- sampling
     Param("dome_samples", int, 256, "distant lights each DomeLight is importance-sampled into per frame", **LIT,
           range=Range(1), metavar="K", source="measured (usdml.lighting.dome): 1.0 % mean irradiance error at 256"),
-    Param("pixel_samples", int, 4, "primary rays per pixel, a square number (an s x s stratified grid, box "
-          "filter); 1 = the pixel centre", (RENDER,), LIGHTING, attribute="usdml:pixelSamples", metavar="N",
+    Param("pixel_samples", int, 4, "primary rays per pixel, a square number s x s (correlated multi-jittered: "
+          "one in each cell of an s x s grid and in each thin row and column; box filter); 1 = the pixel centre", (RENDER,), LIGHTING, attribute="usdml:pixelSamples", metavar="N",
           valid=_square, rule=_SQUARE_RULE, source="measured (usdml): halves edge error at 4"),
     Param("seed", int, 0, "random seed (VPLs, shadow samples, dome light sampling)", **LIT, range=Range(0),
           metavar="N"),

@@ -115,6 +115,21 @@ def job_frames(frames) -> str | list[float] | None:
     return timecodes([frames] if isinstance(frames, Number) else frames)
 
 
+def _one_way_to_run(options: dict, flags: bool) -> None:
+    """A one-line error for both ``workers`` and ``scheduler``: two ways of running the frames, refused when
+    the recorder is made, before a stage is read or a scheduler waited for."""
+    if options["workers"] is None or options["scheduler"] is None:
+        return
+    workers, scheduler = params.OPTIONS["workers"], params.OPTIONS["scheduler"]
+    if flags:
+        given = f"{workers.flag} {options['workers']} and {scheduler.flag} {options['scheduler']}"
+        choose = f"{workers.flag} N (a local cluster) or {scheduler.flag} ADDRESS (a running one)"
+    else:
+        given = f"Recorder: workers={options['workers']!r} and scheduler={options['scheduler']!r}"
+        choose = "workers (a local cluster) or scheduler (a running one)"
+    raise UsdmlError(f"{given}: two ways of running the frames; give {choose}, not both")
+
+
 class Recorder:
     """Renders frames of a stage to EXR (module doc). Keyword arguments: :data:`RENDER_OPTIONS` and the
     parameter table's fields; a stage's own ``usdml:*`` attributes apply where a keyword is not given,
@@ -130,6 +145,7 @@ class Recorder:
             row = params.OPTIONS[name]
             if value is not None and not row.accepts(value):
                 raise UsdmlError(f"{row.flag if _flags else 'Recorder: ' + name} {value!r}: give {row.rule}")
+        _one_way_to_run(self.options, _flags)
         self.overrides = {k: v for k, v in settings.items() if k in params.PARAMS and v is not None}
         for name, value in self.overrides.items():
             params.check(name, value, keyword=not _flags)

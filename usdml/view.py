@@ -217,7 +217,9 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
         for i in np.flatnonzero(~point):
             d = -np.asarray(L.axis[i], np.float64)
             start = centre + d / np.linalg.norm(d) * 0.6 * size
-            plotter.add_mesh(pv.Arrow(start, -d / np.linalg.norm(d), scale=0.25 * size), color=colour[i])
+            # keywords: positional ones are deprecated in pyvista 0.49 and refused from 0.50
+            arrow = pv.Arrow(start=start, direction=-d / np.linalg.norm(d), scale=0.25 * size)
+            plotter.add_mesh(arrow, color=colour[i])
         drawn["lights"] = int(len(L))
     if "voxels" in show:
         centres, h = occupied_voxels(snap, octree_resolution, bounds)

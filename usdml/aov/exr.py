@@ -348,7 +348,7 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
 
     path = Path(path)
     if not path.is_file():
-        raise ExrError(f"{path}: no such EXR file")
+        raise ExrError(f"{path}: no such EXR file; check the path")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
             header = dict(f.header())

@@ -75,7 +75,8 @@ def frame_spec(spec: str | Sequence[float] | None, stage_start: float | None = N
         return timecodes(spec, max_frames=max_frames)
     if spec is None or not str(spec).strip():
         if stage_start is None:
-            raise FrameSpecError("no --frames given and the stage has no start timecode")
+            raise FrameSpecError("no --frames given and the stage has no start timecode; give --frames (e.g. "
+                                 "--frames 1) or author the stage's startTimeCode")
         return [float(stage_start)]
     from pxr import Tf, UsdUtils
 

@@ -2,7 +2,7 @@
 
 Pixel (x, y) spans ``[x, x + 1) / W × [y, y + 1) / H`` of the film, row 0 at the top; a ray goes
 through the point ``offsets`` places in it (the centre, ``(½, ½)``, unless :func:`pixel_offsets`
-asks for stratified sub-pixel positions). Rays
+asks for correlated multi-jittered sub-pixel positions). Rays
 start on the near clipping plane and end on the far one, so clipping is honoured. Each hit has two
 normals: the geometric normal of the triangle hit (Embree's), turned to face the camera (usdml
 shades both sides of every surface), and the shading normal interpolated from the mesh's per-corner

@@ -22,7 +22,7 @@ def select_camera(stage: Usd.Stage, requested: str | None, cameras: list[Usd.Pri
     if requested:
         if requested.startswith("/"):
             if not Sdf.Path.IsValidPathString(requested):
-                raise UsdmlError(f"--camera {requested!r} is not a valid prim path")
+                raise UsdmlError(f"--camera {requested!r} is not a valid prim path" + _choices(cameras))
             prim = stage.GetPrimAtPath(requested)
             if not prim or not prim.IsA(UsdGeom.Camera):
                 raise UsdmlError(f"camera {requested!r} not found on the stage"

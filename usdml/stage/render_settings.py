@@ -16,13 +16,23 @@ def settings_prim(stage: Usd.Stage, explicit: str | None) -> Usd.Prim | None:
         return None
     where = "--renderSettingsPrimPath" if explicit else "the stage's renderSettingsPrimPath metadata"
     if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
-        raise UsdmlError(f"{where}: {path!r} is not an absolute prim path")
+        raise UsdmlError(f"{where}: {path!r} is not an absolute prim path; {_settings_choices(stage, explicit)}")
     prim = stage.GetPrimAtPath(path)
     if not prim or not prim.IsA(UsdRender.Settings):
-        found = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
-        raise UsdmlError(f"{where}: no RenderSettings prim at {path}"
-                         + (f"; RenderSettings on the stage: {', '.join(found)}" if found else ""))
+        kind = f"a prim of type {prim.GetTypeName()}" if prim and prim.GetTypeName() else "a typeless prim"
+        what = f"{path} is {kind}, not RenderSettings" if prim else f"no RenderSettings prim at {path}"
+        raise UsdmlError(f"{where}: {what}; {_settings_choices(stage, explicit)}")
     return prim
+
+
+def _settings_choices(stage: Usd.Stage, explicit: str | None) -> str:
+    """What to do about a RenderSettings path that names none: give one of the stage's (listed as
+    ``--camera`` lists cameras), or do without."""
+    found = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
+    if found:
+        return f"RenderSettings on the stage: {', '.join(found[:8])} (give one with --renderSettingsPrimPath)"
+    return "the stage has no RenderSettings prim (" + ("omit --renderSettingsPrimPath)" if explicit else
+                                                        "fix or remove its renderSettingsPrimPath metadata)")
 
 
 def _target(rel) -> str | None:
