@@ -80,9 +80,9 @@ def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
 ALBEDO = 0.5
 
 
-def ground_stage(new_stage, light):
-    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``."""
-    stage = new_stage(start=1, end=1)
+def ground_stage(new_stage, light, name: str = "s.usda"):
+    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``, saved as ``name``."""
+    stage = new_stage(name, start=1, end=1)
     ground = add_quad(stage, "/World/ground", size=40)
     ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
     cam = UsdGeom.Camera.Define(stage, "/World/main_cam")

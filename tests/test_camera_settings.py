@@ -1,5 +1,9 @@
 """Camera selection as usdrecord does it, camera parameters, RenderSettings and usdml's schema."""
 
+import math
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
@@ -44,6 +48,66 @@ def test_first_camera_then_framing_camera(new_stage, tmp_path):
     clip = (cam.projection_matrix() @ np.linalg.inv(cam.xform) @ corners.T).T
     ndc = clip[:, :3] / clip[:, 3:]
     assert (clip[:, 3] > 0).all() and (np.abs(ndc) <= 1).all()
+
+
+#: usdrecord's framing of a cube (UsdAppUtils' FrameRecorder): its face toward the camera, whose half diagonal
+#: fills half the width (1/√2 of it), and that times the film back's aspect 20.955 / 15.2908 of the height
+CUBE_WIDTH = 1 / math.sqrt(2)
+CUBE_HEIGHT = CUBE_WIDTH * 20.955 / 15.2908
+
+
+@pytest.mark.parametrize("up", ["Y", "Z"])
+def test_framing_camera_centres_a_cube_and_fills_the_frame(tmp_path, up):
+    """A unit cube at (3, -2, 7) with no camera: its projected bounds are centred and fill CUBE_WIDTH of the
+    image's width and CUBE_HEIGHT of its height, by the camera's projection and in the rendered pixels."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "cube.usda"))
+    UsdGeom.SetStageUpAxis(stage, up)
+    add_cube_mesh(stage, "/cube").AddTranslateOp().Set((3, -2, 7))
+    stage.Save()
+    d = StageDelegate(str(tmp_path / "cube.usda"))
+    cam = d.snapshot(0).camera
+    assert cam.path == "" and cam.focal_length == 50
+    world_up = [0, 0, 1] if up == "Z" else [0, 1, 0]
+    assert np.allclose(cam.xform[:3, 1], world_up)      # the stage's up is up in the image
+    corners = np.array([[3 + x, -2 + y, 7 + z, 1] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    clip = (cam.projection_matrix() @ np.linalg.inv(cam.xform) @ corners.T).T
+    ndc = clip[:, :2] / clip[:, 3:]
+    np.testing.assert_allclose(ndc.min(axis=0), [-CUBE_WIDTH, -CUBE_HEIGHT], rtol=1e-9)
+    np.testing.assert_allclose(ndc.max(axis=0), [CUBE_WIDTH, CUBE_HEIGHT], rtol=1e-9)
+
+    width, height = cam.resolution(48)
+    assert (width, height) == (48, 35)
+    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1))
+    try:
+        depth = r.render(0, width, height, {"depth"}).buffers["depth"]
+    finally:
+        r.close()
+    rows, cols = np.nonzero(np.isfinite(depth.reshape(height, width)))
+    assert abs((cols.min() + cols.max() + 1) / 2 - width / 2) <= 1
+    assert abs((rows.min() + rows.max() + 1) / 2 - height / 2) <= 1
+    assert abs((cols.max() - cols.min() + 1) / width - CUBE_WIDTH) <= 1.5 / width
+    assert abs((rows.max() - rows.min() + 1) / height - CUBE_HEIGHT) <= 1.5 / height
+
+
+def test_no_camera_warns_once_and_quiet_hides_it(tmp_path):
+    stage = Usd.Stage.CreateNew(str(tmp_path / "nocam.usda"))
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(3)
+    add_cube_mesh(stage, "/box")
+    stage.Save()
+    argv = [sys.executable, "-m", "usdml.cli", "render", str(tmp_path / "nocam.usda"), str(tmp_path / "o.####.exr"),
+            "--frames", "1:3", "--imageWidth", "16", "--pixel-samples", "1"]
+    loud = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert loud.returncode == 0, loud.stderr
+    lines = [line for line in loud.stderr.splitlines() if "no camera" in line]
+    assert lines == [f"usdml: warning: {tmp_path / 'nocam.usda'}: no camera; framing the scene with usdml's own camera "
+                     "(usdrecord's: a 50 mm lens looking -Z at the centre of its bounds); add a UsdGeom.Camera "
+                     "(named main_cam, or chosen with --camera)"]
+    quiet = subprocess.run(argv + ["-q"], capture_output=True, text=True, timeout=300)
+    assert quiet.returncode == 0 and "no camera" not in quiet.stderr
 
 
 def test_camera_parameters(new_stage):

@@ -8,7 +8,7 @@ import pytest
 import usdml  # noqa: F401
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
-from usdml.errors import UsdmlError, Warnings
+from usdml.errors import Warnings
 from usdml.lighting.direct import shade_direct
 from usdml.lighting.dome import LUMA, dome_irradiance, dome_to_distant_lights
 from usdml.scene import Dome, LightType, latlong_directions
@@ -219,9 +219,9 @@ def test_read_constant_dome():
     light.CreateColorTemperatureAttr(3000.0)
     warm, _ = _read(light)
     assert np.allclose(warm.radiance, dome.radiance * np.array(UsdLux.BlackbodyTemperatureAsRgb(3000.0)))
-    light.CreateIntensityAttr(-1.0)
-    with pytest.raises(UsdmlError, match="negative intensity"):
-        _read(light)
+    light.CreateIntensityAttr(-1.0)                 # a dome that takes light away
+    negative, _ = _read(light)
+    assert np.allclose(negative.radiance, -warm.radiance / 2)
 
 
 def test_read_not_a_dome():

@@ -93,9 +93,10 @@ def test_an_in_memory_stage_renders(tmp_path):
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     add_quad(stage, "/World/ground", size=20)
+    add_cube_mesh(stage, "/World/box")          # the framing camera looks along -Z: the ground alone is edge-on
     light = UsdLux.SphereLight.Define(stage, "/World/bulb")
     light.CreateIntensityAttr(50.0)
-    light.AddTranslateOp().Set((0, 5, 0))
+    light.AddTranslateOp().Set((0, 5, 5))
     result = usdml.Recorder(image_width=12, aovs=["direct"]).record(stage, 0, str(tmp_path / "mem.exr"))
     img, meta = read_exr(result.files[0])
     assert img["direct"].max() > 0

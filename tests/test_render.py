@@ -191,12 +191,12 @@ def test_resume_renders_again_frames_made_with_other_settings(new_stage, tmp_pat
     capsys.readouterr()
     assert main(render + ["1:4", "--imageWidth", "24", "--resume"]) == 0
     text = capsys.readouterr().out
-    assert text.startswith("rendered 4 frame(s) at 24x14") and "4 stale (other settings), rendered again" in text
+    assert text.startswith("rendered 4 frame(s) at 24x18") and "4 stale (other settings), rendered again" in text
     assert "already complete" not in text
     aovs, meta = read_exr(tmp_path / "seq.0001.exr")
-    assert aovs["color"].shape == (14, 24, 4)
+    assert aovs["color"].shape == (18, 24, 4)
     written = json.loads(meta["usdml:settings"])
-    assert written["resolution"] == [24, 14] and written["params"]["pixel_samples"] == 1
+    assert written["resolution"] == [24, 18] and written["params"]["pixel_samples"] == 1
     assert written["stage"]["path"] == path and written["camera"] == "(framing)"
     assert meta["usdml:settingsDigest"] == "sha256:" + hashlib.sha256(meta["usdml:settings"].encode()).hexdigest()
 

@@ -201,10 +201,10 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     if "lights" in show and len(snap.lights):
         L = snap.lights
         point = L.type != LightType.DISTANT
-        rgb = np.asarray(L.radiance, np.float64)
+        rgb = np.abs(np.asarray(L.radiance, np.float64))     # a negative light (it takes light away) by its magnitude
         colour = np.clip(rgb / np.maximum(rgb.max(axis=1, keepdims=True), 1e-12), 0, 1)
         if point.any():
-            power = np.asarray(L.intensity, np.float64)[point].mean(axis=1)
+            power = np.abs(np.asarray(L.intensity, np.float64)[point]).mean(axis=1)
             scale = np.log1p(power / max(np.median(power), 1e-12))
             radius = 0.006 * size * (0.5 + scale / max(scale.max(), 1e-12))
             cloud = pv.PolyData(np.asarray(L.position, np.float64)[point])

@@ -233,13 +233,16 @@ def dome_to_distant_lights(dome: Dome, count: int = DEFAULT_COUNT, seed: int = 0
     """``count`` DISTANT lights standing for ``dome`` (see the module doc), deterministic for ``seed``.
 
     ``meters_per_unit`` is accepted for symmetry with :func:`usdml.stage.lights.expand`; distant lights
-    carry irradiance, which does not depend on scene units. A dome that emits nothing gives no lights.
+    carry irradiance, which does not depend on scene units. A dome that emits nothing gives no lights; one
+    of negative intensity (it takes light away) is sampled as its magnitude and gives negative lights.
     """
     del meters_per_unit
     count = int(count)
     if count < 0:
         raise ValueError(f"dome light sample count must be >= 0, got {count}")
     radiance = np.asarray(dome.radiance, np.float64).reshape(3)
+    sign = -1.0 if (radiance < 0).any() else 1.0        # colours are >= 0: every channel has the intensity's sign
+    radiance = sign * radiance
     if count == 0 or not (radiance > 0).any():
         return Lights.empty()
     rng = np.random.default_rng(seed)
@@ -259,7 +262,7 @@ def dome_to_distant_lights(dome: Dome, count: int = DEFAULT_COUNT, seed: int = 0
     world /= np.linalg.norm(world, axis=1, keepdims=True)
     keep = (e > 0).any(axis=1)
     ids = np.nonzero(keep)[0].astype(np.int64)
-    world, e, big_l = world[keep], e[keep], np.asarray(big_l)[keep]
+    world, e, big_l = world[keep], sign * e[keep], sign * np.asarray(big_l)[keep]
     n = len(world)
 
     # light-to-world frames: +Z toward the sky sample, so the light's −Z (its axis) is the travel direction

@@ -238,6 +238,7 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     softness = np.asarray(lights.cone_softness, np.float64)
     focus = np.asarray(lights.focus, np.float64)
     tint = np.asarray(lights.focus_tint, np.float64).reshape(n, 3)
+    # a light of negative intensity emits no VPLs: its paths would carry negative flux (docs/gi.md)
     intensity = np.maximum(np.asarray(lights.intensity, np.float64).reshape(n, 3), 0.0)
     a_iso = np.radians(np.clip(cone, 0.0, 180.0))
     a_cos = np.radians(np.clip(cone, 0.0, 90.0))

@@ -147,7 +147,7 @@ class LghDirect(EveryLight):
         if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:
             log.warning(f"{self.where}: --direct lgh: none of its {len(self.field.rest)} light(s) at time "
                         f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
-                        "cones or focus, shadows off, black): all are shaded every-light, as --direct all")
+                        "cones or focus, shadows off, black or negative): all are shaded every-light, as --direct all")
             self._told_no_grid = True
 
     def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
@@ -210,6 +210,7 @@ class VplGI(NoGI):
         self.estimate = None                    # --gi lgh: the frame's error estimate (usdml.render.lighting_estimate)
         self.target_lift = 0.0
         self._told_no_vpls = False
+        self._told_negative = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.gi import prepare_vpls
@@ -220,6 +221,11 @@ class VplGI(NoGI):
         self.estimate = gi_estimator(self.field, frame, self.rays.occluded, self.settings)
         stats.gi_seconds = self.field.stats["vpl_seconds"] + self.field.stats.get("lgh_seconds", 0.0)
         self.target_lift = target_lift(self.backends.gi) if self.backends.gi is not None else 0.0
+        negative = int(frame.lights.negative().sum())
+        if negative and not self._told_negative:
+            log.warning(f"{self.where}: --gi {self.settings.gi}: {negative} light(s) of negative intensity at time "
+                        f"{frame.snap.time:g} emit no VPLs: they take away direct light only, not indirect")
+            self._told_negative = True
 
     def gather(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats) -> np.ndarray:
         t0 = _time.perf_counter()
@@ -230,6 +236,7 @@ class VplGI(NoGI):
         if gi.stats.get("vpls") == 0 and not self._told_no_vpls:
             n = len(frame.lights)
             why = ("the stage has no lights (a camera light adds no indirect light)" if n == 0
+                   else f"its {n} light(s) have negative intensity" if frame.lights.negative().all()
                    else f"no light path from its {n} light(s) reached the geometry")
             log.warning(f"{self.where}: --gi {self.settings.gi}: no VPLs at time {frame.snap.time:g}: {why}; "
                         "indirect is 0")

@@ -122,7 +122,8 @@ class Lights:
     point-like evaluation needs: radiant intensity along the axis in nit·m² (sphere/point: L·π·r²,
     disk: L·π·r², rect: L·w·h, lengths in metres), to be divided by the squared distance in metres;
     for cylinders the intensity perpendicular to their axis, L·2r·length (the side's projected area);
-    or, for distant lights, the irradiance at normal incidence.
+    or, for distant lights, the irradiance at normal incidence. Both are negative for a light of negative
+    intensity (:meth:`negative`).
     """
 
     type: np.ndarray            #: (N,) int8 :class:`LightType`
@@ -177,6 +178,11 @@ class Lights:
             v = getattr(self, f.name)
             kw[f.name] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
         return replace(self, **kw)
+
+    def negative(self) -> np.ndarray:
+        """``(N,) bool``: the lights of negative intensity, which take light away (UsdLux allows it; colours
+        are >= 0, so every channel has the intensity's sign)."""
+        return (np.asarray(self.intensity).reshape(-1, 3) < 0).any(axis=1)
 
     def cylinder_axis(self) -> np.ndarray:
         """(N, 3) float64 unit world direction of each light's local X (a cylinder light's axis)."""

@@ -70,25 +70,36 @@ def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
         projection="orthographic" if cam.projection == cam.Orthographic else "perspective")
 
 
-def framing_camera(bounds: tuple[np.ndarray, np.ndarray], up_axis: str, aspect: float = 16 / 9) -> Camera:
-    """A perspective camera looking at the bounds' centre from above and in front, seeing all of it."""
-    lo, hi = bounds
+#: usdrecord's camera for a stage without one is a default ``GfCamera``: a 50 mm lens on the 35 mm
+#: Academy film back (UsdAppUtils' FrameRecorder, ``_ComputeCameraToFrameStage``)
+FRAMING_FOCAL_LENGTH = 50.0
+FRAMING_APERTURE = (20.955, 15.2908)
+
+
+def framing_camera(bounds: tuple[np.ndarray, np.ndarray], up_axis: str) -> Camera:
+    """usdrecord's framing camera for ``bounds`` (``(3,)`` world min and max corners, scene units).
+
+    As UsdAppUtils' FrameRecorder frames a stage without a camera: a 50 mm lens on a 20.955 × 15.2908 film
+    back (:data:`FRAMING_APERTURE`), looking at the bounds' centre along the stage's forward axis (down -Z
+    from +Z for Y up; along +Y from -Y for Z up, Z up in the image), from where the half diagonal of the
+    bounds' face toward it fills half the horizontal field of view, backed off by half the bounds' depth.
+    The subject is centred and fills the width to ``w / diagonal`` of the face (a cube: 1/√2 of the
+    width, 0.97 of the height)."""
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
     center = (lo + hi) / 2
-    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-3)
-    focal, h_ap = 35.0, 36.0
-    v_ap = h_ap / aspect
-    half_fov = np.arctan(min(h_ap, v_ap) / (2 * focal))
-    dist = radius / np.sin(half_fov) * 1.05
-    up = np.array([0.0, 0.0, 1.0]) if up_axis == "Z" else np.array([0.0, 1.0, 0.0])
-    side = np.array([1.0, 0.0, 0.0])
-    front = np.cross(side, up)      # +Z for Y-up, -Y for Z-up
-    view = 0.7 * front + 0.45 * up + 0.55 * side
-    eye = center + dist * view / np.linalg.norm(view)
-    back = (eye - center) / np.linalg.norm(eye - center)           # camera +Z
-    x = np.cross(up, back)
-    x /= np.linalg.norm(x)
-    y = np.cross(back, x)
+    dim = hi - lo
+    z_up = up_axis == "Z"
+    width, height, depth = (dim[0], dim[2], dim[1]) if z_up else (dim[0], dim[1], dim[2])
+    h_ap, v_ap = FRAMING_APERTURE
+    plane_radius = max(float(np.hypot(width, height)) / 2, 1e-3)
+    # tan(half horizontal field of view) = h_ap / (2 f)
+    dist = plane_radius * 2 * FRAMING_FOCAL_LENGTH / h_ap + depth / 2
     xform = np.eye(4)
-    xform[:3, 0], xform[:3, 1], xform[:3, 2], xform[:3, 3] = x, y, back, eye
-    return Camera(path="", xform=xform, focal_length=focal, horizontal_aperture=h_ap,
-                  vertical_aperture=v_ap, clipping_range=(max(dist - radius, 1e-3) * 0.5, (dist + radius) * 2))
+    if z_up:        # rotated 90° about X: the camera's -Z looks along +Y, its +Y is the world's +Z
+        xform[:3, 1], xform[:3, 2] = (0.0, 0.0, 1.0), (0.0, -1.0, 0.0)
+        xform[:3, 3] = center - (0.0, dist, 0.0)
+    else:
+        xform[:3, 3] = center + (0.0, 0.0, dist)
+    radius = max(float(np.linalg.norm(dim)) / 2, 1e-3)      # the bounds' sphere, for the clipping range
+    return Camera(path="", xform=xform, focal_length=FRAMING_FOCAL_LENGTH, horizontal_aperture=h_ap,
+                  vertical_aperture=v_ap, clipping_range=(max(dist - radius, 1e-3 * dist) * 0.5, (dist + radius) * 2))

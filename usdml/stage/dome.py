@@ -187,8 +187,9 @@ def read_dome(prim: Usd.Prim, time: Usd.TimeCode, to_world4x4: np.ndarray,
     """The dome light ``prim`` at ``time``; None for prims that are not dome lights.
 
     ``to_world4x4`` is the prim's local-to-world ``(4, 4)`` matrix in the column convention
-    (``p_world = M @ [p, 1]``). Invalid values (NaN, negative intensity or colour) raise
-    :class:`UsdmlError` like :func:`usdml.stage.lights.read_light`; texture problems only warn.
+    (``p_world = M @ [p, 1]``). Invalid values (NaN, infinities, a negative colour) raise
+    :class:`UsdmlError` like :func:`usdml.stage.lights.read_light`; texture problems only warn. A negative
+    intensity gives a negative ``radiance``: a dome that takes light away.
     """
     if not is_dome(prim):
         return None

@@ -12,7 +12,10 @@ Radiometry (UsdLux, README "Light units"):
 * distant lights: irradiance at normal incidence ``E = L · π · sin²(angle / 2)``, or with ``normalize``
   ``E = intensity · 2^exposure · color`` (lux); an unnormalized zero-angle distant light uses ``E = L``.
 
-``inputs:diffuse`` is folded into L because usdml shades Lambertian surfaces only.
+``inputs:diffuse`` is folded into L because usdml shades Lambertian surfaces only. A negative
+``inputs:intensity`` is a light that takes light away (UsdLux allows it; Karma renders it): its L, I and E
+are negative, every channel (colours stay >= 0), and the shading sums it like any other light
+(docs/usd.md, "Negative lights").
 """
 
 from __future__ import annotations
@@ -65,8 +68,8 @@ def _finite(path: str, name: str, value, what: str = "") -> float | np.ndarray:
 def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0) -> np.ndarray:
     """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) · diffuse, (3,).
 
-    Raises :class:`UsdmlError` naming the attribute for NaN/inf, negative intensity or colour, or an
-    exposure that overflows.
+    Negative where ``inputs:intensity`` is (a light that takes light away). Raises :class:`UsdmlError`
+    naming the attribute for NaN/inf, a negative colour, or an exposure that overflows.
     """
     path = str(prim.GetPath())
 
@@ -77,8 +80,6 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
     exposure = float(value("inputs:exposure", 0.0))
     color = value("inputs:color", (1.0, 1.0, 1.0))
     diffuse = float(value("inputs:diffuse", 1.0))
-    if intensity < 0:
-        raise UsdmlError(f"{path}.inputs:intensity: negative intensity {intensity}; use a value >= 0")
     if (color < 0).any():
         raise UsdmlError(f"{path}.inputs:color: negative color {tuple(color)}; use components >= 0")
     if exposure > 64:

@@ -17,7 +17,10 @@ one LGH, two light sources. Per frame:
    Everything else is shaded every-light through the visibility backend, exactly as ``--direct all``
    does: distant lights (and the distant lights a dome is sampled into), cylinder lights, lights with
    a shaping cone or focus (their profile is not a cosine lobe), lights with ``shadow:enable`` off,
-   and lights of zero luminance (they light nothing and would only stand in the grid's counts).
+   lights of zero luminance (they light nothing and would only stand in the grid's counts) and lights of
+   negative intensity (they take light away: the hierarchy sums intensities into grid lights and draws its
+   shadow rays by luminance, neither of which holds a negative light), so ``--direct lgh`` shades those exactly
+   as ``--direct all`` does.
 2. **Build** the hierarchy over the grid lights, levels by the paper's rule (``usdml:lgh:levels``
    0) unless set.
 3. **Shade**: every pixel gathers the lights themselves within ``alpha h_1`` (level S0: the near field
