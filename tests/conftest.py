@@ -80,18 +80,25 @@ def instance_world_points(proto, mesh_index: int = 0) -> np.ndarray:
 ALBEDO = 0.5
 
 
-def ground_stage(new_stage, light, name: str = "s.usda"):
-    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``, saved as ``name``."""
-    stage = new_stage(name, start=1, end=1)
-    ground = add_quad(stage, "/World/ground", size=40)
-    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+def add_top_camera(stage, height: float = 15.0):
+    """``/World/main_cam`` looking straight down at the origin from ``height`` (90 degrees of view, square): a
+    stage's own camera, so a ground is seen from above and not framed edge-on by usdml's (issue 55)."""
     cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
     cam.CreateFocalLengthAttr(18)
     cam.CreateHorizontalApertureAttr(36)
     cam.CreateVerticalApertureAttr(36)
     cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
-    cam.AddTranslateOp().Set((0, 15, 0))
+    cam.AddTranslateOp().Set((0, height, 0))
     cam.AddRotateXOp().Set(-90)
+    return cam
+
+
+def ground_stage(new_stage, light, name: str = "s.usda"):
+    """A 40 x 40 ground (albedo 0.5) seen from straight above, lit by ``light(stage)``, saved as ``name``."""
+    stage = new_stage(name, start=1, end=1)
+    ground = add_quad(stage, "/World/ground", size=40)
+    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+    add_top_camera(stage)
     light(stage)
     stage.Save()
     return stage.GetRootLayer().realPath

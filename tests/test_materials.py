@@ -7,7 +7,7 @@ import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils
 
-from conftest import add_cube_mesh, add_quad
+from conftest import add_cube_mesh, add_quad, add_top_camera
 from usdml.stage import materials
 from usdml.stage.materials import MaterialResolver, read_texture, srgb_to_linear
 from usdml.stage.mesh import Topology
@@ -568,6 +568,7 @@ def test_a_missing_texture_that_blacks_out_the_frame_says_so(new_stage, tmp_path
     stage = new_stage(start=1, end=1)
     quad = quad_with_st(stage, "/World/q", [(0, 0), (0, 1), (1, 1), (1, 0)])
     bind(quad, textured_material(stage, "/World/Looks/wood", "./wood.png")[0])
+    add_top_camera(stage, 2.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-60)
     stage.Save()
     path = stage.GetRootLayer().realPath

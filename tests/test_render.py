@@ -11,7 +11,7 @@ import pytest
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
 import usdml
-from conftest import ALBEDO, add_cube_mesh, add_quad, assert_direct, ground_stage, render_aovs
+from conftest import ALBEDO, add_cube_mesh, add_quad, add_top_camera, assert_direct, ground_stage, render_aovs
 from usdml.aov.exr import is_complete_exr, read_exr, write_exr
 from usdml.cli import main
 from usdml.errors import UsdmlError
@@ -141,6 +141,7 @@ def test_render_is_deterministic(new_stage, tmp_path):
 def _sequence_stage(new_stage):
     stage = new_stage(start=1, end=4)
     add_quad(stage, "/World/ground", size=10)
+    add_top_camera(stage, 5.0)          # usdml's framing camera would see the ground edge-on (usdrecord's)
     lamp = UsdLux.SphereLight.Define(stage, "/World/lamp")
     op = lamp.AddTranslateOp()
     for t in range(1, 5):
@@ -191,13 +192,13 @@ def test_resume_renders_again_frames_made_with_other_settings(new_stage, tmp_pat
     capsys.readouterr()
     assert main(render + ["1:4", "--imageWidth", "24", "--resume"]) == 0
     text = capsys.readouterr().out
-    assert text.startswith("rendered 4 frame(s) at 24x18") and "4 stale (other settings), rendered again" in text
+    assert text.startswith("rendered 4 frame(s) at 24x24") and "4 stale (other settings), rendered again" in text
     assert "already complete" not in text
     aovs, meta = read_exr(tmp_path / "seq.0001.exr")
-    assert aovs["color"].shape == (18, 24, 4)
+    assert aovs["color"].shape == (24, 24, 4)
     written = json.loads(meta["usdml:settings"])
-    assert written["resolution"] == [24, 18] and written["params"]["pixel_samples"] == 1
-    assert written["stage"]["path"] == path and written["camera"] == "(framing)"
+    assert written["resolution"] == [24, 24] and written["params"]["pixel_samples"] == 1
+    assert written["stage"]["path"] == path and written["camera"] == "/World/main_cam"
     assert meta["usdml:settingsDigest"] == "sha256:" + hashlib.sha256(meta["usdml:settings"].encode()).hexdigest()
 
     same = _json_render(capsys, render + ["1:4", "--imageWidth", "24", "--resume"])
@@ -314,6 +315,7 @@ def test_frames_outside_the_stage_range_render_as_usdrecord_renders_them(new_sta
 
     still = new_stage("still.usda", start=1, end=1)
     add_quad(still, "/World/ground", size=10)
+    add_top_camera(still, 5.0)
     UsdLux.SphereLight.Define(still, "/World/lamp").AddTranslateOp().Set((0, 3, 0))
     still.Save()
     result = usdml.Recorder(image_width=8, pixel_samples=1).record_sequence(
@@ -438,8 +440,8 @@ def test_a_black_or_empty_frame_says_so_and_what_to_check(new_stage, tmp_path, c
                     "--disableCameraLight turned usdrecord's light at the eye off; add a UsdLux light")
 
     def sun(name: str, rotate_x: float) -> str:
-        return ground_stage(lambda **kw: new_stage(name, **kw),
-                            lambda s: UsdLux.DistantLight.Define(s, "/World/sun").AddRotateXOp().Set(rotate_x))
+        return ground_stage(new_stage,
+                            lambda s: UsdLux.DistantLight.Define(s, "/World/sun").AddRotateXOp().Set(rotate_x), name)
 
     below = sun("below.usda", 90)
     assert "no light reaches what the camera sees; check the lights" in blank(below)[0]     # lit from below

@@ -9,7 +9,7 @@ import sys
 import pytest
 from pxr import Tf, UsdGeom, UsdLux, UsdShade
 
-from conftest import add_quad
+from conftest import add_quad, add_top_camera
 from usdml.cli import main
 from usdml.errors import Warnings, cause, collect_warnings
 from usdml.stage.diagnostics import usd_diagnostics, usd_message
@@ -66,6 +66,7 @@ def _usdml(*argv) -> subprocess.CompletedProcess:
 def _lit(new_stage, name: str = "s.usda"):
     stage = new_stage(name)
     add_quad(stage, "/World/ground", size=4)
+    add_top_camera(stage, 4.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-60)
     return stage
 

@@ -135,7 +135,7 @@ def view(stage: str, png: str | None, *, frame: float | None = None, camera: str
     from usdml.stage import StageDelegate
     from usdml.stage.camera import find_cameras, read_camera
 
-    delegate = StageDelegate(stage, camera=camera)
+    delegate = StageDelegate(stage, camera=camera, say_framing=False)      # drawn with pyvista's own camera
     t = delegate.start_time if frame is None else float(frame)
     delegate.check_time(t)
     snap = delegate.snapshot(t)

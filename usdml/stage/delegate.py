@@ -142,7 +142,11 @@ class StageDelegate:
 
     def __init__(self, path: "str | os.PathLike | Usd.Stage", camera: str | None = None,
                  render_settings_path: str | None = None, warn: Warnings | None = None,
-                 purposes: list[str] | None = None, implicit_detail: int = DEFAULT_IMPLICIT_DETAIL):
+                 purposes: list[str] | None = None, implicit_detail: int = DEFAULT_IMPLICIT_DETAIL,
+                 say_framing: bool = True):
+        # say_framing: warn when a stage without a camera is framed by usdml's own camera (``usdml view`` draws
+        # with a camera of its own and passes False)
+        self._say_framing = say_framing
         # an open stage (a pipeline script's, with its session layer or in memory) is read as it is
         opened = path if isinstance(path, Usd.Stage) else None
         self.path = stage_name(opened) if opened is not None else str(path)
@@ -353,9 +357,10 @@ class StageDelegate:
             if bounds is not None:
                 snap.camera = framing_camera(bounds, self.up_axis)
                 forward = "+Y" if self.up_axis == "Z" else "-Z"
-                self.warn(f"{self.path}: no camera; framing the scene with usdml's own camera (usdrecord's: a 50 mm "
-                          f"lens looking {forward} at the centre of its bounds); add a UsdGeom.Camera (named "
-                          "main_cam, or chosen with --camera)")
+                if self._say_framing:
+                    self.warn(f"{self.path}: no camera; framing the scene with usdml's own camera (usdrecord's: a "
+                              f"50 mm lens looking {forward} at the centre of its bounds); add a UsdGeom.Camera "
+                              "(named main_cam, or chosen with --camera)")
         return snap
 
     # ----------------------------------------------------------------------------------------------
