@@ -106,7 +106,7 @@ from typing import Callable
 import numpy as np
 
 from usdml.errors import UsdmlError
-from usdml.parallel import cpu_workers, run_parallel
+from usdml.parallel import cpu_workers, iter_parallel, run_parallel
 from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
 from usdml.visibility.base import (LIGHT_MAJOR, MEMORY_ESTIMATE, REFINE, SHADE_DIRECT, STATS, DirectResult,
                                    VisibilityBackend, all_members, as_flags, as_vectors, scene_sphere, settings_with)
@@ -128,6 +128,9 @@ OFFSET_TEXELS, BIAS_TEXELS = 1.0, 1.0
 NEAR_FRACTION = 1e-5
 #: most bytes of (light, point) answers held at once by :meth:`InsmBackend.shade_direct`
 ANSWER_BYTES = 1 << 27
+#: blocks of consecutive lights the compiled maps shade and sum apart, added in order (a fixed count, so the pixels
+#: do not depend on the threads; 64 keeps 16 threads balanced at a few blocks each)
+LIGHT_BLOCKS = 64
 #: most bytes of maps one CUDA batch rasterizes at once
 CUDA_MAP_BYTES = 1 << 29
 PERSPECTIVE, ORTHOGRAPHIC = 0, 1
@@ -723,9 +726,9 @@ class InsmBackend(VisibilityBackend):
     def _shade_native(self, points, normals, albedo, lights: Lights, meters_per_unit: float, min_distance: float,
                       geometric, refine: tuple | None = None):
         """:meth:`shade_direct` in the compiled maps: each light's map, lookups and share of Alg. 3 in one
-        call (``kernels/include/light_term.h``'s UsdLux rules, the voxel kernel's), per-thread sums added at the
-        end; nothing of (points x lights) is held. With ``refine`` = ``(level, resolve)`` (:meth:`shade_refined`):
-        the result and the number of pairs handed back."""
+        call (``kernels/include/light_term.h``'s UsdLux rules, the voxel kernel's), sums per block of lights
+        added in block order (:data:`LIGHT_BLOCKS`); nothing of (points x lights) is held. With ``refine`` =
+        ``(level, resolve)`` (:meth:`shade_refined`): the result and the number of pairs handed back."""
         from usdml.visibility.insm import native as insm_native
         from usdml.visibility.voxel.native import compiled_lights
 
@@ -746,46 +749,55 @@ class InsmBackend(VisibilityBackend):
         level, resolve = refine if refine is not None else (0, None)
         rule = refine_rule()
 
-        def run(li: int) -> None:
+        def run(block: tuple[int, int]) -> tuple:
+            """The sums over lights ``block[0] .. block[1] - 1``, in light order, with a thread's scratch."""
             try:
                 held = pool.get_nowait()
             except queue.Empty:
                 graded = None if resolve is None else \
                     (np.empty(insm_native.refine_floats(size, most), np.float32), np.zeros(n_p, np.uint8),
                      np.zeros(1, np.int64))
-                held = (self._native_buffers(most),
-                        (np.empty((n_p, 3), np.float32), np.empty(n_p, np.uint8), np.zeros((n_p, 3), np.float32),
-                         np.zeros(n_p, np.int32), np.zeros(n_p, np.int32), np.zeros(1, np.int64)), np.zeros(3), graded)
+                held = (self._native_buffers(most), (np.empty((n_p, 3), np.float32), np.empty(n_p, np.uint8)),
+                        np.zeros(3), graded)
                 with lock:
                     held_all.append(held)
-            buffers, acc, seconds, graded = held
-            insm_native.light(tris, cl, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
-                              bool(lv.cube[li]), lv.position[li], size, buffers, pts, geo, self.offset, self.bias,
-                              None, seconds, (table, li, shading, *acc),
-                              refine=None if graded is None else (self._spacings(), graded[0], rule, graded[1]),
-                              hand_level=level)
-            if graded is not None:
-                # the handed-back pairs answered exactly: lit where free, else blocked
-                rows = np.flatnonzero(graded[1])
-                if len(rows):
-                    free = np.asarray(resolve(rows, np.full(len(rows), li, np.int64), np.zeros(len(rows), np.int8)),
-                                      bool)
-                    rgb, _, rad, blk = acc[:4]
-                    rad[rows[free]] += rgb[rows[free]]
-                    blk[rows[~free]] += 1
-                    graded[2][0] += len(rows)
+            buffers, scratch, seconds, graded = held
+            acc = (np.zeros((n_p, 3), np.float32), np.zeros(n_p, np.int32), np.zeros(n_p, np.int32),
+                   np.zeros(1, np.int64))
+            rgb, rad, blk = scratch[0], acc[0], acc[1]
+            for li in range(*block):
+                insm_native.light(tris, cl, views, int(lv.first[li]), int(lv.first[li + 1] - lv.first[li]),
+                                  bool(lv.cube[li]), lv.position[li], size, buffers, pts, geo, self.offset, self.bias,
+                                  None, seconds, (table, li, shading, *scratch, *acc),
+                                  refine=None if graded is None else (self._spacings(), graded[0], rule, graded[1]),
+                                  hand_level=level)
+                if graded is not None:
+                    # the handed-back pairs answered exactly: lit where free, else blocked
+                    rows = np.flatnonzero(graded[1])
+                    if len(rows):
+                        free = np.asarray(resolve(rows, np.full(len(rows), li, np.int64),
+                                                  np.zeros(len(rows), np.int8)), bool)
+                        rad[rows[free]] += rgb[rows[free]]
+                        blk[rows[~free]] += 1
+                        graded[2][0] += len(rows)
             pool.put(held)
+            return acc
 
-        run_parallel(run, range(len(lights)), self.workers)
+        # the lights in LIGHT_BLOCKS blocks whatever the cores, each summed in light order and the blocks added in
+        # block order: the same pixels on any number of threads (per-thread sums were added in whatever order
+        # the threads took the lights, which moved a pixel by a float32 step from run to run)
+        edges = np.linspace(0, len(lights), min(len(lights), LIGHT_BLOCKS) + 1).astype(np.int64)
         radiance = np.zeros((n_p, 3), np.float32)
         blocked = np.zeros(n_p, np.int64)
         facing = np.zeros(n_p, np.int64)
         queries, seconds, handed = 0, np.zeros(3), 0
-        for _, (_, _, rad, blk, fac, q), sec, graded in held_all:
+        for rad, blk, fac, q in iter_parallel(run, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])],
+                                              self.workers):
             radiance += rad
             blocked += blk
             facing += fac
             queries += int(q[0])
+        for _, _, sec, graded in held_all:
             seconds += sec
             handed += 0 if graded is None else int(graded[2][0])
         radiance *= np.asarray(albedo, np.float32) / np.float32(np.pi)
