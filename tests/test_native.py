@@ -35,3 +35,17 @@ def test_every_wrapper_declares_its_functions_once(wrapper):
 
 def test_kernel_labels_follow_the_register_width():
     assert [kernel_label(w) for w in (16, 8, 1)] == ["native-avx512", "native-avx2", "native-scalar"]
+
+
+def test_a_library_left_by_the_flat_layout_is_named(tmp_path, monkeypatch):
+    """An editable install made before the kernels had a folder per method left ``kernels/_voxelq*.so`` where
+    nothing looks now; the reason the compiled path is off names it (and a reinstall builds it in its folder)."""
+    import usdml.kernels
+    from usdml.native import open_extension
+
+    (tmp_path / "_nosuch.cpython-311-x86_64-linux-gnu.so").write_bytes(b"")
+    monkeypatch.setattr(usdml.kernels, "__path__", [*usdml.kernels.__path__, str(tmp_path)])
+    lib, why = open_extension("voxel._nosuch")
+    assert lib is None and why.startswith("not built (") and \
+        why.endswith("; _nosuch.cpython-311-x86_64-linux-gnu.so was built for the layout before kernels/voxel/)")
+    assert "was built for" not in open_extension("voxel._other")[1]

@@ -12,6 +12,7 @@ file picks AVX-512, AVX2 or scalar code at run time, so one build serves every x
 from __future__ import annotations
 
 import ctypes
+from pathlib import Path
 import importlib
 import threading
 from typing import Callable, Mapping, Sequence
@@ -30,8 +31,17 @@ def open_extension(name: str) -> tuple[ctypes.CDLL | None, str]:
     try:
         mod = importlib.import_module(f"usdml.kernels.{name}")
     except ImportError as e:
-        return None, f"not built ({e})"
+        return None, f"not built ({e}{_stale(name)})"
     return ctypes.CDLL(mod.__file__), ""
+
+
+def _stale(name: str) -> str:
+    """``; ...`` where an install made before the kernels had a folder per method left the library beside the
+    folders (``kernels/_voxelq*.so`` for ``voxel._voxelq``): built, but where nothing looks for it."""
+    leaf = name.rpartition(".")[2]
+    folders = importlib.import_module("usdml.kernels").__path__       # imported already by the failed import
+    old = [f for folder in folders for f in Path(folder).glob(f"{leaf}.*") if f.suffix in (".so", ".pyd")]
+    return f"; {old[0].name} was built for the layout before kernels/{name.partition('.')[0]}/" if old and "." in name else ""
 
 
 class Extension:
