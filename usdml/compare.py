@@ -299,7 +299,7 @@ def compare_visibility(delegate: StageDelegate, backend: str, against: str = "ex
     require_lights(delegate, snap, "compare")
     width, height = snap.camera.resolution(image_width)
     # as a render's (usdml.render.backends), without --gi svo's rays; --error-budget on a backend that cannot
-    # refine is Refined's error
+    # refine is one line naming those that can (Backends' unrefinable="raise")
     backends = Backends(settings, device, backend_options, roles=QUERY_ROLES, unrefinable="raise")
     exact, approx, refined = backends.primary, backends.configured, backends.refined
     from usdml.render.budget import choose_level

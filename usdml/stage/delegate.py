@@ -356,8 +356,8 @@ class StageDelegate:
             bounds = snap.world_bounds()
             if bounds is not None:
                 snap.camera = framing_camera(bounds, self.up_axis)
-                forward = "+Y" if self.up_axis == "Z" else "-Z"
                 if self._say_framing:
+                    forward = "+Y" if self.up_axis == "Z" else "-Z"
                     self.warn(f"{self.path}: no camera; framing the scene with usdml's own camera (usdrecord's: a "
                               f"50 mm lens looking {forward} at the centre of its bounds); add a UsdGeom.Camera "
                               "(named main_cam, or chosen with --camera)")

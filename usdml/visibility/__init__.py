@@ -10,21 +10,14 @@ backend's module only when it is asked for (so listing names costs nothing).
 
 from __future__ import annotations
 
-from usdml.visibility.registry import backend_class, backend_names
+from usdml.visibility.registry import backend_class, backend_names, lazy_attributes
 
 __all__ = ["VisibilityBackend", "ExactBackend", "VoxelBackend", "make_backend", "available_backends",
            "backend_class", "backend_names"]
 
-_LAZY = {"VisibilityBackend": "usdml.visibility.base", "ExactBackend": "usdml.visibility.exact",
-         "VoxelBackend": "usdml.visibility.voxel.backend"}
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'usdml.visibility' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"VisibilityBackend": "usdml.visibility.base",
+                                         "ExactBackend": "usdml.visibility.exact",
+                                         "VoxelBackend": "usdml.visibility.voxel.backend"})
 
 
 def available_backends() -> list[str]:

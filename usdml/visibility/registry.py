@@ -69,6 +69,18 @@ def _rows(params: tuple | str) -> tuple:
     return tuple(getattr(importlib.import_module(module), name))
 
 
+def lazy_attributes(package: str, where: dict[str, str]):
+    """A package's module ``__getattr__`` (PEP 562): each name of ``where`` (name -> module) from its module,
+    imported on first use, so the package itself loads without Embree or Warp (``usdml.visibility``, and a
+    method's folder, whose ``params.py`` the parameter table reads)."""
+    def __getattr__(name: str):
+        if name in where:
+            return getattr(importlib.import_module(where[name]), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__
+
+
 def backend_class(name: str):
     """The class registered as ``name``; ``UsdmlError`` naming the choices when there is none."""
     where = BACKENDS.get(name)

@@ -5,12 +5,6 @@ triangulated depth images of the scene. docs/insm.md; kernels in ``kernels/insm/
 ``native`` (the compiled maps, ``kernels/insm/insmr.c``). :class:`InsmBackend` is imported on first use.
 """
 
-_EXPORTS = {"InsmBackend": "usdml.visibility.insm.backend"}
+from usdml.visibility.registry import lazy_attributes
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        import importlib
-
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"InsmBackend": "usdml.visibility.insm.backend"})

@@ -5,12 +5,6 @@
 compiled traversal, ``kernels/svo/svoq.c``). :class:`SvoBackend` is imported on first use.
 """
 
-_EXPORTS = {"SvoBackend": "usdml.visibility.svo.backend"}
+from usdml.visibility.registry import lazy_attributes
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        import importlib
-
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"SvoBackend": "usdml.visibility.svo.backend"})

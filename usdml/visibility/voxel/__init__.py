@@ -7,12 +7,6 @@ direction bins and the array's rows), ``rotate`` (deforming meshes, Alg. 5), ``b
 :class:`VoxelBackend` is imported on first use, so the folder's light modules load without it.
 """
 
-_EXPORTS = {"VoxelBackend": "usdml.visibility.voxel.backend"}
+from usdml.visibility.registry import lazy_attributes
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        import importlib
-
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, {"VoxelBackend": "usdml.visibility.voxel.backend"})
