@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.kernels.brdf import brdf_terms
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
@@ -112,7 +113,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                  occluded: Callable[..., np.ndarray] | None,
                  progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                  min_distance: float = 0.0, geometric: np.ndarray | None = None,
-                 answers: np.ndarray | None = None) -> DirectResult:
+                 answers: np.ndarray | None = None, material: np.ndarray | None = None) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -130,17 +131,21 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     answers : (P, L) bool or uint8, optional
         Every pair's answer, computed before shading (paper 001 answers light by light from a map per
         light): read for each shadow query instead of calling ``occluded``.
+    material : (P, WIDTH) float32, optional
+        UsdPreviewSurface rows (``kernels/brdf.py``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
+        being the effective diffuse reflectance ρ; the result's ``specular`` holds ΣE·ks. None: Lambertian.
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
     """
     n_p, n_l = len(points), len(lights)
     radiance = np.zeros((n_p, 3), np.float32)
+    specular = np.zeros((n_p, 3), np.float32) if material is not None else None
     blocked = np.zeros(n_p, np.int64)
     facing = np.zeros(n_p, np.int64)
     queries = 0
     if n_l == 0 or n_p == 0:
-        return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0)
+        return DirectResult(radiance, np.zeros(n_p, np.float32), facing.astype(np.int32), 0, specular)
     table = LightTable(lights, meters_per_unit, min_distance)
     step = max(1, PAIRS_PER_CHUNK // n_l)
     offset = normals if geometric is None else geometric
@@ -161,6 +166,9 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                 asked = len(pi)
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)
+        if material is not None:
+            radiance[lo:hi], specular[lo:hi] = _brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi])
+            return asked
         radiance[lo:hi] = g @ table.base
         if f is not None:
             radiance[lo:hi] += (g * f) @ table.focus_rgb
@@ -174,18 +182,38 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         if progress is not None:
             progress(min(n_p, lo + step) - lo)
     radiance *= albedo.astype(np.float32) / np.float32(np.pi)
+    if specular is not None:
+        radiance += specular
     shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0)
-    return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries)
+    return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries, specular)
+
+
+def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray, normals: np.ndarray):
+    """``(ΣE·kd, ΣE·ks)`` ``(B, 3)`` of a block: each pair's irradiance (``g`` after shadows, focus ``f``) times
+    the material's BRDF terms toward the light (``kernels/brdf.py``), summed per point in light order."""
+    pi, li = np.nonzero(g > 0)
+    e = g[pi, li][:, None] * table.base[li]
+    if f is not None:
+        e += (g[pi, li] * f[pi, li])[:, None] * table.focus_rgb[li]
+    l = np.stack([w[0][pi, li], w[1][pi, li], w[2][pi, li]], axis=1)
+    kd, ks = brdf_terms(rows[pi], normals[pi], l)
+    n = len(g)
+    d = np.stack([np.bincount(pi, e[:, c] * kd[:, c], minlength=n) for c in range(3)], axis=1)
+    s = np.stack([np.bincount(pi, e[:, c] * ks[:, c], minlength=n) for c in range(3)], axis=1)
+    return d.astype(np.float32), s.astype(np.float32)
 
 
 def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-               min_distance: float = 0.0, geometric: np.ndarray | None = None) -> DirectResult:
+               min_distance: float = 0.0, geometric: np.ndarray | None = None,
+               material: np.ndarray | None = None) -> DirectResult:
     """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
     updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
     :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``.
     Arguments and result as :func:`shade_direct`."""
     options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+    if material is not None:
+        options["material"] = material
     if backend.supports(SHADE_DIRECT):
         return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
     return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)

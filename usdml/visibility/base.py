@@ -106,10 +106,13 @@ class DirectResult:
     """Direct light of ``P`` points (paper 000 Alg. 3): what :func:`usdml.lighting.direct.shade_direct` and
     a ``SHADE_DIRECT`` backend's fused kernel return."""
 
-    radiance: np.ndarray    #: (P, 3) float32 outgoing radiance ρ/π·ΣE over visible lights
+    radiance: np.ndarray    #: (P, 3) float32 outgoing radiance ρ/π·ΣE over visible lights (+ specular)
     shadow: np.ndarray      #: (P,) float32 blocked / facing, 0 where no light faces
     facing: np.ndarray      #: (P,) int32 number of lights facing each point
     queries: int            #: shadow queries asked of the backend
+    #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf.py``) when shaded with material
+    #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
+    specular: np.ndarray | None = None
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:
