@@ -21,7 +21,7 @@ lights, ``Σ E·kd`` and ``Σ E·ks``, and return ``ρ/π·ΣE·kd + ΣE·ks``; 
 specular lobes are 0, as Storm's ``max(0, n·e)`` makes them.
 
 The row's parameters (F0, F90 per workflow, α = max(roughness, 0.001)²) are worked out once per point by
-:func:`usdml.scene.material.material_rows`.
+:meth:`usdml.scene.shading.MeshShading.at`.
 """
 
 from __future__ import annotations
@@ -36,10 +36,14 @@ LAYOUT = {"eye": (0, 3), "f0": (3, 6), "f90": (6, 9), "alpha": 9, "clearcoat": 1
           "clearcoat_f0": 12, "occlusion": 13}
 
 
-def ggx(alpha: np.ndarray, n_h: np.ndarray) -> np.ndarray:
-    """GGX normal distribution D."""
+def ggx(alpha: np.ndarray, n_h: np.ndarray, s2: np.ndarray | None = None) -> np.ndarray:
+    """GGX normal distribution D; ``s2`` = |n × h|² = 1 − (n·h)², given without its cancellation near n·h = 1 (where
+    a sharp lobe peaks: float32's 1 − (n·h)² alone is off by ~1e-7, several % of α² at roughness 0.05)."""
     a2 = alpha * alpha
-    d = n_h * n_h * (a2 - 1.0) + 1.0
+    c2 = n_h * n_h
+    if s2 is None:
+        s2 = np.maximum(1.0 - c2, 0.0)
+    d = np.maximum(s2 + c2 * a2, 1e-18)     # (n·h)²(α² − 1) + 1; no 0/0 at α = 0
     return a2 / (np.pi * d * d)
 
 
@@ -62,6 +66,7 @@ def brdf_terms(rows: np.ndarray, n: np.ndarray, l: np.ndarray) -> tuple[np.ndarr
     n_e = (n * e).sum(1)
     n_h = np.maximum((n * h).sum(1), 0.0)
     e_h = np.maximum((e * h).sum(1), 0.0)
+    s2 = (np.cross(n, h) ** 2).sum(1)
     fresnel = (1.0 - e_h) ** 5
     f = rows[:, 3:6] + (rows[:, 6:9] - rows[:, 3:6]) * fresnel[:, None]
     kd = 1.0 - f
@@ -69,7 +74,7 @@ def brdf_terms(rows: np.ndarray, n: np.ndarray, l: np.ndarray) -> tuple[np.ndarr
                                                             OCCLUSION))
     front = n_e > 0
     n_e = np.maximum(n_e, 0.0)
-    spec = ggx(alpha, n_h) * smith_visibility(alpha, n_e, n_l)
-    coat = cc * (cc_f0 + (1.0 - cc_f0) * fresnel) * ggx(cc_alpha, n_h) * smith_visibility(cc_alpha, n_e, n_l)
+    spec = ggx(alpha, n_h, s2) * smith_visibility(alpha, n_e, n_l)
+    coat = cc * (cc_f0 + (1.0 - cc_f0) * fresnel) * ggx(cc_alpha, n_h, s2) * smith_visibility(cc_alpha, n_e, n_l)
     ks = (f * spec[:, None] + coat[:, None]) * np.where(front, occ, 0.0)[:, None]
     return kd.astype(np.float32), ks.astype(np.float32)

@@ -76,7 +76,8 @@ def test_registry_channels_and_types():
     ("N", "raw", "normal"), ("Neye", "raw", "Neye"), ("P", "raw", "P"), ("Peye", "raw", "Peye"),
     ("primId", "raw", "primId"), ("instanceId", "intrinsic", "instanceId"),
     ("shadow", "raw", "shadow"), ("lightCount", "", "lightCount"),
-    ("C.*", "lpe", "color"), ("C<RD>[<L.>O]", "lpe", "direct"), ("C <RD> .+ L", "lpe", "indirect"),
+    ("C.*", "lpe", "color"), ("C<RD>[<L.>O]", "lpe", "diffuse"), ("C<RS>L", "lpe", "specular"),
+    ("CO", "lpe", "emission"), ("C <RD> .+ L", "lpe", "indirect"),
     ("lpe:C.*[<L.>O]", "raw", "color"),
 ])
 def test_render_var_mapping(source, stype, aov):
@@ -84,7 +85,7 @@ def test_render_var_mapping(source, stype, aov):
 
 
 @pytest.mark.parametrize("source, stype", [("st", "primvar"), ("displayColor", "primvar"),
-                                           ("C<RS>L", "lpe"), ("bogus", "raw"), ("", "raw")])
+                                           ("C<TS>L", "lpe"), ("bogus", "raw"), ("", "raw")])
 def test_render_var_unknown_is_none(source, stype):
     assert aov_for_render_var(source, stype) is None
 

@@ -7,6 +7,7 @@ so only a cold cache pays the compile (about 5 s).
 """
 
 import importlib
+import importlib.util
 import pkgutil
 
 import pytest
@@ -21,10 +22,18 @@ ARCH = 75
 
 def _kernel_modules() -> list[str]:
     """The Warp kernel modules, in the folder of each method and beside them (not the packages, nor the
-    compiled C extensions such as ``voxel._voxelq``, which are CPU code)."""
+    compiled C extensions such as ``voxel._voxelq``, which are CPU code, nor the NumPy references such as
+    ``brdf``, which define no Warp kernel)."""
     found = pkgutil.walk_packages(usdml.kernels.__path__, "usdml.kernels.")
-    return sorted(m.name.removeprefix("usdml.kernels.") for m in found
-                  if not m.ispkg and not m.name.rpartition(".")[2].startswith("_"))
+    names = []
+    for m in found:
+        if m.ispkg or m.name.rpartition(".")[2].startswith("_"):
+            continue
+        spec = importlib.util.find_spec(m.name)
+        if spec is None or spec.origin is None or "@wp.kernel" not in open(spec.origin).read():
+            continue
+        names.append(m.name.removeprefix("usdml.kernels."))
+    return sorted(names)
 
 
 def test_every_kernel_module_is_checked():

@@ -567,7 +567,11 @@ def test_a_missing_texture_that_blacks_out_the_frame_says_so(new_stage, tmp_path
 
     stage = new_stage(start=1, end=1)
     quad = quad_with_st(stage, "/World/q", [(0, 0), (0, 1), (1, 1), (1, 0)])
-    bind(quad, textured_material(stage, "/World/Looks/wood", "./wood.png")[0])
+    mat = textured_material(stage, "/World/Looks/wood", "./wood.png")[0]
+    # a metal (its specular colour is its diffuseColor): with the texture's black fallback nothing reflects at all
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/wood/pbr")).CreateInput(
+        "metallic", Sdf.ValueTypeNames.Float).Set(1.0)
+    bind(quad, mat)
     add_top_camera(stage, 2.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-60)
     stage.Save()

@@ -80,7 +80,8 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
                             if backend_class(name).cpu_path()},
         "lghCpuPath": _lgh_cpu_path(),
         **memory,
-        "unsupported": dict(sorted(delegate.unsupported.items())),
+        "unsupported": dict(sorted({**delegate.unsupported, **_material_counts(delegate)}.items())),
+        "unsupportedMaterials": dict(sorted(_materials(delegate).items())),
         "warnings": list(delegate.warn.messages),
         "loadSeconds": round(seconds, 3),
     }
@@ -132,3 +133,15 @@ def format_info(info: dict) -> str:
             lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")
     lines.append(f"loaded in   {info['loadSeconds']:.2f} s" + (f", {len(info['warnings'])} warning(s)" if info["warnings"] else ""))
     return "\n".join(lines)
+
+
+def _materials(delegate) -> dict[str, list[str]]:
+    """Material path -> what it authors that usdml does not render (usdml.stage.materials.MaterialResolver)."""
+    resolver = getattr(delegate, "materials", None)
+    return {k: list(v) for k, v in resolver.unsupported.items()} if resolver is not None else {}
+
+
+def _material_counts(delegate) -> dict[str, int]:
+    """``unsupported``'s count of materials with something usdml does not render."""
+    n = len(_materials(delegate))
+    return {"material inputs": n} if n else {}

@@ -105,6 +105,10 @@ AOVS: dict[str, AovSpec] = {a.name: a for a in (
             "linear RGBA radiance, premultiplied by alpha", prefixed=False, hydra=True, filtered=True),
     AovSpec("direct", _RGB, "half", 0.0, "direct radiance from the scene's lights", filtered=True),
     AovSpec("indirect", _RGB, "half", 0.0, "indirect radiance (virtual point lights / LGH)", filtered=True),
+    AovSpec("diffuse", _RGB, "half", 0.0, "direct radiance of the diffuse lobe (direct = diffuse + specular)",
+            filtered=True),
+    AovSpec("specular", _RGB, "half", 0.0, "direct radiance of the specular and clearcoat lobes", filtered=True),
+    AovSpec("emission", _RGB, "half", 0.0, "emitted radiance (emissiveColor) of the surface seen", filtered=True),
     AovSpec("albedo", _RGB, "half", 0.0, "diffuse reflectance at the first hit", filtered=True),
     AovSpec("shadow", ("Y",), "float", 0.0,
             "fraction of the lights facing the point that are blocked (hiddenLightsN / n)", filtered=True),
@@ -149,15 +153,18 @@ RAW_SOURCE_NAMES: dict[str, str] = {
     "P": "P", "Peye": "Peye",
     "primId": "primId", "instanceId": "instanceId",
     "direct": "direct", "indirect": "indirect", "albedo": "albedo",
+    "diffuse": "diffuse", "specular": "specular", "emission": "emission",
     "shadow": "shadow", "lightCount": "lightCount",
 }
 
 #: ``sourceType`` "lpe" expressions (whitespace ignored, ``lpe:`` prefix optional) -> AOV.
-#: usdml's surfaces are diffuse, so RenderMan's directDiffuse / indirectDiffuse LPEs are its
-#: direct / indirect AOVs.
+#: RenderMan's directDiffuse / directSpecular LPEs are usdml's ``diffuse`` / ``specular``, its emission ``CO``
+#: ``emission``; indirect light is gathered from the diffuse lobe only, so indirectDiffuse is ``indirect``.
 LPE_SOURCE_NAMES: dict[str, str] = {
     "C.*": "color", "C.*[<L.>O]": "color", "C.*L": "color",
-    "C<RD>L": "direct", "CDL": "direct", "C<RD>[<L.>O]": "direct", "CD[<L.>O]": "direct",
+    "C<RD>L": "diffuse", "CDL": "diffuse", "C<RD>[<L.>O]": "diffuse", "CD[<L.>O]": "diffuse",
+    "C<RS>L": "specular", "CSL": "specular", "C<RS>[<L.>O]": "specular", "CS[<L.>O]": "specular",
+    "CO": "emission", "C<O>": "emission",
     "C<RD>.+L": "indirect", "CD.+L": "indirect", "C<RD>.+[<L.>O]": "indirect",
     "CD.+[<L.>O]": "indirect",
 }

@@ -18,6 +18,7 @@ import numpy as np
 
 from usdml.aov.names import find_aov
 from usdml.errors import UsdmlError, log
+from usdml.kernels.brdf import brdf_terms
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
@@ -32,11 +33,14 @@ from usdml.stage.delegate import StageDelegate, require_geometry
 DEFAULT_AOVS = ("color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId")
 
 
-def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, camera: Camera) -> np.ndarray:
+def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, camera: Camera,
+                 material: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """usdrecord's default camera light: a light at the eye without falloff, unit diffuse intensity.
 
     Storm's simple lighting gives ``albedo · max(0, n·l)``; as radiance that is ``albedo/π · E`` with
-    ``E = π · max(0, n·l)``. It never casts a visible shadow (it sits at the eye). Returns (P, 3) float32.
+    ``E = π · max(0, n·l)``. It never casts a visible shadow (it sits at the eye). Returns (P, 3) float32; with
+    ``material`` rows (``kernels/brdf.py``) the preview surface's BRDF toward the eye, ``E·(ρ/π·kd + ks)``, and
+    ``(radiance, specular E·ks)``.
     """
     eye = camera.xform[:3, 3]
     if camera.projection == "orthographic":
@@ -45,7 +49,12 @@ def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ca
         to_eye = eye - points
     to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
     cos = np.maximum(np.einsum("ij,ij->i", normals.astype(np.float64), to_eye), 0.0)
-    return (albedo * cos[:, None]).astype(np.float32)
+    if material is None:
+        return (albedo * cos[:, None]).astype(np.float32)
+    kd, ks = brdf_terms(material, normals, to_eye)
+    e = (np.pi * cos)[:, None]
+    specular = (e * ks).astype(np.float32)
+    return (albedo / np.pi * e * kd + specular).astype(np.float32), specular
 
 
 def conform_camera(camera: Camera, width: int, height: int) -> Camera:
@@ -178,9 +187,11 @@ class FrameRenderer:
             if pixel_progress is not None:
                 pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
             stats.shadow_queries += direct.queries
-            hit, lit = hit or bool(surface.hit.any()), lit or bool(direct.radiance.any() or np.any(indirect))
+            hit, lit = hit or bool(surface.hit.any()), lit or bool(direct.radiance.any() or np.any(indirect)
+                                                                 or (surface.emission is not None
+                                                                     and surface.emission.any()))
             albedo = albedo or bool(surface.albedo.any())
-            image.add(self._buffers(gb, surface.hit, direct, indirect, camera, aovs), offsets)
+            image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
         blank = blank_frame(hit, lit, albedo, len(lights), camera)
@@ -211,7 +222,11 @@ class FrameRenderer:
 
     def _light_by_camera(self, direct, surface: Surface, camera: Camera, time: float, stats: FrameStats) -> None:
         """usdrecord's camera light in place of ``direct``'s radiance (the frame has no lights)."""
-        direct.radiance[:] = camera_light(surface.position, surface.normal, surface.albedo, camera)
+        if surface.material is None:
+            direct.radiance[:] = camera_light(surface.position, surface.normal, surface.albedo, camera)
+        else:
+            direct.radiance[:], direct.specular = camera_light(surface.position, surface.normal, surface.albedo,
+                                                               camera, surface.material)
         stats.camera_light = True
         if not self._told_camera_light:
             log.warning(f"{self.delegate.path}: no lights at time {time:g}; lit by a camera light as "
@@ -219,9 +234,10 @@ class FrameRenderer:
             self._told_camera_light = True
 
     @staticmethod
-    def _buffers(gb: GBuffer, hit: np.ndarray, direct, indirect: np.ndarray, camera: Camera,
+    def _buffers(gb: GBuffer, surface: Surface, direct, indirect: np.ndarray, camera: Camera,
                  aovs: set[str]) -> dict[str, np.ndarray]:
         h, w = gb.height, gb.width
+        hit = surface.hit
 
         def scatter(values: np.ndarray, channels: int) -> np.ndarray:
             out = np.zeros((h * w, channels) if channels > 1 else (h * w,), np.float32)
@@ -231,12 +247,21 @@ class FrameRenderer:
         radiance = scatter(direct.radiance, 3)
         indirect_img = scatter(indirect, 3)
         beauty = radiance + indirect_img
+        emission = gb.emission if gb.emission is not None else None
+        if emission is not None:
+            beauty = beauty + emission
+
+        def specular() -> np.ndarray:
+            return scatter(direct.specular, 3) if direct.specular is not None else np.zeros((h, w, 3), np.float32)
         alpha = gb.hit.astype(np.float32)
         world_to_eye = np.linalg.inv(camera.xform)
         table = {
             "color": lambda: np.concatenate([beauty * alpha[..., None], alpha[..., None]], axis=2),
             "direct": lambda: radiance,
             "indirect": lambda: indirect_img,
+            "diffuse": lambda: radiance - specular(),
+            "specular": specular,
+            "emission": lambda: emission if emission is not None else np.zeros((h, w, 3), np.float32),
             "shadow": lambda: scatter(direct.shadow, 1),
             "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
             "depth": lambda: gb.depth,

@@ -30,10 +30,13 @@ class GBuffer:
     position: np.ndarray    #: (H, W, 3) float64 world position (0 on a miss)
     normal: np.ndarray      #: (H, W, 3) float32 unit world shading normal, on the geometric normal's side
     geometric: np.ndarray   #: (H, W, 3) float32 unit world geometric normal, facing the camera
-    albedo: np.ndarray      #: (H, W, 3) float32 linear RGB
+    albedo: np.ndarray      #: (H, W, 3) float32 linear RGB diffuse reflectance (diffuseColor·(1 − metallic)·occlusion)
     depth: np.ndarray       #: (H, W) float32 camera-space depth (distance along the view axis), inf on a miss
     prim_id: np.ndarray     #: (H, W) int32 ``Mesh.id``, -1 on a miss
     instance_id: np.ndarray  #: (H, W) int64 instance id, -1 on a miss or a non-instanced mesh
+    #: (H·W, WIDTH) float32 BRDF rows of the hits (``kernels/brdf.py``), or None when every surface is Lambertian
+    material: np.ndarray | None = None
+    emission: np.ndarray | None = None   #: (H, W, 3) float32 emitted radiance (emissiveColor), or None
 
     @property
     def pixels(self) -> int:
@@ -121,4 +124,5 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int,
         width=width, height=height, hit=h.hit.reshape(shape), position=h.position.reshape(shape + (3,)),
         normal=normal.astype(np.float32).reshape(shape + (3,)),
         geometric=geometric.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
-        depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape))
+        depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape),
+        material=h.material, emission=None if h.emission is None else h.emission.reshape(shape + (3,)))

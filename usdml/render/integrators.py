@@ -28,6 +28,7 @@ from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer
 from usdml.scene import Lights, Snapshot
+from usdml.scene.shading import lambert_rows
 from usdml.settings import UsdmlSettings
 from usdml.visibility.base import LIGHT_MAJOR
 
@@ -51,14 +52,18 @@ class Surface:
     hit: np.ndarray             #: (H·W,) bool, the pixels whose ray hit
     position: np.ndarray        #: (P, 3) world units
     normal: np.ndarray          #: (P, 3) shading normals
-    albedo: np.ndarray          #: (P, 3)
+    albedo: np.ndarray          #: (P, 3) diffuse reflectance ρ
     geometric: np.ndarray       #: (P, 3) geometric normals
+    material: np.ndarray | None = None   #: (P, WIDTH) BRDF rows (``kernels/brdf.py``), None: every point Lambertian
+    emission: np.ndarray | None = None   #: (P, 3) emitted radiance, or None
 
     @classmethod
     def of(cls, gb: GBuffer) -> "Surface":
         hit = gb.hit.ravel()
+        material = None if gb.material is None else gb.material[hit]
+        emission = None if gb.emission is None else gb.emission.reshape(-1, 3)[hit]
         return cls(hit, *(getattr(gb, name).reshape(-1, 3)[hit]
-                          for name in ("position", "normal", "albedo", "geometric")))
+                          for name in ("position", "normal", "albedo", "geometric")), material, emission)
 
 
 def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats) -> GBuffer:
@@ -101,7 +106,8 @@ class EveryLight:
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
         return shade_with(self.backends.shadow, surface.position, surface.normal, surface.albedo, frame.lights,
-                          progress, meters_per_unit=frame.snap.meters_per_unit, geometric=surface.geometric)
+                          progress, meters_per_unit=frame.snap.meters_per_unit, geometric=surface.geometric,
+                          material=surface.material)
 
 
 class EveryLightFused(EveryLight):
@@ -116,15 +122,20 @@ class EveryLightFused(EveryLight):
 
         def stacked(name: str) -> np.ndarray:
             return np.concatenate([getattr(s, name) for s in surfaces])
+        material = None
+        if any(s.material is not None for s in surfaces):
+            material = np.concatenate([s.material if s.material is not None else lambert_rows(len(s.position))
+                                       for s in surfaces])
         direct = shade_with(self.backends.shadow, stacked("position"), stacked("normal"), stacked("albedo"),
                             frame.lights, progress, meters_per_unit=frame.snap.meters_per_unit,
-                            geometric=stacked("geometric"))
+                            geometric=stacked("geometric"), material=material)
         stats.shading_seconds += _time.perf_counter() - t0
         lo = 0
         for i, (gb, surface) in enumerate(zip(gbs, surfaces)):
             hi = lo + len(surface.position)
             yield gb, surface, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
-                                            direct.queries if i == 0 else 0)
+                                            direct.queries if i == 0 else 0,
+                                            None if direct.specular is None else direct.specular[lo:hi])
             lo = hi
 
 
@@ -136,6 +147,7 @@ class LghDirect(EveryLight):
         self.field = None
         self.estimate = None                    # the frame's error estimate (usdml.render.lighting_estimate)
         self._told_no_grid = False
+        self._told_lambert = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.lgh.direct import prepare_direct
@@ -162,6 +174,11 @@ class LghDirect(EveryLight):
         from usdml.lighting.lgh.direct import shade_lgh_direct
 
         shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
+        if surface.material is not None and not self._told_lambert:
+            log.warning(f"{self.where}: --direct lgh shades every surface Lambertian (its diffuse reflectance): the "
+                        "preview surface's specular and clearcoat lobes are not rendered on this path (use "
+                        "--direct all for them)")
+            self._told_lambert = True
 
         def shade_rest(p, n, a, rest, geometric=None):
             return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
@@ -211,6 +228,7 @@ class VplGI(NoGI):
         self.target_lift = 0.0
         self._told_no_vpls = False
         self._told_negative = False
+        self._told_glossy = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.gi import prepare_vpls
@@ -229,6 +247,11 @@ class VplGI(NoGI):
 
     def gather(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats) -> np.ndarray:
         t0 = _time.perf_counter()
+        if surface.material is not None and not self._told_glossy:
+            log.warning(f"{self.where}: --gi {self.settings.gi}: indirect light is diffuse only: VPLs leave surfaces "
+                        "with their diffuse reflectance and receivers gather with theirs; glossy indirect "
+                        "reflections are not rendered")
+            self._told_glossy = True
         gi = self.indirect(self.field, frame.snap, self.rays.occluded, surface.position, surface.normal,
                            surface.albedo, self.settings, image=(gb.hit, gb.position), device=self.device,
                            geometric=surface.geometric, target_lift=self.target_lift)

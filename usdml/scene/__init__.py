@@ -56,10 +56,9 @@ class Mesh:
     double_sided: bool = False
     orientation: str = "rightHanded"   #: as authored (triangles are already re-wound)
     deforming: bool = False     #: points vary over the shot (time samples or UsdSkel)
-    #: diffuse texture sampled per pixel (``sample(st (N, 2)) -> (N, 3)`` linear albedo), or None;
-    #: ``albedo`` then holds its values at the corners
-    texture: object | None = None
-    uv: np.ndarray | None = None   #: (T, 3, 2) float32 texture coordinates per corner, with ``texture``
+    #: the faces' bound surfaces (:class:`usdml.scene.shading.MeshShading`: every UsdPreviewSurface input, images
+    #: sampled again at each hit), or None: Lambertian ``albedo`` (displayColor), Storm's fallback surface
+    shading: object | None = None
 
     @property
     def triangle_count(self) -> int:

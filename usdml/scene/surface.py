@@ -3,7 +3,9 @@
 The rays are traced by a visibility backend's ``intersect`` (the exact backend); what this module adds
 is the render index's side: which mesh each hit belongs to and its attributes there, the shading
 normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose
-of their instance transform) and the albedo (textures sampled at the hit, not per corner). Used by the
+of their instance transform), the albedo (textures sampled at the hit, not per corner) and, where a mesh has
+bound surfaces (``Mesh.shading``), each hit's BRDF row (``kernels/brdf.py``, seen from the ray's origin) and
+emission. Used by the
 G-buffer (:mod:`usdml.render.gbuffer`) and by VPL light paths (:mod:`usdml.lighting.vpl`).
 """
 
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdml.scene import Snapshot
+from usdml.scene.shading import lambert_rows
 
 __all__ = ["Hits", "surface_at_hits"]
 
@@ -29,6 +32,10 @@ class Hits:
     albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
     geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
     t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
+    #: (N, WIDTH) float32 BRDF rows (``kernels/brdf.py``; Lambertian rows where a mesh has no surface), or None when
+    #: no hit mesh has one (every hit Lambertian); ``albedo`` is then the diffuse reflectance times occlusion
+    material: np.ndarray | None = None
+    emission: np.ndarray | None = None     #: (N, 3) float32 emitted radiance (emissiveColor), or None
 
 
 def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.ndarray,
@@ -49,6 +56,7 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
     albedo = np.zeros((n, 3), np.float32)
     geoms = r["geom"][hit]
     rows = np.flatnonzero(hit)
+    material = emission = None
     order = np.argsort(geoms, kind="stable")
     bounds = np.flatnonzero(np.diff(geoms[order])) + 1
     for group in np.split(order, bounds):
@@ -65,12 +73,20 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
             m = snapshot.prototypes[src.prototype].xforms[src.instance]
             nrm = nrm @ np.linalg.inv(m[:3, :3])      # inverse transpose, row vectors
         normal[px] = nrm
-        if mesh.texture is not None:       # textures are sampled per pixel, not per corner
-            albedo[px] = mesh.texture.sample(_blend(mesh.uv[tri], w))
-        else:
+        if mesh.shading is None:
             albedo[px] = _blend(mesh.albedo[tri], w)
+            continue
+        if material is None:
+            material = lambert_rows(n, -dirs)
+            emission = np.zeros((n, 3), np.float32)
+        eye = -np.asarray(dirs[px], np.float64)
+        lambert = _blend(mesh.albedo[tri], w) if mesh.shading.lambert is not None else None
+        at = mesh.shading.at(tri, w, eye, lambert)
+        albedo[px] = at.reflectance
+        material[px] = at.rows
+        emission[px] = at.emission
     return Hits(hit=hit, position=position, normal=_unit(normal), geometric=_unit(r["ng"].astype(np.float64)),
-                albedo=albedo, geom=r["geom"], t=r["t"])
+                albedo=albedo, geom=r["geom"], t=r["t"], material=material, emission=emission)
 
 
 def _blend(corners: np.ndarray, w: np.ndarray) -> np.ndarray:

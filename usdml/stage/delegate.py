@@ -192,6 +192,12 @@ class StageDelegate:
             self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
             self._assign_mesh_ids()
 
+    @property
+    def materials(self):
+        """The stage's :class:`usdml.stage.materials.MaterialResolver` (what each material authors that usdml does
+        not render: its ``unsupported``)."""
+        return self._gprim.get("materials")
+
     @contextlib.contextmanager
     def _diagnostics(self) -> Iterator[None]:
         """usdml's warnings and USD's (:func:`usd_diagnostics`) of the block, each cause once (``Warnings.grouped``)."""

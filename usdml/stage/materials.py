@@ -1,4 +1,5 @@
-"""Resolve a gprim's bound ``UsdPreviewSurface`` diffuse colour to a per-corner albedo, as Hydra does.
+"""Resolve a gprim's bound surfaces to what the renderer samples (:class:`usdml.scene.shading.MeshShading`), as Hydra
+does: every UsdPreviewSurface input per triangle corner, images sampled again at each hit.
 
 What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurface specification):
 
@@ -7,15 +8,20 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   direct and collection-based bindings and ``bindMaterialAs`` strength. Prims inside a native
   prototype (``/__Prototype_N/...``) see the bindings authored inside the instanced asset; pass
   ``instance=`` (an instance prim of that prototype) to resolve through that instance's instance
-  proxy instead, so bindings authored on or above the instance apply too.
+  proxy instead, so bindings authored on or above the instance apply too. ``GeomSubset``\ s of family
+  ``materialBind`` (element type ``face``) bind their own material to their faces, the first subset naming a face
+  winning; the other faces take the prim's.
 * **Surface**: ``UsdShadeMaterial.ComputeSurfaceSource`` for the universal render context, then any
   other context's surface output, keeping the first whose shader is ``UsdPreviewSurface`` (or
-  MaterialX's ``ND_UsdPreviewSurface_surfaceshader``, whose inputs are the same). Materials with only
-  a MaterialX / other surface give None (the caller falls back to displayColor, as Storm's fallback
-  material does) with one warning per material.
-* **diffuseColor**: its value-producing attribute (connections followed through material interface
-  inputs): a constant (authored, else the spec fallback 0.18), a ``UsdUVTexture`` output
-  (``rgb``, ``r``, ``g``, ``b`` or ``a``), or a ``UsdPrimvarReader_float/float3/float4``.
+  MaterialX's ``ND_UsdPreviewSurface_surfaceshader``, whose inputs are the same): Storm's choice where a material
+  has both a preview surface and a MaterialX one. Materials with neither give None (the caller shades those faces
+  with displayColor, Lambertian, as Storm's fallback surface does) with one warning per material.
+* **Inputs**: every UsdPreviewSurface input (:data:`usdml.stage.network.PREVIEW_DEFAULTS`), its value-producing
+  attribute followed through material interface inputs: a constant (authored, else the spec's fallback), a
+  ``UsdUVTexture`` output (``rgb``, ``rgba``, ``r``, ``g``, ``b`` or ``a``), or a ``UsdPrimvarReader_*``.
+  Colours and weights are clipped to [0, 1]; ``emissiveColor``, ``ior`` and ``normal`` keep their range.
+  ``displacement``, inputs that are not the spec's, shaders usdml does not evaluate, UDIM sets, cutouts and
+  partial opacity are said once per material and listed in :attr:`MaterialResolver.unsupported` (``usdml info``).
 * **Texture coordinates**: ``UsdUVTexture.inputs:st`` from a ``UsdPrimvarReader_float2`` (``varname``
   string or token, possibly from a material interface input), optionally through a
   ``UsdTransform2d``; the primvar is found on the gprim with inheritance and expanded per corner.
@@ -33,8 +39,8 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   ``maketx``) and otherwise means ``repeat``, which is what Storm does for files without metadata.
 * ``inputs:scale`` / ``inputs:bias`` apply to the linear rgba sample: ``rgba * scale + bias``.
   A file that cannot be read gives ``inputs:fallback`` (authored, else the spec's (0, 0, 0, 1)),
-  used as the node's output as is, with one warning naming the value used. UDIM sets are not read: the diffuseColor's
-  constant value is used instead, with a warning.
+  used as the node's output as is, with one warning naming the value used. UDIM sets are not read: the input's
+  own value (else the spec's fallback) is used instead, with a warning.
 """
 
 from __future__ import annotations
@@ -46,6 +52,9 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from pxr import Ar, Sdf, Usd, UsdGeom, UsdShade
+
+from usdml.scene.shading import Field, MeshShading
+from usdml.stage.network import PREVIEW_DEFAULTS, Constant, Image, Primvar, SurfaceNetwork, Transform2d
 
 if TYPE_CHECKING:       # mesh.py may import this module: no import cycle at run time
     from usdml.stage.mesh import Topology
@@ -129,10 +138,10 @@ class Texture:
 
 @dataclass(eq=False)
 class TextureLookup:
-    """A UsdUVTexture feeding diffuseColor, ready to sample per pixel (plain NumPy, kept on the Mesh).
+    """An image feeding one surface input, ready to sample per hit (plain NumPy, kept on the Mesh).
 
-    ``sample(st)`` applies wrap modes, colour space, ``scale``/``bias``, the output channel and the
-    [0, 1] albedo clip, exactly as the per-corner albedo does.
+    ``sample(st)`` applies wrap modes, colour space, ``scale``/``bias``, the node's output (``rgb``, ``rgba``, or one
+    channel), the input's width and, for colours and weights, the [0, 1] clip, exactly as the per-corner values do.
     """
 
     texture: Texture
@@ -141,15 +150,16 @@ class TextureLookup:
     srgb: bool
     scale: np.ndarray       #: (4,)
     bias: np.ndarray        #: (4,)
-    channel: int | None = None   #: 0-3 for an ``r``/``g``/``b``/``a`` output, None for ``rgb``
+    output: str = "rgb"     #: rgb, rgba, r, g, b or a
+    width: int = 3          #: floats of the input it feeds
+    clip: bool = True       #: clip to [0, 1] (colours and weights; not emission nor normals)
 
     def sample(self, st: np.ndarray) -> np.ndarray:
-        """``(N, 3)`` float32 linear albedo at texture coordinates ``st`` ``(N, 2)``."""
+        """``(N, width)`` float32 linear values at texture coordinates ``st`` ``(N, 2)``."""
         rgba = self.texture.sample(np.asarray(st, np.float32).reshape(-1, 2), self.wrap_s, self.wrap_t,
                                    self.srgb) * self.scale + self.bias
-        rgb = np.repeat(rgba[:, self.channel:self.channel + 1], 3, axis=1) if self.channel is not None \
-            else rgba[:, :3]
-        return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+        v = _widen(_select(rgba, self.output), self.width)
+        return (np.clip(v, 0.0, 1.0) if self.clip else v).astype(np.float32)
 
 
 def _wrap(i: np.ndarray, n: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
@@ -248,6 +258,17 @@ def _vec(v, n: int) -> np.ndarray:
     return np.concatenate([a[:n], np.zeros(max(0, n - a.size), np.float32)])
 
 
+def _numbers(v, n: int) -> tuple[float, ...] | None:
+    """``v`` as ``n`` floats (a scalar repeated, a longer vector cut), or None when it is not numeric."""
+    try:
+        a = np.asarray(v, np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    if a.size == 0 or not np.isfinite(a).all():
+        return None
+    return tuple(float(x) for x in _vec(a, n))
+
+
 def fallback_words(fallback: np.ndarray, authored: bool) -> str:
     """How a warning names the ``inputs:fallback`` a UsdUVTexture gives in place of its file: the value, and when
     it is not authored, that it is the spec's black (a whole material, a whole frame black)."""
@@ -255,8 +276,140 @@ def fallback_words(fallback: np.ndarray, authored: bool) -> str:
     return f"inputs:fallback ({values})" + ("" if authored else ", unauthored: the spec's default black")
 
 
+_READER_WIDTH = {"float": 1, "float2": 2, "float3": 3, "normal": 3, "point": 3, "vector": 3, "float4": 4,
+                 "int": 1, "string": 0}
+#: inputs whose value is a colour or weight in [0, 1] (clipped where evaluated); the others keep their range
+_UNIT_INPUTS = {"diffuseColor", "specularColor", "metallic", "roughness", "clearcoat", "clearcoatRoughness",
+                "opacity", "occlusion"}
+
+
+class _PreviewReader:
+    """Reads one UsdPreviewSurface shader into a :class:`SurfaceNetwork` (UsdShade side only: no texels read)."""
+
+    def __init__(self, material: str, time: Usd.TimeCode):
+        self.material, self.time = material, time
+        self.net = SurfaceNetwork(material=material, origin="UsdPreviewSurface")
+
+    def unsupported(self, item: str) -> None:
+        if item not in self.net.unsupported:
+            self.net.unsupported.append(item)
+
+    def read(self, shader: UsdShade.Shader) -> SurfaceNetwork:
+        for inp in shader.GetInputs():
+            name = inp.GetBaseName()
+            if name == "displacement":
+                attr = _source(inp)
+                if attr is not None and (_is_output(attr) or np.any(np.asarray(attr.Get(self.time) or 0.0))):
+                    self.unsupported("inputs:displacement (not rendered)")
+                continue
+            if name not in PREVIEW_DEFAULTS:
+                if _source(inp) is not None:
+                    self.unsupported(f"inputs:{name} (not a UsdPreviewSurface input)")
+                continue
+            source = self.source(inp, name, len(PREVIEW_DEFAULTS[name]))
+            if source is not None:
+                self.net.inputs[name] = source
+        self.not_rendered()
+        return self.net
+
+    def not_rendered(self) -> None:
+        """Inputs read but not rendered yet: cutouts and partial opacity (the surface renders opaque)."""
+        inputs = self.net.inputs
+        threshold, opacity = inputs.get("opacityThreshold"), inputs.get("opacity")
+        cut = threshold is not None and (not isinstance(threshold, Constant) or threshold.value[0] > 0)
+        partial = opacity is not None and (not isinstance(opacity, Constant) or opacity.value[0] < 1)
+        if cut and opacity is not None:
+            self.unsupported("inputs:opacityThreshold (a cutout) is not rendered: the surface and its shadow are "
+                             "opaque")
+        elif partial:
+            self.unsupported("inputs:opacity < 1 (partial coverage) is not rendered: the surface and its shadow "
+                             "are opaque")
+
+    def source(self, inp: UsdShade.Input, name: str, width: int):
+        """What drives input ``name`` (``width`` floats): a Constant, Primvar or Image; None: the default."""
+        attr = _source(inp)
+        if attr is None:
+            return None
+        if not _is_output(attr):
+            v = attr.Get(self.time)
+            if v is None:
+                return None
+            numbers = _numbers(v, width)
+            if numbers is None:
+                self.unsupported(f"inputs:{name} = {v!r} is not a number (type {attr.GetTypeName()}); using "
+                                 f"the default {PREVIEW_DEFAULTS[name]}")
+                return None
+            return Constant(numbers)
+        own = _numbers(inp.GetAttr().Get(self.time), width) if inp.GetAttr().HasValue() else None
+        node = UsdShade.Shader(attr.GetPrim())
+        sid = _shader_id(node)
+        out_name = str(UsdShade.Utils.GetBaseNameAndType(attr.GetName())[0])
+        if sid == "UsdUVTexture":
+            return self.image(node, out_name, name, own)
+        if sid.startswith("UsdPrimvarReader_"):
+            return self.primvar(node, sid)
+        what = f"{node.GetPath()} ({sid})" if sid else f"{node.GetPath()} (a shader with no info:id)"
+        fallback = own if own is not None else PREVIEW_DEFAULTS[name]
+        self.unsupported(f"inputs:{name} comes from {what}, which usdml does not evaluate; using "
+                         f"{', '.join(f'{x:g}' for x in fallback)} (author a UsdUVTexture, a primvar reader or a "
+                         "constant)")
+        return Constant(fallback) if own is not None else None
+
+    def primvar(self, node: UsdShade.Shader, sid: str) -> Primvar:
+        kind = sid[len("UsdPrimvarReader_"):]
+        width = _READER_WIDTH.get(kind, 3) or 1
+        name = str(_value(node, "varname", self.time, "") or "")
+        fallback = _numbers(_value(node, "fallback", self.time, 0.0), width) or (0.0,) * width
+        return Primvar(name=name, width=width, fallback=fallback, node=str(node.GetPath()))
+
+    def st(self, inp: UsdShade.Input | None, depth: int = 0):
+        """(st source, transforms) of a UsdUVTexture's ``inputs:st``."""
+        attr = _source(inp)
+        if attr is None:
+            return Constant((0.0, 0.0)), ()
+        if not _is_output(attr):
+            return Constant(_numbers(attr.Get(self.time), 2) or (0.0, 0.0)), ()
+        node = UsdShade.Shader(attr.GetPrim())
+        sid = _shader_id(node)
+        if sid.startswith("UsdPrimvarReader_"):
+            reader = self.primvar(node, sid)
+            return Primvar(reader.name, 2, _numbers(reader.fallback, 2), reader.node), ()
+        if sid == "UsdTransform2d" and depth < 16:
+            src, inner = self.st(node.GetInput("in"), depth + 1)
+            step = Transform2d(scale=tuple(_vec(_value(node, "scale", self.time, (1.0, 1.0)), 2).tolist()),
+                               rotation=float(_value(node, "rotation", self.time, 0.0)),
+                               translation=tuple(_vec(_value(node, "translation", self.time, (0.0, 0.0)), 2).tolist()))
+            return src, inner + (step,)
+        what = f"{node.GetPath()} ({sid or 'no id'})"
+        self.unsupported(f"texture coordinates come from {what}, which usdml does not evaluate; using (0, 0) (use a "
+                         "UsdPrimvarReader_float2)")
+        return Constant((0.0, 0.0)), ()
+
+    def image(self, node: UsdShade.Shader, output: str, name: str, own):
+        path = str(node.GetPath())
+        asset = _value(node, "file", self.time, None)
+        raw_path = getattr(asset, "path", "") or ""
+        resolved = getattr(asset, "resolvedPath", "") or ""
+        if "<UDIM>" in raw_path.upper() or "<UDIM>" in resolved.upper():
+            value = own if own is not None else PREVIEW_DEFAULTS[name]
+            self.unsupported(f"{path}.inputs:file {raw_path} is a UDIM set, which usdml does not read; using the "
+                             f"{name} value {', '.join(f'{x:g}' for x in value)} (bake the tiles into one texture)")
+            return Constant(value)
+        authored = _value(node, "fallback", self.time, None)
+        st, transforms = self.st(node.GetInput("st"))
+        return Image(node=path, file=resolved, authored=raw_path, st=st, transforms=transforms,
+                     wrap_s=_token(node, "wrapS", self.time, "useMetadata"),
+                     wrap_t=_token(node, "wrapT", self.time, "useMetadata"),
+                     color_space=_token(node, "sourceColorSpace", self.time, "auto"),
+                     scale=tuple(_vec(_value(node, "scale", self.time, (1.0,) * 4), 4).tolist()),
+                     bias=tuple(_vec(_value(node, "bias", self.time, (0.0,) * 4), 4).tolist()),
+                     fallback=tuple(_vec(TEXTURE_FALLBACK if authored is None else authored, 4).tolist()),
+                     fallback_authored=authored is not None, output=output)
+
+
 class MaterialResolver:
-    """Resolves bound UsdPreviewSurface diffuse colours; caches per stage: bindings, surfaces, textures.
+    """Resolves bound surfaces (UsdPreviewSurface, else MaterialX's common surfaces) of gprims and their
+    GeomSubsets; caches per stage: bindings, surfaces, textures.
 
     ``warn`` receives one-line messages naming the prim or material and what to do; it is expected to
     de-duplicate, and the resolver also reports each (material, problem) once.
@@ -267,8 +420,11 @@ class MaterialResolver:
         self._stage: Usd.Stage | None = None
         self._bindings: dict[str, str | None] = {}
         self._surfaces: dict[str, Sdf.Path | None] = {}
+        self._networks: dict[tuple[str, float], SurfaceNetwork | None] = {}
         self._textures: dict[str, Texture | None] = {}
         self._warned: set[tuple[str, str]] = set()
+        #: material path -> what it authors that usdml does not render (``usdml info``'s ``unsupported``)
+        self.unsupported: dict[str, list[str]] = {}
 
     # ----------------------------------------------------------------------------------------------
     def _warn_once(self, key: str, kind: str, message: str) -> None:
@@ -281,8 +437,10 @@ class MaterialResolver:
             self._stage = stage
             self._bindings.clear()
             self._surfaces.clear()
+            self._networks.clear()
             self._textures.clear()
             self._warned.clear()
+            self.unsupported.clear()
 
     @staticmethod
     def _through_instance(prim: Usd.Prim, instance: Usd.Prim | None) -> Usd.Prim:
@@ -314,61 +472,57 @@ class MaterialResolver:
         return UsdShade.Material(prim.GetStage().GetPrimAtPath(path)) if path else None
 
     def surface_shader(self, material: UsdShade.Material) -> UsdShade.Shader | None:
-        """The material's UsdPreviewSurface (universal render context first), or None with one warning."""
+        """The material's UsdPreviewSurface (universal render context first), or None."""
         key = str(material.GetPath())
         if key not in self._surfaces:
-            found, other = None, []
+            found = None
             candidates = [material.ComputeSurfaceSource("")[0]]
             for output in material.GetSurfaceOutputs():
                 candidates.append(UsdShade.Shader(output.GetConnectedSource()[0].GetPrim())
                                   if output.HasConnectedSource() else None)
             for shader in candidates:
-                if not shader:
-                    continue
-                sid = _shader_id(shader)
-                if sid in _PREVIEW_IDS:
+                if shader and _shader_id(shader) in _PREVIEW_IDS:
                     found = shader.GetPath()
                     break
-                other.append(sid or str(shader.GetPath()))
-            if found is None:
-                self._warn_once(key, "surface", f"{key}: no UsdPreviewSurface (MaterialX/other only); using "
-                                f"displayColor" + (f" (surface shaders: {', '.join(dict.fromkeys(other))})"
-                                                   if other else ""))
             self._surfaces[key] = found
         path = self._surfaces[key]
         return UsdShade.Shader(material.GetPrim().GetStage().GetPrimAtPath(path)) if path else None
 
-    # ----------------------------------------------------------------------------------------------
-    def albedo(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
-               instance: Usd.Prim | None = None) -> np.ndarray | None:
-        """``(T, 3, 3)`` float32 linear-RGB albedo per triangle corner from the prim's bound
-        UsdPreviewSurface diffuseColor (constant or UsdUVTexture), or None when no usable material is
-        bound (then the caller uses displayColor).
+    def _other_surfaces(self, material: UsdShade.Material) -> list[str]:
+        ids = []
+        for output in material.GetSurfaceOutputs():
+            if output.HasConnectedSource():
+                shader = UsdShade.Shader(output.GetConnectedSource()[0].GetPrim())
+                ids.append(_shader_id(shader) or str(shader.GetPath()))
+        return list(dict.fromkeys(ids))
 
-        Values are clipped to [0, 1]: a Lambertian albedo above 1 would reflect more light than
-        arrives, which is non-physical (and makes light bounces diverge); below 0 is meaningless.
-        ``instance`` optionally names the instance prim through which a prototype prim is seen.
-        """
-        return self.albedo_and_texture(prim, time, topo, n_points, instance)[0]
-
-    def albedo_and_texture(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
-                           instance: Usd.Prim | None = None):
-        """``(albedo, texture)``: the per-corner albedo of :meth:`albedo`, and when diffuseColor comes
-        from a readable UsdUVTexture, ``(TextureLookup, (T, 3, 2) float32 st per corner)`` so the
-        renderer can sample it per pixel (per-corner values alone would blur a texture to its
-        vertices); ``texture`` is None otherwise."""
-        material = self.bound_material(prim, instance)
-        if material is None:
-            return None, None
+    def network(self, material: UsdShade.Material, time: Usd.TimeCode) -> SurfaceNetwork | None:
+        """The material's surface as usdml renders it: its UsdPreviewSurface (Storm's choice where a material also
+        has a MaterialX surface), else its MaterialX standard_surface / open_pbr_surface; None (one warning: the
+        caller falls back to displayColor) when it has neither. What it authors and usdml does not render is said
+        once per material and kept in :attr:`unsupported`."""
+        key = str(material.GetPath())
+        cache = (key, time.GetValue() if not time.IsDefault() else float("nan"))
+        if cache in self._networks:
+            return self._networks[cache]
         shader = self.surface_shader(material)
-        if shader is None:
-            return None, None
-        ctx = _Eval(self, prim, time, topo, n_points, str(material.GetPath()))
-        rgb = ctx.diffuse(shader)
-        n = len(topo.face)
-        out = np.broadcast_to(np.asarray(rgb, np.float32), (n, 3, 3)) if np.ndim(rgb) == 1 else rgb
-        texture = (ctx.lookup, ctx.st.reshape(-1, 3, 2)) if ctx.lookup is not None else None
-        return np.ascontiguousarray(np.clip(out, 0.0, 1.0), np.float32), texture
+        net = _PreviewReader(key, time).read(shader) if shader is not None else _read_materialx(material, time)
+        if net is None:
+            other = self._other_surfaces(material)
+            self._warn_once(key, "surface", f"{key}: no UsdPreviewSurface (MaterialX/other only); using "
+                            f"displayColor" + (f" (surface shaders: {', '.join(other)})" if other else ""))
+            self.unsupported.setdefault(key, [])
+            item = "surface " + (", ".join(other) or "(none)") + " not rendered: displayColor used"
+            if item not in self.unsupported[key]:
+                self.unsupported[key].append(item)
+        elif net.unsupported:
+            known = self.unsupported.setdefault(key, [])
+            new = [item for item in net.unsupported if item not in known]
+            known.extend(new)
+            for item in new:
+                self._warn_once(key, "unsupported:" + item, f"{key}: {item}")
+        self._networks[cache] = net
+        return net
 
     def texture(self, path: str, material: str, fallback: str = "inputs:fallback") -> Texture | None:
         """The image at resolved ``path``, read once; None (one warning, saying what is used instead: ``fallback``,
@@ -383,16 +537,62 @@ class MaterialResolver:
                 self._textures[path] = None
         return self._textures[path]
 
+    # ----------------------------------------------------------------------------------------------
+    def shading(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
+                instance: Usd.Prim | None = None) -> MeshShading | None:
+        """The gprim's surfaces per triangle (its own bound material, and each ``materialBind`` GeomSubset's),
+        evaluated at the corners and ready to sample per hit; None when no face has a surface usdml renders
+        (then the caller shades displayColor, Lambertian, as Storm's fallback surface does)."""
+        self._use_stage(prim.GetStage())
+        n_tri = len(topo.face)
+        parts: list[tuple[np.ndarray | None, SurfaceNetwork]] = []
+        covered = np.zeros(n_tri, bool)
+        seen = self._through_instance(prim, instance)
+        for subset in UsdGeom.Subset.GetGeomSubsets(UsdGeom.Imageable(seen), UsdGeom.Tokens.face, "materialBind"):
+            faces = np.asarray(subset.GetIndicesAttr().Get(time) or [], np.int64)
+            mask = np.isin(topo.face, faces) & ~covered
+            if not mask.any():
+                continue
+            covered |= mask
+            material = self.bound_material(subset.GetPrim())
+            net = self.network(material, time) if material is not None else None
+            if net is not None:
+                parts.append((mask, net))
+        if not covered.all():
+            material = self.bound_material(prim, instance)
+            net = self.network(material, time) if material is not None else None
+            if net is not None:
+                parts.append((None if not covered.any() else ~covered, net))
+        if not parts:
+            return None
+        return _build_shading(self, prim, time, topo, n_points, parts)
+
+    def albedo(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
+               instance: Usd.Prim | None = None) -> np.ndarray | None:
+        """``(T, 3, 3)`` float32 linear-RGB diffuse reflectance per triangle corner of the prim's bound surfaces
+        (``diffuseColor·(1 − metallic)``, constant or textured, clipped to [0, 1]), or None when no usable material
+        is bound (then the caller uses displayColor). ``instance`` optionally names the instance prim through which
+        a prototype prim is seen."""
+        shading = self.shading(prim, time, topo, n_points, instance)
+        return None if shading is None or shading.lambert is not None else shading.albedo_corners()
+
+
+def _read_materialx(material: UsdShade.Material, time: Usd.TimeCode) -> SurfaceNetwork | None:
+    """MaterialX's common surfaces, when :mod:`usdml.stage.materialx` can read them; else None."""
+    try:
+        from usdml.stage.materialx import read_materialx
+    except ImportError:
+        return None
+    return read_materialx(material, time)
+
 
 class _Eval:
-    """Evaluates one material's diffuse network for one gprim at one time."""
+    """Evaluates one material's network for one gprim at one time: per-corner values and per-hit lookups."""
 
     def __init__(self, resolver: MaterialResolver, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology,
                  n_points: int, material: str):
         self.r, self.prim, self.time, self.topo, self.n_points, self.material = \
             resolver, prim, time, topo, n_points, material
-        self.lookup: TextureLookup | None = None     # set when diffuseColor is a readable texture
-        self.st: np.ndarray | None = None
 
     def warn(self, kind: str, message: str) -> None:
         self.r._warn_once(self.material, kind, f"{self.material}: {message}")
@@ -401,36 +601,24 @@ class _Eval:
     def n_corners(self) -> int:
         return len(self.topo.face) * 3
 
-    def diffuse(self, surface: UsdShade.Shader) -> np.ndarray:
-        """(3,) constant or (T, 3, 3) per-corner diffuse colour."""
-        inp = surface.GetInput("diffuseColor")
-        constant = np.asarray(_value(surface, "diffuseColor", self.time, DIFFUSE_FALLBACK), np.float32)[:3]
-        attr = _source(inp)
-        if attr is None or not _is_output(attr):
-            return constant
-        own = inp.GetAttr().Get(self.time)        # a connected input's own value: used when the network cannot be
-        if own is not None:                       # evaluated (UDIM, unsupported node)
-            constant = np.asarray(own, np.float32)[:3]
-        node = UsdShade.Shader(attr.GetPrim())
-        sid = _shader_id(node)
-        out_name = UsdShade.Utils.GetBaseNameAndType(attr.GetName())[0]
-        if sid == "UsdUVTexture":
-            rgba = self.texture(node, constant)
-            if rgba is None:
-                return constant
-        elif sid.startswith("UsdPrimvarReader_"):
-            rgba = self.primvar_reader(node, sid)
-            out_name = "rgb" if rgba.shape[-1] > 1 else "r"
-        else:
-            self.warn("node:" + str(node.GetPath()), f"diffuseColor comes from {node.GetPath()} ({sid or 'no id'}), "
-                      "which usdml does not evaluate; using the diffuseColor value (author a UsdUVTexture "
-                      "or a constant)")
-            return constant
-        channel = {"r": 0, "g": 1, "b": 2, "a": 3}.get(str(out_name))
-        if self.lookup is not None:
-            self.lookup.channel = channel
-        rgb = np.repeat(rgba[:, channel:channel + 1], 3, axis=1) if channel is not None else rgba[:, :3]
-        return rgb.reshape(-1, 3, 3)
+    def field(self, source, width: int, clip: bool):
+        """``(values, lookup)``: ``values`` (width,) for a constant or (T·3, width) per corner; ``lookup`` a
+        ``(TextureLookup, st (T, 3, 2))`` when the values come from a readable image (sampled again per hit)."""
+        if isinstance(source, Constant):
+            v = _vec(source.value, width)
+            return (np.clip(v, 0.0, 1.0) if clip else v), None
+        if isinstance(source, Primvar):
+            v = self.primvar_values(source)
+            v = _widen(v, width)
+            return (np.clip(v, 0.0, 1.0) if clip else v), None
+        rgba, lookup, st = self.image(source)
+        lookup_out = None
+        if lookup is not None:
+            lookup = TextureLookup(lookup.texture, lookup.wrap_s, lookup.wrap_t, lookup.srgb, lookup.scale,
+                                   lookup.bias, output=source.output, width=width, clip=clip)
+            lookup_out = (lookup, st.reshape(-1, 3, 2))
+        v = _widen(_select(rgba, source.output), width)
+        return (np.clip(v, 0.0, 1.0) if clip else v).astype(np.float32), lookup_out
 
     # ----------------------------------------------------------------------------------------------
     def primvar(self, name: str, width: int, what: str) -> np.ndarray | None:
@@ -443,106 +631,137 @@ class _Eval:
         raw = pv.ComputeFlattened(self.time)
         if raw is None or len(raw) == 0:
             return None
-        values = np.asarray(raw, np.float32).reshape(len(raw), -1)
+        try:
+            values = np.asarray(raw, np.float32).reshape(len(raw), -1)
+        except (TypeError, ValueError):
+            self.warn("pv:" + name, f"{self.prim.GetPath()}: primvars:{name} is not numeric; using the reader's "
+                      "fallback")
+            return None
         per_corner = self.topo.expand(values, pv.GetInterpolation(), self.n_points)
         if per_corner is None:
             self.warn("pv:" + name, f"{self.prim.GetPath()}: {len(raw)} primvars:{name} values do not match "
                       f"interpolation {pv.GetInterpolation()!r}; using the reader's fallback")
             return None
         per_corner = per_corner.reshape(self.n_corners, -1)
-        if per_corner.shape[1] < width:
-            per_corner = np.repeat(per_corner[:, :1], width, axis=1) if per_corner.shape[1] == 1 else \
-                np.pad(per_corner, ((0, 0), (0, width - per_corner.shape[1])))
-        return per_corner[:, :width]
+        return _widen(per_corner, width)
 
-    def primvar_reader(self, node: UsdShade.Shader, sid: str) -> np.ndarray:
-        """(N, C) values of a UsdPrimvarReader_* node."""
-        width = {"float": 1, "float2": 2, "float3": 3, "normal": 3, "point": 3, "vector": 3,
-                 "float4": 4}.get(sid[len("UsdPrimvarReader_"):], 3)
-        name = str(_value(node, "varname", self.time, "") or "")
-        values = self.primvar(name, width, str(node.GetPath())) if name else None
+    def primvar_values(self, reader: Primvar) -> np.ndarray:
+        """(N, width) values of a primvar reader (its fallback where the primvar is missing)."""
+        values = self.primvar(reader.name, reader.width, reader.node or "a primvar reader") if reader.name else None
         if values is None:
-            if not name:
-                self.warn("varname:" + str(node.GetPath()), f"{node.GetPath()} has no inputs:varname; using its "
+            if not reader.name:
+                self.warn("varname:" + reader.node, f"{reader.node} has no inputs:varname; using its "
                           "fallback (set varname to the primvar's name, e.g. 'st')")
-            fb = _vec(_value(node, "fallback", self.time, 0.0), width)
-            values = np.broadcast_to(fb, (self.n_corners, width))
+            values = np.broadcast_to(_vec(reader.fallback, reader.width), (self.n_corners, reader.width))
         return np.asarray(values, np.float32)
 
-    def float2(self, inp: UsdShade.Input | None, depth: int = 0) -> np.ndarray:
-        """(N, 2) texture coordinates from whatever drives ``inp``: a primvar reader, a UsdTransform2d or
-        a constant."""
-        attr = _source(inp)
-        if attr is None:
-            return np.zeros((self.n_corners, 2), np.float32)
-        if not _is_output(attr):
-            return np.broadcast_to(_vec(attr.Get(self.time), 2), (self.n_corners, 2))
-        node = UsdShade.Shader(attr.GetPrim())
-        sid = _shader_id(node)
-        if sid.startswith("UsdPrimvarReader_"):
-            return self.primvar_reader(node, sid)[:, :2] if sid != "UsdPrimvarReader_float" else \
-                np.repeat(self.primvar_reader(node, sid), 2, axis=1)
-        if sid == "UsdTransform2d" and depth < 16:
-            st = self.float2(node.GetInput("in"), depth + 1)
-            scale = _vec(_value(node, "scale", self.time, (1.0, 1.0)), 2)
-            angle = np.radians(float(_value(node, "rotation", self.time, 0.0)))
-            trans = _vec(_value(node, "translation", self.time, (0.0, 0.0)), 2)
+    def st(self, image: Image) -> np.ndarray:
+        """(N, 2) texture coordinates of ``image``: its primvar (or constant), then its UsdTransform2d steps."""
+        if isinstance(image.st, Primvar):
+            st = self.primvar_values(image.st)[:, :2]
+        else:
+            st = np.broadcast_to(_vec(image.st.value, 2), (self.n_corners, 2))
+        for step in image.transforms:
+            angle = np.radians(step.rotation)
             c, s = np.cos(angle), np.sin(angle)
-            p = st * scale
-            return np.stack([p[:, 0] * c - p[:, 1] * s, p[:, 0] * s + p[:, 1] * c], axis=1) + trans
-        self.warn("st:" + str(node.GetPath()), f"texture coordinates come from {node.GetPath()} ({sid or 'no id'}), "
-                  "which usdml does not evaluate; using (0, 0) (use a UsdPrimvarReader_float2)")
-        return np.zeros((self.n_corners, 2), np.float32)
+            p = st * np.asarray(step.scale, np.float32)
+            st = np.stack([p[:, 0] * c - p[:, 1] * s, p[:, 0] * s + p[:, 1] * c], axis=1) + \
+                np.asarray(step.translation, np.float32)
+        return np.ascontiguousarray(st, np.float32)
 
-    def texture(self, node: UsdShade.Shader, constant: np.ndarray) -> np.ndarray | None:
-        """(N, 4) rgba of a UsdUVTexture node at every corner, after scale and bias; None means use
-        the diffuseColor ``constant`` (an unsupported UDIM set)."""
-        name = str(node.GetPath())
-        authored = _value(node, "fallback", self.time, None)
-        fallback = _vec(TEXTURE_FALLBACK if authored is None else authored, 4)
-        using = fallback_words(fallback, authored is not None)
-        asset = _value(node, "file", self.time, None)
-        raw_path = getattr(asset, "path", "") or ""
-        resolved = getattr(asset, "resolvedPath", "") or ""
-        if "<UDIM>" in raw_path.upper() or "<UDIM>" in resolved.upper():
-            self.warn("udim:" + name, f"{name}.inputs:file {raw_path} is a UDIM set, which usdml does not "
-                      "read; using the diffuseColor value (bake the tiles into one texture)")
-            return None
-        if not raw_path:
-            self.warn("nofile:" + name, f"{name} has no inputs:file; using its {using}")
-            return np.broadcast_to(fallback, (self.n_corners, 4))
-        if not resolved:
-            self.warn("missing:" + name, f"{name}.inputs:file @{raw_path}@ does not resolve (missing file?); "
-                      f"using its {using} (fix the asset path)")
-            return np.broadcast_to(fallback, (self.n_corners, 4))
-        tex = self.r.texture(resolved, self.material, using)
+    def image(self, node: Image):
+        """``(rgba (N, 4) after scale and bias, TextureLookup or None, st (N, 2) or None)`` of an image at every
+        corner; its fallback (one warning) where the file is missing or unreadable."""
+        fallback = np.asarray(node.fallback, np.float32)
+        using = fallback_words(fallback, node.fallback_authored)
+        constant = np.broadcast_to(fallback, (self.n_corners, 4))
+        if not node.authored:
+            self.warn("nofile:" + node.node, f"{node.node} has no inputs:file; using its {using}")
+            return constant, None, None
+        if not node.file:
+            self.warn("missing:" + node.node, f"{node.node}.inputs:file @{node.authored}@ does not resolve (missing "
+                      f"file?); using its {using} (fix the asset path)")
+            return constant, None, None
+        tex = self.r.texture(node.file, self.material, using)
         if tex is None:
-            return np.broadcast_to(fallback, (self.n_corners, 4))
-
+            return constant, None, None
         wraps = []
-        for axis, meta_index in (("wrapS", 0), ("wrapT", 1)):
-            mode = _token(node, axis, self.time, "useMetadata")
+        for axis, mode, meta_index in (("wrapS", node.wrap_s, 0), ("wrapT", node.wrap_t, 1)):
             if mode == "useMetadata":
                 mode = tex.wrap_metadata[meta_index] if tex.wrap_metadata else "repeat"
             elif mode not in _WRAPS:
-                self.warn("wrap:" + name, f"{name}.inputs:{axis} = {mode!r} is not a wrap mode "
+                self.warn("wrap:" + node.node, f"{node.node}.inputs:{axis} = {mode!r} is not a wrap mode "
                           f"({', '.join(_WRAPS)}, useMetadata); using repeat")
                 mode = "repeat"
             wraps.append(mode)
-        space = _token(node, "sourceColorSpace", self.time, "auto")
+        space = node.color_space
         if space == "sRGB":
             srgb = True
         elif space == "raw":
             srgb = False
         else:
             if space != "auto":
-                self.warn("cs:" + name, f"{name}.inputs:sourceColorSpace = {space!r} is not raw/sRGB/auto; "
+                self.warn("cs:" + node.node, f"{node.node}.inputs:sourceColorSpace = {space!r} is not raw/sRGB/auto; "
                           "using auto")
             srgb = tex.eight_bit and tex.channels in (3, 4)
-        st = self.float2(node.GetInput("st"))
-        rgba = tex.sample(st, wraps[0], wraps[1], srgb)
-        scale = _vec(_value(node, "scale", self.time, (1.0, 1.0, 1.0, 1.0)), 4)
-        bias = _vec(_value(node, "bias", self.time, (0.0, 0.0, 0.0, 0.0)), 4)
-        self.lookup = TextureLookup(tex, wraps[0], wraps[1], srgb, scale, bias)
-        self.st = np.ascontiguousarray(st, np.float32)
-        return rgba * scale + bias
+        st = self.st(node)
+        scale = np.asarray(node.scale, np.float32)
+        bias = np.asarray(node.bias, np.float32)
+        rgba = tex.sample(st, wraps[0], wraps[1], srgb) * scale + bias
+        return rgba, TextureLookup(tex, wraps[0], wraps[1], srgb, scale, bias), st
+
+
+def _select(rgba: np.ndarray, output: str) -> np.ndarray:
+    """The channels a texture output gives: rgb, rgba, or one of r/g/b/a."""
+    if output in ("r", "g", "b", "a"):
+        c = "rgba".index(output)
+        return rgba[:, c:c + 1]
+    return rgba if output == "rgba" else rgba[:, :3]
+
+
+def _widen(values: np.ndarray, width: int) -> np.ndarray:
+    """(N, C) values as (N, width): one channel repeated, extra channels dropped, missing ones 0."""
+    c = values.shape[1]
+    if c == width:
+        return values
+    if c == 1:
+        return np.repeat(values, width, axis=1)
+    if c > width:
+        return values[:, :width]
+    return np.pad(values, ((0, 0), (0, width - c)))
+
+
+def _build_shading(resolver: MaterialResolver, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
+                   parts: list) -> MeshShading:
+    """Every preview input of a gprim's surfaces per triangle: one :class:`Field` per input, constant where every
+    part agrees on a constant, else per corner; image lookups kept per part for sampling at hits."""
+    n_tri = len(topo.face)
+    fields: dict[str, Field] = {}
+    for name, default in PREVIEW_DEFAULTS.items():
+        width, clip = len(default), name in _UNIT_INPUTS
+        values, lookups = [], []
+        for mask, net in parts:
+            ev = _Eval(resolver, prim, time, topo, n_points, net.material)
+            v, lookup = ev.field(net.inputs.get(name, Constant(default)), width, clip)
+            values.append(v)
+            if lookup is not None:
+                lookups.append((mask, lookup[0], lookup[1]))
+        if all(v.ndim == 1 for v in values) and all(np.array_equal(v, values[0]) for v in values) \
+                and parts[0][0] is None:
+            fields[name] = Field(values[0].astype(np.float32), lookups)
+            continue
+        corners = np.zeros((n_tri, 3, width), np.float32)
+        for (mask, _net), v in zip(parts, values):
+            full = np.broadcast_to(v, (n_tri * 3, width)).reshape(n_tri, 3, width)
+            if mask is None:
+                corners[:] = full
+            else:
+                corners[mask] = full[mask]
+        fields[name] = Field(corners, lookups)
+    lambert = None
+    if parts[0][0] is not None or len(parts) > 1:
+        lambert = np.ones(n_tri, bool)
+        for mask, _net in parts:
+            lambert &= ~mask if mask is not None else False
+        lambert = lambert if lambert.any() else None
+    return MeshShading(fields=fields, n_tri=n_tri, lambert=lambert, materials=[net.material for _m, net in parts])

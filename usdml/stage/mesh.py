@@ -216,9 +216,9 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
     """Triangulate polygon arrays of ``prim`` (a Mesh or a tessellated implicit gprim).
 
     ``normals`` is ``(values, interpolation)`` or None to compute them: per-triangle geometric
-    normals when ``faceted``, else area-weighted smooth ones. The albedo is the
-    bound UsdPreviewSurface's ``diffuseColor`` when ``materials`` (a
-    :class:`usdml.stage.materials.MaterialResolver`) finds one, else ``primvars:displayColor``.
+    normals when ``faceted``, else area-weighted smooth ones. ``materials`` (a
+    :class:`usdml.stage.materials.MaterialResolver`) gives the faces' bound surfaces (``Mesh.shading``) and their
+    diffuse reflectance as the albedo; faces with none take ``primvars:displayColor``.
     """
     path = str(prim.GetPath())
     if len(points) == 0:
@@ -255,22 +255,27 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
     if corner_normals is None:
         corner_normals = (faceted_normals if faceted else smooth_normals)(world, tris)
 
-    albedo, texture = materials.albedo_and_texture(prim, time, topo, len(points)) \
-        if materials is not None else (None, None)
-    dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor") if albedo is None else None
-    if dc and dc.HasValue():
-        raw = _array(dc.ComputeFlattened(time), np.float32, 3, f"{path}.primvars:displayColor", warn)
-        if len(raw):
-            albedo = topo.expand(raw, dc.GetInterpolation(), len(points))
-            if albedo is None:
-                warn(f"{path}: {len(raw)} displayColor values do not match interpolation "
-                     f"{dc.GetInterpolation()!r}; using the default albedo")
-    if albedo is None:
-        albedo = np.broadcast_to(np.float32(DEFAULT_ALBEDO), (len(tris), 3, 3))
+    shading = materials.shading(prim, time, topo, len(points)) if materials is not None else None
+    albedo = None
+    if shading is None or shading.lambert is not None:      # displayColor: the whole mesh, or faces with no surface
+        dc = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor")
+        if dc and dc.HasValue():
+            raw = _array(dc.ComputeFlattened(time), np.float32, 3, f"{path}.primvars:displayColor", warn)
+            if len(raw):
+                albedo = topo.expand(raw, dc.GetInterpolation(), len(points))
+                if albedo is None:
+                    warn(f"{path}: {len(raw)} displayColor values do not match interpolation "
+                         f"{dc.GetInterpolation()!r}; using the default albedo")
+        if albedo is None:
+            albedo = np.broadcast_to(np.float32(DEFAULT_ALBEDO), (len(tris), 3, 3))
+    if shading is not None:
+        surface = shading.albedo_corners()
+        if shading.lambert is not None:
+            surface[shading.lambert] = albedo[shading.lambert]
+        albedo = surface
 
     return Mesh(
         path=path, id=mesh_id, points=np.ascontiguousarray(world, np.float32), triangles=tris,
         normals=np.ascontiguousarray(corner_normals, np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
         face_index=topo.face.astype(np.int32), double_sided=double_sided,
-        orientation="leftHanded" if left else "rightHanded", deforming=deforming,
-        texture=texture[0] if texture else None, uv=texture[1] if texture else None)
+        orientation="leftHanded" if left else "rightHanded", deforming=deforming, shading=shading)
