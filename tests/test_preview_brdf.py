@@ -115,7 +115,7 @@ def render(path, aovs=("direct", "P", "color", "specular", "diffuse", "emission"
     from usdml.stage import StageDelegate
 
     d = StageDelegate(path)
-    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, **settings))
+    r = FrameRenderer(d, UsdmlSettings(**{"pixel_samples": 1, **settings}))
     try:
         return r.render(d.start_time, width, width, set(aovs)).buffers
     finally:
@@ -250,7 +250,7 @@ def test_what_is_not_rendered_is_said_once_and_listed_by_info(new_stage, tmp_pat
     stage = new_stage("s.usda", start=1, end=3)
     for i in range(3):
         quad = add_quad(stage, f"/World/q{i}", size=1.0, y=0.1 * i)
-        bind(quad.GetPrim(), material(stage, "/World/Looks/card", opacity=0.5, opacityThreshold=0.3))
+        bind(quad.GetPrim(), material(stage, "/World/Looks/veil", opacity=0.5, displacement=0.2))
     add_top_camera(stage, 3.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
     stage.Save()
@@ -259,12 +259,153 @@ def test_what_is_not_rendered_is_said_once_and_listed_by_info(new_stage, tmp_pat
                         "--imageWidth", "16", "--pixel-samples", "1", "--frames", "1:3"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    said = [line for line in r.stderr.splitlines() if "opacityThreshold" in line]
-    assert said == ["usdml: warning: /World/Looks/card: inputs:opacityThreshold (a cutout) is not rendered: the "
-                    "surface and its shadow are opaque"]
+    items = ["inputs:displacement (not rendered)"]
+    said = [line for line in r.stderr.splitlines() if "/World/Looks/veil" in line]
+    assert said == [f"usdml: warning: /World/Looks/veil: {item}" for item in items]
     r = subprocess.run([sys.executable, "-m", "usdml.cli", "info", path, "--json"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)
-    assert info["unsupportedMaterials"] == {"/World/Looks/card": [
-        "inputs:opacityThreshold (a cutout) is not rendered: the surface and its shadow are opaque"]}
+    assert info["unsupportedMaterials"] == {"/World/Looks/veil": items}
     assert info["unsupported"]["material inputs"] == 1
+
+
+def checker_card(new_stage, tmp_path, n=8):
+    """A 2 × 2 card at height 1 over a 10 × 10 ground, its opacity an n × n checker (the texture's alpha, cut at
+    0.5), seen from straight above at height 3 and lit straight down; returns (path, opaque(x, z) by hand)."""
+    import OpenImageIO as oiio
+
+    j, i = np.mgrid[0:n, 0:n]                   # j: t texel (upward in st), i: s texel
+    opaque = (i + j) % 2 == 0
+    rgba = np.zeros((n, n, 4), np.uint8)
+    rgba[..., :3] = 200
+    rgba[..., 3] = np.where(opaque, 255, 0)[::-1]   # image rows run top down; st (0, 0) is the lower left
+    out = oiio.ImageOutput.create(str(tmp_path / "checker.png"))
+    out.open(str(tmp_path / "checker.png"), oiio.ImageSpec(n, n, 4, oiio.UINT8))
+    out.write_image(rgba)
+    out.close()
+    stage = new_stage("card.usda", start=1, end=1)
+    g = add_quad(stage, "/World/ground", size=10)
+    g.CreateDisplayColorPrimvar().Set([(0.5, 0.5, 0.5)])
+    card = add_quad(stage, "/World/card", size=2.0, y=1.0)
+    pv = UsdGeom.PrimvarsAPI(card).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(1, 1), Gf.Vec2f(1, 0)])
+    mat = material(stage, "/World/Looks/leaf", diffuseColor=(0.2, 0.6, 0.2), opacityThreshold=0.5)
+    tex = UsdShade.Shader.Define(stage, "/World/Looks/leaf/tex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./checker.png")
+    reader = UsdShade.Shader.Define(stage, "/World/Looks/leaf/uv")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateOutput("a", Sdf.ValueTypeNames.Float)
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/leaf/pbr")).CreateInput(
+        "opacity", Sdf.ValueTypeNames.Float).ConnectToSource(tex.ConnectableAPI(), "a")
+    bind(card.GetPrim(), mat)
+    add_top_camera(stage, 3.0)
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
+    stage.Save()
+
+    def kept(x, z):
+        inside = (np.abs(x) < 1) & (np.abs(z) < 1)
+        si = np.clip(((x + 1) / 2 * n).astype(int), 0, n - 1)
+        tj = np.clip(((z + 1) / 2 * n).astype(int), 0, n - 1)
+        return inside & opaque[tj, si]
+    return stage.GetRootLayer().realPath, kept
+
+
+def test_cutout_holes_for_camera_and_shadow_rays(new_stage, tmp_path):
+    """A checker cutout (exact): where the card is seen its texel is kept; where the ground is seen through the
+    card's plane the texel there is a hole; the ground is in shadow exactly under kept texels (light straight down)."""
+    path, kept = checker_card(new_stage, tmp_path)
+    b = render(path, aovs=("P", "shadow", "primId"), width=64)
+    p = b["P"].reshape(-1, 3).astype(np.float64)
+    on_card = np.abs(p[:, 1] - 1.0) < 1e-4
+    on_ground = np.abs(p[:, 1]) < 1e-4
+    assert on_card.sum() > 300 and on_ground.sum() > 300
+    q = CAMERA + (p - CAMERA) * (2.0 / 3.0)     # where a ground pixel's ray crossed the card's plane
+    camera_ok = np.concatenate([kept(p[on_card, 0], p[on_card, 2]), ~kept(q[on_ground, 0], q[on_ground, 2])])
+    assert camera_ok.mean() >= 0.97, camera_ok.mean()
+    crossed = on_ground & (np.abs(q[:, 0]) < 1) & (np.abs(q[:, 2]) < 1)
+    assert crossed.sum() > 100        # holes were seen through
+    shadow = b["shadow"].reshape(-1)[on_ground]
+    shadow_ok = (shadow > 0.5) == kept(p[on_ground, 0], p[on_ground, 2])
+    assert shadow_ok.mean() >= 0.97, shadow_ok.mean()
+    assert (shadow > 0.5).sum() > 50 and (shadow < 0.5).sum() > 50
+
+
+def test_cutouts_under_an_approximate_backend_are_said(new_stage, tmp_path, caplog):
+    path, _kept = checker_card(new_stage, tmp_path)
+    with caplog.at_level("WARNING"):
+        b = render(path, aovs=("P",), width=16, visibility="voxel", voxel_resolution=32)
+    assert any("(opacityThreshold, opacity < 1) on 1 mesh(es), e.g. /World/card" in r.getMessage() and "voxel"
+               in r.getMessage() for r in caplog.records)
+    assert (np.abs(b["P"][..., 1] - 0.0) < 1e-4).any()      # camera rays still see through
+
+
+def test_normal_map_tilts_the_shading_normal_in_tangent_space(new_stage, tmp_path):
+    """A constant normal map (30° toward +s, the spec's scale 2 / bias −1 encoding, raw float texels) on a quad whose
+    s runs along +X and t along +Z: the normal AOV is sin 30°·X + cos 30°·Y (tangent frame by hand), and the
+    light it turns toward brightens the ground."""
+    import OpenImageIO as oiio
+
+    tilt = math.radians(30.0)
+    texel = (np.array([math.sin(tilt), 0.0, math.cos(tilt)]) + 1.0) / 2.0
+    image = np.broadcast_to(texel.astype(np.float32), (4, 4, 3)).copy()
+    out = oiio.ImageOutput.create(str(tmp_path / "n.exr"))
+    out.open(str(tmp_path / "n.exr"), oiio.ImageSpec(4, 4, 3, oiio.FLOAT))
+    out.write_image(image)
+    out.close()
+    stage = new_stage("s.usda", start=1, end=1)
+    quad = add_quad(stage, "/World/q", size=2.0)
+    pv = UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(1, 1), Gf.Vec2f(1, 0)])
+    mat = material(stage, "/World/Looks/bumpy", diffuseColor=(0.5, 0.5, 0.5))
+    tex = UsdShade.Shader.Define(stage, "/World/Looks/bumpy/normalTex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./n.exr")
+    tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2, 2, 2, 1))
+    tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1, -1, -1, 0))
+    reader = UsdShade.Shader.Define(stage, "/World/Looks/bumpy/uv")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    pbr = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/bumpy/pbr"))
+    pbr.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    bind(quad.GetPrim(), mat)
+    add_top_camera(stage, 1.0)
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
+    stage.Save()
+    b = render(stage.GetRootLayer().realPath, aovs=("normal", "direct"), width=16)
+    want = np.array([math.sin(tilt), math.cos(tilt), 0.0])
+    assert np.allclose(b["normal"][8, 8], want, atol=1e-4)
+    assert np.allclose(b["normal"][2:14, 2:14].reshape(-1, 3), want, atol=1e-4)
+
+
+def test_partial_opacity_covers_its_share_of_pixel_samples(new_stage):
+    """opacity 0.25 without a threshold: a quarter of the camera rays stop on the veil and three quarters of the
+    light reaches the ground under it (stochastic transparency, averaged over 16 pixel samples), against two
+    opaque renders: the veil alone (opacity 1) and the ground alone."""
+    def scene(name, opacity):
+        stage = new_stage(name, start=1, end=1)
+        g = add_quad(stage, "/World/ground", size=10)
+        g.CreateDisplayColorPrimvar().Set([(0.5, 0.5, 0.5)])
+        if opacity is not None:
+            veil = add_quad(stage, "/World/veil", size=4.0, y=1.0)
+            bind(veil.GetPrim(), material(stage, "/World/Looks/veil", diffuseColor=(0.9, 0.2, 0.2), opacity=opacity))
+        add_top_camera(stage, 3.0)
+        sun = UsdLux.DistantLight.Define(stage, "/World/sun")
+        sun.AddRotateXOp().Set(-90)
+        stage.Save()
+        return stage.GetRootLayer().realPath
+
+    def mean_colour(path, samples=16):
+        b = render(path, aovs=("color",), width=32, pixel_samples=samples)
+        return b["color"][10:22, 10:22, :3].reshape(-1, 3).astype(np.float64).mean(0)
+
+    veil = mean_colour(scene("veil.usda", 1.0), 1)
+    ground = mean_colour(scene("ground.usda", None), 1)
+    got = mean_colour(scene("partial.usda", 0.25))
+    want = 0.25 * veil + 0.75 * 0.75 * ground
+    assert np.allclose(got, want, rtol=0.05), (got, want)
+    assert np.array_equal(got, mean_colour(scene("again.usda", 0.25)))      # deterministic

@@ -116,6 +116,7 @@ class Backends:
         of each update under the first role its backend holds (a role sharing another's backend has none; a
         shared ``primary`` is updated by its own ``Backends``)."""
         seconds = {}
+        self._say_cutouts(snapshot)
         for role, backend in self.owners():
             if backend is self._shared:
                 continue
@@ -123,6 +124,26 @@ class Backends:
             backend.update(snapshot, changes)
             seconds[role] = _time.perf_counter() - t0
         return seconds
+
+    def _say_cutouts(self, snapshot: Snapshot) -> None:
+        """Once: the approximate backends build their structures from whole triangles, so a cutout's holes
+        (opacityThreshold) and partly opaque surfaces shadow as solid there; camera rays (exact) and exact shadow
+        rays see through them."""
+        if getattr(self, "_told_cutouts", False):
+            return
+        approximate = sorted({b.name for role, b in self.owners() if role != "primary" and not isinstance(b, ExactBackend)
+                              and b.name})
+        if not approximate:
+            return
+        cut = [m.path for m in snapshot.meshes if m.shading is not None and m.shading.cutout]
+        cut += [m.path for p in snapshot.prototypes for m in p.meshes if m.shading is not None and m.shading.cutout]
+        if cut:
+            from usdml.errors import log
+
+            self._told_cutouts = True
+            log.warning(f"cutouts or partial opacity (opacityThreshold, opacity < 1) on {len(cut)} mesh(es), e.g. "
+                        f"{cut[0]}: camera rays see through them, but the {', '.join(approximate)} backend's shadows "
+                        "treat them as solid (--visibility exact for see-through shadows)")
 
     def close(self) -> None:
         """Release every backend once (a shared ``primary``: its own ``Backends`` does)."""

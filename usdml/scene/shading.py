@@ -102,6 +102,51 @@ class MeshShading:
         return out
 
     @property
+    def cutout(self) -> bool:
+        """Rays can pass through some face: an ``opacityThreshold`` > 0 (holes where opacity is under it) or an
+        ``opacity`` < 1 (partial coverage)."""
+        return bool(np.any(self.fields["opacityThreshold"].corners > 0) or np.any(self.fields["opacity"].corners < 1)
+                    or self.fields["opacity"].textures)
+
+    def kept(self, tri: np.ndarray, w: np.ndarray, xi: np.ndarray | None = None) -> np.ndarray:
+        """(K,) bool: hits on triangles ``tri`` with barycentric weights ``w`` (K, 3, 1) that stop the ray.
+
+        * ``opacityThreshold`` > 0: a cutout, kept where ``opacity ≥ opacityThreshold`` (the spec; Storm discards
+          the fragment otherwise);
+        * threshold 0 and ``opacity`` < 1: partial coverage, kept with probability ``opacity``: where ``xi`` (K,)
+          (uniform in [0, 1), one per hit) is under it (stochastic transparency: pixel samples and jittered shadow
+          rays average to the coverage); without ``xi`` kept;
+        * faces with no surface are always kept."""
+        threshold = self.fields["opacityThreshold"].at(tri, w)[:, 0]
+        opacity = self.fields["opacity"].at(tri, w)[:, 0]
+        cut = threshold > 0
+        keep = np.where(cut, opacity >= threshold, True)
+        if xi is not None:
+            keep &= cut | (xi < opacity)
+        if self.lambert is not None:
+            keep |= self.lambert[tri]
+        return keep
+
+    def normal_map(self, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(rows, st (k, 3, 2))``: the hits on triangles ``tri`` (K,) whose ``normal`` comes from an image, and the
+        texture coordinates of that image at their triangles' corners (the tangent frame follows them); None when
+        no hit has a normal map."""
+        textures = self.fields["normal"].textures
+        if not textures:
+            return None
+        rows_all, st_all = [], []
+        taken = np.zeros(len(tri), bool)
+        for mask, _lookup, st in textures:
+            rows = np.flatnonzero(~taken if mask is None else (mask[tri] & ~taken))
+            if len(rows):
+                taken[rows] = True
+                rows_all.append(rows)
+                st_all.append(st[tri[rows]])
+        if not rows_all:
+            return None
+        return np.concatenate(rows_all), np.concatenate(st_all)
+
+    @property
     def textured(self) -> bool:
         return any(f.textures for f in self.fields.values())
 

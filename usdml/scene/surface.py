@@ -18,7 +18,7 @@ import numpy as np
 from usdml.scene import Snapshot
 from usdml.scene.shading import lambert_rows
 
-__all__ = ["Hits", "surface_at_hits"]
+__all__ = ["Hits", "surface_at_hits", "tangent_space_normal"]
 
 
 @dataclass
@@ -82,6 +82,12 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
         eye = -np.asarray(dirs[px], np.float64)
         lambert = _blend(mesh.albedo[tri], w) if mesh.shading.lambert is not None else None
         at = mesh.shading.at(tri, w, eye, lambert)
+        mapped = mesh.shading.normal_map(tri) if at.normal is not None else None
+        if mapped is not None:
+            k, st = mapped
+            m = snapshot.prototypes[src.prototype].xforms[src.instance][:3, :3] if src.prototype >= 0 else None
+            normal[px[k]] = tangent_space_normal(mesh.points[mesh.triangles[tri[k]]], st, _unit(normal[px[k]]),
+                                                 at.normal[k], m)
         albedo[px] = at.reflectance
         material[px] = at.rows
         emission[px] = at.emission
@@ -100,3 +106,35 @@ def _unit(v: np.ndarray) -> np.ndarray:
     # column by column: the same lengths as np.linalg.norm(axis=1), several times sooner on (N, 3) rows
     length = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])[:, None]
     return np.where(length > 0, v / np.where(length > 0, length, 1.0), 0.0)
+
+
+def tangent_space_normal(corners: np.ndarray, st: np.ndarray, n: np.ndarray, value: np.ndarray,
+                         to_world: np.ndarray | None = None) -> np.ndarray:
+    """Shading normals ``n`` (K, 3) (unit, world) perturbed by a normal map's tangent-space ``value`` (K, 3) (the
+    UsdPreviewSurface ``normal`` input after its texture's scale and bias): ``normalize(x·T + y·B + z·n)`` with the
+    tangent T along increasing s and the bitangent B along increasing t of the triangle's texture coordinates ``st``
+    (K, 3, 2) over its ``corners`` (K, 3, 3) (mesh space; ``to_world`` (3, 3) the instance's linear part), T made
+    orthogonal to n and B = ±n × T keeping the texture's handedness (MikkTSpace's per-triangle frame, as Storm
+    derives it from derivatives). Triangles whose st is degenerate keep ``n``."""
+    corners = np.asarray(corners, np.float64)
+    st = np.asarray(st, np.float64)
+    dp1, dp2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    d1, d2 = st[:, 1] - st[:, 0], st[:, 2] - st[:, 0]
+    r = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    ok = np.abs(r) > 1e-20
+    r = np.where(ok, r, 1.0)[:, None]
+    t = (dp1 * d2[:, 1:2] - dp2 * d1[:, 1:2]) / r
+    b = (dp2 * d1[:, 0:1] - dp1 * d2[:, 0:1]) / r
+    if to_world is not None:
+        t, b = t @ to_world.T, b @ to_world.T
+    t = t - n * (t * n).sum(1, keepdims=True)
+    tl = np.linalg.norm(t, axis=1, keepdims=True)
+    ok &= tl[:, 0] > 1e-20
+    t = t / np.where(tl > 1e-20, tl, 1.0)
+    side = np.where((np.cross(n, t) * b).sum(1) < 0, -1.0, 1.0)[:, None]
+    bt = side * np.cross(n, t)
+    v = np.asarray(value, np.float64)
+    out = _unit(v[:, 0:1] * t + v[:, 1:2] * bt + v[:, 2:3] * n)
+    bad = ~ok | ~(np.linalg.norm(out, axis=1) > 0)
+    out[bad] = n[bad]
+    return out

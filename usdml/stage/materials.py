@@ -8,7 +8,7 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   direct and collection-based bindings and ``bindMaterialAs`` strength. Prims inside a native
   prototype (``/__Prototype_N/...``) see the bindings authored inside the instanced asset; pass
   ``instance=`` (an instance prim of that prototype) to resolve through that instance's instance
-  proxy instead, so bindings authored on or above the instance apply too. ``GeomSubset``\ s of family
+  proxy instead, so bindings authored on or above the instance apply too. GeomSubsets of family
   ``materialBind`` (element type ``face``) bind their own material to their faces, the first subset naming a face
   winning; the other faces take the prim's.
 * **Surface**: ``UsdShadeMaterial.ComputeSurfaceSource`` for the universal render context, then any
@@ -309,21 +309,7 @@ class _PreviewReader:
             source = self.source(inp, name, len(PREVIEW_DEFAULTS[name]))
             if source is not None:
                 self.net.inputs[name] = source
-        self.not_rendered()
         return self.net
-
-    def not_rendered(self) -> None:
-        """Inputs read but not rendered yet: cutouts and partial opacity (the surface renders opaque)."""
-        inputs = self.net.inputs
-        threshold, opacity = inputs.get("opacityThreshold"), inputs.get("opacity")
-        cut = threshold is not None and (not isinstance(threshold, Constant) or threshold.value[0] > 0)
-        partial = opacity is not None and (not isinstance(opacity, Constant) or opacity.value[0] < 1)
-        if cut and opacity is not None:
-            self.unsupported("inputs:opacityThreshold (a cutout) is not rendered: the surface and its shadow are "
-                             "opaque")
-        elif partial:
-            self.unsupported("inputs:opacity < 1 (partial coverage) is not rendered: the surface and its shadow "
-                             "are opaque")
 
     def source(self, inp: UsdShade.Input, name: str, width: int):
         """What drives input ``name`` (``width`` floats): a Constant, Primvar or Image; None: the default."""

@@ -107,6 +107,8 @@ __all__ = ["ExactBackend", "GeometrySource", "SourceTable"]
 
 #: relative float32 precision margin: 8 ulps of a coordinate
 FLOAT_MARGIN = 2.0 ** -20
+#: holes a ray passes through (cutouts, opacityThreshold) before it is taken to have missed
+CUTOUT_LAYERS = 64
 
 
 class GeometrySource(NamedTuple):
@@ -281,6 +283,31 @@ class _RayKernel:
         return o, d, t
 
 
+def _ray_seeds(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(N,) uint64 per-ray seeds from the float32 bits of each ray: the same ray, the same seed (deterministic
+    stochastic transparency; pixel samples and shadow rays from jittered points differ)."""
+    bits = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), np.float32).view(np.uint32).astype(np.uint64)
+    h = np.full(len(bits), 0x9E3779B97F4A7C15, np.uint64)
+    for c in range(bits.shape[1]):
+        h = _mix(h ^ bits[:, c])
+    return h
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser."""
+    with np.errstate(over="ignore"):
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def _uniform(seeds: np.ndarray, layer: int) -> np.ndarray:
+    """(K,) float64 in [0, 1): the ``layer``-th random number of each seed."""
+    with np.errstate(over="ignore"):
+        h = _mix(seeds + np.uint64(layer + 1) * np.uint64(0x9E3779B97F4A7C15))
+    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
 class ExactBackend(VisibilityBackend):
     """Exact shadow rays and closest hits with Embree; see the module docstring for costs.
 
@@ -317,6 +344,9 @@ class ExactBackend(VisibilityBackend):
         self._dynamic: _EmbreeGroup | None = None
         self._pool: ThreadPoolExecutor | None = None
         self.sources = SourceTable.empty()
+        self._snapshot: Snapshot | None = None
+        #: (sources,) bool: the geometry sources whose surface has cutouts (opacityThreshold), None when none has
+        self._cutouts: np.ndarray | None = None
         #: build counters and sizes: ``static_builds``, ``dynamic_builds``, ``*_triangles``, ``*_build_s``
         self.stats: dict[str, float] = {"static_builds": 0, "dynamic_builds": 0, "static_triangles": 0,
                                         "dynamic_triangles": 0, "static_build_s": 0.0, "dynamic_build_s": 0.0}
@@ -355,6 +385,8 @@ class ExactBackend(VisibilityBackend):
         self.stats["static_triangles"] = self._static.triangle_count
         self.stats["dynamic_triangles"] = self._dynamic.triangle_count
         self.sources = SourceTable.concat(list(tables))
+        self._snapshot = snapshot
+        self._cutouts = self._cutout_sources(snapshot)
         if self.fixed_epsilon is None:
             bounds = snapshot.world_bounds()
             diag = float(np.linalg.norm(bounds[1] - bounds[0])) if bounds is not None else 0.0
@@ -489,12 +521,22 @@ class ExactBackend(VisibilityBackend):
                     o, d, tfar = o[keep], d[keep], tfar[keep]
 
         self.map_chunks(n, work)
+        if self._cutouts is not None and out.any():
+            # Embree's any-hit cannot tell a hole from a surface: the blocked segments are walked hit by hit
+            rows = np.flatnonzero(out)
+            o, d, tfar = self.shadow_rays(origins[rows], targets[rows], None if normals is None else normals[rows],
+                                          None if distant is None else distant[rows])
+            out[rows] = self.intersect(o.astype(np.float64), d.astype(np.float64),
+                                       np.where(tfar > 0, tfar, 0.0))["geom"] >= 0
         return out
 
     # ------------------------------------------------------------------ closest hits
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, tmax: float | np.ndarray | None = None) -> dict:
-        """Closest hit along each ray (for the G-buffer): no epsilon, rays start at ``origins``.
+        """Closest hit along each ray (for the G-buffer): no epsilon, rays start at ``origins``. A hit in a
+        cutout's hole (``opacity < opacityThreshold``, :meth:`usdml.scene.shading.MeshShading.kept`) is passed
+        through: the ray goes on from just past it (:attr:`epsilon`) to the next hit, up to :data:`CUTOUT_LAYERS`
+        holes deep.
 
         Parameters
         ----------
@@ -517,6 +559,66 @@ class ExactBackend(VisibilityBackend):
         n = origins.shape[0]
         dirs = as_vectors(dirs, "dirs", n)
         limit = np.broadcast_to(np.asarray(np.inf if tmax is None else tmax, np.float64), (n,))
+        out = self._closest(origins, dirs, limit)
+        if self._cutouts is None:
+            return out
+        base = np.zeros(n, np.float64)       # where each ray's current segment starts, along the ray
+        step = max(self.epsilon, 1e-7)
+        seeds = _ray_seeds(origins, dirs)
+        holes = np.arange(n)                 # the rays whose latest hit is still to be judged
+        for layer in range(CUTOUT_LAYERS):
+            holes = self._holes(out, seeds, layer, holes)
+            if not len(holes):
+                break
+            start = base[holes] + out["t"][holes].astype(np.float64) + step
+            again = self._closest(origins[holes] + dirs[holes] * start[:, None], dirs[holes], np.maximum(limit[holes] - start, 0.0))
+            base[holes] = start
+            for key in ("geom", "prim", "u", "v", "ng"):
+                out[key][holes] = again[key]
+            out["t"][holes] = again["t"]
+        else:
+            holes = self._holes(out, seeds, CUTOUT_LAYERS, holes)
+            out["geom"][holes], out["prim"][holes], out["t"][holes] = -1, -1, np.inf
+        hit = out["geom"] >= 0
+        out["t"][hit] = (out["t"][hit].astype(np.float64) + base[hit]).astype(np.float32)
+        return out
+
+    def _cutout_sources(self, snapshot: Snapshot) -> np.ndarray | None:
+        """(sources,) bool of the sources whose mesh has a cutout, or None when none has."""
+        def cut(mesh) -> bool:
+            return mesh.shading is not None and mesh.shading.cutout
+
+        if not any(cut(m) for m in snapshot.meshes) and not any(cut(m) for p in snapshot.prototypes
+                                                                 for m in p.meshes):
+            return None
+        s = self.sources
+        flags = np.zeros(len(s), bool)
+        for i in range(len(s)):
+            flags[i] = cut(self.source(i).mesh_of(snapshot))
+        return flags if flags.any() else None
+
+    def _holes(self, out: dict, seeds: np.ndarray, layer: int, rows: np.ndarray) -> np.ndarray:
+        """The ``rows`` of ``out`` (:meth:`_closest`) whose hit the ray passes through: a cutout's hole, or a partly
+        opaque surface the ray's own random number (``seeds``, the ``layer``-th hit along it) lets through."""
+        geom = out["geom"]
+        rows = rows[geom[rows] >= 0]
+        rows = rows[self._cutouts[geom[rows]]]
+        if not len(rows):
+            return rows
+        holes = []
+        order = np.argsort(geom[rows], kind="stable")
+        rows = rows[order]
+        bounds = np.flatnonzero(np.diff(geom[rows])) + 1
+        for group in np.split(rows, bounds):
+            mesh = self.source(int(geom[group[0]])).mesh_of(self._snapshot)
+            u, v = out["u"][group].astype(np.float64), out["v"][group].astype(np.float64)
+            w = np.stack([1.0 - u - v, u, v], axis=1)[:, :, None]
+            holes.append(group[~mesh.shading.kept(out["prim"][group], w, _uniform(seeds[group], layer))])
+        return np.sort(np.concatenate(holes))
+
+    def _closest(self, origins: np.ndarray, dirs: np.ndarray, limit: np.ndarray) -> dict:
+        """:meth:`intersect` without cutouts: Embree's closest hit of each ray."""
+        n = origins.shape[0]
         groups = self._groups()
         out = {"t": np.full(n, np.inf, np.float32), "geom": np.full(n, -1, np.int32),
                "prim": np.full(n, -1, np.int32), "u": np.zeros(n, np.float32), "v": np.zeros(n, np.float32),
