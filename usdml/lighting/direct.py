@@ -113,7 +113,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                  occluded: Callable[..., np.ndarray] | None,
                  progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                  min_distance: float = 0.0, geometric: np.ndarray | None = None,
-                 answers: np.ndarray | None = None, material: np.ndarray | None = None) -> DirectResult:
+                 answers: np.ndarray | None = None, material: np.ndarray | None = None,
+                 diffuse_only: np.ndarray | None = None) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -134,6 +135,9 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     material : (P, WIDTH) float32, optional
         UsdPreviewSurface rows (``kernels/brdf.py``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
         being the effective diffuse reflectance ρ; the result's ``specular`` holds ΣE·ks. None: Lambertian.
+    diffuse_only : (L,) bool, optional
+        With ``material``: lights that light the diffuse lobe only (a dome's distant samples: its specular is
+        :func:`usdml.lighting.dome_specular.dome_specular`'s).
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
@@ -167,7 +171,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)
         if material is not None:
-            radiance[lo:hi], specular[lo:hi] = _brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi])
+            radiance[lo:hi], specular[lo:hi] = _brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi],
+                                                          diffuse_only)
             return asked
         radiance[lo:hi] = g @ table.base
         if f is not None:
@@ -188,7 +193,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries, specular)
 
 
-def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray, normals: np.ndarray):
+def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray, normals: np.ndarray,
+               diffuse_only: np.ndarray | None = None):
     """``(ΣE·kd, ΣE·ks)`` ``(B, 3)`` of a block: each pair's irradiance (``g`` after shadows, focus ``f``) times
     the material's BRDF terms toward the light (``kernels/brdf.py``), summed per point in light order."""
     pi, li = np.nonzero(g > 0)
@@ -197,6 +203,8 @@ def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: 
         e += (g[pi, li] * f[pi, li])[:, None] * table.focus_rgb[li]
     l = np.stack([w[0][pi, li], w[1][pi, li], w[2][pi, li]], axis=1)
     kd, ks = brdf_terms(rows[pi], normals[pi], l)
+    if diffuse_only is not None:
+        ks[diffuse_only[li]] = 0.0
     n = len(g)
     d = np.stack([np.bincount(pi, e[:, c] * kd[:, c], minlength=n) for c in range(3)], axis=1)
     s = np.stack([np.bincount(pi, e[:, c] * ks[:, c], minlength=n) for c in range(3)], axis=1)
@@ -206,7 +214,7 @@ def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: 
 def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                min_distance: float = 0.0, geometric: np.ndarray | None = None,
-               material: np.ndarray | None = None) -> DirectResult:
+               material: np.ndarray | None = None, diffuse_only: np.ndarray | None = None) -> DirectResult:
     """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
     updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
     :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``. With
@@ -216,6 +224,8 @@ def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndar
     options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
     if material is not None:
         options["material"] = material
+        if diffuse_only is not None and diffuse_only.any():
+            options["diffuse_only"] = diffuse_only
     if backend.supports(SHADE_DIRECT) and material is None:
         return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
     return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)

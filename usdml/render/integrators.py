@@ -27,7 +27,7 @@ from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer
-from usdml.scene import Lights, Snapshot
+from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.shading import lambert_rows
 from usdml.settings import UsdmlSettings
 from usdml.visibility.base import LIGHT_MAJOR
@@ -64,6 +64,34 @@ class Surface:
         emission = None if gb.emission is None else gb.emission.reshape(-1, 3)[hit]
         return cls(hit, *(getattr(gb, name).reshape(-1, 3)[hit]
                           for name in ("position", "normal", "albedo", "geometric")), material, emission)
+
+
+def dome_columns(lights: Lights, domes: list) -> np.ndarray | None:
+    """(L,) bool: the frame's lights that stand for a dome (its distant samples, usdml.lighting.dome), or None."""
+    if not domes or not len(lights):
+        return None
+    paths = {d.path for d in domes}
+    mask = np.fromiter((p in paths for p in lights.paths), bool, len(lights)) & (lights.type == int(LightType.DISTANT))
+    return mask if mask.any() else None
+
+
+def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                  geometric: np.ndarray, material: np.ndarray | None, seed: int, progress: Progress) -> DirectResult:
+    """Every light of ``frame`` at the points (:func:`usdml.lighting.direct.shade_with`); with material rows a dome's
+    distant samples light the diffuse lobe and its specular lobes are sampled from the BRDF
+    (:func:`usdml.lighting.dome_specular.dome_specular`)."""
+    domes = frame.snap.domes if material is not None else []
+    mask = dome_columns(frame.lights, domes)
+    direct = shade_with(backend, points, normals, albedo, frame.lights, progress,
+                        meters_per_unit=frame.snap.meters_per_unit, geometric=geometric, material=material,
+                        diffuse_only=mask)
+    if mask is not None:
+        from usdml.lighting.dome_specular import dome_specular
+
+        spec = dome_specular(points, normals, geometric, material, domes, backend.occluded, seed)
+        direct.radiance += spec
+        direct.specular = spec if direct.specular is None else direct.specular + spec
+    return direct
 
 
 def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats) -> GBuffer:
@@ -105,9 +133,8 @@ class EveryLight:
 
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
-        return shade_with(self.backends.shadow, surface.position, surface.normal, surface.albedo, frame.lights,
-                          progress, meters_per_unit=frame.snap.meters_per_unit, geometric=surface.geometric,
-                          material=surface.material)
+        return shade_surface(self.backends.shadow, frame, surface.position, surface.normal, surface.albedo,
+                             surface.geometric, surface.material, self.settings.seed, progress)
 
 
 class EveryLightFused(EveryLight):
@@ -126,9 +153,8 @@ class EveryLightFused(EveryLight):
         if any(s.material is not None for s in surfaces):
             material = np.concatenate([s.material if s.material is not None else lambert_rows(len(s.position))
                                        for s in surfaces])
-        direct = shade_with(self.backends.shadow, stacked("position"), stacked("normal"), stacked("albedo"),
-                            frame.lights, progress, meters_per_unit=frame.snap.meters_per_unit,
-                            geometric=stacked("geometric"), material=material)
+        direct = shade_surface(self.backends.shadow, frame, stacked("position"), stacked("normal"), stacked("albedo"),
+                               stacked("geometric"), material, self.settings.seed, progress)
         stats.shading_seconds += _time.perf_counter() - t0
         lo = 0
         for i, (gb, surface) in enumerate(zip(gbs, surfaces)):
