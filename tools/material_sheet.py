@@ -74,6 +74,15 @@ def read_rgb(path: Path, width: int) -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
+def label(tile: np.ndarray, text: str) -> np.ndarray:
+    """``tile`` with ``text`` in its top-left corner (OpenImageIO's text rendering; unchanged where it has no font)."""
+    buf = oiio.ImageBuf(oiio.ImageSpec(tile.shape[1], tile.shape[0], 3, oiio.FLOAT))
+    buf.set_pixels(oiio.ROI(0, tile.shape[1], 0, tile.shape[0], 0, 1, 0, 3), np.ascontiguousarray(tile, np.float32))
+    if oiio.ImageBufAlgo.render_text(buf, 4, 14, text, 12, "", (1.0, 1.0, 0.2)):
+        return np.asarray(buf.get_pixels(oiio.FLOAT)).reshape(tile.shape)
+    return tile
+
+
 def sheet(tiles: list[np.ndarray], columns: int, width: int) -> np.ndarray:
     rows = [tiles[i:i + columns] for i in range(0, len(tiles), columns)]
     height = max(t.shape[0] for t in tiles)
@@ -101,13 +110,18 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for i, (stage, baseline) in enumerate(jobs):
             out = Path(tmp) / f"r{i}.png"
+            if baseline is not None and tiles and len(tiles) % 2:   # pairs start on an even column
+                tiles.append(np.ones_like(tiles[-1]))
             result = render(stage, out, args.width)
             report.append(result)
-            print(f"{stage.relative_to(stage.parents[2])}: exit {result['exit']}, {len(result['warnings'])} "
-                  f"warning(s)" + (", TRACEBACK" if result["traceback"] else ""), flush=True)
-            tiles.append(read_rgb(out, args.width) if out.exists() else np.zeros((args.width // 2, args.width, 3)))
-            tiles.append(read_rgb(baseline, args.width) if baseline is not None and baseline.exists()
-                         else np.ones_like(tiles[-1]))
+            name = str(stage.relative_to(stage.parents[2]))
+            print(f"{name}: exit {result['exit']}, {len(result['warnings'])} warning(s)"
+                  + (", TRACEBACK" if result["traceback"] else ""), flush=True)
+            tiles.append(label(read_rgb(out, args.width) if out.exists() else np.zeros((args.width // 2, args.width, 3)),
+                               Path(name).name))
+            if baseline is not None:        # usdImagingGL's: Storm's image beside ours
+                tiles.append(label(read_rgb(baseline, args.width) if baseline.exists()
+                                   else np.ones_like(tiles[-1]), "Storm baseline"))
     image = sheet(tiles, 4, args.width)
     out = oiio.ImageOutput.create(args.out)
     out.open(args.out, oiio.ImageSpec(image.shape[1], image.shape[0], 3, oiio.UINT8))
