@@ -11,6 +11,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
 
 from conftest import add_quad
+from usdml.stage.materials import MaterialResolver
 from usdml.stage.materialx import read_materialx, read_materialx_path
 from usdml.stage.network import Image, Primvar
 
@@ -218,6 +219,90 @@ def test_referenced_mtlx_document(new_stage, tmp_path):
     assert image.transforms[0].translation == (-0.5, -0.25)
 
 
+def test_resolver_renders_missing_material_prims_from_their_mtlx(new_stage, tmp_path):
+    from test_materials import albedo
+
+    stage = mtlx_stage(new_stage, tmp_path)
+    log = Log()
+    r = MaterialResolver(log)
+    a, b = stage.GetPrimAtPath("/World/a"), stage.GetPrimAtPath("/World/b")
+    assert r.bound_material(a) is None and r.bound_path(a) == "/World/Looks/blue"
+    assert np.allclose(albedo(r, a), (0.2, 0.2, 0.5))
+    # red: the texel 0.9, 0.1, 0.1 (raw) · (1 − metalness 0.1); its subsurface mixes only into a constant colour
+    assert np.allclose(albedo(r, b), np.array([0.9, 0.1, 0.1]) * 0.9, atol=1e-6)
+    assert sorted(log) == [
+        "/World/Looks/blue: subsurface is not rendered (subsurface_weight 0.5, subsurface_color (0.3, 0.2, 0.1)): "
+        "its colour is mixed into the diffuse",
+        "/World/Red: subsurface is not rendered (subsurface 0.5, subsurface_color (1, 0, 0)): its colour is mixed "
+        "into the diffuse"]
+
+
+def test_preview_surface_wins_over_materialx(new_stage, tmp_path):
+    """Storm's choice: a material with both surfaces renders its UsdPreviewSurface."""
+    from test_materials import albedo
+
+    stage = new_stage()
+    quad = add_quad(stage, "/World/q").GetPrim()
+    material = inline_standard_surface(stage, "/World/Looks/both")
+    preview = UsdShade.Shader.Define(stage, "/World/Looks/both/preview")
+    preview.CreateIdAttr("UsdPreviewSurface")
+    preview.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.3, 0.6, 0.9))
+    material.CreateSurfaceOutput().ConnectToSource(preview.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(quad).Bind(material)
+    log = Log()
+    r = MaterialResolver(log)
+    assert np.allclose(albedo(r, quad), (0.3, 0.6, 0.9)) and not log
+    assert r.network(material, T0).origin == "UsdPreviewSurface"
+
+
+def _frame_stage(tmp_path, mtlx_text: str):
+    stage = Usd.Stage.CreateNew(str(tmp_path / "f.usda"))
+    (tmp_path / "look.mtlx").write_text(mtlx_text)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/quad")
+    mesh.CreatePointsAttr([(-1, 0, -1), (-1, 0, 1), (1, 0, 1), (1, 0, -1)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateDisplayColorPrimvar().Set([(0, 0, 1)])
+    looks = UsdGeom.Scope.Define(stage, "/World/Looks").GetPrim()
+    looks.GetReferences().AddReference("./look.mtlx", "/MaterialX/Materials")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).GetDirectBindingRel().SetTargets(
+        [Sdf.Path("/World/Looks/blue")])
+    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
+    cam.AddTranslateOp().Set((0, 5, 0))
+    cam.AddRotateXOp().Set(-90)
+    stage.Save()
+    return str(tmp_path / "f.usda")
+
+
+def _render_albedo(path: str):
+    """The albedo AOV of a 16x16 frame and every warning the stage and the frame gave."""
+    from usdml.errors import Warnings
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    warn = Warnings()
+    d = StageDelegate(path, warn=warn)
+    albedo = FrameRenderer(d, UsdmlSettings()).render(0, 16, 16, {"albedo"}).buffers["albedo"]
+    return albedo, warn.messages
+
+
+def test_frame_renders_a_referenced_mtlx_material(tmp_path):
+    albedo, messages = _render_albedo(_frame_stage(tmp_path, MTLX))
+    assert np.allclose(albedo[8, 8], (0.2, 0.2, 0.5), atol=1e-3)      # not displayColor (0, 0, 1)
+    assert [m for m in messages if "composition error" not in m] == [
+        "/World/Looks/blue: subsurface is not rendered (subsurface_weight 0.5, subsurface_color (0.3, 0.2, 0.1)): "
+        "its colour is mixed into the diffuse"]
+
+
+def test_mtlx_that_does_not_parse_warns_once_and_the_frame_renders(tmp_path):
+    albedo, messages = _render_albedo(_frame_stage(tmp_path, "<materialx version='1.39'><standard_surface"))
+    assert np.allclose(albedo[8, 8], (0, 0, 1))                        # displayColor
+    ours = [m for m in messages if "composition error" not in m]
+    assert len(ours) == 1 and ours[0].startswith("/World/Looks/blue: look.mtlx does not parse as MaterialX (")
+    assert ours[0].endswith("; using displayColor")
+
+
 def test_unsupported_nodes_and_missing_names_are_said_not_raised(new_stage, tmp_path):
     text = MTLX.replace('<input name="base_color" type="color3" value="0.1, 0.2, 0.9" />',
                         '<input name="base_color" type="color3" nodename="noise" />').replace(
@@ -231,3 +316,27 @@ def test_unsupported_nodes_and_missing_names_are_said_not_raised(new_stage, tmp_
                                    "which usdml does not evaluate: using the default")
     assert read_materialx_path(stage, "/World/Looks/green", T0, log) is None
     assert log == ["/World/Looks/green: no surfacematerial green in looks.mtlx; using displayColor"]
+
+
+def test_standard_shader_ball_binds_its_mtlx_plastic(assets, tmp_path):
+    """End to end on the usd-wg Standard Shader Ball: the ball bound to the referenced plastic_openpbr.mtlx renders
+    its base colour, not its displayColor (usd-core cannot compose the .mtlx)."""
+    path = assets / "usd-wg" / "StandardShaderBall" / "standard_shader_ball_scene.usda"
+    if not path.exists():
+        pytest.skip(f"{path} not found")
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    stage = Usd.Stage.Open(str(path))
+    ball = stage.GetPrimAtPath("/standard_shader_ball_scene")
+    ball.GetVariantSet("example_material").SetVariantSelection("mtlx_plastic")
+    d = StageDelegate(stage)
+    snap = d.snapshot(3)
+    surface = [m for m in snap.meshes if m.path.endswith("/material_surface")]
+    assert surface and np.allclose(surface[0].albedo, (0.209884, 0.562091, 0.766), atol=1e-5)
+    albedo = FrameRenderer(d, UsdmlSettings()).render(3, 48, 48, {"albedo"}).buffers["albedo"]
+    pixels = albedo.reshape(-1, 3)
+    plastic = np.isclose(pixels, (0.209884, 0.562091, 0.766), atol=2e-3).all(axis=1)
+    display = np.isclose(pixels, (0.325, 0.7075, 1.0), atol=2e-3).all(axis=1)
+    assert plastic.sum() > 20 and not display.any()
