@@ -287,16 +287,30 @@ def test_float_exr_auto_is_raw(new_stage, tmp_path):
     assert np.allclose(albedo(MaterialResolver(Log()), quad), corner_expected(quad, per_vertex), atol=1e-6)
 
 
-def test_materialx_only_material_gives_none_and_warns_once(new_stage):
+def _two_quads_with_mtlx_surface(new_stage, sid: str):
+    """(stage, quad, quad) bound to one material whose only surface is a MaterialX shader ``sid``, base_color red."""
     stage = new_stage()
     q1, q2 = add_quad(stage, "/World/a").GetPrim(), add_quad(stage, "/World/b").GetPrim()
     mat = UsdShade.Material.Define(stage, "/World/Looks/mx")
     ss = UsdShade.Shader.Define(stage, "/World/Looks/mx/ss")
-    ss.CreateIdAttr("ND_standard_surface_surfaceshader")
+    ss.CreateIdAttr(sid)
     ss.CreateInput("base_color", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(1, 0, 0))
     mat.CreateSurfaceOutput("mtlx").ConnectToSource(ss.ConnectableAPI(), "out")
     bind(q1, mat)
     bind(q2, mat)
+    return stage, q1, q2
+
+
+def test_materialx_standard_surface_renders_its_base_color(new_stage):
+    """MaterialX's standard_surface without a preview surface: base · base_color (usdml.stage.materialx)."""
+    _stage, q1, q2 = _two_quads_with_mtlx_surface(new_stage, "ND_standard_surface_surfaceshader")
+    log = Log()
+    r = MaterialResolver(log)
+    assert np.allclose(albedo(r, q1), (1, 0, 0)) and np.allclose(albedo(r, q2), (1, 0, 0)) and not log
+
+
+def test_surface_usdml_does_not_map_gives_none_and_warns_once(new_stage):
+    _stage, q1, q2 = _two_quads_with_mtlx_surface(new_stage, "ND_gltf_pbr_surfaceshader")
     log = Log()
     r = MaterialResolver(log)
     assert albedo(r, q1) is None and albedo(r, q2) is None and albedo(r, q1) is None

@@ -14,7 +14,10 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
 * **Surface**: ``UsdShadeMaterial.ComputeSurfaceSource`` for the universal render context, then any
   other context's surface output, keeping the first whose shader is ``UsdPreviewSurface`` (or
   MaterialX's ``ND_UsdPreviewSurface_surfaceshader``, whose inputs are the same): Storm's choice where a material
-  has both a preview surface and a MaterialX one. Materials with neither give None (the caller shades those faces
+  has both a preview surface and a MaterialX one. Else MaterialX's standard_surface or open_pbr_surface, authored
+  as ``ND_`` nodes in the file or in a referenced ``.mtlx`` document, mapped onto the preview inputs
+  (:mod:`usdml.stage.materialx`); a binding whose target prim is missing because its ``.mtlx`` reference did not
+  compose is read from that document. Materials with none of these give None (the caller shades those faces
   with displayColor, Lambertian, as Storm's fallback surface does) with one warning per material.
 * **Inputs**: every UsdPreviewSurface input (:data:`usdml.stage.network.PREVIEW_DEFAULTS`), its value-producing
   attribute followed through material interface inputs: a constant (authored, else the spec's fallback), a
@@ -440,22 +443,28 @@ class MaterialResolver:
         proxy = prim.GetStage().GetPrimAtPath(path.ReplacePrefix(proto.GetPath(), instance.GetPath()))
         return proxy if proxy else prim
 
-    def bound_material(self, prim: Usd.Prim, instance: Usd.Prim | None = None) -> UsdShade.Material | None:
-        """The material Hydra would bind to ``prim`` (purpose ``full``, then ``preview``), or None."""
+    def bound_path(self, prim: Usd.Prim, instance: Usd.Prim | None = None) -> str | None:
+        """The path of the material Hydra would bind to ``prim`` (purpose ``full``, then ``preview``), or None.
+        A winning binding whose target is no material prim (a material of a ``.mtlx`` document: usd-core cannot
+        compose it) still gives its target's path."""
         self._use_stage(prim.GetStage())
         prim = self._through_instance(prim, instance)
         key = str(prim.GetPath())
         if key not in self._bindings:
-            found = None
             api = UsdShade.MaterialBindingAPI(prim)
-            for purpose in _PURPOSES:
-                material, _rel = api.ComputeBoundMaterial(purpose)
-                if material:
-                    found = str(material.GetPath())
-                    break
+            bound = [api.ComputeBoundMaterial(purpose) for purpose in _PURPOSES]
+            found = next((str(m.GetPath()) for m, _rel in bound if m), None)
+            if found is None:           # no material prim: a target a .mtlx reference did not compose
+                found = next((t for t in (_binding_target(rel) for _m, rel in bound) if t is not None), None)
             self._bindings[key] = found
-        path = self._bindings[key]
-        return UsdShade.Material(prim.GetStage().GetPrimAtPath(path)) if path else None
+        return self._bindings[key]
+
+    def bound_material(self, prim: Usd.Prim, instance: Usd.Prim | None = None) -> UsdShade.Material | None:
+        """The material Hydra would bind to ``prim`` (purpose ``full``, then ``preview``), or None (also where the
+        binding targets a path with no material prim: :meth:`bound_path`)."""
+        path = self.bound_path(prim, instance)
+        found = prim.GetStage().GetPrimAtPath(path) if path else None
+        return UsdShade.Material(found) if found and found.IsA(UsdShade.Material) else None
 
     def surface_shader(self, material: UsdShade.Material) -> UsdShade.Shader | None:
         """The material's UsdPreviewSurface (universal render context first), or None."""
@@ -492,11 +501,39 @@ class MaterialResolver:
         if cache in self._networks:
             return self._networks[cache]
         shader = self.surface_shader(material)
-        net = _PreviewReader(key, time).read(shader) if shader is not None else _read_materialx(material, time)
+        said: list[str] = []
+        net = _PreviewReader(key, time).read(shader) if shader is not None else \
+            _read_materialx(material, time, said.append)
+        self._settle(key, net, said, lambda: self._other_surfaces(material))
+        self._networks[cache] = net
+        return net
+
+    def network_at(self, path: str, time: Usd.TimeCode) -> SurfaceNetwork | None:
+        """:meth:`network` of the material at ``path``; where no material prim is there (a binding to a material
+        of a ``.mtlx`` document, which usd-core cannot compose), the document's material read with the
+        ``materialx`` package (:func:`usdml.stage.materialx.read_materialx_path`)."""
+        prim = self._stage.GetPrimAtPath(path) if self._stage is not None else None
+        if prim and prim.IsA(UsdShade.Material):
+            return self.network(UsdShade.Material(prim), time)
+        cache = (path, time.GetValue() if not time.IsDefault() else float("nan"))
+        if cache not in self._networks:
+            said: list[str] = []
+            net = _read_materialx_path(self._stage, path, time, said.append)
+            if net is not None or said:     # else no .mtlx above it either: displayColor, as before
+                self._settle(path, net, said, lambda: [])
+            self._networks[cache] = net
+        return self._networks[cache]
+
+    def _settle(self, key: str, net: SurfaceNetwork | None, said: list[str], other: Callable[[], list[str]]) -> None:
+        """Say, once per material, what a read surface does not render, or that there is none (the reader's own
+        words where it gave any: a ``.mtlx`` that does not parse)."""
+        for message in said:
+            self._warn_once(key, "said:" + message, message)
         if net is None:
-            other = self._other_surfaces(material)
-            self._warn_once(key, "surface", f"{key}: no UsdPreviewSurface (MaterialX/other only); using "
-                            f"displayColor" + (f" (surface shaders: {', '.join(other)})" if other else ""))
+            other = other()
+            if not said:
+                self._warn_once(key, "surface", f"{key}: no UsdPreviewSurface (MaterialX/other only); using "
+                                f"displayColor" + (f" (surface shaders: {', '.join(other)})" if other else ""))
             self.unsupported.setdefault(key, [])
             item = "surface " + (", ".join(other) or "(none)") + " not rendered: displayColor used"
             if item not in self.unsupported[key]:
@@ -507,8 +544,6 @@ class MaterialResolver:
             known.extend(new)
             for item in new:
                 self._warn_once(key, "unsupported:" + item, f"{key}: {item}")
-        self._networks[cache] = net
-        return net
 
     def texture(self, path: str, material: str, fallback: str = "inputs:fallback") -> Texture | None:
         """The image at resolved ``path``, read once; None (one warning, saying what is used instead: ``fallback``,
@@ -540,13 +575,13 @@ class MaterialResolver:
             if not mask.any():
                 continue
             covered |= mask
-            material = self.bound_material(subset.GetPrim())
-            net = self.network(material, time) if material is not None else None
+            path = self.bound_path(subset.GetPrim())
+            net = self.network_at(path, time) if path is not None else None
             if net is not None:
                 parts.append((mask, net))
         if not covered.all():
-            material = self.bound_material(prim, instance)
-            net = self.network(material, time) if material is not None else None
+            path = self.bound_path(prim, instance)
+            net = self.network_at(path, time) if path is not None else None
             if net is not None:
                 parts.append((None if not covered.any() else ~covered, net))
         if not parts:
@@ -563,13 +598,35 @@ class MaterialResolver:
         return None if shading is None or shading.lambert is not None else shading.albedo_corners()
 
 
-def _read_materialx(material: UsdShade.Material, time: Usd.TimeCode) -> SurfaceNetwork | None:
+def _read_materialx(material: UsdShade.Material, time: Usd.TimeCode,
+                    warn: Callable[[str], None]) -> SurfaceNetwork | None:
     """MaterialX's common surfaces, when :mod:`usdml.stage.materialx` can read them; else None."""
     try:
         from usdml.stage.materialx import read_materialx
     except ImportError:
         return None
-    return read_materialx(material, time)
+    return read_materialx(material, time, warn)
+
+
+def _read_materialx_path(stage: Usd.Stage, path: str, time: Usd.TimeCode,
+                         warn: Callable[[str], None]) -> SurfaceNetwork | None:
+    """A bound material with no prim, read from the ``.mtlx`` document referenced above it; else None."""
+    try:
+        from usdml.stage.materialx import read_materialx_path
+    except ImportError:
+        return None
+    return read_materialx_path(stage, path, time, warn)
+
+
+def _binding_target(rel: Usd.Relationship | None) -> str | None:
+    """The material path a winning binding relationship names (direct or collection binding), or None."""
+    if not rel:
+        return None
+    if UsdShade.MaterialBindingAPI.CollectionBinding.IsCollectionBindingRel(rel):
+        path = UsdShade.MaterialBindingAPI.CollectionBinding(rel).GetMaterialPath()
+    else:
+        path = UsdShade.MaterialBindingAPI.DirectBinding(rel).GetMaterialPath()
+    return str(path) if path and not path.isEmpty else None
 
 
 class _Eval:
