@@ -24,7 +24,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
-from usdml.stage.diagnostics import composition_message, usd_diagnostics
+from usdml.stage.diagnostics import composition_message, read_by_usdml, usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.materials import MaterialResolver
@@ -162,7 +162,9 @@ class StageDelegate:
             self.stage = opened if opened is not None else open_stage(path)
             # an open stage's were said when it was opened; a stage opened here says them again (the same lines)
             for err in sorted(self.stage.GetCompositionErrors(), key=lambda e: e.rootSite.path):
-                self.warn(composition_message(str(err.rootSite.path), str(err).strip().splitlines()[0], self.path))
+                if not read_by_usdml(str(err)):
+                    self.warn(composition_message(str(err.rootSite.path), str(err).strip().splitlines()[0],
+                                                  self.path))
             self.settings_prim = settings_prim(self.stage, render_settings_path)
             self.usdml_settings = read_usdml_settings(self.settings_prim)
             self.has_time_range = self.stage.HasAuthoredTimeCodeRange()

@@ -25,6 +25,25 @@ from pxr import UsdUtils
 _COMPOSING = re.compile(r"^(?:In <(?P<path>[^<>]*)>: )?(?P<error>.*) \([^()]* on stage @[^@]*@ <[^<>]*>\)$")
 
 
+_MTLX_ARC = re.compile(r"Could not open asset @(?P<asset>[^@]+\.mtlx)@")
+
+
+def read_by_usdml(error: str) -> bool:
+    """Whether a composition error is an arc to an existing ``.mtlx`` document, which usd-core cannot compose but
+    usdml reads itself with the ``materialx`` package (:mod:`usdml.stage.materialx`): not a loss, so not said
+    (a document that does not parse is said by that reader, a missing one still is here)."""
+    import os
+
+    found = _MTLX_ARC.search(error)
+    if not found or not os.path.isabs(found["asset"]) or not os.path.isfile(found["asset"]):
+        return False
+    try:
+        import MaterialX  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def composition_message(path: str, error: str, where: str) -> str:
     """One composition error's line: ``/Prim: composition error: ...`` (``where``, the stage's file, for one
     at the pseudo-root: a sublayer that does not load)."""
@@ -56,4 +75,5 @@ def usd_diagnostics(warn: Callable[[str], None], where: str) -> Iterator[None]:
         items = delegate.TakeUncoalescedDiagnostics()
         del delegate                      # unregisters it: Tf prints to stderr again
         for item in items:
-            warn(usd_message(item.commentary, where))
+            if not read_by_usdml(item.commentary):
+                warn(usd_message(item.commentary, where))
