@@ -470,3 +470,29 @@ def test_a_rough_metal_is_near_mitsuba_s_roughconductor(new_stage, roughness, me
     assert np.median(rel) < median, np.median(rel)
     assert abs(um[ok].sum() / uw[ok].sum() / (mm[ok].sum() / mw[ok].sum()) - 1) < mean
     assert np.unravel_index(np.argmax(um), um.shape) == np.unravel_index(np.argmax(mm), mm.shape)   # the highlight
+
+
+@pytest.mark.parametrize("roughness, view", [(0.3, 0.0), (0.3, 60.0), (0.7, 30.0)])
+def test_indirect_albedo_is_the_brdf_s_directional_albedo(roughness, view):
+    """What a surface bounces indirect light with (usdml.lighting.specular_albedo): for a white metal, the hand
+    BRDF's directional albedo by quadrature; for a Lambertian row, its albedo unchanged."""
+    from usdml.kernels.brdf import ALPHA, EYE, F0, F90, OCCLUSION, WIDTH
+    from usdml.lighting.specular_albedo import indirect_albedo
+    from usdml.scene.shading import lambert_rows
+
+    e = np.array([[math.sin(math.radians(view)), math.cos(math.radians(view)), 0.0]])
+    row = np.zeros((1, WIDTH), np.float32)
+    row[:, EYE:EYE + 3] = e
+    row[:, F0:F0 + 3] = row[:, F90:F90 + 3] = 1.0
+    row[:, ALPHA], row[:, OCCLUSION] = roughness ** 2, 1.0
+    got = indirect_albedo(np.zeros((1, 3)), row, N[None])[0, 0]
+    theta = (np.arange(400) + 0.5) / 400 * (math.pi / 2)
+    phi = (np.arange(400) + 0.5) / 400 * 2 * math.pi
+    t, f = np.meshgrid(theta, phi, indexing="ij")
+    l = np.stack([np.sin(t) * np.cos(f), np.cos(t), np.sin(t) * np.sin(f)], -1).reshape(-1, 3)
+    dw = (np.sin(t) * (math.pi / 2 / 400) * (2 * math.pi / 400)).reshape(-1)
+    fr = hand_brdf(np.broadcast_to(N, l.shape), np.broadcast_to(e[0], l.shape), l, diffuseColor=(1, 1, 1),
+                   metallic=1.0, roughness=roughness)[:, 0]
+    assert abs(got / (fr * l[:, 1] * dw).sum() - 1) < 0.02
+    flat = lambert_rows(1, e)
+    assert np.allclose(indirect_albedo(np.array([[0.3, 0.5, 0.7]]), flat, N[None]), (0.3, 0.5, 0.7))

@@ -96,6 +96,7 @@ import numpy as np
 
 from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.light_table import smoothstep_cone
+from usdml.lighting.specular_albedo import indirect_albedo
 from usdml.scene.surface import surface_at_hits
 
 __all__ = ["VPLs", "generate_vpls", "light_power", "LUMA"]
@@ -437,7 +438,10 @@ def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounce
             nrm[missing] = -d[missing]
         flip = np.einsum("ij,ij->i", nrm, d) > 0
         nrm[flip] *= -1.0
-        flux = flux[hit] * h.albedo[hit].astype(np.float64)
+        albedo = h.albedo[hit].astype(np.float64)
+        if h.material is not None:      # a glossy surface sends on what its lobes reflect (indirect_albedo)
+            albedo = indirect_albedo(albedo, h.material[hit], nrm).astype(np.float64)
+        flux = flux[hit] * albedo
         pos = h.position[hit]
         path = path[hit]
         keep = _any_positive(flux)

@@ -273,13 +273,18 @@ class VplGI(NoGI):
 
     def gather(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats) -> np.ndarray:
         t0 = _time.perf_counter()
-        if surface.material is not None and not self._told_glossy:
-            log.warning(f"{self.where}: --gi {self.settings.gi}: indirect light is diffuse only: VPLs leave surfaces "
-                        "with their diffuse reflectance and receivers gather with theirs; glossy indirect "
-                        "reflections are not rendered")
-            self._told_glossy = True
+        albedo = surface.albedo
+        if surface.material is not None:
+            from usdml.lighting.specular_albedo import indirect_albedo
+
+            albedo = indirect_albedo(albedo, surface.material, surface.normal)
+            if not self._told_glossy:
+                log.warning(f"{self.where}: --gi {self.settings.gi}: glossy surfaces bounce indirect light with the "
+                            "energy their lobes reflect but spread as diffuse light: no reflections of the scene in "
+                            "indirect light (docs/materials.md)")
+                self._told_glossy = True
         gi = self.indirect(self.field, frame.snap, self.rays.occluded, surface.position, surface.normal,
-                           surface.albedo, self.settings, image=(gb.hit, gb.position), device=self.device,
+                           albedo, self.settings, image=(gb.hit, gb.position), device=self.device,
                            geometric=surface.geometric, target_lift=self.target_lift)
         stats.gi = gi.stats                     # the last pass's
         if gi.stats.get("vpls") == 0 and not self._told_no_vpls:

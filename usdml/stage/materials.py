@@ -219,14 +219,14 @@ def read_texture(path: str) -> Texture:
 
 
 # --------------------------------------------------------------------------------------------------
-def _shader_id(shader: UsdShade.Shader) -> str:
+def shader_id(shader: UsdShade.Shader) -> str:
     sid = shader.GetShaderId()
     if not sid:
         sid = shader.GetIdAttr().Get()
     return str(sid or "")
 
 
-def _source(inp: UsdShade.Input | None) -> Usd.Attribute | None:
+def value_source(inp: UsdShade.Input | None) -> Usd.Attribute | None:
     """The attribute producing ``inp``'s value: a shader output, or an input holding a value; None when
     nothing is connected nor authored."""
     if not inp:
@@ -237,14 +237,14 @@ def _source(inp: UsdShade.Input | None) -> Usd.Attribute | None:
     return inp.GetAttr() if inp.GetAttr().HasValue() else None
 
 
-def _is_output(attr: Usd.Attribute) -> bool:
+def is_output(attr: Usd.Attribute) -> bool:
     return UsdShade.Utils.GetType(attr.GetName()) == UsdShade.AttributeType.Output
 
 
 def _value(shader: UsdShade.Shader, name: str, time: Usd.TimeCode, default):
     """A constant input's value (following interface connections), else ``default``."""
-    attr = _source(shader.GetInput(name))
-    if attr is None or _is_output(attr):
+    attr = value_source(shader.GetInput(name))
+    if attr is None or is_output(attr):
         return default
     v = attr.Get(time)
     return default if v is None else v
@@ -261,7 +261,7 @@ def _vec(v, n: int) -> np.ndarray:
     return np.concatenate([a[:n], np.zeros(max(0, n - a.size), np.float32)])
 
 
-def _numbers(v, n: int) -> tuple[float, ...] | None:
+def as_numbers(v, n: int) -> tuple[float, ...] | None:
     """``v`` as ``n`` floats (a scalar repeated, a longer vector cut), or None when it is not numeric."""
     try:
         a = np.asarray(v, np.float64).reshape(-1)
@@ -301,12 +301,12 @@ class _PreviewReader:
         for inp in shader.GetInputs():
             name = inp.GetBaseName()
             if name == "displacement":
-                attr = _source(inp)
-                if attr is not None and (_is_output(attr) or np.any(np.asarray(attr.Get(self.time) or 0.0))):
+                attr = value_source(inp)
+                if attr is not None and (is_output(attr) or np.any(np.asarray(attr.Get(self.time) or 0.0))):
                     self.unsupported("inputs:displacement (not rendered)")
                 continue
             if name not in PREVIEW_DEFAULTS:
-                if _source(inp) is not None:
+                if value_source(inp) is not None:
                     self.unsupported(f"inputs:{name} (not a UsdPreviewSurface input)")
                 continue
             source = self.source(inp, name, len(PREVIEW_DEFAULTS[name]))
@@ -316,22 +316,22 @@ class _PreviewReader:
 
     def source(self, inp: UsdShade.Input, name: str, width: int):
         """What drives input ``name`` (``width`` floats): a Constant, Primvar or Image; None: the default."""
-        attr = _source(inp)
+        attr = value_source(inp)
         if attr is None:
             return None
-        if not _is_output(attr):
+        if not is_output(attr):
             v = attr.Get(self.time)
             if v is None:
                 return None
-            numbers = _numbers(v, width)
+            numbers = as_numbers(v, width)
             if numbers is None:
                 self.unsupported(f"inputs:{name} = {v!r} is not a number (type {attr.GetTypeName()}); using "
                                  f"the default {PREVIEW_DEFAULTS[name]}")
                 return None
             return Constant(numbers)
-        own = _numbers(inp.GetAttr().Get(self.time), width) if inp.GetAttr().HasValue() else None
+        own = as_numbers(inp.GetAttr().Get(self.time), width) if inp.GetAttr().HasValue() else None
         node = UsdShade.Shader(attr.GetPrim())
-        sid = _shader_id(node)
+        sid = shader_id(node)
         out_name = str(UsdShade.Utils.GetBaseNameAndType(attr.GetName())[0])
         if sid == "UsdUVTexture":
             return self.image(node, out_name, name, own)
@@ -348,21 +348,21 @@ class _PreviewReader:
         kind = sid[len("UsdPrimvarReader_"):]
         width = _READER_WIDTH.get(kind, 3) or 1
         name = str(_value(node, "varname", self.time, "") or "")
-        fallback = _numbers(_value(node, "fallback", self.time, 0.0), width) or (0.0,) * width
+        fallback = as_numbers(_value(node, "fallback", self.time, 0.0), width) or (0.0,) * width
         return Primvar(name=name, width=width, fallback=fallback, node=str(node.GetPath()))
 
     def st(self, inp: UsdShade.Input | None, depth: int = 0):
         """(st source, transforms) of a UsdUVTexture's ``inputs:st``."""
-        attr = _source(inp)
+        attr = value_source(inp)
         if attr is None:
             return Constant((0.0, 0.0)), ()
-        if not _is_output(attr):
-            return Constant(_numbers(attr.Get(self.time), 2) or (0.0, 0.0)), ()
+        if not is_output(attr):
+            return Constant(as_numbers(attr.Get(self.time), 2) or (0.0, 0.0)), ()
         node = UsdShade.Shader(attr.GetPrim())
-        sid = _shader_id(node)
+        sid = shader_id(node)
         if sid.startswith("UsdPrimvarReader_"):
             reader = self.primvar(node, sid)
-            return Primvar(reader.name, 2, _numbers(reader.fallback, 2), reader.node), ()
+            return Primvar(reader.name, 2, as_numbers(reader.fallback, 2), reader.node), ()
         if sid == "UsdTransform2d" and depth < 16:
             src, inner = self.st(node.GetInput("in"), depth + 1)
             step = Transform2d(scale=tuple(_vec(_value(node, "scale", self.time, (1.0, 1.0)), 2).tolist()),
@@ -476,7 +476,7 @@ class MaterialResolver:
                 candidates.append(UsdShade.Shader(output.GetConnectedSource()[0].GetPrim())
                                   if output.HasConnectedSource() else None)
             for shader in candidates:
-                if shader and _shader_id(shader) in _PREVIEW_IDS:
+                if shader and shader_id(shader) in _PREVIEW_IDS:
                     found = shader.GetPath()
                     break
             self._surfaces[key] = found
@@ -488,7 +488,7 @@ class MaterialResolver:
         for output in material.GetSurfaceOutputs():
             if output.HasConnectedSource():
                 shader = UsdShade.Shader(output.GetConnectedSource()[0].GetPrim())
-                ids.append(_shader_id(shader) or str(shader.GetPath()))
+                ids.append(shader_id(shader) or str(shader.GetPath()))
         return list(dict.fromkeys(ids))
 
     def network(self, material: UsdShade.Material, time: Usd.TimeCode) -> SurfaceNetwork | None:

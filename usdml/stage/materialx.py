@@ -66,7 +66,7 @@ from typing import Callable, Iterator
 import numpy as np
 from pxr import Ar, Sdf, Usd, UsdShade
 
-from usdml.stage.materials import _is_output, _numbers, _shader_id, _source
+from usdml.stage.materials import as_numbers, is_output, shader_id, value_source
 from usdml.stage.network import PREVIEW_DEFAULTS, Constant, Image, Primvar, Source, SurfaceNetwork, Transform2d
 
 Warn = Callable[[str], None]
@@ -196,18 +196,18 @@ class UsdNode(Node):
     def __init__(self, shader: UsdShade.Shader, time: Usd.TimeCode):
         self.shader, self.time = shader, time
         self.path = str(shader.GetPath())
-        self.nodedef = _shader_id(shader)
+        self.nodedef = shader_id(shader)
 
     def inputs(self) -> list[str]:
         return [str(i.GetBaseName()) for i in self.shader.GetInputs()]
 
     def port(self, name: str) -> Port | None:
         inp = self.shader.GetInput(name)
-        attr = _source(inp)
+        attr = value_source(inp)
         if attr is None:
             return None
         space = inp.GetAttr().GetColorSpace() if inp.GetAttr().HasColorSpace() else ""
-        if _is_output(attr):
+        if is_output(attr):
             out = str(UsdShade.Utils.GetBaseNameAndType(attr.GetName())[0])
             return Port(node=UsdNode(UsdShade.Shader(attr.GetPrim()), self.time), output=out, color_space=space)
         value = attr.Get(self.time)
@@ -218,8 +218,8 @@ class UsdNode(Node):
         return Port(value=_plain(value), color_space=str(space))
 
     def file(self, name: str) -> tuple[str, str]:
-        attr = _source(self.shader.GetInput(name))
-        value = attr.Get(self.time) if attr is not None and not _is_output(attr) else None
+        attr = value_source(self.shader.GetInput(name))
+        value = attr.Get(self.time) if attr is not None and not is_output(attr) else None
         if isinstance(value, Sdf.AssetPath):
             return value.path, value.resolvedPath or ""
         return (str(value), "") if value else ("", "")
@@ -359,7 +359,7 @@ class _Mapper:
         return src if src is not None else Constant(self.default(shader, name, width))
 
     def default(self, shader: Node, name: str, width: int) -> tuple[float, ...]:
-        return _numbers(_default(shader.nodedef, name), width) or (0.0,) * width
+        return as_numbers(_default(shader.nodedef, name), width) or (0.0,) * width
 
     def constant(self, shader: Node, name: str, width: int) -> tuple[float, ...]:
         """An input that only folds as a constant: its value, else (said once) the default."""
@@ -490,7 +490,7 @@ class _Mapper:
             if switch is not None:
                 port = shader.port(switch)
                 value = _default(sid, switch) if port is None else port.value if port.node is None else None
-                if value is not None and _numbers(value, 1) == (0.0,):
+                if value is not None and as_numbers(value, 1) == (0.0,):
                     continue                # switched off: its other inputs change nothing
             mixed = ": its colour is mixed into the diffuse" if lobe == "subsurface" else ""
             self.unsupported(f"{lobe} is not rendered ({', '.join(items)}){mixed}")
@@ -501,7 +501,7 @@ class _Mapper:
         evaluate it (the caller uses the default)."""
         if port.node is None:
             count = len(port.value) if isinstance(port.value, tuple) else 1
-            numbers = _numbers(port.value, width or count)
+            numbers = as_numbers(port.value, width or count)
             if numbers is None:
                 self.unsupported(f"{owner.path}.{name} = {port.value!r} is not a number: using the default")
             return None if numbers is None else Constant(numbers)
@@ -521,7 +521,7 @@ class _Mapper:
         if sid.startswith("ND_geompropvalue_"):
             geomprop = node.port("geomprop")
             default = node.port("default")
-            fallback = _numbers(default.value if default is not None else _default(sid, "default"), width)
+            fallback = as_numbers(default.value if default is not None else _default(sid, "default"), width)
             return Primvar(name=str(geomprop.value) if geomprop is not None and geomprop.value else "",
                            width=width, fallback=fallback or (0.0,) * width, node=node.path)
         if sid.startswith("ND_texcoord_"):
@@ -540,7 +540,7 @@ class _Mapper:
     def channel(self, node: Node, sid: str, output: str, depth: int) -> Source | None:
         if sid.startswith("ND_extract_"):
             index = node.port("index")
-            i = int((_numbers(index.value, 1) or (0.0,))[0]) if index is not None else 0
+            i = int((as_numbers(index.value, 1) or (0.0,))[0]) if index is not None else 0
         else:
             i = "rgba".index(_CHANNEL.get(output[-1:], "r"))
         inner = node.port("in")
@@ -688,7 +688,7 @@ def surface_node(material: UsdShade.Material) -> UsdShade.Shader | None:
     contexts = ["mtlx"] + [o.GetBaseName().rpartition(":")[0] for o in material.GetSurfaceOutputs()]
     candidates = [material.ComputeSurfaceSource(context)[0] for context in dict.fromkeys(contexts)]
     for shader in candidates:
-        if shader and _shader_id(shader) in SURFACES:
+        if shader and shader_id(shader) in SURFACES:
             return shader
     return None
 
