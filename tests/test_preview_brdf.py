@@ -309,53 +309,17 @@ def test_cutout_holes_for_camera_and_shadow_rays(new_stage, tmp_path):
     assert (shadow > 0.5).sum() > 50 and (shadow < 0.5).sum() > 50
 
 
-def test_cutouts_under_an_approximate_backend_are_said(new_stage, tmp_path, caplog):
-    path, _kept = checker_card(new_stage, tmp_path)
-    with caplog.at_level("WARNING"):
-        b = render(path, aovs=("P",), width=16, visibility="voxel", voxel_resolution=32)
-    assert any("(opacityThreshold, opacity < 1) on 1 mesh(es), e.g. /World/card" in r.getMessage() and "voxel"
-               in r.getMessage() for r in caplog.records)
-    assert (np.abs(b["P"][..., 1] - 0.0) < 1e-4).any()      # camera rays still see through
-
-
-def test_normal_map_tilts_the_shading_normal_in_tangent_space(new_stage, tmp_path):
-    """A constant normal map (30° toward +s, the spec's scale 2 / bias −1 encoding, raw float texels) on a quad whose
-    s runs along +X and t along +Z: the normal AOV is sin 30°·X + cos 30°·Y (tangent frame by hand), and the
-    light it turns toward brightens the ground."""
-    import OpenImageIO as oiio
-
-    tilt = math.radians(30.0)
-    texel = (np.array([math.sin(tilt), 0.0, math.cos(tilt)]) + 1.0) / 2.0
-    image = np.broadcast_to(texel.astype(np.float32), (4, 4, 3)).copy()
-    out = oiio.ImageOutput.create(str(tmp_path / "n.exr"))
-    out.open(str(tmp_path / "n.exr"), oiio.ImageSpec(4, 4, 3, oiio.FLOAT))
-    out.write_image(image)
-    out.close()
-    stage = new_stage("s.usda", start=1, end=1)
-    quad = add_quad(stage, "/World/q", size=2.0)
-    pv = UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(1, 1), Gf.Vec2f(1, 0)])
-    mat = material(stage, "/World/Looks/bumpy", diffuseColor=(0.5, 0.5, 0.5))
-    tex = UsdShade.Shader.Define(stage, "/World/Looks/bumpy/normalTex")
-    tex.CreateIdAttr("UsdUVTexture")
-    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./n.exr")
-    tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2, 2, 2, 1))
-    tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1, -1, -1, 0))
-    reader = UsdShade.Shader.Define(stage, "/World/Looks/bumpy/uv")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
-    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-    pbr = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/bumpy/pbr"))
-    pbr.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
-    bind(quad.GetPrim(), mat)
-    add_top_camera(stage, 1.0)
-    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
-    stage.Save()
-    b = render(stage.GetRootLayer().realPath, aovs=("normal", "direct"), width=16)
-    want = np.array([math.sin(tilt), math.cos(tilt), 0.0])
-    assert np.allclose(b["normal"][8, 8], want, atol=1e-4)
-    assert np.allclose(b["normal"][2:14, 2:14].reshape(-1, 3), want, atol=1e-4)
+@pytest.mark.parametrize("visibility", ["voxel", "svo", "insm"])
+def test_approximate_backends_shadow_through_the_kept_texels(new_stage, tmp_path, visibility):
+    """The approximate backends build from the triangles a cutout keeps (usdml.scene.cutout): the ground's shadow
+    answers under the checker card agree with the card by hand as exact's do (the issue's target: 97 %)."""
+    path, kept = checker_card(new_stage, tmp_path)
+    b = render(path, aovs=("P", "shadow"), width=64, visibility=visibility, voxel_resolution=128)
+    p = b["P"].reshape(-1, 3).astype(np.float64)
+    on_ground = np.abs(p[:, 1]) < 1e-4
+    shadow = b["shadow"].reshape(-1)[on_ground]
+    agree = ((shadow > 0.5) == kept(p[on_ground, 0], p[on_ground, 2])).mean()
+    assert agree >= 0.97, agree
 
 
 def test_partial_opacity_covers_its_share_of_pixel_samples(new_stage):

@@ -9,7 +9,10 @@ dielectric (diffuse 0.5 grey, roughness R, ior 1.5): usdml's ``indirect`` (``--g
 against Mitsuba 3's path tracer (``scalar_rgb``; the floor a ``roughconductor`` GGX of α = R² with
 ``specular_reflectance`` C, ``material`` none, or a ``roughplastic`` GGX of the same α over the same grey), as
 the energy ratio of ``indirect`` over the image (1 = all indirect light there) and the same over the floor's
-pixels alone and the walls' alone. (a) separates the VPL method's own error from what glossiness costs.
+pixels alone and the walls' alone, and the floor's direct light against Mitsuba's (the two models' own gap:
+Mitsuba's ``roughplastic`` dims its diffuse base by the coating's internal reflection, which the preview surface
+does not model, so (c) is a plausibility check only). (a) separates the VPL method's own error from what
+glossiness costs.
 
     .venv/bin/python tools/glossy_gi.py --roughness 0.3 --bounces 2 --width 64 --spp 256
 """
@@ -55,6 +58,7 @@ def box_with_floor(path: Path, floor: str, roughness: float, colour) -> str:
 
 
 def mitsuba_indirect(stage: str, floor: str, roughness: float, colour, width: int, bounces: int, spp: int):
+    """``(direct, indirect)`` path traced by Mitsuba with the floor's BSDF swapped in."""
     from usdml import reference
 
     scene = reference.load(stage, None, width)
@@ -71,14 +75,15 @@ def mitsuba_indirect(stage: str, floor: str, roughness: float, colour, width: in
                                                  "int_ior": 1.5, "ext_ior": 1.0, "nonlinear": False,
                                                  "diffuse_reflectance": {"type": "rgb", "value": list(FLOOR_GREY)}}
     direct, total = (reference.render(scene, spp, b, 0, by_light=False) for b in (0, bounces))
-    return total - direct
+    return direct, total - direct
 
 
 def measure(floor: str, roughness: float, colour, width: int, bounces: int, spp: int, vpls: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         stage = box_with_floor(Path(tmp) / "box.usda", floor, roughness, colour)
-        ref = mitsuba_indirect(stage, floor, roughness, colour, width, bounces, spp)
-        got = gr.render_usdml(stage, "vpl-bruteforce", vpls, bounces, width)["indirect"]
+        ref_direct, ref = mitsuba_indirect(stage, floor, roughness, colour, width, bounces, spp)
+        frame = gr.render_usdml(stage, "vpl-bruteforce", vpls, bounces, width)
+        got = frame["indirect"]
         from usdml.render.frame import FrameRenderer
         from usdml.stage import StageDelegate
 
@@ -90,7 +95,8 @@ def measure(floor: str, roughness: float, colour, width: int, bounces: int, spp:
     return {"floor": floor, "roughness": roughness, "bounces": bounces,
             "ratio": gr.energy_ratio(got, ref),
             "ratio_floor": gr.energy_ratio(got[on_floor], ref[on_floor]),
-            "ratio_walls": gr.energy_ratio(got[~on_floor], ref[~on_floor])}
+            "ratio_walls": gr.energy_ratio(got[~on_floor], ref[~on_floor]),
+            "direct_floor": gr.energy_ratio(frame["direct"][on_floor], ref_direct[on_floor])}
 
 
 def main(argv=None) -> int:
@@ -108,7 +114,7 @@ def main(argv=None) -> int:
             for f in ("diffuse", "metal", "plastic")]
     for r in rows:
         print(f"{r['floor']:8s} floor: indirect / path traced {r['ratio']:.3f} (floor pixels {r['ratio_floor']:.3f}, "
-              f"walls {r['ratio_walls']:.3f})")
+              f"walls {r['ratio_walls']:.3f}); direct on the floor {r['direct_floor']:.3f}")
     if args.json:
         print(json.dumps(rows))
     return 0

@@ -20,6 +20,7 @@ from __future__ import annotations
 import time as _time
 
 from usdml.scene import Changes, Snapshot
+from usdml.scene.cutout import kept_snapshot
 from usdml.settings import UsdmlSettings
 from usdml.visibility import ExactBackend, make_backend
 from usdml.visibility.base import VisibilityBackend
@@ -48,6 +49,7 @@ class Backends:
         if unrefinable not in UNREFINABLE:
             raise ValueError(f"unrefinable={unrefinable!r}: one of {', '.join(UNREFINABLE)}")
         self._shared = primary
+        self._kept: dict = {}       # see-through meshes as kept triangles (usdml.scene.cutout), across frames
         self._roles: dict[str, VisibilityBackend | None] = {"primary": ExactBackend() if primary is None else primary}
         self._roles["shadow"] = self._named(settings.visibility) or \
             make_backend(settings.visibility, settings, device, **(options or {}))
@@ -116,34 +118,19 @@ class Backends:
         of each update under the first role its backend holds (a role sharing another's backend has none; a
         shared ``primary`` is updated by its own ``Backends``)."""
         seconds = {}
-        self._say_cutouts(snapshot)
+        kept = None
         for role, backend in self.owners():
             if backend is self._shared:
                 continue
             t0 = _time.perf_counter()
-            backend.update(snapshot, changes)
+            if isinstance(backend, ExactBackend):
+                backend.update(snapshot, changes)
+            else:       # built from triangles: cutouts and partial opacity as the triangles that stop light
+                if kept is None:
+                    kept = kept_snapshot(snapshot, self._kept)
+                backend.update(kept, changes)
             seconds[role] = _time.perf_counter() - t0
         return seconds
-
-    def _say_cutouts(self, snapshot: Snapshot) -> None:
-        """Once: the approximate backends build their structures from whole triangles, so a cutout's holes
-        (opacityThreshold) and partly opaque surfaces shadow as solid there; camera rays (exact) and exact shadow
-        rays see through them."""
-        if getattr(self, "_told_cutouts", False):
-            return
-        approximate = sorted({b.name for role, b in self.owners() if role != "primary" and not isinstance(b, ExactBackend)
-                              and b.name})
-        if not approximate:
-            return
-        cut = [m.path for m in snapshot.meshes if m.shading is not None and m.shading.cutout]
-        cut += [m.path for p in snapshot.prototypes for m in p.meshes if m.shading is not None and m.shading.cutout]
-        if cut:
-            from usdml.errors import log
-
-            self._told_cutouts = True
-            log.warning(f"cutouts or partial opacity (opacityThreshold, opacity < 1) on {len(cut)} mesh(es), e.g. "
-                        f"{cut[0]}: camera rays see through them, but the {', '.join(approximate)} backend's shadows "
-                        "treat them as solid (--visibility exact for see-through shadows)")
 
     def close(self) -> None:
         """Release every backend once (a shared ``primary``: its own ``Backends`` does)."""
