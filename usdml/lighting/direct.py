@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from usdml.kernels.brdf import brdf_terms
+from usdml.lighting.brdf_sums import brdf_sums
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
@@ -132,7 +132,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         Every pair's answer, computed before shading (paper 001 answers light by light from a map per
         light): read for each shadow query instead of calling ``occluded``.
     material : (P, WIDTH) float32, optional
-        UsdPreviewSurface rows (``kernels/brdf.py``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
+        UsdPreviewSurface rows (``kernels/brdf``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
         being the effective diffuse reflectance ρ; the result's ``specular`` holds ΣE·ks. None: Lambertian.
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
@@ -167,7 +167,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)
         if material is not None:
-            radiance[lo:hi], specular[lo:hi] = _brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi])
+            radiance[lo:hi], specular[lo:hi] = brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi])
             return asked
         radiance[lo:hi] = g @ table.base
         if f is not None:
@@ -186,21 +186,6 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         radiance += specular
     shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0)
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries, specular)
-
-
-def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray, normals: np.ndarray):
-    """``(ΣE·kd, ΣE·ks)`` ``(B, 3)`` of a block: each pair's irradiance (``g`` after shadows, focus ``f``) times
-    the material's BRDF terms toward the light (``kernels/brdf.py``), summed per point in light order."""
-    pi, li = np.nonzero(g > 0)
-    e = g[pi, li][:, None] * table.base[li]
-    if f is not None:
-        e += (g[pi, li] * f[pi, li])[:, None] * table.focus_rgb[li]
-    l = np.stack([w[0][pi, li], w[1][pi, li], w[2][pi, li]], axis=1)
-    kd, ks = brdf_terms(rows[pi], normals[pi], l)
-    n = len(g)
-    d = np.stack([np.bincount(pi, e[:, c] * kd[:, c], minlength=n) for c in range(3)], axis=1)
-    s = np.stack([np.bincount(pi, e[:, c] * ks[:, c], minlength=n) for c in range(3)], axis=1)
-    return d.astype(np.float32), s.astype(np.float32)
 
 
 def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,

@@ -110,7 +110,7 @@ class DirectResult:
     shadow: np.ndarray      #: (P,) float32 blocked / facing, 0 where no light faces
     facing: np.ndarray      #: (P,) int32 number of lights facing each point
     queries: int            #: shadow queries asked of the backend
-    #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf.py``) when shaded with material
+    #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf``) when shaded with material
     #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
     specular: np.ndarray | None = None
 
