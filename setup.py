@@ -26,7 +26,7 @@ def kernel(method: str, name: str, depends=(), flags=FLAGS) -> Extension:
 
 setup(ext_modules=[
     kernel("voxel", "voxelq", ["kernels/voxel/voxelq_simd.h", f"{INCLUDE}/light_term.h", f"{INCLUDE}/simd_x2.h",
-                               *SIMD]),
+                               *BRDF, *SIMD]),
     kernel("svo", "svoq", ["kernels/svo/svoq_simd.h", *SIMD], NO_CONTRACT),
     kernel("insm", "insmr", [f"{INCLUDE}/light_term.h"], NO_CONTRACT),
     kernel("lgh", "lghq", flags=NO_CONTRACT),

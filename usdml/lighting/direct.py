@@ -195,12 +195,12 @@ def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndar
     """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
     updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
     :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``. With
-    ``material`` rows the fused kernels (Lambertian sums) are passed over: :func:`shade_direct` asks the backend's
-    ``occluded`` pair by pair and sums both lobes (the same shadows, its own speed: ``tools/material_cost.py``).
+    ``material`` rows the fused kernel sums both lobes where it can (the voxel backend's compiled one) and hands the
+    rest to :func:`shade_direct` over ``occluded`` (the same shadows; ``tools/material_cost.py`` times both).
     Arguments and result as :func:`shade_direct`."""
     options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
     if material is not None:
         options["material"] = material
-    if backend.supports(SHADE_DIRECT) and material is None:
+    if backend.supports(SHADE_DIRECT):
         return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
     return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)
