@@ -4,7 +4,7 @@ material shading (``vq_shade`` with rows) against NumPy shading over the same ba
 Lambertian path left as it was.
 
 Agreement: the compiled sums round every product and sum as NumPy does, so they differ only where ``brdf.h``'s
-square root, divisions and fifth power round apart (measured: 2e-7 relative); the bound is the issue's 1e-5. The
+square root and fifth power round apart and where it divides once per lobe, NumPy twice (measured: 3e-7 relative); the bound is the issue's 1e-5. The
 voxel kernel's SIMD shading multiplies by reciprocals refined to about 23 bits and contracts a·b + c (measured:
 1.4e-5 relative with AVX2, 2e-7 scalar), bound 1e-4.
 """

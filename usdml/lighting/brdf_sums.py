@@ -5,8 +5,9 @@ backend without a fused material kernel (:func:`usdml.lighting.direct.shade_dire
 compiled ``kernels/brdf/brdfsum.c`` (the same terms from ``kernels/include/brdf.h``, one pass over a block's pairs
 where NumPy makes some twenty) where ``pip install`` built it, through ctypes (which releases the GIL, so the
 blocks of the thread pool overlap), and :func:`reference` where it did not (no C compiler). Both round every
-product and sum the same way; they differ where ``brdf.h``'s square root, divisions and fifth power round apart
-from NumPy's (an ulp or so of a term; tests/test_brdf_native.py states the agreement).
+product and sum the same way; they differ where ``brdf.h``'s square root and fifth power round apart from NumPy's
+and where it divides once per lobe, NumPy twice (an ulp or so of a term; tests/test_brdf_native.py states the
+agreement).
 """
 
 from __future__ import annotations
