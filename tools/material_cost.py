@@ -15,7 +15,8 @@ with ``--repeat 2``: the best of each), so a load that comes and goes on a share
 
 The diffuse frame sums its lights with a matrix product (NumPy's BLAS) wherever a backend has no fused kernel
 (``exact``): BLAS's own threads then compete with the shading's thread pool, and on a small machine that frame's
-time swings with them; ``OPENBLAS_NUM_THREADS=1`` takes them out (the results record the variable as it was).
+time swings with them; ``--blas-threads 1`` (``OPENBLAS_NUM_THREADS``, set before NumPy loads) takes them out
+(the results record the variable as it was).
 
 Usage::
 
@@ -107,9 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--isa", default="cpu", help="the voxel backend's instruction sets, comma-separated of auto, "
                    "avx2, scalar; cpu: the SIMD ones this CPU has (default: %(default)s)")
     p.add_argument("--repeat", type=int, default=1, help="timed frames per case, the best kept (default: %(default)s)")
+    p.add_argument("--blas-threads", type=int, help="OPENBLAS_NUM_THREADS for this run (default: as set)")
     p.add_argument("--out", help="folder for the stages (default: a temporary one)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
+    if args.blas_threads is not None:
+        if "numpy" in sys.modules:
+            p.error("--blas-threads must be set before NumPy is loaded (run the tool as a script)")
+        os.environ["OPENBLAS_NUM_THREADS"] = str(args.blas_threads)
 
     from command_timing import machine
     from make_city import make_city
