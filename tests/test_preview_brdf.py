@@ -3,7 +3,7 @@ through GeomSubsets, emission and the diffuse/specular/emission AOVs, every visi
 rendered said once.
 
 The hand reference (``tools/material_accuracy.py``'s ``hand_brdf``) is written from the issue's text of usdImaging's
-``previewSurface.glslfx`` in float64, sharing no code with ``kernels/brdf.py`` nor ``usdml.scene.shading``. The
+``previewSurface.glslfx`` in float64, sharing no code with ``kernels/brdf`` nor ``usdml.scene.shading``. The
 light's irradiance E comes from a second render of the same view with a white Lambertian ground (no material):
 its ``direct`` is E/π per pixel, so the comparison does not depend on the light's units.
 """
@@ -159,7 +159,7 @@ def test_every_backend_shades_the_same_brdf(new_stage, visibility):
 
 def test_white_furnace_never_reflects_more_than_it_receives():
     """F0 = F90 = 1 (a white metal): the directional albedo ∫ f·cos θ_l dω_l over the hemisphere stays ≤ 1 at every
-    roughness and view angle, and near 1 for a sharp lobe seen head-on (kernels/brdf.py integrated numerically
+    roughness and view angle, and near 1 for a sharp lobe seen head-on (kernels/brdf integrated numerically
     over half vectors, dω_l = 4 (e·h) dω_h, on a grid dense near the normal where sharp lobes peak)."""
     from usdml.kernels.brdf import ALPHA, CLEARCOAT_ALPHA, EYE, F0, F90, OCCLUSION, WIDTH, brdf_terms
 

@@ -572,6 +572,26 @@ def command_timing(data: dict) -> list[str]:
                    "vs exact, later frames", "machine; load average before the run"], rows)
 
 
+def material_cost(data: dict) -> list[str]:
+    """``tools/material_cost.py --json``: per backend (and voxel instruction set), the diffuse and the glossy frame's
+    seconds (shading in brackets) and their ratio, with the run's city, BLAS threads and machine."""
+    rows = []
+    for run in _runs(data):
+        out = run["output"]
+        m = out["machine"]
+        city = f"{out['triangles']:,} triangles, {out['lights']:,} lights"
+        for r in out["rows"]:
+            w, h = r["diffuse"]["resolution"]
+            d, g = r["diffuse"], r["glossy"]
+            rows.append([f"{city}, {w}×{h}", f"`{r['visibility']}`" + (f" {r['kernel']}" if r["kernel"] else ""),
+                         f"{d['seconds']:.2f} ({d['shading_seconds']:.2f})",
+                         f"{g['seconds']:.2f} ({g['shading_seconds']:.2f})", f"{r['glossy_over_diffuse']:.2f}×",
+                         out.get("openblas_num_threads") or "default",
+                         f"{m['cpu']}, {m['cores']} cores, {m['vector']}; {m['load_average'][0]:.1f}"])
+    return _table(["frame", "backend", "diffuse s (shading)", "glossy s (shading)", "glossy / diffuse",
+                   "BLAS threads", "machine; load average after the run"], rows)
+
+
 RENDERERS = {
     "voxel-matrix": voxel_rows, "voxel-faceted": voxel_rows, "voxel-alg5": voxel_alg5,
     "light-scaling": light_scaling, "gi-lgh": gi_lgh, "lgh-build": lgh_build, "gi-reference": gi_reference,
@@ -581,6 +601,7 @@ RENDERERS = {
     "direct-lgh": direct_lgh, "direct-compare": direct_compare, "direct-frame": direct_frame, "cache": cache_rows,
     "budget": budget_rows, "lgh-suite": lgh_suite_rows,
     "lgh-suite-pt": lgh_pathtrace_rows, "lgh-split": lgh_split_rows, "readme-render": command_timing,
+    "materials-cost": material_cost,
 }
 
 
@@ -714,6 +735,12 @@ FIGURES: dict[str, tuple[str, str, str]] = {
     # LGH GI on the city, compiled gather (100k VPLs, 256 px, alpha 4, k 512, brute force in the same run)
     "city-gi-lgh-compiled-speedup": ("gi-lgh-city-compiled", "rows.0.speedup", "x0"),
     "city-gi-lgh-compiled-rel-rmse": ("gi-lgh-city-compiled", "rows.0.rel_rmse", "p1"),
+    # a glossy clearcoated preview surface on every mesh of a generated city against its diffuse frame
+    # (tools/material_cost.py): run 0 as the machine is, run 1 with one BLAS thread
+    **{f"city-glossy-{name}-cost": ("materials-cost", f"runs.{run}.output.rows.[{pick}].glossy_over_diffuse", "x2")
+       for name, run, pick in (("exact", 0, "visibility=exact"), ("voxel-avx2", 0, "kernel=native-avx2"),
+                               ("voxel-scalar", 0, "kernel=native-scalar"), ("exact-blas1", 1, "visibility=exact"),
+                               ("voxel-avx2-blas1", 1, "kernel=native-avx2"))},
     # the voxel cache at 128³ / 2° (tools/cache_bench.py)
     **{f"{name}-cache-{what}": ("cache", f"runs.0.output.stages.[stage=stages/{name}.usda].{_CACHE[what][0]}",
                                 _CACHE[what][1])

@@ -299,11 +299,12 @@ def next_frame(delegate: StageDelegate, frame: float) -> float:
 
 @contextmanager
 def steady_frame(delegate: StageDelegate, settings, frame: float, width: int, height: int,
-                 aovs: frozenset = frozenset({"color"})):
+                 aovs: frozenset = frozenset({"color"}), backend_options: dict | None = None):
     """Render ``frame`` and then :func:`next_frame` with one renderer and time the second: the steady
     state of a sequence (per-frame arrays rebuilt, static ones kept). Yields ``(result, seconds,
-    renderer)``; the renderer is closed on leaving."""
-    r = FrameRenderer(delegate, settings, backend_options={"report": lambda s: None})
+    renderer)``; the renderer is closed on leaving. ``backend_options``: keyword options of the backends
+    (:class:`usdml.render.frame.FrameRenderer`'s), default none but a silent ``report``."""
+    r = FrameRenderer(delegate, settings, backend_options=backend_options or {"report": lambda s: None})
     try:
         r.render(frame, width, height, set(aovs))
         t0 = _time.perf_counter()

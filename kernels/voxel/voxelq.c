@@ -24,6 +24,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "brdf.h"
 #include "light_term.h"
 #include "simd_pick.h"
 
@@ -446,14 +447,20 @@ static void refine_scalar(const VQScene *s, const VQRule *r, int n, const SoA *b
 
 typedef void (*BatchFn)(const VQScene *, const VQRule *, int, const SoA *, int, float *);
 
-/* the batched shadow rays of vq_shade: blocked ones counted, the others' light added; returns 0 */
-static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, float *res, float rgb_b[3][BATCH],
-                 const int32_t *who, float *radiance, int32_t *blocked) {
+/* the batched shadow rays of vq_shade: blocked ones counted, the others' light added (rgb_b 0 .. 2), and with
+ * material rows their specular part (rgb_b 3 .. 5) to ``specular`` (NULL: none); returns 0 */
+static int flush(BatchFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, float *res, float rgb_b[6][BATCH],
+                 const int32_t *who, float *radiance, float *specular, int32_t *blocked) {
     if (nb <= 0) return 0;
     fn(s, r, nb, b, 0, res);
     for (int q = 0; q < nb; q++) {
-        if (res[q] >= 0.0f) blocked[who[q]]++;
-        else for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
+        if (res[q] >= 0.0f) {
+            blocked[who[q]]++;
+            continue;
+        }
+        for (int k = 0; k < 3; k++) radiance[3 * who[q] + k] += rgb_b[k][q];
+        if (specular)
+            for (int k = 0; k < 3; k++) specular[3 * who[q] + k] += rgb_b[3 + k][q];
     }
     return 0;
 }
@@ -475,7 +482,7 @@ typedef struct {
  * counted, the certain free added but a near point's, which is listed as kind 1, and the uncertain
  * listed as kind 0; returns 0 */
 static int flush_refine(RefineFn fn, const VQScene *s, const VQRule *r, int nb, const SoA *b, uint8_t *code,
-                        float rgb_b[3][BATCH], const int32_t *who, const int32_t *light, float *radiance,
+                        float rgb_b[6][BATCH], const int32_t *who, const int32_t *light, float *radiance,
                         int32_t *blocked, Listing *o) {
     if (nb <= 0) return 0;
     fn(s, r, nb, b, &o->rays, code);
@@ -503,12 +510,13 @@ static int flush_refine(RefineFn fn, const VQScene *s, const VQRule *r, int nb, 
     return 0;
 }
 
-/* a shading batch's flush: vq_shade's, or with a list vq_shade_refine's (the light of each ray in light) */
+/* a shading batch's flush: vq_shade's, or with a list vq_shade_refine's (the light of each ray in light; no
+ * material rows) */
 VQ_INLINE int flush_shade(BatchFn fn, RefineFn rfn, Listing *o, const VQScene *s, const VQRule *r, int nb,
-                          const SoA *b, float *res, uint8_t *code, float rgb_b[3][BATCH], const int32_t *who,
-                          const int32_t *light, float *radiance, int32_t *blocked) {
+                          const SoA *b, float *res, uint8_t *code, float rgb_b[6][BATCH], const int32_t *who,
+                          const int32_t *light, float *radiance, float *specular, int32_t *blocked) {
     return o ? flush_refine(rfn, s, r, nb, b, code, rgb_b, who, light, radiance, blocked, o)
-             : flush(fn, s, r, nb, b, res, rgb_b, who, radiance, blocked);
+             : flush(fn, s, r, nb, b, res, rgb_b, who, radiance, specular, blocked);
 }
 
 /* whether tile t of ``points`` points starts: always without a list, else when the list has room for
@@ -634,11 +642,13 @@ void vq_query_refine(const VQScene *s, const VQRule *r, int64_t first, int64_t c
 }
 
 /* Alg. 3 over tiles first_tile .. of ``tile`` points (vq_shade's, and with a list vq_shade_refine's),
- * in plain C: the shadow rays in batches */
+ * in plain C: the shadow rays in batches. With material rows ``mat`` (NULL: Lambertian) each light's term is
+ * split by the BRDF (brdf.h): E kd summed into radiance, E ks into specular. */
 VQ_INLINE void shade_scalar(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm,
                             const float *geo, int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile,
-                            Kernels fns, Listing *o, float *radiance, int32_t *blocked, int32_t *facing) {
-    float buf[9][BATCH], rgb_b[3][BATCH], res[BATCH];
+                            Kernels fns, Listing *o, const float *mat, float *radiance, float *specular,
+                            int32_t *blocked, int32_t *facing) {
+    float buf[9][BATCH], rgb_b[6][BATCH], res[BATCH];
     int32_t dist_b[BATCH], who[BATCH], light_b[BATCH];
     uint8_t code[BATCH];
     SoA b = {{NULL}, dist_b, 1, {NULL}, NULL};
@@ -649,17 +659,33 @@ VQ_INLINE void shade_scalar(const VQScene *s, const VQRule *r, const VQLights *L
         if (!tile_fits(o, t, i1 - i0, L->n)) return;
         for (int64_t i = i0; i < i1; i++) {
             radiance[3 * i] = radiance[3 * i + 1] = radiance[3 * i + 2] = 0.0f;
+            if (mat) specular[3 * i] = specular[3 * i + 1] = specular[3 * i + 2] = 0.0f;
             blocked[i] = facing[i] = 0;
         }
         int nb = 0;
         for (int l = 0; l < L->n; l++) {
             for (int64_t i = i0; i < i1; i++) {
-                float rgb[3], tg[3];
+                float rgb[3], tg[3], sp[3] = {0.0f, 0.0f, 0.0f};
                 int code_l = light_term(L, l, pts + 3 * i, nrm + 3 * i, geo + 3 * i, rgb, tg);
                 if (!code_l) continue;
                 facing[i]++;
+                if (mat) {
+                    /* the unit direction to the light, as light_term's (-axis for a distant light) */
+                    int dist = L->flags[l] & DISTANT;
+                    float lv[3], kd[3], ks[3];
+                    for (int k = 0; k < 3; k++) lv[k] = dist ? tg[k] : tg[k] - pts[3 * i + k];
+                    float d2 = dist ? 1.0f : dot3(lv, lv), inv_d = 1.0f / sqrtf(d2 > 1.0e-30f ? d2 : 1.0e-30f);
+                    for (int k = 0; k < 3; k++) lv[k] *= inv_d;
+                    brdf_terms(mat + (size_t)BRDF_WIDTH * i, nrm + 3 * i, lv, kd, ks);
+                    for (int k = 0; k < 3; k++) {
+                        sp[k] = rgb[k] * ks[k];
+                        rgb[k] *= kd[k];
+                    }
+                }
                 if (code_l == 1) {
                     for (int k = 0; k < 3; k++) radiance[3 * i + k] += rgb[k];
+                    if (mat)
+                        for (int k = 0; k < 3; k++) specular[3 * i + k] += sp[k];
                     continue;
                 }
                 for (int k = 0; k < 3; k++) {
@@ -667,23 +693,27 @@ VQ_INLINE void shade_scalar(const VQScene *s, const VQRule *r, const VQLights *L
                     buf[3 + k][nb] = tg[k];
                     buf[6 + k][nb] = geo[3 * i + k];
                     rgb_b[k][nb] = rgb[k];
+                    if (mat) rgb_b[3 + k][nb] = sp[k];
                 }
                 dist_b[nb] = L->flags[l] & DISTANT;
                 light_b[nb] = l;
                 who[nb++] = (int32_t)i;
                 if (nb == BATCH)
                     nb = flush_shade(fns.query, fns.refine, o, s, r, nb, &b, res, code, rgb_b, who, light_b, radiance,
-                                     blocked);
+                                     mat ? specular : NULL, blocked);
             }
         }
-        flush_shade(fns.query, fns.refine, o, s, r, nb, &b, res, code, rgb_b, who, light_b, radiance, blocked);
+        flush_shade(fns.query, fns.refine, o, s, r, nb, &b, res, code, rgb_b, who, light_b, radiance,
+                    mat ? specular : NULL, blocked);
     }
 }
 
-/* vq_shade or, with a list, vq_shade_refine: the SIMD shading where ``kernel`` has it, else plain C */
+/* vq_shade or, with a list, vq_shade_refine (no material rows): the SIMD shading where ``kernel`` has it, else
+ * plain C */
 VQ_INLINE void shade_any(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm,
                          const float *geo, int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile,
-                         int32_t kernel, Listing *o, float *radiance, int32_t *blocked, int32_t *facing) {
+                         int32_t kernel, Listing *o, const float *mat, float *radiance, float *specular,
+                         int32_t *blocked, int32_t *facing) {
     Kernels fns = pick(kernel);
 #ifdef VQ_X86
     if (tile <= MAX_TILE && (fns.query == batch_avx512x2 || fns.query == batch_avx2x2)) {
@@ -691,21 +721,33 @@ VQ_INLINE void shade_any(const VQScene *s, const VQRule *r, const VQLights *L, c
         if (o)
             (wide ? shade_refine_avx512x2 : shade_refine_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles,
                                                                tile, radiance, blocked, facing, o);
+        else if (mat)
+            (wide ? shade_material_avx512x2 : shade_material_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile,
+                                                                   n_tiles, tile, mat, radiance, specular, blocked,
+                                                                   facing);
         else
             (wide ? shade_avx512x2 : shade_avx2x2)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile,
                                                  radiance, blocked, facing);
         return;
     }
 #endif
-    shade_scalar(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, fns, o, radiance, blocked, facing);
+    if (mat)
+        shade_scalar(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, fns, o, mat, radiance, specular,
+                     blocked, facing);
+    else
+        shade_scalar(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, fns, o, NULL, radiance, NULL,
+                     blocked, facing);
 }
 
 /* Alg. 3 over tiles first_tile .. first_tile + n_tiles of ``tile`` points (kernels/voxel/shading.py's
- * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches */
+ * shade_tiles): radiance (3 per point), blocked and facing counts; shadow rays in batches. With material rows
+ * ``mat`` (BRDF_WIDTH floats per point, brdf.h; NULL: Lambertian, radiance the sum of E) each visible light adds
+ * E kd to radiance and E ks to ``specular`` (3 per point). */
 void vq_shade(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts, const float *nrm, const float *geo,
               int64_t n_points, int64_t first_tile, int64_t n_tiles, int32_t tile, int32_t kernel, float *radiance,
-              int32_t *blocked, int32_t *facing) {
-    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, NULL, radiance, blocked, facing);
+              int32_t *blocked, int32_t *facing, const float *mat, float *specular) {
+    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, NULL, mat, radiance, specular,
+              blocked, facing);
 }
 
 /* the caller's answers to vq_shade_refine's list: entry k (of n; point list_point[k], term list_rgb[3 k ..])
@@ -739,7 +781,8 @@ void vq_shade_refine(const VQScene *s, const VQRule *r, const VQLights *L, const
                      uint8_t *list_kind, int64_t capacity, int64_t *count, int64_t *resume_tile, int64_t *queries) {
     Listing o = {make_rays(widths, n_widths), near, list_point, list_light, list_rgb, list_kind, capacity, *count,
                  first_tile + n_tiles, 0};
-    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, &o, radiance, blocked, facing);
+    shade_any(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, kernel, &o, NULL, radiance, NULL, blocked,
+              facing);
     *count = o.count;
     *resume_tile = o.resume;
     if (queries) *queries += o.queries;

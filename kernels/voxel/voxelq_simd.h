@@ -4,6 +4,8 @@
  *   vectors) and the operations used below (vq_* functions and macros, see voxelq.c).
  * The rule is array_hit / shadow_scalar's in voxelq.c, lane by lane. */
 
+#include "brdf_lobes.h"     /* the preview surface's BRDF, W points at a time (SUFFIX(brdf_lobes)) */
+
 TARGET static inline V SUFFIX(vatan2)(V y, V x) {
     V ax = ABS(x), ay = ABS(y);
     V mx = MAX(ax, ay), mn = MIN(ax, ay);
@@ -477,16 +479,18 @@ TARGET static void SUFFIX(batch_refine)(const VQScene *s, const VQRule *r, int n
 
 /* Alg. 3 over tiles (vq_shade's, and with a list ``o`` vq_shade_refine's), W points of a tile against
  * one light at a time: light_term's arithmetic in SIMD, the casting lanes compressed into the batch of
- * shadow rays */
+ * shadow rays. With material rows ``mat`` (NULL: Lambertian; never with a list) each light's term is split by
+ * the BRDF, W points at a time: E kd into radiance, E ks into specular (the batch carries both). */
 TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
                                           const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
-                                          int64_t n_tiles, int tile, float *radiance, int32_t *blocked,
-                                          int32_t *facing, Listing *o) {
-    /* the batch of shadow rays (flushed while it has room for W more) and the tile in SoA form */
-    float sbuf[9][BATCH], srgb[3][BATCH], res[BATCH];
+                                          int64_t n_tiles, int tile, const float *mat, float *radiance,
+                                          float *specular, int32_t *blocked, int32_t *facing, Listing *o) {
+    /* the batch of shadow rays (flushed while it has room for W more) and the tile in SoA form: points, normals,
+     * geometric normals, and with material rows the columns the BRDF reads */
+    float sbuf[9][BATCH], srgb[6][BATCH], res[BATCH];
     int32_t sdist[BATCH], swho[BATCH], slight[BATCH];
     uint8_t code[BATCH];
-    float P[9][MAX_TILE + W], acc[3][MAX_TILE + W];
+    float P[9][MAX_TILE + W], acc[6][MAX_TILE + W], MR[BRDF_OCCLUSION + 1][MAX_TILE + W];
     int32_t fac[MAX_TILE + W];
     SoA b = {{NULL}, sdist, 1, {NULL}, NULL};
     for (int k = 0; k < 9; k++) b.c[k] = sbuf[k];
@@ -505,8 +509,15 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
             }
             fac[j] = 0;
         }
+        if (mat)
+            for (int j = 0; j < m + W; j++) {
+                for (int c = 0; c <= BRDF_OCCLUSION; c++)
+                    MR[c][j] = j < m ? mat[(size_t)BRDF_WIDTH * (i0 + j) + c] : 0.0f;
+                for (int k = 3; k < 6; k++) acc[k][j] = 0.0f;
+            }
         for (int64_t i = i0; i < i1; i++) {
             radiance[3 * i] = radiance[3 * i + 1] = radiance[3 * i + 2] = 0.0f;
+            if (mat) specular[3 * i] = specular[3 * i + 1] = specular[3 * i + 2] = 0.0f;
             blocked[i] = 0;
         }
         int nb = 0;
@@ -559,11 +570,25 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
                 unsigned okb = MBITS(ok);
                 if (!okb) continue;
                 V gf = MUL(gg, f);
-                V rgb[3];
+                V rgb[3], spec[3];
                 for (int k = 0; k < 3; k++) rgb[k] = FMA(SET(fc[k]), gf, MUL(SET(bs[k]), gg));
+                if (mat) {
+                    /* the light's term split by the BRDF toward the unit direction to the light */
+                    V mv[BRDF_OCCLUSION + 1], lv[3], kd[3], ks[3];
+                    for (int c = 0; c <= BRDF_OCCLUSION; c++) mv[c] = LOAD(MR[c] + j0);
+                    for (int k = 0; k < 3; k++) lv[k] = MUL(dv[k], inv_d);
+                    SUFFIX(brdf_lobes)(mv, n, lv, kd, ks);
+                    for (int k = 0; k < 3; k++) {
+                        spec[k] = MUL(rgb[k], ks[k]);
+                        rgb[k] = MUL(rgb[k], kd[k]);
+                    }
+                }
                 ISTORE(fac + j0, IADD(ILOAD(fac + j0), SELI(ok, ISET(1), ISET(0))));
                 if (!(flags & CASTS_SHADOWS)) {
                     for (int k = 0; k < 3; k++) STORE(acc[k] + j0, ADD(LOAD(acc[k] + j0), SEL(ok, rgb[k], zf)));
+                    if (mat)
+                        for (int k = 0; k < 3; k++)
+                            STORE(acc[3 + k] + j0, ADD(LOAD(acc[3 + k] + j0), SEL(ok, spec[k], zf)));
                     continue;
                 }
                 int c = 0;
@@ -572,6 +597,7 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
                     COMPRESS_F(sbuf[3 + k] + nb, ok, SET(dist ? -ax[k] : lp[k]));
                     COMPRESS_F(sbuf[6 + k] + nb, ok, g[k]);
                     COMPRESS_F(srgb[k] + nb, ok, rgb[k]);
+                    if (mat) COMPRESS_F(srgb[3 + k] + nb, ok, spec[k]);
                 }
                 COMPRESS_I(swho + nb, ok, IADD(ISET((int)(i0 + j0)), IOTA));
                 COMPRESS_I(sdist + nb, ok, ISET(dist));
@@ -580,13 +606,15 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
                 nb += c;
                 if (nb > BATCH - W)
                     nb = flush_shade(SUFFIX(batch), SUFFIX(batch_refine), o, s, r, nb, &b, res, code, srgb, swho,
-                                     slight, radiance, blocked);
+                                     slight, radiance, mat ? specular : NULL, blocked);
             }
         }
         flush_shade(SUFFIX(batch), SUFFIX(batch_refine), o, s, r, nb, &b, res, code, srgb, swho, slight, radiance,
-                    blocked);
+                    mat ? specular : NULL, blocked);
         for (int j = 0; j < m; j++) {
             for (int k = 0; k < 3; k++) radiance[3 * (i0 + j) + k] += acc[k][j];
+            if (mat)
+                for (int k = 0; k < 3; k++) specular[3 * (i0 + j) + k] += acc[3 + k][j];
             facing[i0 + j] = fac[j];
         }
     }
@@ -595,12 +623,23 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
 TARGET static void SUFFIX(shade)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
                                  const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
                                  int64_t n_tiles, int tile, float *radiance, int32_t *blocked, int32_t *facing) {
-    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, radiance, blocked, facing, NULL);
+    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, NULL, radiance, NULL, blocked,
+                        facing, NULL);
+}
+
+/* vq_shade with material rows (compiled apart: the Lambertian shading above keeps its code) */
+TARGET static void SUFFIX(shade_material)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
+                                          const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
+                                          int64_t n_tiles, int tile, const float *mat, float *radiance,
+                                          float *specular, int32_t *blocked, int32_t *facing) {
+    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, mat, radiance, specular, blocked,
+                        facing, NULL);
 }
 
 TARGET static void SUFFIX(shade_refine)(const VQScene *s, const VQRule *r, const VQLights *L, const float *pts,
                                         const float *nrm, const float *geo, int64_t n_points, int64_t first_tile,
                                         int64_t n_tiles, int tile, float *radiance, int32_t *blocked,
                                         int32_t *facing, Listing *o) {
-    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, radiance, blocked, facing, o);
+    SUFFIX(shade_tiles)(s, r, L, pts, nrm, geo, n_points, first_tile, n_tiles, tile, NULL, radiance, NULL, blocked,
+                        facing, o);
 }

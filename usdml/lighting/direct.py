@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from usdml.kernels.brdf import brdf_terms
+from usdml.lighting.brdf_sums import brdf_sums
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
@@ -133,7 +133,7 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
         Every pair's answer, computed before shading (paper 001 answers light by light from a map per
         light): read for each shadow query instead of calling ``occluded``.
     material : (P, WIDTH) float32, optional
-        UsdPreviewSurface rows (``kernels/brdf.py``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
+        UsdPreviewSurface rows (``kernels/brdf``): each visible light adds ``E·(ρ/π·kd + ks)``, ``albedo``
         being the effective diffuse reflectance ρ; the result's ``specular`` holds ΣE·ks. None: Lambertian.
     diffuse_only : (L,) bool, optional
         With ``material``: lights that light the diffuse lobe only (a dome's distant samples: its specular is
@@ -171,8 +171,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                 g[pi[hit], li[hit]] = 0.0
                 blocked[lo:hi] = np.bincount(pi[hit], minlength=hi - lo)
         if material is not None:
-            radiance[lo:hi], specular[lo:hi] = _brdf_sums(g, f, w, table, material[lo:hi], normals[lo:hi],
-                                                          diffuse_only)
+            radiance[lo:hi], specular[lo:hi] = _material_sums(g, f, w, table, material[lo:hi], normals[lo:hi],
+                                                              diffuse_only)
             return asked
         radiance[lo:hi] = g @ table.base
         if f is not None:
@@ -193,22 +193,19 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries, specular)
 
 
-def _brdf_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray, normals: np.ndarray,
-               diffuse_only: np.ndarray | None = None):
-    """``(ΣE·kd, ΣE·ks)`` ``(B, 3)`` of a block: each pair's irradiance (``g`` after shadows, focus ``f``) times
-    the material's BRDF terms toward the light (``kernels/brdf.py``), summed per point in light order."""
-    pi, li = np.nonzero(g > 0)
-    e = g[pi, li][:, None] * table.base[li]
-    if f is not None:
-        e += (g[pi, li] * f[pi, li])[:, None] * table.focus_rgb[li]
-    l = np.stack([w[0][pi, li], w[1][pi, li], w[2][pi, li]], axis=1)
-    kd, ks = brdf_terms(rows[pi], normals[pi], l)
-    if diffuse_only is not None:
-        ks[diffuse_only[li]] = 0.0
-    n = len(g)
-    d = np.stack([np.bincount(pi, e[:, c] * kd[:, c], minlength=n) for c in range(3)], axis=1)
-    s = np.stack([np.bincount(pi, e[:, c] * ks[:, c], minlength=n) for c in range(3)], axis=1)
-    return d.astype(np.float32), s.astype(np.float32)
+def _material_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray,
+                   normals: np.ndarray, diffuse_only: np.ndarray | None):
+    """:func:`usdml.lighting.brdf_sums.brdf_sums` of a block; the ``diffuse_only`` lights' pairs add their
+    diffuse part only (a second sum over them alone, whose specular part is dropped)."""
+    if diffuse_only is None or not diffuse_only.any():
+        return brdf_sums(g, f, w, table, rows, normals)
+    rest = g.copy()
+    rest[:, diffuse_only] = 0.0
+    only = np.zeros_like(g)
+    only[:, diffuse_only] = g[:, diffuse_only]
+    diffuse, specular = brdf_sums(rest, f, w, table, rows, normals)
+    diffuse_dome, _ = brdf_sums(only, f, w, table, rows, normals)
+    return diffuse + diffuse_dome, specular
 
 
 def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
@@ -218,14 +215,15 @@ def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndar
     """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
     updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
     :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``. With
-    ``material`` rows the fused kernels (Lambertian sums) are passed over: :func:`shade_direct` asks the backend's
-    ``occluded`` pair by pair and sums both lobes (the same shadows, its own speed: ``tools/material_cost.py``).
+    ``material`` rows the fused kernel sums both lobes where it can (the voxel backend's compiled one) and hands the
+    rest to :func:`shade_direct` over ``occluded`` (the same shadows; ``tools/material_cost.py`` times both).
     Arguments and result as :func:`shade_direct`."""
     options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
     if material is not None:
         options["material"] = material
         if diffuse_only is not None and diffuse_only.any():
             options["diffuse_only"] = diffuse_only
-    if backend.supports(SHADE_DIRECT) and material is None:
+    # a fused kernel sums both lobes of every light: lights that light one lobe only go through shade_direct
+    if backend.supports(SHADE_DIRECT) and "diffuse_only" not in options:
         return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
     return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)

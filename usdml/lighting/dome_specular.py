@@ -69,7 +69,7 @@ def dome_specular(points: np.ndarray, normals: np.ndarray, geometric: np.ndarray
                   domes: list[Dome], occluded: Callable[..., np.ndarray] | None, seed: int = 0,
                   samples: int = DOME_SPECULAR_SAMPLES) -> np.ndarray:
     """``(P, 3)`` float32 specular radiance of the ``domes`` at ``points`` with shading ``normals``, geometric
-    normals ``geometric`` (None: the shading ones) and material ``rows`` (``kernels/brdf.py``); ``occluded`` a
+    normals ``geometric`` (None: the shading ones) and material ``rows`` (``kernels/brdf``); ``occluded`` a
     visibility backend's shadow query (None: unshadowed). Module doc."""
     n_p = len(points)
     out = np.zeros((n_p, 3), np.float64)

@@ -10,7 +10,7 @@ its specular and clearcoat lobes reflect over the hemisphere (the *directional a
               + occlusion·( F0·A(n·e, α) + (F90 − F0)·B(n·e, α) + clearcoat·(R²·A(n·e, α_c) + (1 − R²)·B(n·e, α_c)) )
 
 with ``A = ∫ D·V·(n·l) dω`` and ``B = ∫ D·V·(n·l)·(1 − e·h)⁵ dω`` the preview surface's own GGX and Smith–Schlick
-terms (``kernels/brdf.py``), tabulated once over n·e and α by GGX importance sampling (Karis's split sum, without
+terms (``kernels/brdf``), tabulated once over n·e and α by GGX importance sampling (Karis's split sum, without
 the environment), and ``C`` the cosine-weighted mean of Schlick's ``(1 − e·h)⁵`` over the diffuse lobe (its
 ``kd = 1 − F`` averaged, as direct light applies it light by light). A VPL left on such a surface carries ρ_gi for the direction the light came from (by
 reciprocity, the share of that light the surface reflects) and a receiver reflects ρ_gi/π of its gathered
@@ -113,7 +113,7 @@ def _lookup(table: np.ndarray, mu: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def specular_albedo(rows: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(K, 3) float32 share of light the specular and clearcoat lobes of material ``rows`` (``kernels/brdf.py``,
+    """(K, 3) float32 share of light the specular and clearcoat lobes of material ``rows`` (``kernels/brdf``,
     their EYE the direction of interest) reflect over the hemisphere at unit ``normals`` (K, 3)."""
     rows = np.asarray(rows, np.float64)
     a_table, b_table = split_sum_table()

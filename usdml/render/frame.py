@@ -39,7 +39,7 @@ def camera_light(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ca
 
     Storm's simple lighting gives ``albedo · max(0, n·l)``; as radiance that is ``albedo/π · E`` with
     ``E = π · max(0, n·l)``. It never casts a visible shadow (it sits at the eye). Returns (P, 3) float32; with
-    ``material`` rows (``kernels/brdf.py``) the preview surface's BRDF toward the eye, ``E·(ρ/π·kd + ks)``, and
+    ``material`` rows (``kernels/brdf``) the preview surface's BRDF toward the eye, ``E·(ρ/π·kd + ks)``, and
     ``(radiance, specular E·ks)``.
     """
     eye = camera.xform[:3, 3]

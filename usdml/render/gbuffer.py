@@ -34,7 +34,7 @@ class GBuffer:
     depth: np.ndarray       #: (H, W) float32 camera-space depth (distance along the view axis), inf on a miss
     prim_id: np.ndarray     #: (H, W) int32 ``Mesh.id``, -1 on a miss
     instance_id: np.ndarray  #: (H, W) int64 instance id, -1 on a miss or a non-instanced mesh
-    #: (H·W, WIDTH) float32 BRDF rows of the hits (``kernels/brdf.py``), or None when every surface is Lambertian
+    #: (H·W, WIDTH) float32 BRDF rows of the hits (``kernels/brdf``), or None when every surface is Lambertian
     material: np.ndarray | None = None
     emission: np.ndarray | None = None   #: (H, W, 3) float32 emitted radiance (emissiveColor), or None
 

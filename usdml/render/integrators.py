@@ -54,7 +54,7 @@ class Surface:
     normal: np.ndarray          #: (P, 3) shading normals
     albedo: np.ndarray          #: (P, 3) diffuse reflectance ρ
     geometric: np.ndarray       #: (P, 3) geometric normals
-    material: np.ndarray | None = None   #: (P, WIDTH) BRDF rows (``kernels/brdf.py``), None: every point Lambertian
+    material: np.ndarray | None = None   #: (P, WIDTH) BRDF rows (``kernels/brdf``), None: every point Lambertian
     emission: np.ndarray | None = None   #: (P, 3) emitted radiance, or None
 
     @classmethod

@@ -1,5 +1,5 @@
 """A mesh's surfaces as the renderer samples them: every UsdPreviewSurface input per triangle corner, images
-sampled again at each hit, and the BRDF rows (``kernels/brdf.py``) a hit's shading needs.
+sampled again at each hit, and the BRDF rows (``kernels/brdf``) a hit's shading needs.
 
 Filled by :meth:`usdml.stage.materials.MaterialResolver.shading` (plain NumPy: pickles with the snapshot). The
 preview surface's parameters become a row as usdImaging's ``previewSurface.glslfx`` does (``evaluateLight``):
@@ -74,7 +74,7 @@ class HitShading:
     """A surface at hits: what shading reads."""
 
     albedo: np.ndarray      #: (K, 3) diffuse reflectance diffuseColor·(1 − metallic) (displayColor where Lambertian)
-    reflectance: np.ndarray  #: (K, 3) effective ρ of kernels/brdf.py: albedo·occlusion
+    reflectance: np.ndarray  #: (K, 3) effective ρ of kernels/brdf: albedo·occlusion
     rows: np.ndarray        #: (K, WIDTH) BRDF rows
     emission: np.ndarray    #: (K, 3) emissiveColor
     normal: np.ndarray | None  #: (K, 3) tangent-space normal where a normal map perturbs, else None

@@ -4,7 +4,7 @@ The rays are traced by a visibility backend's ``intersect`` (the exact backend);
 is the render index's side: which mesh each hit belongs to and its attributes there, the shading
 normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose
 of their instance transform), the albedo (textures sampled at the hit, not per corner) and, where a mesh has
-bound surfaces (``Mesh.shading``), each hit's BRDF row (``kernels/brdf.py``, seen from the ray's origin) and
+bound surfaces (``Mesh.shading``), each hit's BRDF row (``kernels/brdf``, seen from the ray's origin) and
 emission. Used by the
 G-buffer (:mod:`usdml.render.gbuffer`) and by VPL light paths (:mod:`usdml.lighting.vpl`).
 """
@@ -32,7 +32,7 @@ class Hits:
     albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
     geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
     t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
-    #: (N, WIDTH) float32 BRDF rows (``kernels/brdf.py``; Lambertian rows where a mesh has no surface), or None when
+    #: (N, WIDTH) float32 BRDF rows (``kernels/brdf``; Lambertian rows where a mesh has no surface), or None when
     #: no hit mesh has one (every hit Lambertian); ``albedo`` is then the diffuse reflectance times occlusion
     material: np.ndarray | None = None
     emission: np.ndarray | None = None     #: (N, 3) float32 emitted radiance (emissiveColor), or None

@@ -35,7 +35,8 @@ Optional capabilities
         within float32 rounding, returning a :class:`DirectResult`. The lighting layer chooses:
         :func:`usdml.lighting.direct.shade_with` calls this kernel hook where the backend declares it,
         handing it the plain shading (``plain``) for what the kernel does not fuse, and shades over
-        ``occluded`` otherwise. Default: ``NotImplementedError``.
+        ``occluded`` otherwise. It takes the preview surface's material rows (``material=``), summing both
+        lobes in the kernel or handing them to ``plain``. Default: ``NotImplementedError``.
     ``HIT_DISTANCES`` ("hit_distances")
         :meth:`~VisibilityBackend.hit_distances`: per query, the distance from the ray's start to its
         first hit in the backend's own units (``-1``: free; ``>= 0`` exactly where ``occluded``), for
@@ -110,7 +111,7 @@ class DirectResult:
     shadow: np.ndarray      #: (P,) float32 blocked / facing, 0 where no light faces
     facing: np.ndarray      #: (P,) int32 number of lights facing each point
     queries: int            #: shadow queries asked of the backend
-    #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf.py``) when shaded with material
+    #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf``) when shaded with material
     #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
     specular: np.ndarray | None = None
 
@@ -382,11 +383,12 @@ class VisibilityBackend(abc.ABC):
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric: np.ndarray | None = None, *,
-                     plain: Callable[..., DirectResult]) -> DirectResult:
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None,
+                     material: np.ndarray | None = None, *, plain: Callable[..., DirectResult]) -> DirectResult:
         """``SHADE_DIRECT``: direct lighting of ``points`` by every light (paper 000 Alg. 3) in the backend's
-        own fused kernel, arguments as :func:`usdml.lighting.direct.shade_direct`; ``plain`` is that
-        function, for what the kernel does not fuse. Callers go through
+        own fused kernel, arguments as :func:`usdml.lighting.direct.shade_direct` (``material``: the preview
+        surface's rows, None: Lambertian); ``plain`` is that function, for what the kernel does not fuse (a
+        backend whose kernel does not sum the BRDF hands material rows to ``plain`` over its ``occluded``). Callers go through
         :func:`usdml.lighting.direct.shade_with`, which shades over :meth:`occluded` where the backend does
         not declare it; backends that do not raise ``NotImplementedError``."""
         raise NotImplementedError(f"the {self.name or type(self).__name__} backend has no fused direct shading")

@@ -244,17 +244,22 @@ class Refined(VisibilityBackend):
         self._count("near", len(rows))
 
     def shade_direct(self, points, normals, albedo, lights, progress=None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric=None, *, plain):
+                     min_distance: float = 0.0, geometric=None, material=None, *, plain):
         """Direct light with refined shadows: the backend's fused kernel with refinement (``shade_refined``: it
         hands back the uncertain and blind-zone pairs, traced here) where it has one, every answer of a
         ``LIGHT_MAJOR`` backend at once (a map per light), else :func:`usdml.lighting.direct.shade_direct` over
-        :meth:`occluded`."""
+        :meth:`occluded`. With ``material`` rows: the backend's own fused kernel when nothing is refined, else
+        :func:`usdml.lighting.direct.shade_direct` over :meth:`occluded` (no refined kernel sums the BRDF)."""
         options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+        if material is not None:
+            options["material"] = material
         level = self.level
         if level <= 0:
             if self.approx.supports(SHADE_DIRECT):
                 return self.approx.shade_direct(points, normals, albedo, lights, progress, plain=plain, **options)
             return plain(points, normals, albedo, lights, self.approx.occluded, progress, **options)
+        if material is not None:
+            return plain(points, normals, albedo, lights, self.occluded, progress, **options)
         if level > self.approx.refine_levels:
             result = plain(points, normals, albedo, lights, self.exact.occluded, progress, **options)
             self._count("queries", result.queries)

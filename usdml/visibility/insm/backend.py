@@ -642,10 +642,14 @@ class InsmBackend(VisibilityBackend):
     # ------------------------------------------------------------------ queries
 
     def shade_direct(self, points, normals, albedo, lights, progress=None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric=None, *, plain) -> DirectResult:
+                     min_distance: float = 0.0, geometric=None, material=None, *, plain) -> DirectResult:
         """Alg. 3 with a map lookup in place of each ray (module doc): the answers of every (point,
         light) pair, light by light, then ``plain`` (:func:`usdml.lighting.direct.shade_direct`) over them;
-        lights in chunks of at most ``ANSWER_BYTES`` of answers. The compiled maps shade in one call."""
+        lights in chunks of at most ``ANSWER_BYTES`` of answers. The compiled maps shade in one call. With
+        ``material`` rows: ``plain`` over :meth:`occluded` (no map kernel sums the BRDF)."""
+        if material is not None:
+            return plain(points, normals, albedo, lights, self.occluded, progress, meters_per_unit=meters_per_unit,
+                         min_distance=min_distance, geometric=geometric, material=material)
         self._remember(lights)
         n_p, n_l = len(points), len(lights)
         if self.native and n_p and n_l:

@@ -115,16 +115,21 @@ def _reference_voxel(arrays: list[VoxelArray], world_ids: list[int]) -> float:
 
 
 def _direct_result(order: np.ndarray, rad: np.ndarray, blocked: np.ndarray, facing: np.ndarray, albedo,
-                   all_cast: bool):
-    """The shading kernels' per-point sums (in ``order``) as a :class:`DirectResult`."""
+                   all_cast: bool, spec: np.ndarray | None = None):
+    """The shading kernels' per-point sums (in ``order``) as a :class:`DirectResult`; ``spec``: the specular sums
+    of material shading (``rad`` then the sums of E·kd), None: Lambertian."""
     inverse = np.empty_like(order)
     inverse[order] = np.arange(len(order))
     radiance = rad[inverse] * (np.asarray(albedo, np.float32) / np.float32(np.pi))
+    specular = None
+    if spec is not None:
+        specular = spec[inverse]
+        radiance += specular
     fac = facing[inverse]
     blk = blocked[inverse]
     shadow = np.where(fac > 0, blk / np.maximum(fac, 1), 0.0).astype(np.float32)
     queries = int(fac.sum()) if all_cast else -1
-    return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries)
+    return DirectResult(radiance.astype(np.float32), shadow, fac.astype(np.int32), queries, specular)
 
 
 class VoxelBackend(VisibilityBackend):
@@ -730,20 +735,22 @@ class VoxelBackend(VisibilityBackend):
 
     def shade_direct(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                      progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
-                     min_distance: float = 0.0, geometric: np.ndarray | None = None, *,
-                     plain: Callable[..., DirectResult]) -> DirectResult:
+                     min_distance: float = 0.0, geometric: np.ndarray | None = None,
+                     material: np.ndarray | None = None, *, plain: Callable[..., DirectResult]) -> DirectResult:
         """Alg. 3 in one kernel (``kernels.direct_shading.shade_tiles``): every pixel against every
         light with voxel shadow rays; the same shading as ``plain``
         (:func:`usdml.lighting.direct.shade_direct`), which shades what has no kernel to run (no points,
-        no lights, nothing built)."""
+        no lights, nothing built; ``material`` rows without the compiled kernel: ``plain`` over :meth:`occluded`)."""
         n_p, n_l = len(points), len(lights)
-        if n_p == 0 or n_l == 0 or not self._gpu:
-            return plain(points, normals, albedo, lights, self.occluded if self._gpu else None,
-                         progress, meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+        options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
+        if material is not None:
+            options["material"] = material
+        if n_p == 0 or n_l == 0 or not self._gpu or (material is not None and self._native is None):
+            return plain(points, normals, albedo, lights, self.occluded if self._gpu else None, progress, **options)
         lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
         pts = np.asarray(points, np.float32)
         if self._native is not None:
-            return self._shade_native(pts, normals, albedo, geometric, lt, all_cast, progress)
+            return self._shade_native(pts, normals, albedo, geometric, lt, all_cast, progress, material)
         wp, ks = warp_module(), _shading_kernels()
         dev = wp.get_device(self.device)
         rad = wp.zeros(n_p, dtype=wp.vec3, device=dev)
@@ -768,8 +775,9 @@ class VoxelBackend(VisibilityBackend):
         self._split(n_tiles, launch)
         return _direct_result(order, rad.numpy(), blocked.numpy(), facing.numpy(), albedo, all_cast)
 
-    def _shade_native(self, pts, normals, albedo, geometric, lt, all_cast: bool, progress):
-        """:meth:`shade_direct` by the compiled kernel: the same tiles, over the thread pool."""
+    def _shade_native(self, pts, normals, albedo, geometric, lt, all_cast: bool, progress, material=None):
+        """:meth:`shade_direct` by the compiled kernel: the same tiles, over the thread pool; with ``material`` rows
+        both lobes of the preview surface summed in the kernel (``kernels/include/brdf.h``)."""
         n_p = len(pts)
         order = morton_order(pts)
         p = np.ascontiguousarray(pts[order])
@@ -778,15 +786,19 @@ class VoxelBackend(VisibilityBackend):
         rad = np.zeros((n_p, 3), np.float32)
         blocked = np.zeros(n_p, np.int32)
         facing = np.zeros(n_p, np.int32)
+        rows = spec = None
+        if material is not None:
+            rows = np.ascontiguousarray(np.asarray(material, np.float32)[order])
+            spec = np.zeros((n_p, 3), np.float32)
         rule = self._native_rule()
         n_tiles = -(-n_p // SHADE_TILE)
 
         def launch(first_tile, count):
-            self._native.shade(rule, lt, p, nm, g, first_tile, count, SHADE_TILE, rad, blocked, facing)
+            self._native.shade(rule, lt, p, nm, g, first_tile, count, SHADE_TILE, rad, blocked, facing, rows, spec)
             if progress is not None:
                 progress(min(n_p, (first_tile + count) * SHADE_TILE) - first_tile * SHADE_TILE)
         self._split(n_tiles, launch)
-        return _direct_result(order, rad, blocked, facing, albedo, all_cast)
+        return _direct_result(order, rad, blocked, facing, albedo, all_cast, spec)
 
     def shade_refined(self, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                       progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,

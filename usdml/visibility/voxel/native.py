@@ -32,6 +32,7 @@ import ctypes
 import numpy as np
 
 from usdml.errors import UsdmlError
+from usdml.kernels.brdf import WIDTH
 from usdml.native import ISAS, Extension, path_line
 from usdml.scene.light_table import LightTable
 
@@ -97,7 +98,8 @@ EXTENSION = Extension("voxel._voxelq", {
     "vq_query_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.c_int64, ctypes.c_int64, _P, _P,
                                _P, _P, _P, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, ctypes.c_int32, _P]),
     "vq_shade": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
-                        ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P]),
+                        ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P, _P, _P,
+                        _P, _P]),
     "vq_shade_refine": (None, [ctypes.POINTER(_Scene), ctypes.POINTER(_Rule), ctypes.POINTER(_Lights), _P, _P, _P,
                                ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, ctypes.c_int32, _P,
                                ctypes.c_int32, _P, _P, _P, _P, _P, _P, _P, _P, ctypes.c_int64, _P, _P, _P]),
@@ -320,11 +322,20 @@ class NativeScene:
 
     def shade(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray,
               first_tile: int, n_tiles: int, tile: int, radiance: np.ndarray, blocked: np.ndarray,
-              facing: np.ndarray) -> None:
-        """Alg. 3 over tiles ``first_tile ..`` (``kernels/voxel/shading.py``'s ``shade_tiles``)."""
+              facing: np.ndarray, material: np.ndarray | None = None, specular: np.ndarray | None = None) -> None:
+        """Alg. 3 over tiles ``first_tile ..`` (``kernels/voxel/shading.py``'s ``shade_tiles``): ``radiance`` the sum
+        of each visible light's term E; with ``material`` rows (C-contiguous (P, WIDTH) float32, ``kernels/brdf``)
+        E·kd, and ``specular`` ((P, 3) float32) E·ks."""
+        if material is not None and (material.dtype != np.float32 or not material.flags.c_contiguous
+                                     or material.shape != (len(points), WIDTH) or specular is None
+                                     or specular.dtype != np.float32 or specular.shape != (len(points), 3)):
+            raise TypeError("shade: material must be C-contiguous (P, WIDTH) float32 rows with a (P, 3) float32 "
+                            "specular")
         self.lib.vq_shade(ctypes.byref(self.scene), ctypes.byref(rule), ctypes.byref(lights), points.ctypes.data,
                           normals.ctypes.data, geometric.ctypes.data, len(points), int(first_tile), int(n_tiles),
-                          int(tile), self.kernel, radiance.ctypes.data, blocked.ctypes.data, facing.ctypes.data)
+                          int(tile), self.kernel, radiance.ctypes.data, blocked.ctypes.data, facing.ctypes.data,
+                          None if material is None else material.ctypes.data,
+                          None if material is None else specular.ctypes.data)
 
     def shade_refine(self, rule: _Rule, lights: _Lights, points: np.ndarray, normals: np.ndarray,
                      geometric: np.ndarray, first_tile: int, n_tiles: int, tile: int, widths: np.ndarray,

@@ -1,6 +1,7 @@
 """The UsdPreviewSurface BRDF of one light at a point, as usdImaging's ``previewSurface.glslfx`` evaluates
 it (``evaluateLight``), without its epsilons: the reference every shading path (NumPy, the compiled
-kernels' ``brdf.h``, Warp) matches.
+kernels' ``brdf.h``, Warp) matches. Its folder holds the compiled sums of both lobes over a point's lights
+(``brdfsum.c``, wrapped by :mod:`usdml.lighting.brdf_sums`).
 
 A point's material is one float32 row of :data:`WIDTH` values (:data:`LAYOUT`); with ``e`` the unit
 direction to the eye, ``n`` the shading normal, ``l`` the unit direction to the light, ``h = (e + l)/|e + l|``
