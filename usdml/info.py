@@ -29,6 +29,13 @@ def _render_settings(snap: Snapshot) -> dict | None:
     }
 
 
+def _brdf_cpu_path() -> str:
+    """How the preview surface's two sums per point run (``usdml.lighting.brdf_sums``)."""
+    from usdml.lighting import brdf_sums
+
+    return brdf_sums.describe()
+
+
 def _lgh_cpu_path() -> str:
     """The CPU path of the LGH's gather and shadow targets (``--gi lgh``, ``--direct lgh``)."""
     from usdml.lighting.lgh import native as lgh_native
@@ -79,6 +86,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "backendCpuPaths": {name: backend_class(name).cpu_path() for name in backend_names()
                             if backend_class(name).cpu_path()},
         "lghCpuPath": _lgh_cpu_path(),
+        "brdfCpuPath": _brdf_cpu_path(),
         **memory,
         "unsupported": dict(sorted({**delegate.unsupported, **_material_counts(delegate)}.items())),
         "unsupportedMaterials": dict(sorted(_materials(delegate).items())),
@@ -128,6 +136,8 @@ def format_info(info: dict) -> str:
         lines.append(f"{name + ' cpu':<11} {line}")
     if info.get("lghCpuPath"):
         lines.append(f"{'lgh cpu':<11} {info['lghCpuPath']}")
+    if info.get("brdfCpuPath"):
+        lines.append(f"{'brdf cpu':<11} {info['brdfCpuPath']}")
     for name in backend_names():
         if info.get(f"{name}Memory"):
             lines.append(f"{name + ' mem':<11} {backend_class(name).memory_line(info[f'{name}Memory'])}")
