@@ -29,7 +29,7 @@ setup(ext_modules=[
                                *BRDF, *SIMD]),
     kernel("svo", "svoq", ["kernels/svo/svoq_simd.h", *SIMD], NO_CONTRACT),
     kernel("insm", "insmr", [f"{INCLUDE}/light_term.h"], NO_CONTRACT),
-    kernel("lgh", "lghq", flags=NO_CONTRACT),
+    kernel("lgh", "lghq", BRDF, NO_CONTRACT),
     # rounded as the NumPy reference rounds (usdml.lighting.brdf_sums)
     kernel("brdf", "brdfsum", [*BRDF, f"{INCLUDE}/simd_undef.h", f"{INCLUDE}/simd_undef_ops.h"], NO_CONTRACT),
     # the cache's depth coding of voxel arrays (integers only: any compiler flags give the same bytes)

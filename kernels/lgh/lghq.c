@@ -15,6 +15,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "brdf.h"
+
 #define EXPORT __attribute__((visibility("default")))
 
 static const float LUMA0 = 0.2126f, LUMA1 = 0.7152f, LUMA2 = 0.0722f;
@@ -433,11 +435,52 @@ static int collect(const Gather *g, const float *p, const float *n, int32_t tile
     return 1;
 }
 
+/* ---- the preview surface (issue 51): a light's term as the outgoing radiance it adds ---- */
+
+static const float LGHQ_PI = 3.14159265358979f;     /* np.float32(np.pi), as the NumPy shading divides rho by */
+
+/* the radiance r = e (rho/pi kd + ks) and its specular part s = e ks that irradiance e (3) from a light at q adds
+ * at p (material row m, unit shading normal n, rp = rho/pi): the BRDF evaluated toward q, a grid light's
+ * illumination centre (paper 004 shades each grid light as a point light there) */
+static inline void brdf_radiance(const float *m, const float *rp, const float *p, const float *n, const float *q,
+                                 const float *e, float *r, float *s) {
+    float l[3] = {q[0] - p[0], q[1] - p[1], q[2] - p[2]};
+    float d = sqrtf(dot3(l, l));
+    r[0] = r[1] = r[2] = s[0] = s[1] = s[2] = 0.0f;
+    if (!(d > 0.0f)) return;
+    l[0] = l[0] / d, l[1] = l[1] / d, l[2] = l[2] / d;
+    float kd[3], ks[3];
+    brdf_terms(m, n, l, kd, ks);
+    for (int c = 0; c < 3; c++) {
+        s[c] = e[c] * ks[c];
+        r[c] = e[c] * (rp[c] * kd[c] + ks[c]);
+    }
+}
+
 /* The Warp kernel's two sweeps over the lights that reach the point, each light's term computed once
- * (the Warp kernel computes it in both sweeps): the same sums, picks and random numbers. */
+ * (the Warp kernel computes it in both sweeps): the same sums, picks and random numbers. With a material row
+ * `m` (and rp = rho/pi), each light's irradiance becomes the radiance it adds (brdf_radiance) before the sweeps:
+ * the sums are the point's outgoing radiance, the shadow samples are drawn by its luminance (the BRDF weighs
+ * the draws), `spec` gets the specular part; the count stays the lights that reach the point. */
 static int gather_point(const Gather *g, const float *p, const float *n, int32_t tile, uint32_t rng, int64_t row,
-                        const Outputs *o, List *list) {
+                        const Outputs *o, List *list, const float *mat, const float *rp, float *spec) {
     if (!collect(g, p, n, tile, list)) return 0;
+    float reach = 0.0f;
+    if (mat != NULL) {
+        const float scale = (float)g->tiles;
+        float sp[3] = {0.0f, 0.0f, 0.0f};
+        for (int64_t a = 0; a < list->n; a++) {
+            Reached *r = list->at + a;
+            int32_t v = r->v;
+            const float *q = v >= g->m ? g->s0_pos + 3 * (int64_t)(v - g->m) : g->light_pos + 3 * (int64_t)v;
+            reach = reach + r->e[3] * scale * (v >= g->m ? 1.0f : g->light_count[v]);
+            float rad[3], s[3];
+            brdf_radiance(mat, rp, p, n, q, r->e, rad, s);
+            sp[0] += s[0], sp[1] += s[1], sp[2] += s[2];
+            r->e[0] = rad[0], r->e[1] = rad[1], r->e[2] = rad[2];
+        }
+        spec[3 * row + 0] = sp[0], spec[3 * row + 1] = sp[1], spec[3 * row + 2] = sp[2];
+    }
     Sweep st = {0};
     st.rng = rng;
     const int32_t samples = g->samples;
@@ -464,7 +507,7 @@ static int gather_point(const Gather *g, const float *p, const float *n, int32_t
     o->irradiance[3 * row + 0] = st.acc[0];
     o->irradiance[3 * row + 1] = st.acc[1];
     o->irradiance[3 * row + 2] = st.acc[2];
-    o->count[row] = st.count;
+    o->count[row] = mat != NULL ? reach : st.count;
     return 1;
 }
 
@@ -478,7 +521,26 @@ EXPORT int lghq_gather(const Gather *g, const float *points, const float *normal
     if (use_avx2 < 0) lghq_simd(1);
     for (int64_t i = lo; i < hi && ok; i++)
         ok = gather_point(g, points + 3 * i, normals + 3 * i, g->tiles > 1 ? tile[i] : 0,
-                          rand_init(g->seed, (int32_t)(first + i)), i, o, &list);
+                          rand_init(g->seed, (int32_t)(first + i)), i, o, &list, NULL, NULL, NULL);
+    free(list.at);
+    return ok;
+}
+
+/* lghq_gather with the preview surface: `material` (P, BRDF_WIDTH) rows and `albedo` (P, 3) the diffuse
+ * reflectance rho; o->irradiance gets each point's unshadowed outgoing radiance, `specular` (P, 3) its specular
+ * and clearcoat part, the samples drawn and weighed by each light's radiance (gather_point) */
+EXPORT int lghq_gather_brdf(const Gather *g, const float *points, const float *normals, const int32_t *tile,
+                            int64_t lo, int64_t hi, int64_t first, const Outputs *o, const float *material,
+                            const float *albedo, float *specular) {
+    List list = {NULL, 0, 0};
+    int ok = 1;
+    if (use_avx2 < 0) lghq_simd(1);
+    for (int64_t i = lo; i < hi && ok; i++) {
+        const float rp[3] = {albedo[3 * i] / LGHQ_PI, albedo[3 * i + 1] / LGHQ_PI, albedo[3 * i + 2] / LGHQ_PI};
+        ok = gather_point(g, points + 3 * i, normals + 3 * i, g->tiles > 1 ? tile[i] : 0,
+                          rand_init(g->seed, (int32_t)(first + i)), i, o, &list, material + BRDF_WIDTH * i, rp,
+                          specular);
+    }
     free(list.at);
     return ok;
 }
@@ -808,6 +870,16 @@ EACH_FAST __attribute__((always_inline)) static inline float each_lanes_sum(cons
  * block of 16 cost a third of the sum), and a draw computes its group's terms again */
 #define EACH_GROUP 64
 
+/* sample `row` not taken (until a draw takes it) */
+__attribute__((always_inline)) static inline void each_no_sample(int64_t row, int32_t *sample_light,
+                                                                 float *sample_weight, float *sample_lum,
+                                                                 uint8_t *sample_ok) {
+    sample_ok[row] = 0;
+    sample_light[row] = -1;
+    sample_lum[row] = 0.0f;
+    sample_weight[3 * row] = sample_weight[3 * row + 1] = sample_weight[3 * row + 2] = 0.0f;
+}
+
 /* point p's irradiance from its lanes' sums, and its shadow draws from `total`, the running sum of its lights'
  * luminance at the end of each group of EACH_GROUP lights, in its 16 lanes (each_lanes_sum adds them into
  * `totals`): a draw's group is the first whose total exceeds its threshold, and its light the group's light at
@@ -837,10 +909,7 @@ EACH_FAST __attribute__((always_inline)) static inline void each_finish(
     int64_t from = 0;
     for (int32_t s = 0; s < samples; s++) {
         const int64_t row = p * samples + s;
-        sample_ok[row] = 0;
-        sample_light[row] = -1;
-        sample_lum[row] = 0.0f;
-        sample_weight[3 * row] = sample_weight[3 * row + 1] = sample_weight[3 * row + 2] = 0.0f;
+        each_no_sample(row, sample_light, sample_weight, sample_lum, sample_ok);
         if (!(all > 0.0)) continue;
         const double t = ((double)s + (double)u) / (double)samples * all;
         int64_t a = from, z = groups - 1;           /* the first group whose running sum exceeds t */
@@ -1094,6 +1163,119 @@ EACH_FAST EACH_CLONES EXPORT int lghq_each(const float *points, const float *nor
     free(total);
     free(state);
     free(totals);
+    return 1;
+}
+
+/* ---- every light its own light with the preview surface (issue 51) ---- */
+
+/* light j's outgoing radiance r (3) and specular part s (3) at a point (rp = rho/pi, material row m): its
+ * irradiance g I (g = each_term · inv_m2) times rho/pi kd + ks toward the light; returns g */
+EACH_FAST __attribute__((always_inline)) static inline float each_brdf_term(
+    const float *const *light, int64_t j, const int mode, const float *p, const float *n, const float *m,
+    const float *rp, float clamp_d2, float inv_m2, float *r, float *s) {
+    const float g = each_term(light, j, mode, p[0], p[1], p[2], n[0], n[1], n[2], clamp_d2) * inv_m2;
+    r[0] = r[1] = r[2] = s[0] = s[1] = s[2] = 0.0f;
+    if (!(g > 0.0f)) return g;
+    const float q[3] = {light[0][j], light[1][j], light[2][j]};
+    const float e[3] = {g * light[6][j], g * light[7][j], g * light[8][j]};
+    brdf_radiance(m, rp, p, n, q, e, r, s);
+    return g;
+}
+
+EACH_FAST __attribute__((always_inline)) static inline void each_brdf_points(
+    const float *points, const float *normals, const float *const *light, const float *box, int64_t n, const int mode,
+    float clamp_d2, float inv_m2, int32_t samples, int32_t seed, int64_t first, int64_t lo, int64_t hi,
+    const float *material, const float *albedo, float *restrict f, float *irradiance, float *specular, float *count,
+    int32_t *sample_light, float *sample_weight, float *sample_lum, uint8_t *sample_ok) {
+    for (int64_t p = lo; p < hi; p++) {
+        const float *pp = points + 3 * p, *pn = normals + 3 * p, *m = material + BRDF_WIDTH * p;
+        const float rp[3] = {albedo[3 * p] / LGHQ_PI, albedo[3 * p + 1] / LGHQ_PI, albedo[3 * p + 2] / LGHQ_PI};
+        double acc[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, all = 0.0;
+        float reach = 0.0f;
+        const float px[EACH_POINTS] = {pp[0], pp[0]}, py[EACH_POINTS] = {pp[1], pp[1]},
+                    pz[EACH_POINTS] = {pp[2], pp[2]}, nx[EACH_POINTS] = {pn[0], pn[0]},
+                    ny[EACH_POINTS] = {pn[1], pn[1]}, nz[EACH_POINTS] = {pn[2], pn[2]};
+        for (int64_t c0 = 0; c0 < n; c0 += EACH_CHUNK) {
+            const int64_t c1 = n - c0 < EACH_CHUNK ? n : c0 + EACH_CHUNK;
+            if (box != NULL && each_behind(box + 6 * (c0 / EACH_CHUNK), px, py, pz, nx, ny, nz)) {
+                for (int64_t j = c0; j < c1; j++) f[j] = 0.0f;
+                continue;
+            }
+            for (int64_t j = c0; j < c1; j++) {
+                float r[3], s[3];
+                const float g = each_brdf_term(light, j, mode, pp, pn, m, rp, clamp_d2, inv_m2, r, s);
+                const float fj = r[0] * LUMA0 + r[1] * LUMA1 + r[2] * LUMA2;
+                f[j] = fj > 0.0f ? fj : 0.0f;
+                reach += g * light[9][j] > 0.0f ? 1.0f : 0.0f;
+                for (int c = 0; c < 3; c++) acc[c] += r[c], acc[3 + c] += s[c];
+            }
+        }
+        for (int c = 0; c < 3; c++) irradiance[3 * p + c] = (float)acc[c], specular[3 * p + c] = (float)acc[3 + c];
+        count[p] = reach;
+        if (samples <= 0) continue;
+        for (int64_t j = 0; j < n; j++) all += f[j];
+        uint32_t rng = rand_init(seed, (int32_t)(first + p));
+        const float u = randf(&rng);
+        double run = 0.0;
+        int64_t j = 0, last = -1;
+        for (int32_t s = 0; s < samples; s++) {       /* systematic: thresholds (s + u) / k of the total */
+            const int64_t row = p * samples + s;
+            each_no_sample(row, sample_light, sample_weight, sample_lum, sample_ok);
+            if (!(all > 0.0)) continue;
+            const double t = ((double)s + (double)u) / (double)samples * all;
+            int64_t chosen = -1;
+            if (last >= 0 && run > t) chosen = last;           /* the last light drawn again */
+            while (chosen < 0 && j < n) {
+                if (f[j] > 0.0f) {
+                    last = j;
+                    run += f[j];
+                    if (run > t) chosen = j;
+                }
+                j++;
+            }
+            if (chosen < 0) chosen = last;                     /* rounding: the last light that adds */
+            if (chosen < 0) continue;
+            float r[3], sp[3];
+            each_brdf_term(light, chosen, mode, pp, pn, m, rp, clamp_d2, inv_m2, r, sp);
+            const float fj = f[chosen];
+            if (!(fj > 0.0f)) continue;
+            sample_ok[row] = 1;
+            sample_light[row] = (int32_t)chosen;
+            sample_lum[row] = fj;
+            for (int c = 0; c < 3; c++) sample_weight[3 * row + c] = r[c] / fj;
+        }
+    }
+}
+
+/* lghq_each with the preview surface, a point at a time: `material` (P, BRDF_WIDTH) rows and `albedo` (P, 3) the
+ * diffuse reflectance rho; `irradiance` gets each point's unshadowed outgoing radiance (every light's
+ * each_brdf_term, summed in double), `specular` its specular and clearcoat part, and the samples are drawn in
+ * proportion to each light's radiance luminance (systematic, one uniform per point as lghq_each), each weighed by
+ * its RGB radiance over that luminance; `count` the lights that reach the point. `box` as lghq_each's (chunks
+ * behind the point add nothing), or NULL */
+EACH_FAST EACH_CLONES EXPORT int lghq_each_brdf(const float *points, const float *normals, const float *const *light,
+                                                 const float *box, int64_t n, int32_t mode, float clamp_d2,
+                                                 float inv_m2, int32_t samples, int32_t seed, int64_t first,
+                                                 int64_t lo, int64_t hi, const float *material, const float *albedo,
+                                                 float *irradiance, float *specular, float *count,
+                                                 int32_t *sample_light, float *sample_weight, float *sample_lum,
+                                                 uint8_t *sample_ok) {
+    if (mode < EACH_COSINE || mode > EACH_MIXED) return 0;
+    float *f = (float *)malloc(sizeof(float) * (size_t)(n > 0 ? n : 1));
+    if (!f) return 0;
+    if (mode == EACH_COSINE)
+        each_brdf_points(points, normals, light, box, n, EACH_COSINE, clamp_d2, inv_m2, samples, seed, first, lo, hi,
+                         material, albedo, f, irradiance, specular, count, sample_light, sample_weight, sample_lum,
+                         sample_ok);
+    else if (mode == EACH_ISOTROPIC)
+        each_brdf_points(points, normals, light, box, n, EACH_ISOTROPIC, clamp_d2, inv_m2, samples, seed, first, lo,
+                         hi, material, albedo, f, irradiance, specular, count, sample_light, sample_weight, sample_lum,
+                         sample_ok);
+    else
+        each_brdf_points(points, normals, light, box, n, EACH_MIXED, clamp_d2, inv_m2, samples, seed, first, lo, hi,
+                         material, albedo, f, irradiance, specular, count, sample_light, sample_weight, sample_lum,
+                         sample_ok);
+    free(f);
     return 1;
 }
 

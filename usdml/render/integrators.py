@@ -17,7 +17,7 @@ their LGH) made once, gathered in every pass by ``--gi``'s method (:func:`usdml.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -173,7 +173,6 @@ class LghDirect(EveryLight):
         self.field = None
         self.estimate = None                    # the frame's error estimate (usdml.render.lighting_estimate)
         self._told_no_grid = False
-        self._told_lambert = False
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.lgh.direct import prepare_direct
@@ -192,7 +191,8 @@ class LghDirect(EveryLight):
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         for gb, surface, direct in super().passes(frame, passes, stats, progress):
             if self.estimate is not None:       # after the frame's last pass, its estimate
-                stats.estimate_direct = self.estimate.add_surface(surface, direct.radiance) or stats.estimate_direct
+                stats.estimate_direct = (self.estimate.add_surface(surface, direct.radiance, surface.material)
+                                         or stats.estimate_direct)
             yield gb, surface, direct
 
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
@@ -200,18 +200,17 @@ class LghDirect(EveryLight):
         from usdml.lighting.lgh.direct import shade_lgh_direct
 
         shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
-        if surface.material is not None and not self._told_lambert:
-            log.warning(f"{self.where}: --direct lgh shades every surface Lambertian (its diffuse reflectance): the "
-                        "preview surface's specular and clearcoat lobes are not rendered on this path (use "
-                        "--direct all for them)")
-            self._told_lambert = True
 
-        def shade_rest(p, n, a, rest, geometric=None):
-            return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+        def shade_rest(p, n, a, rest, geometric=None, material=None):
+            if material is None:
+                return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+            # the every-light rest as --direct all shades it with material rows (a dome's specular sampled)
+            return shade_surface(shadow, replace(frame, lights=rest), p, n, a, geometric, material,
+                                 self.settings.seed, None)
 
         direct, s = shade_lgh_direct(surface.position, surface.normal, surface.albedo, self.field, shadow.occluded,
                                      shade_rest, self.settings, meters_per_unit=mpu, image=(gb.hit, gb.position),
-                                     geometric=surface.geometric, device=self.device)
+                                     geometric=surface.geometric, device=self.device, material=surface.material)
         for k, v in s.items():
             stats.direct_lgh[k] = stats.direct_lgh.get(k, 0) + v if isinstance(v, (int, float)) else v
         if progress is not None:

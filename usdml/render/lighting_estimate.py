@@ -451,10 +451,13 @@ def _seen(proposal: Proposal, point: np.ndarray, light: np.ndarray, e: np.ndarra
 def sampled_brute_force(emitters: Emitters, grid: LightGrid, points: np.ndarray, normals: np.ndarray,
                         geometric: np.ndarray | None, albedo: np.ndarray, occluded, draws: int,
                         rng: np.random.Generator, replicates: int = REPLICATES,
-                        group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+                        group: np.ndarray | None = None,
+                        material: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Brute force's outgoing radiance at ``points`` (every emitter, its shadow ray by ``occluded``),
     estimated without bias from ``draws`` light draws per point in ``replicates`` independent systematic
-    sets (module doc): ``(b̂ (M, 3), its variance summed over the channels (M,), shadow rays traced)``."""
+    sets (module doc): ``(b̂ (M, 3), its variance summed over the channels (M,), shadow rays traced)``.
+    ``material`` (M, WIDTH) rows: each draw's light reflected by the preview surface toward the drawn emitter,
+    ``ρ/π·kd + ks`` (``albedo`` ρ), as ``--direct all`` reflects it."""
     m = len(points)
     if m == 0 or len(grid) == 0:
         return np.zeros((m, 3)), np.zeros(m), 0
@@ -469,7 +472,16 @@ def sampled_brute_force(emitters: Emitters, grid: LightGrid, points: np.ndarray,
     light, q, e = prop.draw(point, t, rng.random(len(point)))
     seen, rays = _seen(prop, point, light, e, occluded)
     y = np.where(seen & (q > 0), e / np.where(q > 0, q, 1.0), 0.0).T
-    y = y.reshape(m, reps, k, 3) * (albedo.astype(np.float64) / np.pi)[:, None, None, :]
+    if material is not None:
+        from usdml.kernels.brdf import brdf_terms
+
+        d = np.take(emitters.position, light, axis=1).T - np.asarray(points, np.float64)[point]
+        d /= np.maximum(np.linalg.norm(d, axis=1), 1e-30)[:, None]
+        kd, ks = brdf_terms(np.asarray(material)[point], np.asarray(normals)[point], d)
+        rho = albedo.astype(np.float32)[point] / np.float32(np.pi)
+        y = (y * (rho * kd + ks)).reshape(m, reps, k, 3)
+    else:
+        y = y.reshape(m, reps, k, 3) * (albedo.astype(np.float64) / np.pi)[:, None, None, :]
     if reps > 1:
         sets = y.mean(2)
         return sets.mean(1), sets.var(1, ddof=1).sum(1) / reps, rays
@@ -578,12 +590,15 @@ class FrameEstimator:
         self.parts: list[tuple] = []
         self.seconds = _time.perf_counter() - t0
 
-    def add_surface(self, surface, radiance: np.ndarray) -> LightingEstimate | None:
-        """:meth:`add` of a pass's :class:`usdml.render.integrators.Surface` and the LGH's radiance there."""
-        return self.add(surface.hit, surface.position, surface.normal, surface.geometric, surface.albedo, radiance)
+    def add_surface(self, surface, radiance: np.ndarray,
+                    material: np.ndarray | None = None) -> LightingEstimate | None:
+        """:meth:`add` of a pass's :class:`usdml.render.integrators.Surface` and the LGH's radiance there;
+        ``material``: its preview-surface rows where the radiance reflects them (``--direct lgh``)."""
+        return self.add(surface.hit, surface.position, surface.normal, surface.geometric, surface.albedo, radiance,
+                        material)
 
     def add(self, hit: np.ndarray, points: np.ndarray, normals: np.ndarray, geometric: np.ndarray | None,
-            albedo: np.ndarray, approx: np.ndarray) -> LightingEstimate | None:
+            albedo: np.ndarray, approx: np.ndarray, material: np.ndarray | None = None) -> LightingEstimate | None:
         """One pass: its hit mask ``(H·W,)``, its hit points' arrays in scan order, the LGH's radiance there.
         Returns the estimate after the frame's last pass, else None."""
         t0 = _time.perf_counter()
@@ -607,7 +622,8 @@ class FrameEstimator:
         pixel, slot = pixel[there], slot[there]
         rows = (np.cumsum(hit) - 1)[self.pick[pixel]]
         self.parts.append((pixel, slot, points[rows], normals[rows], None if geometric is None else geometric[rows],
-                           albedo[rows], approx[rows].astype(np.float64)))
+                           albedo[rows], approx[rows].astype(np.float64),
+                           None if material is None else material[rows]))
         self.done += 1
         self.seconds += _time.perf_counter() - t0
         return self.finish() if self.done == self.passes else None
@@ -617,13 +633,15 @@ class FrameEstimator:
         t0 = _time.perf_counter()
         n = len(self.pick)
         order = np.argsort(np.concatenate([part[0] for part in self.parts]), kind="stable")
-        pixel, slot, pts, nrm, geo, alb, got = (    # by pixel: the draws' searches then go mostly forward
+        pixel, slot, pts, nrm, geo, alb, got, mat = (    # by pixel: the draws' searches then go mostly forward
             None if any(part[i] is None for part in self.parts) else np.concatenate([part[i] for part in self.parts])[order]
-            for i in range(7))
+            for i in range(8))
         ref, var, rays = sampled_brute_force(self.emitters, self.grid, pts, nrm, geo, alb, self.occluded,
-                                             self.draws, self.rng, group=np.unique(pixel, return_inverse=True)[1])
+                                             self.draws, self.rng, group=np.unique(pixel, return_inverse=True)[1],
+                                             material=mat)
         if self.exact_part is not None and len(pts):
-            ref = ref + self.exact_part(pts, nrm, alb, geo)
+            ref = ref + (self.exact_part(pts, nrm, alb, geo) if mat is None else
+                         self.exact_part(pts, nrm, alb, geo, material=mat))
         # per pixel and slot (a pass where the pixel saw nothing: 0 on both sides)
         a, b, v = np.zeros((n, self.slots, 3)), np.zeros((n, self.slots, 3)), np.zeros((n, self.slots))
         a[pixel, slot], b[pixel, slot], v[pixel, slot] = got, ref, var
@@ -670,9 +688,9 @@ def direct_estimator(field, frame, shadow, settings) -> FrameEstimator | None:
     snap = frame.snap
     mpu, rest = snap.meters_per_unit, field.rest
 
-    def exact_part(points, normals, albedo, geometric):
+    def exact_part(points, normals, albedo, geometric, material=None):
         return shade_with(shadow, points, normals, albedo, rest, None, meters_per_unit=mpu,
-                          geometric=geometric).radiance.astype(np.float64)
+                          geometric=geometric, material=material).radiance.astype(np.float64)
 
     return FrameEstimator("direct", Emitters.of_lights(field.grid, mpu), shadow.occluded,
                           settings.seed, snap.time, settings.pixel_samples, frame.width,

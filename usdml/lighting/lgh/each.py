@@ -29,12 +29,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from usdml.kernels.brdf import WIDTH
 from usdml.lighting.lgh.shading import LUMA, LGHShading
 from usdml.lighting.lgh.native import isotropic_share
 from usdml.parallel import cpu_workers, run_parallel, spans
 
-#: lights a NumPy block holds at once, times its points (the fallback's memory: about 40 bytes each)
+#: lights a NumPy block holds at once, times its points (the fallback's memory: about 40 bytes each); with material
+#: rows (each pair's BRDF row and terms: some 200 bytes)
 _PAIRS = 1 << 21
+_BRDF_PAIRS = 1 << 18
 
 #: the fewest lights that share one unit normal, bit for bit, to be a normal class (:func:`light_order`)
 CLASS_LIGHTS = 256
@@ -125,14 +128,30 @@ class EachGather:
         self.clamp_d2 = float(clamp_distance) ** 2
         self.lights = lights.compiled_sums() if compiled and lgh_native.library() is not None else None
 
+    compiled = True     # (a gather of every light takes material rows compiled or by NumPy)
+
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
-                 first: int = 0) -> LGHShading:
+                 first: int = 0, material: np.ndarray | None = None, albedo: np.ndarray | None = None) -> LGHShading:
         p = np.ascontiguousarray(np.asarray(points).reshape(-1, 3), np.float32)
         nrm = np.ascontiguousarray(np.asarray(normals).reshape(-1, 3), np.float32)
         n, k = len(p), self.k
         out = (np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.full((n, k), -1, np.int32),
                np.zeros((n, k, 3), np.float32), np.zeros((n, k), np.float32), np.zeros((n, k), np.uint8))
-        if n and len(self.vpls):
+        specular = None
+        if material is not None:
+            # the preview surface: every light's outgoing radiance (its BRDF toward the light), drawn by it
+            specular = np.zeros((n, 3), np.float32)
+            rows = np.ascontiguousarray(material, np.float32).reshape(-1, WIDTH)
+            rho = np.ascontiguousarray(albedo, np.float32).reshape(-1, 3)
+            if n and len(self.vpls):
+                if self.lights is not None:
+                    full = (out[0], specular, *out[1:])
+                    run_parallel(lambda span: self.lights.gather_brdf(p, nrm, rows, rho, self.clamp_d2, self.inv_m2,
+                                                                      k, self.seed, first, *span, full),
+                                 spans(n, 4 * cpu_workers()), cpu_workers())
+                else:
+                    self._numpy(p, nrm, first, out, rows, rho, specular)
+        elif n and len(self.vpls):
             if self.lights is not None:
                 run_parallel(lambda span: self.lights.gather(p, nrm, self.clamp_d2, self.inv_m2, k, self.seed,
                                                              first, *span, out),
@@ -152,10 +171,14 @@ class EachGather:
         if n and k and not ok.all():
             pos[~ok] = 0.0
             index[~ok] = -1
-        return LGHShading(irradiance, pos, ok, index, weight, None, count, lum, np.ones(len(self.vpls), np.float32))
+        return LGHShading(irradiance, pos, ok, index, weight, None, count, lum, np.ones(len(self.vpls), np.float32),
+                          specular)
 
-    def _numpy(self, p: np.ndarray, nrm: np.ndarray, first: int, out: tuple) -> None:
-        """:meth:`__call__`'s sums and draws by NumPy, block by block of points, in float64."""
+    def _numpy(self, p: np.ndarray, nrm: np.ndarray, first: int, out: tuple, material: np.ndarray | None = None,
+               albedo: np.ndarray | None = None, specular: np.ndarray | None = None) -> None:
+        """:meth:`__call__`'s sums and draws by NumPy, block by block of points, in float64 (the BRDF's terms in
+        float32, :func:`usdml.kernels.brdf.brdf_terms`). With ``material`` rows the sums are each light's outgoing
+        radiance ``E·(ρ/π·kd + ks)`` (``albedo`` ρ) and ``specular`` gets ``Σ E·ks``; the draws follow the radiance."""
         irradiance, count, light, weight, lum, ok = out
         q = self.vpls.position
         nq = self.vpls.normal.astype(np.float64)
@@ -164,7 +187,7 @@ class EachGather:
         luma = np.maximum(inten @ LUMA, 0.0)
         k = self.k
         u = uniform(self.seed, first + np.arange(len(p), dtype=np.int64)) if k else None
-        step = max(1, _PAIRS // max(len(q), 1))
+        step = max(1, (_PAIRS if material is None else _BRDF_PAIRS) // max(len(q), 1))
         for lo in range(0, len(p), step):
             hi = min(len(p), lo + step)
             w = q[None, :, :] - p[lo:hi, None, :].astype(np.float64)           # (B, V, 3)
@@ -174,11 +197,18 @@ class EachGather:
             lobe = 4.0 * cl + (iso[None, :] * np.sqrt(d2) if iso.any() else 0.0)
             den = d2 * np.maximum(d2, self.clamp_d2)
             g = np.where(den > 0, cs * lobe / np.where(den > 0, den, 1.0), 0.0) * self.inv_m2
-            irradiance[lo:hi] = g @ inten
             count[lo:hi] = (g * luma[None, :] > 0).sum(axis=1)
+            if material is None:
+                irradiance[lo:hi] = g @ inten
+                rgb = None
+                f = g * luma[None, :]
+            else:
+                rgb, spec = _brdf_radiance(g, w, inten, nrm[lo:hi], material[lo:hi], albedo[lo:hi])
+                irradiance[lo:hi] = rgb.sum(axis=1)
+                specular[lo:hi] = spec.sum(axis=1)
+                f = np.maximum(rgb @ LUMA, 0.0)
             if not k:
                 continue
-            f = g * luma[None, :]
             cum = np.cumsum(f, axis=1)
             for b in range(hi - lo):
                 total = cum[b, -1]
@@ -192,8 +222,30 @@ class EachGather:
                 ok[row] = good
                 light[row] = np.where(good, j, -1)
                 lum[row] = np.where(good, fj, 0.0)
-                weight[row] = np.where(good[:, None], g[b, j][:, None] * inten[j] / np.where(good, fj, 1.0)[:, None],
-                                       0.0)
+                e = g[b, j][:, None] * inten[j] if rgb is None else rgb[b, j]
+                weight[row] = np.where(good[:, None], e / np.where(good, fj, 1.0)[:, None], 0.0)
+
+
+def _brdf_radiance(g: np.ndarray, w: np.ndarray, inten: np.ndarray, normals: np.ndarray, rows: np.ndarray,
+                   albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(radiance, specular)`` ``(B, V, 3)`` float64 of V lights at B points: irradiance ``g·I`` (``g`` (B, V), ``I``
+    (V, 3)) times ``ρ/π·kd + ks`` and ``ks`` of the points' material ``rows`` toward each light (``w`` (B, V, 3), point
+    to light), as ``lghq.c``'s ``brdf_radiance``."""
+    from usdml.kernels.brdf import brdf_terms
+
+    b, v = g.shape
+    e = g[:, :, None] * inten[None, :, :]
+    rad = np.zeros((b, v, 3))
+    spec = np.zeros((b, v, 3))
+    pi, li = np.nonzero(g > 0)
+    if len(pi):
+        d = w[pi, li]
+        ll = d / np.sqrt((d * d).sum(axis=1))[:, None]
+        kd, ks = brdf_terms(rows[pi], normals[pi], ll)
+        rp = np.asarray(albedo, np.float32)[pi] / np.float32(np.pi)
+        spec[pi, li] = e[pi, li] * ks
+        rad[pi, li] = e[pi, li] * (rp * kd + ks)
+    return rad, spec
 
 
 def _pcg(state: np.ndarray) -> np.ndarray:

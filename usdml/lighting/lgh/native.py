@@ -56,6 +56,8 @@ ROW = np.dtype([("cum", np.float64), ("pos", np.float32, 3), ("inten", np.float3
 #: ``lghq.c``'s functions; opened with the light terms 8 at a time where the CPU has AVX2
 EXTENSION = Extension("lgh._lghq", {
     "lghq_gather": (ctypes.c_int, [ctypes.POINTER(_Gather), _P, _P, _P, _i64, _i64, _i64, ctypes.POINTER(_Outputs)]),
+    "lghq_gather_brdf": (ctypes.c_int, [ctypes.POINTER(_Gather), _P, _P, _P, _i64, _i64, _i64,
+                                         ctypes.POINTER(_Outputs), _P, _P, _P]),
     "lghq_simd": (ctypes.c_int, [ctypes.c_int]),
     "lghq_targets": (None, [ctypes.POINTER(_Members), _P, _P, _i32, _i64, _i32, _P, _P, _i32, _P, _P, _P, _P,
                             _i64, _i64, _P, _P]),
@@ -66,6 +68,8 @@ EXTENSION = Extension("lgh._lghq", {
     "lghq_each_chunk": (ctypes.c_int, []),
     "lghq_each": (ctypes.c_int, [_P, _P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P,
                                  _P, _P, _P, _P]),
+    "lghq_each_brdf": (ctypes.c_int, [_P, _P, _P, _P, _i64, _i32, _f32, _f32, _i32, _i32, _i64, _i64, _i64, _P, _P,
+                                      _P, _P, _P, _P, _P, _P, _P]),
     "lghq_atrous_step": (None, [_P, _P, _P, _P, _P, _i32, _i32, _i32, _i32, _f32, _f32, _f32, _i32, _i32, _P]),
 }, on_load=lambda lib: lib.lghq_simd(1))
 
@@ -160,14 +164,19 @@ class Gather:
         return other
 
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray, lo: int, hi: int, first: int,
-                 outputs: tuple) -> None:
+                 outputs: tuple, brdf: tuple | None = None) -> None:
         """Rows ``lo .. hi - 1`` of ``points`` / ``normals`` (P, 3) float32 and ``tile`` (P,) int32 into
         ``outputs`` = (irradiance, count, pos, ok, light, weight, blend, lum), C-contiguous, zeroed; the
-        rows' random streams numbered ``first + row``."""
+        rows' random streams numbered ``first + row``. ``brdf = (material (P, WIDTH), albedo (P, 3), specular
+        (P, 3))`` float32, C-contiguous: the preview surface (``lghq_gather_brdf``): ``irradiance`` gets the outgoing
+        radiance, ``specular`` its specular part, the samples are drawn and weighed by each light's radiance."""
         irr, cnt, spos, sok, slight, sweight, sblend, slum = outputs
         out = _Outputs(*(a.ctypes.data for a in outputs), spos.shape[1])
-        if not library().lghq_gather(ctypes.byref(self.table), points.ctypes.data, normals.ctypes.data,
-                                     tile.ctypes.data, int(lo), int(hi), int(first), ctypes.byref(out)):
+        args = (ctypes.byref(self.table), points.ctypes.data, normals.ctypes.data, tile.ctypes.data, int(lo), int(hi),
+                int(first), ctypes.byref(out))
+        ok = (library().lghq_gather(*args) if brdf is None else
+              library().lghq_gather_brdf(*args, *(a.ctypes.data for a in brdf)))
+        if not ok:
             raise MemoryError("the LGH gather ran out of memory for a point's list of lights")
 
 
@@ -305,6 +314,20 @@ class EachLights:
                                    EACH_MODES[self.mode], float(clamp_d2), float(inv_m2), int(samples), int(seed),
                                    int(first), int(lo), int(hi), *(a.ctypes.data for a in out)):
             raise MemoryError("lghq_each: no memory for a point's running sums")
+
+    def gather_brdf(self, points: np.ndarray, normals: np.ndarray, material: np.ndarray, albedo: np.ndarray,
+                    clamp_d2: float, inv_m2: float, samples: int, seed: int, first: int, lo: int, hi: int,
+                    out: tuple, cull: bool = True) -> None:
+        """:meth:`gather` with the preview surface (``lghq_each_brdf``): ``material`` (P, WIDTH) and ``albedo`` (P, 3)
+        float32, C-contiguous; ``out = (radiance (P, 3), specular (P, 3), count, light, weight, lum, ok)``: every
+        light's outgoing radiance and its specular part, the draws in proportion to each light's radiance."""
+        radiance, specular, count, light, weight, lum, ok = out
+        if not library().lghq_each_brdf(points.ctypes.data, normals.ctypes.data, self._pointers,
+                                        self._box.ctypes.data if cull else None, self.padded, EACH_MODES[self.mode],
+                                        float(clamp_d2), float(inv_m2), int(samples), int(seed), int(first), int(lo),
+                                        int(hi), material.ctypes.data, albedo.ctypes.data, radiance.ctypes.data,
+                                        specular.ctypes.data, *(a.ctypes.data for a in (count, light, weight, lum, ok))):
+            raise MemoryError("lghq_each_brdf: no memory for a point's light terms")
 
 
 def guide(cum: np.ndarray, start: np.ndarray, stop: np.ndarray, rows: int) -> np.ndarray:

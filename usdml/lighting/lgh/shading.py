@@ -42,6 +42,9 @@ class LGHShading:
     #: (M [+ N],) float32 the input lights each light a sample can choose stands for, indexed as
     #: ``sample_light`` (the grid lights' counts, then 1 for each S0 light)
     light_count: np.ndarray | None = None
+    #: (P, 3) float32 with material rows: the unshadowed specular and clearcoat radiance Σ E·ks (``irradiance`` is
+    #: then the outgoing radiance Σ E·(ρ/π·kd + ks), and the samples' f and weights are of that radiance)
+    specular: np.ndarray | None = None
 
 
 @dataclass
@@ -51,6 +54,9 @@ class IndirectResult:
     visible: np.ndarray         #: (P,) float32 raw fraction of visible shadow samples (1 without samples)
     stats: dict = field(default_factory=dict)
     count: np.ndarray | None = None   #: (P,) float32 the input lights the light stands for (:class:`LGHShading`)
+    #: (P, 3) float32 with material rows: the specular and clearcoat part of ``radiance`` (its unshadowed Σ E·ks
+    #: times the same shadow ratio), else None
+    specular: np.ndarray | None = None
 
 
 def _flatten(lgh):
@@ -215,9 +221,16 @@ class LGHGather:
     #: where α sits in the Warp kernel's arguments (after the grid's and the S0 tables)
     _ALPHA_ARG = -6
 
+    @property
+    def compiled(self) -> bool:
+        """Whether this gather runs compiled (the only one that takes material rows)."""
+        return self._native is not None or self.empty
+
     def __call__(self, points: np.ndarray, normals: np.ndarray, tile: np.ndarray | None = None,
-                 first: int = 0) -> LGHShading:
-        """The shading of ``points`` (P, 3), the ``first``-th to ``first + P - 1``-th of all points."""
+                 first: int = 0, material: np.ndarray | None = None, albedo: np.ndarray | None = None) -> LGHShading:
+        """The shading of ``points`` (P, 3), the ``first``-th to ``first + P - 1``-th of all points. ``material``
+        (P, WIDTH) rows and ``albedo`` (P, 3), the diffuse reflectance ρ: the preview surface (:class:`LGHShading`'s
+        ``specular``; compiled gathers only, :attr:`compiled`)."""
         from usdml.kernels.lgh.shading import lgh_gather
 
         wp, device, k = self._wp, self.device, self.k
@@ -231,9 +244,11 @@ class LGHGather:
         sblend = np.zeros((n, max(k, 1)), np.float32)
         slum = np.zeros((n, max(k, 1)), np.float32)
 
+        spec = None if material is None else np.zeros((n, 3), np.float32)
+
         def result(light_count=None) -> LGHShading:
             return LGHShading(irr, spos[:, :k], sok[:, :k].astype(bool), slight[:, :k], sweight[:, :k],
-                              sblend[:, :k], cnt, slum[:, :k], light_count)
+                              sblend[:, :k], cnt, slum[:, :k], light_count, spec)
 
         if n == 0 or self.empty:
             return result()
@@ -244,9 +259,14 @@ class LGHGather:
         outputs = ((irr, wp.vec3), (cnt, float), (spos, wp.vec3), (sok, int), (slight, int), (sweight, wp.vec3),
                    (sblend, float), (slum, float))
         on_cpu = self._on_cpu
+        brdf = None
+        if material is not None:
+            if self._native is None:
+                raise ValueError("material rows need the compiled LGH gather (kernels/lgh/lghq.c)")
+            brdf = (np.ascontiguousarray(material, np.float32), np.ascontiguousarray(albedo, np.float32), spec)
         if self._native is not None:     # the compiled gather: rows of the same arrays, from the thread pool
             arrays = tuple(a for a, _ in outputs)
-            _in_blocks(lambda lo, hi: self._native(pts, nrm, tile_ids, lo, hi, first, arrays), n, device,
+            _in_blocks(lambda lo, hi: self._native(pts, nrm, tile_ids, lo, hi, first, arrays, brdf), n, device,
                        blocks_per_worker=4)
             return result(self.light_count)
 
@@ -779,7 +799,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                  start_level: int = 1, shadow_targets: str = "member",
                  geometric: np.ndarray | None = None, stratified: bool = True,
                  sampler: "ClusterSampler | None" = None, inclusion: bool = False,
-                 cpu_kernel: str = "auto", gathers: dict | None = None) -> IndirectResult:
+                 cpu_kernel: str = "auto", gathers: dict | None = None,
+                 material: np.ndarray | None = None) -> IndirectResult:
     """Indirect radiance at ``P`` points from an LGH, with filtered stochastic shadows.
 
     ``sources = (positions, intensities[, normals])`` are the input lights the LGH was built from
@@ -798,6 +819,15 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     or the Warp kernels, on a CPU). ``gathers``: a dict the caller keeps for a frame's passes, in which the
     :class:`LGHGather` made for ``lgh`` and these settings is kept and found again (its tables: the S0
     buckets' sort over every VPL, the grid's occupancy; made once, not per pass).
+
+    ``material`` (P, WIDTH) rows (``kernels/brdf``): the preview surface, ``albedo`` its diffuse reflectance ρ. Each
+    light (grid light, S0 light, or every light its own) adds ``E·(ρ/π·kd + ks)``, the BRDF evaluated toward the
+    light (a grid light's illumination centre: paper 004 shades a grid light as a point light there); the shadow
+    samples are drawn and weighed by that radiance, so the shadow ratio is the radiance's (a highlight's light
+    counts by its highlight); the result's ``specular`` is ``Σ E·ks`` times the same ratio. The gathers that take
+    rows are compiled (``kernels/lgh/lghq.c``): with rows a hierarchy is gathered compiled on the CPU whatever
+    ``cpu_kernel`` and ``device`` say; without the compiled extension every light is summed by NumPy
+    (:mod:`usdml.lighting.lgh.each`; its cost grows with the lights).
     """
     stats: dict = {}
     t0 = _time.perf_counter()
@@ -810,10 +840,22 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     tiles = interleave * interleave if tile is not None else 1
     from_s0 = start_level == 0 and sources is not None
     jitter = sources is None or shadow_targets == "jitter"
+    each = getattr(lgh, "each", False)       # every VPL its own light (usdml.lighting.lgh.each): no grid lights
+    if material is not None and not each:
+        # material rows: the compiled gather on the CPU (the Warp kernels take none), else every light by NumPy
+        from usdml.lighting.lgh import native as lgh_native
+
+        if lgh_native.library() is not None:
+            cpu_kernel, device = "native", "cpu"
+        elif sources is not None:
+            from usdml.lighting.lgh.each import EachLight
+
+            lgh, each, stats["material_gather"] = EachLight(sources), True, "each (numpy)"
+        else:
+            raise ValueError("material rows need the compiled LGH gather or the hierarchy's sources")
     key = (id(lgh), alpha, k, seed, meters_per_unit, clamp_distance, device, tiles, from_s0, jitter, stratified,
            cpu_kernel)
     gather = None if gathers is None else gathers.get(key)
-    each = getattr(lgh, "each", False)       # every VPL its own light (usdml.lighting.lgh.each): no grid lights
     if gather is None:
         gather = (lgh.gather(k, seed, meters_per_unit, 0.0 if clamp_distance is None else clamp_distance,
                              compiled=_compiled(cpu_kernel)) if each else
@@ -822,11 +864,14 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
                             cpu_kernel=cpu_kernel))
         if gathers is not None:
             gathers[key] = gather
+    brdf = {} if material is None else {"material": material, "albedo": albedo}
     if occluded is None:
-        shading = gather(points, normals, tile)
+        shading = gather(points, normals, tile, **brdf)
         stats["lighting_seconds"] = _time.perf_counter() - t0
-        unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading.irradiance
-        return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats, shading.count)
+        unshadowed = shading.irradiance if material is not None else \
+            (albedo.astype(np.float32) / np.float32(np.pi)) * shading.irradiance
+        return IndirectResult(unshadowed, unshadowed, np.ones(len(points), np.float32), stats, shading.count,
+                              shading.specular)
     lighting_seconds = _time.perf_counter() - t0
     t1 = _time.perf_counter()
     if each or sources is None or shadow_targets not in ("member", "cluster"):
@@ -844,12 +889,16 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     count = np.empty(n, np.float32)
     visible = np.empty(n, np.float32)
     shadowed = np.empty((n, 3), np.float32)
+    specular = None if material is None else np.empty((n, 3), np.float32)
     rays = 0
     step = max(1, SHADOW_BLOCK // max(k, 1))
     for lo in range(0, n, step):
         hi = min(n, lo + step)
         t = _time.perf_counter()
-        shading = gather(points[lo:hi], normals[lo:hi], None if tile is None else tile[lo:hi], first=lo)
+        shading = gather(points[lo:hi], normals[lo:hi], None if tile is None else tile[lo:hi], first=lo,
+                         **({} if material is None else {"material": material[lo:hi], "albedo": albedo[lo:hi]}))
+        if specular is not None:
+            specular[lo:hi] = shading.specular
         t_mid = _time.perf_counter()
         visible[lo:hi], shadowed[lo:hi], block_rays = shadow_fraction(
             points[lo:hi], geometric[lo:hi], shading, occluded, sampler, seed, shading_normals=normals[lo:hi],
@@ -862,7 +911,9 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
     stats["lighting_seconds"] = lighting_seconds
     stats["shadow_seconds"] = shadow_seconds
     stats["shadow_rays"] = rays
-    unshadowed = (albedo.astype(np.float32) / np.float32(np.pi)) * shading_irradiance
+    # (with material rows the gathered sums are already the outgoing radiance)
+    rho_pi = np.float32(1.0) if material is not None else albedo.astype(np.float32) / np.float32(np.pi)
+    unshadowed = rho_pi * shading_irradiance
     t2 = _time.perf_counter()
     irradiance = shadowed
     if filter_iterations < 0:
@@ -889,5 +940,8 @@ def lgh_indirect(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lg
         ratio = np.where(filtered[:, 3:] > 0, filtered[:, :3] / np.maximum(filtered[:, 3:], 1e-30), visible[:, None])
         irradiance = shading_irradiance * np.clip(ratio, 0.0, 1.0).astype(np.float32)
     stats["filter_seconds"] = _time.perf_counter() - t2
-    radiance = (albedo.astype(np.float32) / np.float32(np.pi)) * irradiance
-    return IndirectResult(radiance.astype(np.float32), unshadowed, visible, stats, count)
+    radiance = rho_pi * irradiance
+    if specular is not None:        # the specular part, shadowed by the same ratio per channel
+        ratio = np.where(shading_irradiance > 0, irradiance / np.maximum(shading_irradiance, 1e-30), 0.0)
+        specular = (specular * np.clip(ratio, 0.0, 1.0)).astype(np.float32)
+    return IndirectResult(radiance.astype(np.float32), unshadowed, visible, stats, count, specular)
