@@ -736,11 +736,13 @@ FIGURES: dict[str, tuple[str, str, str]] = {
     "city-gi-lgh-compiled-speedup": ("gi-lgh-city-compiled", "rows.0.speedup", "x0"),
     "city-gi-lgh-compiled-rel-rmse": ("gi-lgh-city-compiled", "rows.0.rel_rmse", "p1"),
     # a glossy clearcoated preview surface on every mesh of a generated city against its diffuse frame
-    # (tools/material_cost.py): run 0 as the machine is, run 1 with one BLAS thread
+    # (tools/material_cost.py): run 0 as the machine is, run 1 with one BLAS thread, run 2 the same on a quieter machine
     **{f"city-glossy-{name}-cost": ("materials-cost", f"runs.{run}.output.rows.[{pick}].glossy_over_diffuse", "x2")
        for name, run, pick in (("exact", 0, "visibility=exact"), ("voxel-avx2", 0, "kernel=native-avx2"),
                                ("voxel-scalar", 0, "kernel=native-scalar"), ("exact-blas1", 1, "visibility=exact"),
-                               ("voxel-avx2-blas1", 1, "kernel=native-avx2"))},
+                               ("voxel-avx2-blas1", 1, "kernel=native-avx2"), ("exact-quiet", 2, "visibility=exact"),
+                               ("voxel-avx2-quiet", 2, "kernel=native-avx2"),
+                               ("voxel-scalar-quiet", 2, "kernel=native-scalar"))},
     # the voxel cache at 128³ / 2° (tools/cache_bench.py)
     **{f"{name}-cache-{what}": ("cache", f"runs.0.output.stages.[stage=stages/{name}.usda].{_CACHE[what][0]}",
                                 _CACHE[what][1])
