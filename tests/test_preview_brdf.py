@@ -460,3 +460,40 @@ def test_indirect_albedo_is_the_brdf_s_directional_albedo(roughness, view):
     assert abs(got / (fr * l[:, 1] * dw).sum() - 1) < 0.02
     flat = lambert_rows(1, e)
     assert np.allclose(indirect_albedo(np.array([[0.3, 0.5, 0.7]]), flat, N[None]), (0.3, 0.5, 0.7))
+
+
+def test_a_udim_set_reads_the_tile_under_each_st(new_stage, tmp_path):
+    """``<UDIM>`` in a file name: tile 1001 holds st in [0, 1)², tile 1002 [1, 2) × [0, 1); the layer's folder
+    anchors the pattern (usd-core resolves none); st on no tile gives the fallback."""
+    import OpenImageIO as oiio
+
+    (tmp_path / "tex").mkdir()
+    for tile, colour in ((1001, (255, 0, 0)), (1002, (0, 255, 0))):
+        out = oiio.ImageOutput.create(str(tmp_path / f"tex/wood.{tile}.png"))
+        out.open(str(tmp_path / f"tex/wood.{tile}.png"), oiio.ImageSpec(4, 4, 3, oiio.UINT8))
+        out.write_image(np.broadcast_to(np.array(colour, np.uint8), (4, 4, 3)).copy())
+        out.close()
+    stage = new_stage("s.usda", start=1, end=1)
+    quad = add_quad(stage, "/World/q", size=2.0)
+    pv = UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(3, 1), Gf.Vec2f(3, 0)])      # s runs 0..3 along +X
+    mat = material(stage, "/World/Looks/wood")
+    tex = UsdShade.Shader.Define(stage, "/World/Looks/wood/tex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./tex/wood.<UDIM>.png")
+    tex.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(0, 0, 1, 1))
+    reader = UsdShade.Shader.Define(stage, "/World/Looks/wood/uv")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/wood/pbr")).CreateInput(
+        "diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    bind(quad.GetPrim(), mat)
+    add_top_camera(stage, 1.0)
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
+    stage.Save()
+    albedo = render(stage.GetRootLayer().realPath, aovs=("albedo",), width=30)["albedo"][15]
+    assert np.allclose(albedo[3], (1, 0, 0), atol=1e-3)        # s ≈ 0.3: tile 1001
+    assert np.allclose(albedo[15], (0, 1, 0), atol=1e-3)       # s ≈ 1.5: tile 1002
+    assert np.allclose(albedo[26], (0, 0, 1), atol=1e-3)       # s ≈ 2.7: no tile 1003, the fallback

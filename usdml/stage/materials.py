@@ -23,8 +23,8 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   attribute followed through material interface inputs: a constant (authored, else the spec's fallback), a
   ``UsdUVTexture`` output (``rgb``, ``rgba``, ``r``, ``g``, ``b`` or ``a``), or a ``UsdPrimvarReader_*``.
   Colours and weights are clipped to [0, 1]; ``emissiveColor``, ``ior`` and ``normal`` keep their range.
-  ``displacement``, inputs that are not the spec's, shaders usdml does not evaluate, UDIM sets, cutouts and
-  partial opacity are said once per material and listed in :attr:`MaterialResolver.unsupported` (``usdml info``).
+  ``displacement``, inputs that are not the spec's, shaders usdml does not evaluate and UDIM sets with no tile on
+  disk are said once per material and listed in :attr:`MaterialResolver.unsupported` (``usdml info``).
 * **Texture coordinates**: ``UsdUVTexture.inputs:st`` from a ``UsdPrimvarReader_float2`` (``varname``
   string or token, possibly from a material interface input), optionally through a
   ``UsdTransform2d``; the primvar is found on the gprim with inheritance and expanded per corner.
@@ -42,13 +42,15 @@ What is resolved, and how (each rule follows Hydra / Storm or the UsdPreviewSurf
   ``maketx``) and otherwise means ``repeat``, which is what Storm does for files without metadata.
 * ``inputs:scale`` / ``inputs:bias`` apply to the linear rgba sample: ``rgba * scale + bias``.
   A file that cannot be read gives ``inputs:fallback`` (authored, else the spec's (0, 0, 0, 1)),
-  used as the node's output as is, with one warning naming the value used. UDIM sets are not read: the input's
-  own value (else the spec's fallback) is used instead, with a warning.
+  used as the node's output as is, with one warning naming the value used. UDIM sets (``<UDIM>`` in the file name,
+  anchored to the layer that authored it, since usd-core resolves none) read every tile 1001-1100 found beside it;
+  st picks tile ``1001 + ⌊s⌋ + 10⌊t⌋``, sampled clamped at its edges, and st on no tile gives the fallback.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -272,6 +274,65 @@ def as_numbers(v, n: int) -> tuple[float, ...] | None:
     return tuple(float(x) for x in _vec(a, n))
 
 
+_UDIM = re.compile(r"<udim>", re.IGNORECASE)
+
+
+def udim_tiles(attr: Usd.Attribute, authored: str, time: Usd.TimeCode) -> tuple[str, tuple[tuple[int, str], ...]]:
+    """``(anchored pattern, ((tile, path), ...))`` of a UDIM file name (``<UDIM>`` standing for 1001-1100): the
+    pattern anchored to the layer that authored it (usd-core resolves no UDIM path), its tiles found on disk."""
+    pattern = authored
+    stack = attr.GetPropertyStack(time)
+    if stack and not os.path.isabs(authored):
+        pattern = stack[0].layer.ComputeAbsolutePath(authored)
+    folder, name = os.path.split(pattern)
+    if not folder or not os.path.isdir(folder):
+        return pattern, ()
+    head, tail = _UDIM.split(name, maxsplit=1)
+    match = re.compile(re.escape(head) + r"(1\d{3})" + re.escape(tail) + r"$")
+    tiles = []
+    for entry in sorted(os.listdir(folder)):
+        m = match.match(entry)
+        if m and 1001 <= int(m.group(1)) <= 1100:
+            tiles.append((int(m.group(1)), os.path.join(folder, entry)))
+    return pattern, tuple(tiles)
+
+
+@dataclass(eq=False)
+class UdimTexture:
+    """A UDIM set as one texture: tile ``1001 + ⌊s⌋ + 10⌊t⌋`` holds st in [⌊s⌋, ⌊s⌋ + 1) × [⌊t⌋, ⌊t⌋ + 1);
+    coordinates on no tile (or outside 0 ≤ s < 10, t ≥ 0) give ``missing`` (the node's fallback)."""
+
+    tiles: dict                     #: tile number -> :class:`Texture`
+    missing: np.ndarray             #: (4,) rgba where no tile is
+
+    @property
+    def pixels(self) -> np.ndarray:             # the first tile's: its size stands for the set's texel size
+        return next(iter(self.tiles.values())).pixels
+
+    @property
+    def eight_bit(self) -> bool:
+        return all(t.eight_bit for t in self.tiles.values())
+
+    @property
+    def channels(self) -> int:
+        return max(t.channels for t in self.tiles.values())
+
+    wrap_metadata = None
+
+    def sample(self, st: np.ndarray, wrap_s: str, wrap_t: str, srgb: bool) -> np.ndarray:
+        """Bilinear linear rgba (N, 4) of each st in its tile (clamped at the tile's edges, as tiles are)."""
+        st = np.nan_to_num(np.asarray(st, np.float64), nan=0.0, posinf=0.0, neginf=0.0).clip(-1e7, 1e7)
+        cell = np.floor(st)
+        number = (1001 + cell[:, 0] + 10 * cell[:, 1]).astype(np.int64)
+        number[(cell[:, 0] < 0) | (cell[:, 0] > 9) | (cell[:, 1] < 0)] = -1
+        out = np.broadcast_to(np.asarray(self.missing, np.float32), (len(st), 4)).copy()
+        for tile, texture in self.tiles.items():
+            rows = np.flatnonzero(number == tile)
+            if len(rows):
+                out[rows] = texture.sample(st[rows] - cell[rows], "clamp", "clamp", srgb)
+        return out
+
+
 def fallback_words(fallback: np.ndarray, authored: bool) -> str:
     """How a warning names the ``inputs:fallback`` a UsdUVTexture gives in place of its file: the value, and when
     it is not authored, that it is the spec's black (a whole material, a whole frame black)."""
@@ -379,11 +440,15 @@ class _PreviewReader:
         asset = _value(node, "file", self.time, None)
         raw_path = getattr(asset, "path", "") or ""
         resolved = getattr(asset, "resolvedPath", "") or ""
-        if "<UDIM>" in raw_path.upper() or "<UDIM>" in resolved.upper():
-            value = own if own is not None else PREVIEW_DEFAULTS[name]
-            self.unsupported(f"{path}.inputs:file {raw_path} is a UDIM set, which usdml does not read; using the "
-                             f"{name} value {', '.join(f'{x:g}' for x in value)} (bake the tiles into one texture)")
-            return Constant(value)
+        tiles: tuple = ()
+        if "<UDIM>" in raw_path.upper():
+            resolved, tiles = udim_tiles(node.GetInput("file").GetAttr(), raw_path, self.time)
+            if not tiles:
+                value = own if own is not None else PREVIEW_DEFAULTS[name]
+                self.unsupported(f"{path}.inputs:file {raw_path}: no tile of the UDIM set was found (1001-1100 beside "
+                                 f"{resolved or raw_path}); using the {name} value "
+                                 f"{', '.join(f'{x:g}' for x in value)}")
+                return Constant(value)
         authored = _value(node, "fallback", self.time, None)
         st, transforms = self.st(node.GetInput("st"))
         return Image(node=path, file=resolved, authored=raw_path, st=st, transforms=transforms,
@@ -393,7 +458,7 @@ class _PreviewReader:
                      scale=tuple(_vec(_value(node, "scale", self.time, (1.0,) * 4), 4).tolist()),
                      bias=tuple(_vec(_value(node, "bias", self.time, (0.0,) * 4), 4).tolist()),
                      fallback=tuple(_vec(TEXTURE_FALLBACK if authored is None else authored, 4).tolist()),
-                     fallback_authored=authored is not None, output=output)
+                     fallback_authored=authored is not None, output=output, tiles=tiles)
 
 
 class MaterialResolver:
@@ -725,7 +790,12 @@ class _Eval:
             self.warn("missing:" + node.node, f"{node.node}.inputs:file @{node.authored}@ does not resolve (missing "
                       f"file?); using its {using} (fix the asset path)")
             return constant, None, None
-        tex = self.r.texture(node.file, self.material, using)
+        if node.tiles:
+            read = {tile: self.r.texture(path, self.material, using) for tile, path in node.tiles}
+            read = {tile: t for tile, t in read.items() if t is not None}
+            tex = UdimTexture(read, fallback) if read else None
+        else:
+            tex = self.r.texture(node.file, self.material, using)
         if tex is None:
             return constant, None, None
         wraps = []

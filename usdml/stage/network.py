@@ -70,6 +70,8 @@ class Image:
     fallback: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
     fallback_authored: bool = False
     output: str = "rgb"                     #: rgb, rgba, r, g, b or a
+    #: a UDIM set: ``(tile number, resolved path)`` of each tile found (``file`` is then the anchored pattern)
+    tiles: tuple[tuple[int, str], ...] = ()
     #: a MaterialX ``normalmap``-style remap applied after scale/bias is expressed by scale/bias themselves
 
 
