@@ -61,6 +61,28 @@ def bind(prim, mat) -> None:
     UsdShade.MaterialBindingAPI.Apply(prim).Bind(mat)
 
 
+def image_input(stage, quad, look: str, name: str, file: str, output: str = "rgb", st=((0, 0), (0, 1), (1, 1), (1, 0)),
+                **float4_inputs) -> None:
+    """The preview surface ``look``'s input ``name`` from a UsdUVTexture of ``file`` (its ``output``) read at the
+    quad's ``st`` primvar (per corner), with float4 ``scale``, ``bias`` or ``fallback`` given."""
+    pv = UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    pv.Set([Gf.Vec2f(*x) for x in st])
+    tex = UsdShade.Shader.Define(stage, f"{look}/{name}Tex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    for key, value in float4_inputs.items():
+        tex.CreateInput(key, Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*value))
+    reader = UsdShade.Shader.Define(stage, f"{look}/{name}Uv")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    kind = Sdf.ValueTypeNames.Float3 if output == "rgb" else Sdf.ValueTypeNames.Float
+    tex.CreateOutput(output, kind)
+    types = {"normal": Sdf.ValueTypeNames.Normal3f, "diffuseColor": Sdf.ValueTypeNames.Color3f}
+    UsdShade.Shader(stage.GetPrimAtPath(f"{look}/pbr")).CreateInput(
+        name, types.get(name, Sdf.ValueTypeNames.Float)).ConnectToSource(tex.ConnectableAPI(), output)
+
+
 def ground(new_stage, name: str, inputs: dict | None, light: str = "point"):
     """A 10 × 10 ground seen from straight above at CAMERA, lit by one point light at LIGHT (or a distant light);
     ``inputs``: its preview surface, None: a white Lambertian ground (displayColor, no material)."""
@@ -263,19 +285,8 @@ def checker_card(new_stage, tmp_path, n=8):
     g = add_quad(stage, "/World/ground", size=10)
     g.CreateDisplayColorPrimvar().Set([(0.5, 0.5, 0.5)])
     card = add_quad(stage, "/World/card", size=2.0, y=1.0)
-    pv = UsdGeom.PrimvarsAPI(card).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(1, 1), Gf.Vec2f(1, 0)])
     mat = material(stage, "/World/Looks/leaf", diffuseColor=(0.2, 0.6, 0.2), opacityThreshold=0.5)
-    tex = UsdShade.Shader.Define(stage, "/World/Looks/leaf/tex")
-    tex.CreateIdAttr("UsdUVTexture")
-    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./checker.png")
-    reader = UsdShade.Shader.Define(stage, "/World/Looks/leaf/uv")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
-    tex.CreateOutput("a", Sdf.ValueTypeNames.Float)
-    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/leaf/pbr")).CreateInput(
-        "opacity", Sdf.ValueTypeNames.Float).ConnectToSource(tex.ConnectableAPI(), "a")
+    image_input(stage, card, "/World/Looks/leaf", "opacity", "./checker.png", output="a")
     bind(card.GetPrim(), mat)
     add_top_camera(stage, 3.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
@@ -475,20 +486,9 @@ def test_a_udim_set_reads_the_tile_under_each_st(new_stage, tmp_path):
         out.close()
     stage = new_stage("s.usda", start=1, end=1)
     quad = add_quad(stage, "/World/q", size=2.0)
-    pv = UsdGeom.PrimvarsAPI(quad).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-    pv.Set([Gf.Vec2f(0, 0), Gf.Vec2f(0, 1), Gf.Vec2f(3, 1), Gf.Vec2f(3, 0)])      # s runs 0..3 along +X
     mat = material(stage, "/World/Looks/wood")
-    tex = UsdShade.Shader.Define(stage, "/World/Looks/wood/tex")
-    tex.CreateIdAttr("UsdUVTexture")
-    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./tex/wood.<UDIM>.png")
-    tex.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(0, 0, 1, 1))
-    reader = UsdShade.Shader.Define(stage, "/World/Looks/wood/uv")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
-    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/wood/pbr")).CreateInput(
-        "diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    image_input(stage, quad, "/World/Looks/wood", "diffuseColor", "./tex/wood.<UDIM>.png",      # s 0..3 along +X
+                st=((0, 0), (0, 1), (3, 1), (3, 0)), fallback=(0, 0, 1, 1))
     bind(quad.GetPrim(), mat)
     add_top_camera(stage, 1.0)
     UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
@@ -497,3 +497,27 @@ def test_a_udim_set_reads_the_tile_under_each_st(new_stage, tmp_path):
     assert np.allclose(albedo[3], (1, 0, 0), atol=1e-3)        # s ≈ 0.3: tile 1001
     assert np.allclose(albedo[15], (0, 1, 0), atol=1e-3)       # s ≈ 1.5: tile 1002
     assert np.allclose(albedo[26], (0, 0, 1), atol=1e-3)       # s ≈ 2.7: no tile 1003, the fallback
+
+
+def test_normal_map_tilts_the_shading_normal_in_tangent_space(new_stage, tmp_path):
+    """A constant normal map (30° toward +s, the spec's scale 2 / bias −1 encoding, raw float texels) on a quad whose
+    s runs along +X and t along +Z: the normal AOV is sin 30°·X + cos 30°·Y (the tangent frame by hand)."""
+    import OpenImageIO as oiio
+
+    tilt = math.radians(30.0)
+    texel = (np.array([math.sin(tilt), 0.0, math.cos(tilt)]) + 1.0) / 2.0
+    out = oiio.ImageOutput.create(str(tmp_path / "n.exr"))
+    out.open(str(tmp_path / "n.exr"), oiio.ImageSpec(4, 4, 3, oiio.FLOAT))
+    out.write_image(np.broadcast_to(texel.astype(np.float32), (4, 4, 3)).copy())
+    out.close()
+    stage = new_stage("s.usda", start=1, end=1)
+    quad = add_quad(stage, "/World/q", size=2.0)
+    mat = material(stage, "/World/Looks/bumpy", diffuseColor=(0.5, 0.5, 0.5))
+    image_input(stage, quad, "/World/Looks/bumpy", "normal", "./n.exr", scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
+    bind(quad.GetPrim(), mat)
+    add_top_camera(stage, 1.0)
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
+    stage.Save()
+    b = render(stage.GetRootLayer().realPath, aovs=("normal", "direct"), width=16)
+    want = np.array([math.sin(tilt), math.cos(tilt), 0.0])
+    assert np.allclose(b["normal"][2:14, 2:14].reshape(-1, 3), want, atol=1e-4)
