@@ -521,3 +521,40 @@ def test_normal_map_tilts_the_shading_normal_in_tangent_space(new_stage, tmp_pat
     b = render(stage.GetRootLayer().realPath, aovs=("normal", "direct"), width=16)
     want = np.array([math.sin(tilt), math.cos(tilt), 0.0])
     assert np.allclose(b["normal"][2:14, 2:14].reshape(-1, 3), want, atol=1e-4)
+
+
+def test_bad_inputs_are_a_line_each_and_the_frame_renders(new_stage, tmp_path):
+    """An input of the wrong type, a shader with no id, a connection cycle through UsdTransform2d: one warning line
+    each, naming the material, and the frame renders with the defaults."""
+    stage = new_stage("s.usda", start=1, end=1)
+    looks = []
+    for i, name in enumerate(("typed", "noid", "cycle")):
+        quad = add_quad(stage, f"/World/q{i}", size=1.0, y=0.1 * i)
+        look = f"/World/Looks/{name}"
+        bind(quad.GetPrim(), material(stage, look))
+        looks.append((quad, look))
+    pbr = lambda look: UsdShade.Shader(stage.GetPrimAtPath(f"{look}/pbr"))  # noqa: E731
+    pbr("/World/Looks/typed").CreateInput("roughness", Sdf.ValueTypeNames.String).Set("rough")
+    anonymous = UsdShade.Shader.Define(stage, "/World/Looks/noid/mystery")
+    anonymous.CreateOutput("out", Sdf.ValueTypeNames.Color3f)
+    pbr("/World/Looks/noid").CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        anonymous.ConnectableAPI(), "out")
+    image_input(stage, looks[2][0], "/World/Looks/cycle", "diffuseColor", "./none.png")
+    spin = UsdShade.Shader.Define(stage, "/World/Looks/cycle/spin")
+    spin.CreateIdAttr("UsdTransform2d")
+    spin.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    spin.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(spin.ConnectableAPI(), "result")
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/cycle/diffuseColorTex")).GetInput("st").ConnectToSource(
+        spin.ConnectableAPI(), "result")
+    add_top_camera(stage, 3.0)
+    UsdLux.DistantLight.Define(stage, "/World/sun").AddRotateXOp().Set(-90)
+    stage.Save()
+    r = subprocess.run([sys.executable, "-m", "usdml.cli", "render", stage.GetRootLayer().realPath,
+                        str(tmp_path / "o.exr"), "--imageWidth", "16", "--pixel-samples", "1"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.splitlines()
+    for look, words in (("typed", "inputs:roughness = 'rough' is not a number"),
+                        ("noid", "a shader with no info:id"), ("cycle", "a connection cycle through")):
+        said = [line for line in lines if line.startswith(f"usdml: warning: /World/Looks/{look}: ") and words in line]
+        assert len(said) == 1, (look, lines)

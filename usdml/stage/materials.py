@@ -386,8 +386,9 @@ class _PreviewReader:
                 return None
             numbers = as_numbers(v, width)
             if numbers is None:
+                default = ", ".join(f"{x:g}" for x in PREVIEW_DEFAULTS[name])
                 self.unsupported(f"inputs:{name} = {v!r} is not a number (type {attr.GetTypeName()}); using "
-                                 f"the default {PREVIEW_DEFAULTS[name]}")
+                                 f"the default {default}")
                 return None
             return Constant(numbers)
         own = as_numbers(inp.GetAttr().Get(self.time), width) if inp.GetAttr().HasValue() else None
@@ -412,8 +413,9 @@ class _PreviewReader:
         fallback = as_numbers(_value(node, "fallback", self.time, 0.0), width) or (0.0,) * width
         return Primvar(name=name, width=width, fallback=fallback, node=str(node.GetPath()))
 
-    def st(self, inp: UsdShade.Input | None, depth: int = 0):
-        """(st source, transforms) of a UsdUVTexture's ``inputs:st``."""
+    def st(self, inp: UsdShade.Input | None, seen: tuple = ()):
+        """(st source, transforms) of a UsdUVTexture's ``inputs:st`` (``seen``: the UsdTransform2d nodes on the way,
+        so that a connection cycle is said, not followed)."""
         attr = value_source(inp)
         if attr is None:
             return Constant((0.0, 0.0)), ()
@@ -424,8 +426,12 @@ class _PreviewReader:
         if sid.startswith("UsdPrimvarReader_"):
             reader = self.primvar(node, sid)
             return Primvar(reader.name, 2, as_numbers(reader.fallback, 2), reader.node), ()
-        if sid == "UsdTransform2d" and depth < 16:
-            src, inner = self.st(node.GetInput("in"), depth + 1)
+        if sid == "UsdTransform2d" and str(node.GetPath()) in seen:
+            self.unsupported(f"texture coordinates: a connection cycle through {node.GetPath()}; using (0, 0) (break "
+                             "the cycle)")
+            return Constant((0.0, 0.0)), ()
+        if sid == "UsdTransform2d":
+            src, inner = self.st(node.GetInput("in"), seen + (str(node.GetPath()),))
             step = Transform2d(scale=tuple(_vec(_value(node, "scale", self.time, (1.0, 1.0)), 2).tolist()),
                                rotation=float(_value(node, "rotation", self.time, 0.0)),
                                translation=tuple(_vec(_value(node, "translation", self.time, (0.0, 0.0)), 2).tolist()))
