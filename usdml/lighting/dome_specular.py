@@ -29,6 +29,7 @@ import numpy as np
 
 from usdml.kernels.brdf import ALPHA, CLEARCOAT, CLEARCOAT_ALPHA, EYE, brdf_terms, ggx
 from usdml.scene import Dome
+from usdml.scene.hashing import GOLDEN, fold_bits, unit
 
 __all__ = ["DOME_SPECULAR_SAMPLES", "dome_specular"]
 
@@ -49,19 +50,12 @@ def _frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _shifts(points: np.ndarray, seed: int) -> np.ndarray:
     """(P, 3) uniform shifts per point from the seed and the bits of its position (deterministic)."""
-    bits = np.ascontiguousarray(points, np.float32).view(np.uint32).astype(np.uint64)
-    h = np.full(len(points), np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(0xD0E5), np.uint64)
     with np.errstate(over="ignore"):
-        for c in range(3):
-            h ^= bits[:, c]
-            h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-            h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-            h ^= h >> np.uint64(31)
+        h = fold_bits(np.full(len(points), np.uint64(seed) * GOLDEN + np.uint64(0xD0E5), np.uint64), points)
         out = []
         for k in range(3):
             g = h * np.uint64(2 * k + 1) + np.uint64(k * 0x632BE59BD9B4E019)
-            g = (g ^ (g >> np.uint64(31))) * np.uint64(0xD6E8FEB86659FD93)
-            out.append((g >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53)))
+            out.append(unit((g ^ (g >> np.uint64(31))) * np.uint64(0xD6E8FEB86659FD93)))
     return np.stack(out, axis=1)
 
 

@@ -18,8 +18,9 @@ from dataclasses import replace
 import numpy as np
 
 from usdml.scene import Mesh, Snapshot
+from usdml.scene.hashing import GOLDEN, mix, unit
 
-__all__ = ["MAX_SPLIT", "PARTIAL_SPLIT", "kept_mesh", "kept_snapshot"]
+__all__ = ["MAX_SPLIT", "PARTIAL_SPLIT", "has_see_through", "kept_mesh", "kept_snapshot", "see_through"]
 
 #: most sub-triangles along a triangle's edge (m; m² sub-triangles)
 MAX_SPLIT = 32
@@ -62,11 +63,7 @@ def _lattice(m: int) -> tuple[np.ndarray, np.ndarray]:
 def _uniform(tri: np.ndarray, sub: np.ndarray) -> np.ndarray:
     """A deterministic uniform number per (triangle, sub-triangle)."""
     with np.errstate(over="ignore"):
-        h = tri.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + sub.astype(np.uint64) * np.uint64(0xBF58476D1CE4E5B9)
-        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        h ^= h >> np.uint64(31)
-    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+        return unit(mix(tri.astype(np.uint64) * GOLDEN + sub.astype(np.uint64) * np.uint64(0xBF58476D1CE4E5B9)))
 
 
 def kept_mesh(mesh: Mesh) -> Mesh | None:
@@ -103,8 +100,15 @@ def kept_mesh(mesh: Mesh) -> Mesh | None:
                    face_index=np.concatenate(faces).astype(np.int32), shading=None)
 
 
-def _see_through(mesh: Mesh) -> bool:
+def see_through(mesh: Mesh) -> bool:
+    """Rays can pass through some of ``mesh``: a cutout or partial opacity (``MeshShading.cutout``)."""
     return mesh.shading is not None and mesh.shading.cutout
+
+
+def has_see_through(snapshot: Snapshot) -> bool:
+    """Some mesh of ``snapshot``, plain or a prototype's, is :func:`see_through`."""
+    return any(see_through(m) for m in snapshot.meshes) or \
+        any(see_through(m) for p in snapshot.prototypes for m in p.meshes)
 
 
 def kept_snapshot(snapshot: Snapshot, cache: dict | None = None) -> Snapshot:
@@ -115,7 +119,7 @@ def kept_snapshot(snapshot: Snapshot, cache: dict | None = None) -> Snapshot:
     def kept(meshes: list[Mesh]) -> list[Mesh]:
         out = []
         for mesh in meshes:
-            if _see_through(mesh):
+            if see_through(mesh):
                 key = (mesh.path, mesh.geometry_hash())
                 if key not in cache:
                     cache[key] = kept_mesh(mesh)
@@ -124,8 +128,7 @@ def kept_snapshot(snapshot: Snapshot, cache: dict | None = None) -> Snapshot:
                 out.append(mesh)
         return out
 
-    if not any(_see_through(m) for m in snapshot.meshes) and \
-            not any(_see_through(m) for p in snapshot.prototypes for m in p.meshes):
+    if not has_see_through(snapshot):
         return snapshot
     prototypes = [replace(p, meshes=kept(p.meshes)) for p in snapshot.prototypes]
     return replace(snapshot, meshes=kept(snapshot.meshes), prototypes=[p for p in prototypes if p.meshes])

@@ -95,6 +95,8 @@ import numpy as np
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers
 from usdml.scene import Changes, Mesh, Prototype, Snapshot, world_geometry
+from usdml.scene.cutout import has_see_through, see_through
+from usdml.scene.hashing import GOLDEN, fold_bits, mix, unit
 from usdml.visibility.base import STATS, VisibilityBackend, as_flags, as_vectors, members_changed, static_members
 
 try:
@@ -286,26 +288,13 @@ class _RayKernel:
 def _ray_seeds(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(N,) uint64 per-ray seeds from the float32 bits of each ray: the same ray, the same seed (deterministic
     stochastic transparency; pixel samples and shadow rays from jittered points differ)."""
-    bits = np.ascontiguousarray(np.concatenate([origins, dirs], axis=1), np.float32).view(np.uint32).astype(np.uint64)
-    h = np.full(len(bits), 0x9E3779B97F4A7C15, np.uint64)
-    for c in range(bits.shape[1]):
-        h = _mix(h ^ bits[:, c])
-    return h
-
-
-def _mix(x: np.ndarray) -> np.ndarray:
-    """SplitMix64's finaliser."""
-    with np.errstate(over="ignore"):
-        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
+    return fold_bits(np.full(len(origins), GOLDEN, np.uint64), np.concatenate([origins, dirs], axis=1))
 
 
 def _uniform(seeds: np.ndarray, layer: int) -> np.ndarray:
     """(K,) float64 in [0, 1): the ``layer``-th random number of each seed."""
     with np.errstate(over="ignore"):
-        h = _mix(seeds + np.uint64(layer + 1) * np.uint64(0x9E3779B97F4A7C15))
-    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+        return unit(mix(seeds + np.uint64(layer + 1) * GOLDEN))
 
 
 class ExactBackend(VisibilityBackend):
@@ -571,7 +560,8 @@ class ExactBackend(VisibilityBackend):
             if not len(holes):
                 break
             start = base[holes] + out["t"][holes].astype(np.float64) + step
-            again = self._closest(origins[holes] + dirs[holes] * start[:, None], dirs[holes], np.maximum(limit[holes] - start, 0.0))
+            again = self._closest(origins[holes] + dirs[holes] * start[:, None], dirs[holes],
+                                  np.maximum(limit[holes] - start, 0.0))
             base[holes] = start
             for key in ("geom", "prim", "u", "v", "ng"):
                 out[key][holes] = again[key]
@@ -584,17 +574,10 @@ class ExactBackend(VisibilityBackend):
         return out
 
     def _cutout_sources(self, snapshot: Snapshot) -> np.ndarray | None:
-        """(sources,) bool of the sources whose mesh has a cutout, or None when none has."""
-        def cut(mesh) -> bool:
-            return mesh.shading is not None and mesh.shading.cutout
-
-        if not any(cut(m) for m in snapshot.meshes) and not any(cut(m) for p in snapshot.prototypes
-                                                                 for m in p.meshes):
+        """(sources,) bool of the sources whose mesh has a cutout or partial opacity, or None when none has."""
+        if not has_see_through(snapshot):
             return None
-        s = self.sources
-        flags = np.zeros(len(s), bool)
-        for i in range(len(s)):
-            flags[i] = cut(self.source(i).mesh_of(snapshot))
+        flags = np.array([see_through(self.source(i).mesh_of(snapshot)) for i in range(len(self.sources))], bool)
         return flags if flags.any() else None
 
     def _holes(self, out: dict, seeds: np.ndarray, layer: int, rows: np.ndarray) -> np.ndarray:
