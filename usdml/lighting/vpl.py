@@ -94,9 +94,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdml.lighting.specular_albedo import indirect_albedo
 from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.light_table import smoothstep_cone
-from usdml.lighting.specular_albedo import indirect_albedo
 from usdml.scene.surface import surface_at_hits
 
 __all__ = ["VPLs", "generate_vpls", "light_power", "LUMA"]

@@ -247,7 +247,7 @@ class FrameRenderer:
         radiance = scatter(direct.radiance, 3)
         indirect_img = scatter(indirect, 3)
         beauty = radiance + indirect_img
-        emission = gb.emission if gb.emission is not None else None
+        emission = gb.emission
         if emission is not None:
             beauty = beauty + emission
 

@@ -73,8 +73,8 @@ class Field:
 class HitShading:
     """A surface at hits: what shading reads."""
 
-    albedo: np.ndarray      #: (K, 3) diffuse reflectance diffuseColor·(1 − metallic) (displayColor where Lambertian)
-    reflectance: np.ndarray  #: (K, 3) effective ρ of kernels/brdf: albedo·occlusion
+    #: (K, 3) effective ρ of kernels/brdf: diffuseColor·(1 − metallic)·occlusion (displayColor where Lambertian)
+    reflectance: np.ndarray
     rows: np.ndarray        #: (K, WIDTH) BRDF rows
     emission: np.ndarray    #: (K, 3) emissiveColor
     normal: np.ndarray | None  #: (K, 3) tangent-space normal where a normal map perturbs, else None
@@ -87,7 +87,6 @@ class MeshShading:
     fields: dict
     n_tri: int                          #: the mesh's triangles
     lambert: np.ndarray | None = None   #: (T,) bool triangles with no surface (displayColor, Lambertian); None: none
-    materials: list = field(default_factory=list)   #: material paths, for messages
 
     def albedo_corners(self) -> np.ndarray:
         """(T, 3, 3) diffuse reflectance ``diffuseColor·(1 − metallic)`` (specular workflow: diffuseColor) at corners
@@ -146,10 +145,6 @@ class MeshShading:
             return None
         return np.concatenate(rows_all), np.concatenate(st_all)
 
-    @property
-    def textured(self) -> bool:
-        return any(f.textures for f in self.fields.values())
-
     def at(self, tri: np.ndarray, w: np.ndarray, eye: np.ndarray, lambert_albedo: np.ndarray | None = None) -> HitShading:
         """The surface at hits on triangles ``tri`` (K,) with barycentric weights ``w`` (K, 3, 1), seen from unit
         directions ``eye`` (K, 3) (toward the ray's origin); ``lambert_albedo`` (K, 3): the displayColor of
@@ -185,8 +180,8 @@ class MeshShading:
                 occlusion = np.where(flat[:, None], 1.0, occlusion)
                 emission = np.where(flat[:, None], 0.0, emission)
         normal = v["normal"] if self.fields["normal"].textures else None
-        return HitShading(albedo=albedo.astype(np.float32), reflectance=(albedo * occlusion).astype(np.float32),
-                          rows=rows, emission=emission.astype(np.float32), normal=normal)
+        return HitShading(reflectance=(albedo * occlusion).astype(np.float32), rows=rows,
+                          emission=emission.astype(np.float32), normal=normal)
 
 
 def _diffuse(diffuse: np.ndarray, metallic: np.ndarray, specular_wf: np.ndarray) -> np.ndarray:

@@ -69,9 +69,9 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
         u, v = r["u"][px].astype(np.float64), r["v"][px].astype(np.float64)
         w = np.stack([1.0 - u - v, u, v], axis=1)[:, :, None]
         nrm = _blend(mesh.normals[tri], w)
-        if src.prototype >= 0:
-            m = snapshot.prototypes[src.prototype].xforms[src.instance]
-            nrm = nrm @ np.linalg.inv(m[:3, :3])      # inverse transpose, row vectors
+        to_world = snapshot.prototypes[src.prototype].xforms[src.instance][:3, :3] if src.prototype >= 0 else None
+        if to_world is not None:
+            nrm = nrm @ np.linalg.inv(to_world)      # inverse transpose, row vectors
         normal[px] = nrm
         if mesh.shading is None:
             albedo[px] = _blend(mesh.albedo[tri], w)
@@ -85,9 +85,8 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
         mapped = mesh.shading.normal_map(tri) if at.normal is not None else None
         if mapped is not None:
             k, st = mapped
-            m = snapshot.prototypes[src.prototype].xforms[src.instance][:3, :3] if src.prototype >= 0 else None
             normal[px[k]] = tangent_space_normal(mesh.points[mesh.triangles[tri[k]]], st, _unit(normal[px[k]]),
-                                                 at.normal[k], m)
+                                                 at.normal[k], to_world)
         albedo[px] = at.reflectance
         material[px] = at.rows
         emission[px] = at.emission

@@ -883,4 +883,4 @@ def _build_shading(resolver: MaterialResolver, prim: Usd.Prim, time: Usd.TimeCod
         for mask, _net in parts:
             lambert &= ~mask if mask is not None else False
         lambert = lambert if lambert.any() else None
-    return MeshShading(fields=fields, n_tri=n_tri, lambert=lambert, materials=[net.material for _m, net in parts])
+    return MeshShading(fields=fields, n_tri=n_tri, lambert=lambert)
