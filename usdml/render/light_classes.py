@@ -53,13 +53,23 @@ def light_classes(lights: Lights, groups: bool) -> list[LightClass]:
     n = len(lights)
     if n == 0:
         return []
-    keys = zip(lights.light_link.tolist(), lights.shadow_link.tolist(),
-               (group_of(g) if groups else "" for g in lights.group),
-               lights.diffuse.tolist(), lights.specular.tolist())
-    members: dict[tuple, list[int]] = {}
-    for i, key in enumerate(keys):
-        members.setdefault(key, []).append(i)
-    return [LightClass(np.asarray(idx, np.int64), *key) for key, idx in members.items()]
+    names: list[str] = [""]
+    code = np.zeros(n, np.float64)
+    if groups:
+        index: dict[str, int] = {}
+        code = np.fromiter((index.setdefault(group_of(g), len(index)) for g in lights.group), np.float64, n)
+        names = list(index)
+    keys = np.stack([lights.light_link, lights.shadow_link, code, lights.diffuse, lights.specular], axis=1)
+    if (keys == keys[0]).all():
+        rows, inverse = keys[:1], np.zeros(n, np.int64)
+    else:
+        rows, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        rows, inverse = rows[order], np.argsort(order)[inverse.ravel()]
+    members = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[members], np.arange(len(rows) + 1))
+    return [LightClass(members[bounds[k]:bounds[k + 1]], int(r[0]), int(r[1]), names[int(r[2])], float(r[3]),
+                       float(r[4])) for k, r in enumerate(rows)]
 
 
 class LinkedShadows:
