@@ -65,8 +65,9 @@ def _finite(path: str, name: str, value, what: str = "") -> float | np.ndarray:
     return a
 
 
-def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0) -> np.ndarray:
-    """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) · diffuse, (3,).
+def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0,
+                     with_diffuse: bool = True) -> np.ndarray:
+    """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) (· diffuse), (3,).
 
     Negative where ``inputs:intensity`` is (a light that takes light away). Raises :class:`UsdmlError`
     naming the attribute for NaN/inf, a negative colour, or an exposure that overflows.
@@ -84,7 +85,7 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
         raise UsdmlError(f"{path}.inputs:color: negative color {tuple(color)}; use components >= 0")
     if exposure > 64:
         raise UsdmlError(f"{path}.inputs:exposure: {exposure} stops overflows; use a smaller exposure")
-    radiance = intensity * 2.0 ** exposure * color * max(diffuse, 0.0)
+    radiance = intensity * 2.0 ** exposure * color * (max(diffuse, 0.0) if with_diffuse else 1.0)
     if bool(attribute_value(prim, "inputs:enableColorTemperature", time, False)):
         temp = float(value("inputs:colorTemperature", 6500.0))
         radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
