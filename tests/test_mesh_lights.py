@@ -250,3 +250,26 @@ def test_unsupported_lux_inputs_are_said_and_counted(new_stage, capsys, warnings
     for prim in ("/World/gobo: LightFilter", "/World/key.light:filters", "/World/window: PortalLight",
                  "/World/plugin: PluginLight", "/World/fire: VolumeLightAPI"):
         assert prim in said, prim
+
+
+@pytest.mark.parametrize("backend", ["voxel", "svo", "insm"])
+def test_approximate_backends_do_not_shadow_a_mesh_light_with_its_own_surface(new_stage, backend):
+    """Rays to a panel's triangles end on the panel: its own voxels must not block them (the voxel backends end them
+    off the surface, usdml.visibility.emitter_ends). Without them voxel was 11.5 % median off exact and svo 100 %
+    on this frame (every ray that reaches the panel at a grazing angle); with them every pixel agrees."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+
+    path = _ground_stage(new_stage, lambda s: _panel(s, "/World/panel"))
+    images = []
+    for name in ("exact", backend):
+        d = StageDelegate(path)
+        r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, visibility=name))
+        try:
+            images.append(r.render(1, 48, 48, {"direct"}).buffers["direct"][..., 0].astype(np.float64))
+        finally:
+            r.close()
+    exact, approx = images
+    mask = exact > 1e-3 * exact.max()
+    rel = np.abs(approx[mask] - exact[mask]) / exact[mask]
+    assert np.percentile(rel, 99) < 1e-3, np.percentile(rel, 99)
