@@ -49,6 +49,19 @@ def _lambert(points, corners, radiance):
     return radiance / 2 * np.abs(total)
 
 
+def _direct(path, **settings):
+    """The ``direct`` AOV's red channel of the stage's frame 1 at 48 × 48 px, one ray per pixel, ``settings``."""
+    from usdml.render.frame import FrameRenderer
+    from usdml.settings import UsdmlSettings
+
+    d = StageDelegate(path)
+    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, **settings))
+    try:
+        return r.render(1, 48, 48, {"direct"}).buffers["direct"][..., 0].astype(np.float64)
+    finally:
+        r.close()
+
+
 def _square(cx, cz, half, height):
     return np.array([(cx - half, height, cz - half), (cx + half, height, cz - half), (cx + half, height, cz + half),
                      (cx - half, height, cz + half)], float)
@@ -194,19 +207,8 @@ def test_light_power_of_a_mesh_light(new_stage):
 def test_direct_lgh_over_thousands_of_triangles(new_stage):
     """2,048 triangle lights clustered by the hierarchy: --direct lgh against every light (exact shadows), measured
     relative RMSE 2.4 % with 4,608 triangles at 96 px (tools/mesh_light_accuracy.py)."""
-    from usdml.render.frame import FrameRenderer
-    from usdml.settings import UsdmlSettings
-
     path = _ground_stage(new_stage, lambda s: _panel(s, "/World/panel", quads=32))
-    images = []
-    for direct in ("all", "lgh"):
-        d = StageDelegate(path)
-        r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, direct=direct))
-        try:
-            images.append(r.render(1, 48, 48, {"direct"}).buffers["direct"][..., 0].astype(np.float64))
-        finally:
-            r.close()
-    every, lgh = images
+    every, lgh = _direct(path, direct="all"), _direct(path, direct="lgh")
     mask = every > 1e-3 * every.max()
     rmse = np.sqrt(np.mean((lgh[mask] - every[mask]) ** 2)) / every[mask].mean()
     assert len(StageDelegate(path).snapshot(1).lights) == 2048
@@ -257,19 +259,8 @@ def test_approximate_backends_do_not_shadow_a_mesh_light_with_its_own_surface(ne
     """Rays to a panel's triangles end on the panel: its own voxels must not block them (the voxel backends end them
     off the surface, usdml.visibility.emitter_ends). Without them voxel was 11.5 % median off exact and svo 100 %
     on this frame (every ray that reaches the panel at a grazing angle); with them every pixel agrees."""
-    from usdml.render.frame import FrameRenderer
-    from usdml.settings import UsdmlSettings
-
     path = _ground_stage(new_stage, lambda s: _panel(s, "/World/panel"))
-    images = []
-    for name in ("exact", backend):
-        d = StageDelegate(path)
-        r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, visibility=name))
-        try:
-            images.append(r.render(1, 48, 48, {"direct"}).buffers["direct"][..., 0].astype(np.float64))
-        finally:
-            r.close()
-    exact, approx = images
+    exact, approx = _direct(path, visibility="exact"), _direct(path, visibility=backend)
     mask = exact > 1e-3 * exact.max()
     rel = np.abs(approx[mask] - exact[mask]) / exact[mask]
     assert np.percentile(rel, 99) < 1e-3, np.percentile(rel, 99)
