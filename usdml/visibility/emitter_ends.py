@@ -9,8 +9,9 @@ than ``end_skip``. Measured on a 2 × 2 panel of 128 triangles 2 units above a g
 
 So the end gets the start's rule: a target at a triangle light's position (its centroid, exactly as the snapshot
 gives it: matched on its float32 bits) moves ``lift`` along the triangle's normal, to the emitting side the ray
-comes from, and the ray ends there, clear of the surface's voxels. The cost is the start's: an occluder closer than
-``lift`` to the emitting surface does not shadow it.
+comes from, and the ray ends there, clear of the surface's voxels; the voxel backend's compiled fused kernel takes
+the same ends as its light table's ``target``. The cost is the start's: an occluder closer than ``lift`` to the
+emitting surface does not shadow it.
 """
 
 from __future__ import annotations

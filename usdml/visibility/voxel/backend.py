@@ -733,7 +733,10 @@ class VoxelBackend(VisibilityBackend):
         whether every light casts shadows."""
         if self._native is not None:
             from usdml.visibility.voxel.native import compiled_lights
-            return compiled_lights(lights, meters_per_unit, min_distance), bool(np.asarray(lights.shadow).all())
+            distant = np.asarray(lights.type) == LightType.DISTANT
+            ends = self._ended(lights.position, distant)        # rays to a mesh light's triangle: off its surface
+            return (compiled_lights(lights, meters_per_unit, min_distance, None if ends is lights.position else ends),
+                    bool(np.asarray(lights.shadow).all()))
         t = LightTable(lights, meters_per_unit, min_distance)
         flags = t.flags        # LightFlag bits, which the kernels name as the same constants
         wp, ks = warp_module(), _shading_kernels()
@@ -761,8 +764,9 @@ class VoxelBackend(VisibilityBackend):
         options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
         if material is not None:
             options["material"] = material
-        # rays to a mesh light's triangles end off its surface (self._ended): the kernel ends them at the light
-        triangles = self._ends is not None and bool((np.asarray(lights.type) == LightType.TRIANGLE).any())
+        # rays to a mesh light's triangles end off its surface (self._ended): the Warp kernel ends them at the light
+        triangles = self._native is None and self._ends is not None and \
+            bool((np.asarray(lights.type) == LightType.TRIANGLE).any())
         if n_p == 0 or n_l == 0 or not self._gpu or (material is not None and self._native is None) or triangles:
             return plain(points, normals, albedo, lights, self.occluded if self._gpu else None, progress, **options)
         lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
