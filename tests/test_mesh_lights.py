@@ -205,8 +205,9 @@ def test_light_power_of_a_mesh_light(new_stage):
 
 
 def test_direct_lgh_over_thousands_of_triangles(new_stage):
-    """2,048 triangle lights clustered by the hierarchy: --direct lgh against every light (exact shadows), measured
-    relative RMSE 2.4 % with 4,608 triangles at 96 px (tools/mesh_light_accuracy.py)."""
+    """2,048 triangle lights clustered by the hierarchy: --direct lgh against every light (exact shadows). Measured
+    relative RMSE 2.6 % on this frame (median 1.2 %, p95 2.2 %), 2.4 % with 4,608 triangles at 96 px
+    (tools/mesh_light_accuracy.py); the bound leaves room for the hierarchy's sampling, not for a lost light."""
     path = _ground_stage(new_stage, lambda s: _panel(s, "/World/panel", quads=32))
     every, lgh = _direct(path, direct="all"), _direct(path, direct="lgh")
     mask = every > 1e-3 * every.max()
