@@ -93,20 +93,24 @@ def measure(stage_path: str, width: int, gbuffer_width: int, repeat: int) -> dic
                  "repeat": repeat}
     height = round(width * 20.25 / 36)
     renderers = {key: FrameRenderer(delegate, UsdmlSettings(pixel_samples=1, visible_lights=key == "on"))
-                 for key in ("off", "on")}
+                 for key in ("off", "on")} if width else {}
     try:
-        frames = {}
+        frames, gbuffer = {}, {key: [] for key in renderers}
 
         def frame(key: str) -> None:
             frames[key] = renderers[key].render(delegate.start_time, width, height, {"color", "depth"})
-        out["frame"] = {"width": width, "height": height, "pixel_samples": 1,
-                        **medians({key: (lambda key=key: frame(key)) for key in renderers}, repeat)}
-        out["frame"]["alpha_pixels"] = {key: int((f.buffers["color"][..., 3] > 0).sum()) for key, f in frames.items()}
-        out["frame"]["surface_pixels"] = {key: int(np.isfinite(f.buffers["depth"]).sum()) for key, f in frames.items()}
+            gbuffer[key].append(frames[key].stats.gbuffer_seconds)
+        if renderers:
+            out["frame"] = {"width": width, "height": height, "pixel_samples": 1,
+                            **medians({key: (lambda key=key: frame(key)) for key in renderers}, repeat)}
+            out["frame"]["ratio"] = out["frame"]["on"] / out["frame"]["off"]
+            out["frame"]["gbuffer_seconds"] = {key: statistics.median(t) for key, t in gbuffer.items()}
+            for name, count in (("alpha_pixels", lambda f: f.buffers["color"][..., 3] > 0),
+                                ("surface_pixels", lambda f: np.isfinite(f.buffers["depth"]))):
+                out["frame"][name] = {key: int(count(f).sum()) for key, f in frames.items()}
     finally:
         for r in renderers.values():
             r.close()
-    out["frame"]["ratio"] = out["frame"]["on"] / out["frame"]["off"]
 
     exact = ExactBackend()
     exact.update(snap, diff(None, snap))
@@ -126,7 +130,7 @@ def measure(stage_path: str, width: int, gbuffer_width: int, repeat: int) -> dic
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     p.add_argument("--lights", type=int, default=1000, help="rect lights (default: %(default)s)")
-    p.add_argument("--imageWidth", type=int, default=160, help="frame width (default: %(default)s)")
+    p.add_argument("--imageWidth", type=int, default=160, help="frame width, 0: no frame (default: %(default)s)")
     p.add_argument("--gbufferWidth", type=int, default=960, help="G-buffer width (default: %(default)s)")
     p.add_argument("--repeat", type=int, default=3, help="timed runs per case (default: %(default)s)")
     p.add_argument("--json", action="store_true")
@@ -138,9 +142,12 @@ def main(argv: list[str] | None = None) -> int:
         json.dump(out, sys.stdout, indent=2)
         print()
     else:
-        f, g = out["frame"], out["gbuffer"]
-        print(f"{out['lights']} rect lights; frame {f['width']}x{f['height']}: {f['off']:.3f} s without visible "
-              f"lights, {f['on']:.3f} s with ({f['ratio']:.3f}x); G-buffer {g['width']}x{g['height']}: "
+        g = out["gbuffer"]
+        f = out.get("frame")
+        if f:
+            print(f"{out['lights']} rect lights; frame {f['width']}x{f['height']}: {f['off']:.3f} s without "
+                  f"visible lights, {f['on']:.3f} s with ({f['ratio']:.3f}x)")
+        print(f"{out['lights']} rect lights; G-buffer {g['width']}x{g['height']}: "
               f"{g['off'] * 1000:.1f} ms, {g['on'] * 1000:.1f} ms with, of which {g['lights_seen'] * 1000:.1f} ms "
               f"intersecting the lights ({g['light_pixels']} light pixels)")
     return 0

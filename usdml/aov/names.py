@@ -8,9 +8,12 @@ README.
 ====================  =======================  =======  ==========================================
 AOV (aliases)         EXR channels             type     meaning; value where no surface is hit
 ====================  =======================  =======  ==========================================
-``color``             ``R G B A``              half     linear RGBA, premultiplied; 0
+``color``             ``R G B A``              half     linear RGBA, premultiplied; 0, or the dome
+                                                        or light seen there (visible lights)
 ``direct``            ``direct.R/G/B``         half     direct (light-to-surface) radiance; 0
 ``indirect``          ``indirect.R/G/B``       half     indirect (VPL / LGH) radiance; 0
+``background``        ``background.R/G/B``     half     the domes' radiance where a camera ray reaches
+                                                        nothing (visible lights); 0
 ``albedo``            ``albedo.R/G/B``         half     diffuse reflectance of the first hit; 0
 ``shadow``            ``shadow.Y``             float    fraction of the lights facing the point
                                                         that are blocked (hiddenLightsN / n); 0
