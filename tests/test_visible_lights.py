@@ -21,7 +21,7 @@ from usdml.scene import Camera
 
 pytest.importorskip("embreex")
 
-W, H = 48, 32           # the camera's 36 x 24 aperture: no conforming
+W, H = 96, 64           # the camera's 36 x 24 aperture: no conforming
 
 
 def _camera(stage, position=(0.0, 0.0, 10.0), rotate_y=0.0):
@@ -137,9 +137,9 @@ def test_dome_seen_behind_geometry_at_each_pixels_direction(new_stage, tmp_path)
 
 #: name -> (kind, translate, rotateY, size attributes, intensity, color)
 SHAPES = {
-    "front_rect": ("RectLight", (-3.0, 1.5, 0.0), 180.0, {"width": 1.5, "height": 1.0}, 3.0, (1.0, 0.5, 0.25)),
+    "front_rect": ("RectLight", (-3.0, 1.5, 0.0), 155.0, {"width": 1.5, "height": 1.0}, 3.0, (1.0, 0.5, 0.25)),
     "back_rect": ("RectLight", (3.0, 1.5, 0.0), 0.0, {"width": 1.5, "height": 1.0}, 7.0, (1.0, 1.0, 1.0)),
-    "disk": ("DiskLight", (-3.0, -1.5, 0.0), 180.0, {"radius": 0.6}, 4.0, (0.25, 1.0, 0.5)),
+    "disk": ("DiskLight", (-3.0, -1.5, 0.0), 200.0, {"radius": 0.6}, 4.0, (0.25, 1.0, 0.5)),
     "sphere": ("SphereLight", (0.0, 0.0, 0.0), 0.0, {"radius": 0.8}, 2.0, (0.5, 0.5, 1.0)),
     "tube": ("CylinderLight", (3.0, -1.5, 0.0), 30.0, {"radius": 0.3, "length": 2.0}, 6.0, (1.0, 0.8, 0.6)),
 }

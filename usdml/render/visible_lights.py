@@ -89,36 +89,41 @@ def _unit_columns(xform: np.ndarray) -> np.ndarray:
     return axes / np.where(n > 0, n, 1.0)
 
 
-def _hit_distance(kind: LightType, lights: Lights, frames: np.ndarray, li: np.ndarray, o: np.ndarray,
-                  d: np.ndarray) -> np.ndarray:
-    """``(K,)`` ray parameter where rays ``o + t·d`` (unit ``d``) enter the emitting surface of lights ``li`` (all
-    of type ``kind``; ``frames`` their :func:`_unit_columns`, every light's), inf where they miss it or see its
-    back."""
-    ex, ey, ez = frames[li, 0], frames[li, 1], frames[li, 2]
-    oc = o - lights.position[li]
+def _shape_table(lights: Lights, frames: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """``(N, 14)`` what a ray test reads of each light, one row to gather per (light, ray) pair: its unit X, Y, Z
+    axes (columns 0-8, ``frames``), position (9-11) and the first two of its :func:`_half_extents` ``half`` (12,
+    13: a rect's half width and height, a disk's or sphere's radius, a cylinder's half length and radius)."""
+    return np.concatenate([frames.reshape(-1, 9), lights.position, half[:, :2]], axis=1)
+
+
+def _hit_distance(kind: LightType, rows: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``(K,)`` ray parameter where rays ``o + t·d`` (unit ``d``) enter the emitting surface of lights of type
+    ``kind`` whose :func:`_shape_table` rows are ``rows``, inf where they miss it or see its back. In the light's
+    frame: the ray's origin ``(ox, oy, oz)`` and direction ``(dx, dy, dz)`` along its unit axes."""
+    oc = o - rows[:, 9:12]
+    ox, oy, oz = (_dot(oc, rows[:, 3 * k:3 * k + 3]) for k in range(3))
+    dx, dy, dz = (_dot(d, rows[:, 3 * k:3 * k + 3]) for k in range(3))
+    half_x, half_y = rows[:, 12], rows[:, 13]
     if kind in (LightType.RECT, LightType.DISK):
-        facing = _dot(d, ez)       # > 0: the ray travels against the axis (-Z), sees the front
-        t = -_dot(oc, ez) / np.where(facing > 0, facing, 1.0)
-        p = oc + t[:, None] * d
-        u, v = _dot(p, ex), _dot(p, ey)
+        facing = dz > 0                             # the ray travels against the axis (-Z): it sees the front
+        t = -oz / np.where(facing, dz, 1.0)
+        u, v = ox + t * dx, oy + t * dy
         if kind == LightType.RECT:
-            inside = (np.abs(u) <= 0.5 * lights.width[li]) & (np.abs(v) <= 0.5 * lights.height[li])
+            inside = (np.abs(u) <= half_x) & (np.abs(v) <= half_y)
         else:
-            inside = u * u + v * v <= lights.radius[li] ** 2
-        ok = (facing > 0) & inside
+            inside = u * u + v * v <= half_x * half_x
+        ok = facing & inside
     elif kind == LightType.SPHERE:
-        b = _dot(oc, d)
-        disc = b * b - (_dot(oc, oc) - lights.radius[li] ** 2)
+        b = ox * dx + oy * dy + oz * dz
+        disc = b * b - (ox * ox + oy * oy + oz * oz - half_x * half_x)
         t = -b - np.sqrt(np.maximum(disc, 0.0))
         ok = disc >= 0
     else:                                           # cylinder: its side, around its X axis
-        da, oa = _dot(d, ex), _dot(oc, ex)
-        dp, op = d - da[:, None] * ex, oc - oa[:, None] * ex
-        a = _dot(dp, dp)
-        b = _dot(op, dp)
-        disc = b * b - a * (_dot(op, op) - lights.radius[li] ** 2)
+        a = dy * dy + dz * dz
+        b = oy * dy + oz * dz
+        disc = b * b - a * (oy * oy + oz * oz - half_y * half_y)
         t = (-b - np.sqrt(np.maximum(disc, 0.0))) / np.where(a > 0, a, 1.0)
-        ok = (disc >= 0) & (a > 0) & (np.abs(oa + t * da) <= 0.5 * lights.width[li])
+        ok = (disc >= 0) & (a > 0) & (np.abs(ox + t * dx) <= half_x)
     return np.where(ok & (t >= 0), t, np.inf)
 
 
@@ -146,10 +151,12 @@ def lights_seen(lights: Lights, camera: Camera, width: int, height: int, origins
     seen = np.full(n, -1, np.int64)
     chosen = np.flatnonzero(np.isin(lights.type, [int(k) for k in SEEN_TYPES]) & ~lights.negative())
     if len(chosen):
-        frames = np.zeros((len(lights), 3, 3))
-        frames[chosen] = _unit_columns(lights.xform[chosen])
-        boxes = _pixel_boxes(camera, width, height, lights.position[chosen], frames[chosen],
-                             _half_extents(lights.subset(chosen)))
+        seen_lights = lights.subset(chosen)
+        frames = _unit_columns(seen_lights.xform)
+        half = _half_extents(seen_lights)
+        table = np.zeros((len(lights), 14))
+        table[chosen] = _shape_table(seen_lights, frames, half)
+        boxes = _pixel_boxes(camera, width, height, seen_lights.position, frames, half)
         wide = boxes[:, 1] - boxes[:, 0]
         counts = wide * (boxes[:, 3] - boxes[:, 2])
         keep = counts > 0
@@ -163,8 +170,8 @@ def lights_seen(lights: Lights, camera: Camera, width: int, height: int, origins
                 stop = max(start + 1, int(np.searchsorted(total, done + _CHUNK, side="right")))
                 part = of[start:stop]
                 start = stop
-                _nearest(kind, lights, frames, chosen[part], boxes[part], wide[part], counts[part], width, origins,
-                         dirs, best, seen)
+                _nearest(kind, table, chosen[part], boxes[part], wide[part], counts[part], width, origins, dirs,
+                         best, seen)
     t = np.where(seen >= 0, best, np.inf)
     radiance = np.zeros((n, 3), np.float32)
     rays = np.flatnonzero(seen >= 0)
@@ -172,7 +179,7 @@ def lights_seen(lights: Lights, camera: Camera, width: int, height: int, origins
     return t, radiance
 
 
-def _nearest(kind: LightType, lights: Lights, frames: np.ndarray, li: np.ndarray, boxes: np.ndarray, wide: np.ndarray,
+def _nearest(kind: LightType, table: np.ndarray, li: np.ndarray, boxes: np.ndarray, wide: np.ndarray,
              counts: np.ndarray, width: int, origins: np.ndarray, dirs: np.ndarray, best: np.ndarray,
              seen: np.ndarray) -> None:
     """Test lights ``li`` (one type) against the rays of their pixel ``boxes``; where one is nearer than
@@ -183,7 +190,7 @@ def _nearest(kind: LightType, lights: Lights, frames: np.ndarray, li: np.ndarray
     row = boxes[pair_light, 2] + j // wide[pair_light]
     ray = row * width + col
     light = li[pair_light]
-    t = _hit_distance(kind, lights, frames, light, origins[ray], dirs[ray])
+    t = _hit_distance(kind, table[light], origins[ray], dirs[ray])
     hit = t < best[ray]
     ray, light, t = ray[hit], light[hit], t[hit]
     order = np.lexsort((light, t, ray))         # per ray: nearest first, ties by light order
