@@ -61,13 +61,14 @@ def make_stage(path: Path, lights: int) -> str:
 
 
 def medians(runs: dict, repeat: int) -> dict:
-    """Median seconds of each of ``runs`` (name -> callable), after one warm-up run each, the runs interleaved
-    (off, on, off, on ...) so that a machine's changing load falls on both alike."""
+    """Median seconds of each of ``runs`` (name -> callable), after one warm-up run each, the runs interleaved and
+    their order reversed every repetition (off, on, on, off ...) so that a machine's changing load and whatever
+    the run before leaves behind fall on all alike."""
     times: dict = {name: [] for name in runs}
     for name, run in runs.items():
         run()                                   # warm-up: acceleration structures, caches
-    for _ in range(repeat):
-        for name, run in runs.items():
+    for i in range(repeat):
+        for name, run in (list(runs.items()) if i % 2 == 0 else list(runs.items())[::-1]):
             t0 = time.perf_counter()
             run()
             times[name].append(time.perf_counter() - t0)
