@@ -105,13 +105,15 @@ def ground_stage(new_stage, light, name: str = "s.usda"):
 
 
 def render_aovs(path, width=64, aovs=("direct", "P", "normal", "shadow", "color")):
-    """The buffers of ``aovs`` of the stage's start frame, ``width`` × ``width`` pixels, one ray per pixel."""
+    """The buffers of ``aovs`` of the stage's start frame, ``width`` × ``width`` pixels, one ray per pixel, the
+    lights unseen (the light on the surfaces, not the lights in front of them)."""
     from usdml.render.frame import FrameRenderer
     from usdml.settings import UsdmlSettings
     from usdml.stage import StageDelegate
 
     d = StageDelegate(path)
-    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1))     # point values at P: one ray through each pixel centre
+    # point values at P: one ray through each pixel centre
+    r = FrameRenderer(d, UsdmlSettings(pixel_samples=1, visible_lights=False))
     try:
         return r.render(d.start_time, width, width, set(aovs)).buffers
     finally:

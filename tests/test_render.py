@@ -122,8 +122,11 @@ def test_render_writes_every_aov_and_the_header(new_stage, tmp_path, capsys):
     aovs, meta = read_exr(exr)
     assert set(aovs) == {"color", "direct", "indirect", "shadow", "depth", "normal", "P", "albedo", "primId", "instanceId"}
     assert aovs["color"].shape == (32, 32, 4) and aovs["color"].dtype == np.float16
-    assert (aovs["primId"] == 0).all() and (aovs["instanceId"] == -1).all()
-    assert np.allclose(aovs["depth"], 15, atol=1e-3)          # camera 15 above the ground, looking down
+    # the sphere light (radius 0.5, 3 above the ground) is seen in the middle, no surface there (visible lights)
+    bulb = aovs["primId"] == -1
+    assert 0 < bulb.sum() < 0.05 * bulb.size and bulb[15:17, 15:17].any() and np.isinf(aovs["depth"][bulb]).all()
+    assert (aovs["primId"][~bulb] == 0).all() and (aovs["instanceId"] == -1).all()
+    assert np.allclose(aovs["depth"][~bulb], 15, atol=1e-3)  # camera 15 above the ground, looking down
     assert meta["usdml:timeCode"] == 1.0 and meta["usdml:stage"] == os.path.abspath(path)
     assert np.asarray(meta["worldToCamera"]).shape == (4, 4)
     assert (tmp_path / "out" / "img.0001.png").exists()

@@ -145,6 +145,11 @@ _SETTINGS = (
     Param("pixel_samples", int, 4, "primary rays per pixel, a square number s x s (correlated multi-jittered: "
           "one in each cell of an s x s grid and in each thin row and column; box filter); 1 = the pixel centre", (RENDER,), LIGHTING, attribute="usdml:pixelSamples", metavar="N",
           valid=_square, rule=_SQUARE_RULE, source="measured (usdml): halves edge error at 4"),
+    Param("visible_lights", bool, True, "camera rays see the lights, as Karma and Cycles show them: the domes "
+          "behind the geometry (the background AOV) and the rect, disk, sphere and cylinder lights in front of it "
+          "(their radiance, in the emission AOV; rects and disks from the front), alpha 1 there; off: unseen, as "
+          "Storm (alpha 0 where no surface)", (RENDER,), LIGHTING, attribute="usdml:visibleLights",
+          source="Karma and Cycles (docs/visible-lights.md)"),
     Param("seed", int, 0, "random seed (VPLs, shadow samples, dome light sampling)", **LIT, range=Range(0),
           metavar="N"),
 )
@@ -224,6 +229,14 @@ _DOCS = {
     budget. 0: every answer exact (the exact backend's pixels); 1: no bound
     and no refinement (the backend as it is). With the exact backend it does
     nothing.""",
+    "visible_lights": """Camera rays see the lights, as Karma and Cycles show them (Storm does not): the domes behind the geometry and the rect, disk, sphere and cylinder lights in front of it.
+
+    A ray that reaches no surface shows the domes' radiance in its direction
+    (their lat-long maps, in the background AOV); a ray that reaches an area
+    light before any surface shows the light's radiance (rects and disks
+    from their front only; in the emission AOV). Both are added to color
+    with alpha 1. Point and distant lights are never seen. false: lights are
+    unseen and alpha is 0 where no surface is hit.""",
     "seed": """Seed of usdml's random number generators (VPLs, shadow samples), for reproducible renders.""",
 }
 

@@ -8,9 +8,12 @@ README.
 ====================  =======================  =======  ==========================================
 AOV (aliases)         EXR channels             type     meaning; value where no surface is hit
 ====================  =======================  =======  ==========================================
-``color``             ``R G B A``              half     linear RGBA, premultiplied; 0
+``color``             ``R G B A``              half     linear RGBA, premultiplied; 0, or the dome
+                                                        or light seen there (visible lights)
 ``direct``            ``direct.R/G/B``         half     direct (light-to-surface) radiance; 0
 ``indirect``          ``indirect.R/G/B``       half     indirect (VPL / LGH) radiance; 0
+``background``        ``background.R/G/B``     half     the domes' radiance where a camera ray reaches
+                                                        nothing (visible lights); 0
 ``albedo``            ``albedo.R/G/B``         half     diffuse reflectance of the first hit; 0
 ``shadow``            ``shadow.Y``             float    fraction of the lights facing the point
                                                         that are blocked (hiddenLightsN / n); 0
@@ -108,7 +111,10 @@ AOVS: dict[str, AovSpec] = {a.name: a for a in (
     AovSpec("diffuse", _RGB, "half", 0.0, "direct radiance of the diffuse lobe (direct = diffuse + specular)",
             filtered=True),
     AovSpec("specular", _RGB, "half", 0.0, "direct radiance of the specular and clearcoat lobes", filtered=True),
-    AovSpec("emission", _RGB, "half", 0.0, "emitted radiance (emissiveColor) of the surface seen", filtered=True),
+    AovSpec("emission", _RGB, "half", 0.0, "emitted radiance seen: emissiveColor of the surface, or the area "
+            "light in front of it (visible lights)", filtered=True),
+    AovSpec("background", _RGB, "half", 0.0, "the domes' radiance seen where a camera ray reaches nothing "
+            "(visible lights)", filtered=True),
     AovSpec("albedo", _RGB, "half", 0.0, "diffuse reflectance at the first hit", filtered=True),
     AovSpec("shadow", ("Y",), "float", 0.0,
             "fraction of the lights facing the point that are blocked (hiddenLightsN / n)", filtered=True),
@@ -172,18 +178,21 @@ RAW_SOURCE_NAMES: dict[str, str] = {
     "P": "P", "Peye": "Peye",
     "primId": "primId", "instanceId": "instanceId",
     "direct": "direct", "indirect": "indirect", "albedo": "albedo",
-    "diffuse": "diffuse", "specular": "specular", "emission": "emission",
+    "diffuse": "diffuse", "specular": "specular", "emission": "emission", "background": "background",
     "shadow": "shadow", "lightCount": "lightCount",
 }
 
 #: ``sourceType`` "lpe" expressions (whitespace ignored, ``lpe:`` prefix optional) -> AOV.
 #: RenderMan's directDiffuse / directSpecular LPEs are usdml's ``diffuse`` / ``specular``, its emission ``CO``
-#: ``emission``; indirect light is gathered from the diffuse lobe only, so indirectDiffuse is ``indirect``.
+#: ``emission``; indirect light is gathered from the diffuse lobe only, so indirectDiffuse is ``indirect``. A light
+#: seen by the camera (``CL``, Arnold's emission ``C[LO]``) is ``emission``, the dome seen behind everything
+#: Arnold's background ``CB``: ``background`` (visible lights; a dome is the one light usdml writes there).
 LPE_SOURCE_NAMES: dict[str, str] = {
     "C.*": "color", "C.*[<L.>O]": "color", "C.*L": "color",
     "C<RD>L": "diffuse", "CDL": "diffuse", "C<RD>[<L.>O]": "diffuse", "CD[<L.>O]": "diffuse",
     "C<RS>L": "specular", "CSL": "specular", "C<RS>[<L.>O]": "specular", "CS[<L.>O]": "specular",
-    "CO": "emission", "C<O>": "emission",
+    "CO": "emission", "C<O>": "emission", "CL": "emission", "C<L>": "emission", "C[LO]": "emission",
+    "CB": "background", "C<B>": "background",
     "C<RD>.+L": "indirect", "CD.+L": "indirect", "C<RD>.+[<L.>O]": "indirect",
     "CD.+[<L.>O]": "indirect",
 }

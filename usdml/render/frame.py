@@ -76,14 +76,17 @@ def centre_gbuffer(snap: Snapshot, primary, width: int, height: int) -> tuple[Sn
     return snap, build_gbuffer(snap, primary, width, height)
 
 
-def blank_frame(hit: bool, lit: bool, albedo: bool, lights: int, camera: Camera) -> str | None:
-    """What a frame whose ``color`` is the same everywhere says, and the cause to check: empty (no primary ray hit
-    anything: alpha 0 everywhere) or black (``lit``: no light on any hit; ``albedo``: some hit has a non-zero
-    albedo; ``lights``: the frame's lights, the camera light aside); None when some pixel has colour."""
+def blank_frame(hit: bool, lit: bool, albedo: bool, lights: int, camera: Camera, seen: bool = False) -> str | None:
+    """What a frame whose ``color`` is the same everywhere (or shows no geometry) says, and the cause to check:
+    empty (no primary ray hit anything: alpha 0 everywhere; ``seen``: some ray saw a visible light or the dome, so
+    the frame shows lights only) or black (``lit``: some pixel has light, on a hit or seen; ``albedo``: some hit has
+    a non-zero albedo; ``lights``: the frame's lights, the camera light aside); None when some pixel has colour."""
+    camera_check = (f"check the camera ({camera.path or 'the framing camera'}: where it looks, its clipping range) "
+                    "and the geometry's visibility, purpose and activation")
+    if not hit and seen:
+        return f"shows no geometry, only lights (the dome or area lights the camera sees); {camera_check}"
     if not hit:
-        return (f"is empty (alpha 0 everywhere): no geometry in the camera's view; check the camera "
-                f"({camera.path or 'the framing camera'}: where it looks, its clipping range) and the geometry's "
-                "visibility, purpose and activation")
+        return f"is empty (alpha 0 everywhere): no geometry in the camera's view; {camera_check}"
     if lit:
         return None
     if not albedo:
@@ -177,7 +180,7 @@ class FrameRenderer:
         self.indirect.prepare(frame, stats)     # once for every pass of the frame
         self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
-        hit = lit = albedo = False      # any pixel: hit, lit, with a non-zero albedo (blank_frame)
+        hit = lit = albedo = seen = False   # any pixel: hit, lit, with a non-zero albedo, a light seen (blank_frame)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
         for i, (offsets, (gb, surface, direct)) in enumerate(
                 zip(passes, self.direct.passes(frame, passes, stats, pixel_progress))):
@@ -194,14 +197,15 @@ class FrameRenderer:
             if pixel_progress is not None:
                 pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
             stats.shadow_queries += direct.queries
-            hit, lit = hit or bool(surface.hit.any()), lit or bool(direct.radiance.any() or np.any(indirect)
-                                                                 or (surface.emission is not None
-                                                                     and surface.emission.any()))
+            hit, lit = hit or bool(surface.hit.any()), lit or bool(
+                direct.radiance.any() or np.any(indirect) or any(e is not None and e.any() for e in (
+                    surface.emission, gb.light, gb.background)))
+            seen = seen or gb.emitter is not None
             albedo = albedo or bool(surface.albedo.any())
             image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
-        blank = blank_frame(hit, lit, albedo, len(lights), camera)
+        blank = blank_frame(hit, lit, albedo, len(lights), camera, seen)
         if blank:
             log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
         stats.lights = len(lights)
@@ -257,21 +261,28 @@ class FrameRenderer:
         radiance = scatter(direct.radiance, 3)
         indirect_img = scatter(indirect, 3)
         beauty = radiance + indirect_img
-        emission = gb.emission
-        if emission is not None:
-            beauty = beauty + emission
+        # what the ray ends on emits: a surface's emissiveColor, or a visible light (gb.light: no surface there)
+        emission = gb.emission if gb.light is None else gb.light if gb.emission is None else gb.emission + gb.light
+        for seen in (emission, gb.background):
+            if seen is not None:
+                beauty = beauty + seen
+
+        def zeros() -> np.ndarray:
+            return np.zeros((h, w, 3), np.float32)
 
         def specular() -> np.ndarray:
-            return scatter(direct.specular, 3) if direct.specular is not None else np.zeros((h, w, 3), np.float32)
+            return scatter(direct.specular, 3) if direct.specular is not None else zeros()
         alpha = gb.hit.astype(np.float32)
+        opaque = alpha if gb.emitter is None else (gb.hit | gb.emitter).astype(np.float32)
         world_to_eye = np.linalg.inv(camera.xform)
         table = {
-            "color": lambda: np.concatenate([beauty * alpha[..., None], alpha[..., None]], axis=2),
+            "color": lambda: np.concatenate([beauty * opaque[..., None], opaque[..., None]], axis=2),
             "direct": lambda: radiance,
             "indirect": lambda: indirect_img,
             "diffuse": lambda: radiance - specular(),
             "specular": specular,
-            "emission": lambda: emission if emission is not None else np.zeros((h, w, 3), np.float32),
+            "emission": lambda: emission if emission is not None else zeros(),
+            "background": lambda: gb.background if gb.background is not None else zeros(),
             "shadow": lambda: scatter(direct.shadow, 1),
             "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
             "depth": lambda: gb.depth,

@@ -9,7 +9,9 @@ shades both sides of every surface), and the shading normal interpolated from th
 normals (instanced ones through the inverse transpose of their instance transform), turned to the
 geometric normal's side. Which lights face a point, and where its shadow rays start, follow the
 geometric normal; only the cosine of shading follows the shading normal, so tilted authored normals
-never let a light behind the surface light it.
+never let a light behind the surface light it. With ``visible_lights`` the camera rays also see the lights
+(:mod:`usdml.render.visible_lights`): an area light in front of every surface ends the ray (no surface there),
+and a ray that reaches nothing sees the dome.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdml.render.visible_lights import dome_seen, lights_seen
 from usdml.scene import Camera, Snapshot
 from usdml.scene.surface import surface_at_hits
 
@@ -37,6 +40,12 @@ class GBuffer:
     #: (H·W, WIDTH) float32 BRDF rows of the hits (``kernels/brdf``), or None when every surface is Lambertian
     material: np.ndarray | None = None
     emission: np.ndarray | None = None   #: (H, W, 3) float32 emitted radiance (emissiveColor), or None
+    #: (H, W, 3) float32 radiance of the area light a ray ends on before any surface (0 elsewhere), or None
+    light: np.ndarray | None = None
+    #: (H, W, 3) float32 the domes' radiance seen by rays that reach nothing (0 elsewhere), or None
+    background: np.ndarray | None = None
+    #: (H, W) bool the ray ends on a visible light or the dome (no surface), or None: nowhere
+    emitter: np.ndarray | None = None
 
     @property
     def pixels(self) -> int:
@@ -106,23 +115,41 @@ def face_forward(v: np.ndarray, toward: np.ndarray) -> np.ndarray:
 
 
 def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int,
-                  offsets: np.ndarray | None = None) -> GBuffer:
+                  offsets: np.ndarray | None = None, visible_lights: bool = False) -> GBuffer:
     """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer; rays
-    through pixel centres, or through ``offsets`` (:func:`camera_rays`)."""
+    through pixel centres, or through ``offsets`` (:func:`camera_rays`); ``visible_lights``: the rays see the
+    snapshot's area lights and domes too (module doc)."""
     camera = snapshot.camera
     origins, dirs, tmax = camera_rays(camera, width, height, offsets)
-    h = surface_at_hits(snapshot, backend, origins, dirs, tmax)
     n = width * height
+    if visible_lights:
+        t_light, light = lights_seen(snapshot.lights, camera, width, height, origins, dirs, tmax)
+        tmax = np.minimum(tmax, t_light)        # a light in front hides the surfaces behind it
+    h = surface_at_hits(snapshot, backend, origins, dirs, tmax)
+    shape = (height, width)
+    seen = emitter = background = None
+    if visible_lights:
+        on_light = np.isfinite(t_light) & ~h.hit
+        emitter = on_light.copy()
+        if on_light.any():
+            seen = np.where(on_light[:, None], light, np.float32(0.0)).reshape(shape + (3,))
+        if snapshot.domes:
+            sky = ~h.hit & ~on_light
+            background = np.zeros((n, 3), np.float32)
+            background[sky] = dome_seen(snapshot.domes, dirs[sky])
+            background = background.reshape(shape + (3,))
+            emitter |= sky
+        emitter = emitter.reshape(shape) if emitter.any() else None
     geometric = face_forward(h.geometric, -dirs)
     normal = face_forward(h.normal, geometric)
     world_to_cam = np.linalg.inv(camera.xform)
     depth = np.full(n, np.inf, np.float32)
     depth[h.hit] = -(h.position[h.hit] @ world_to_cam[2, :3] + world_to_cam[2, 3])
     prim_id, instance_id = backend.ids(h.geom)
-    shape = (height, width)
     return GBuffer(
         width=width, height=height, hit=h.hit.reshape(shape), position=h.position.reshape(shape + (3,)),
         normal=normal.astype(np.float32).reshape(shape + (3,)),
         geometric=geometric.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
         depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape),
-        material=h.material, emission=None if h.emission is None else h.emission.reshape(shape + (3,)))
+        material=h.material, emission=None if h.emission is None else h.emission.reshape(shape + (3,)),
+        light=seen, background=background, emitter=emitter)

@@ -109,9 +109,10 @@ def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.n
     return direct
 
 
-def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats) -> GBuffer:
+def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats,
+             visible_lights: bool) -> GBuffer:
     t0 = _time.perf_counter()
-    gb = build_gbuffer(frame.snap, backends.primary, frame.width, frame.height, offsets)
+    gb = build_gbuffer(frame.snap, backends.primary, frame.width, frame.height, offsets, visible_lights)
     stats.gbuffer_seconds += _time.perf_counter() - t0
     return gb
 
@@ -170,7 +171,7 @@ class EveryLight:
         :func:`usdml.render.gbuffer.pixel_offsets`), one at a time: the caller finishes a pass before the
         next is traced."""
         for i, offsets in enumerate(passes):
-            gb = _gbuffer(frame, self.backends, offsets, stats)
+            gb = _gbuffer(frame, self.backends, offsets, stats, self.settings.visible_lights)
             surface = Surface.of(gb)
             self._before_shading(frame, surface, stats, i == 0)
             t0 = _time.perf_counter()
@@ -193,7 +194,7 @@ class EveryLightFused(EveryLight):
 
     def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
-        gbs = [_gbuffer(frame, self.backends, offsets, stats) for offsets in passes]
+        gbs = [_gbuffer(frame, self.backends, offsets, stats, self.settings.visible_lights) for offsets in passes]
         surfaces = [Surface.of(gb) for gb in gbs]
         self._before_shading(frame, surfaces[0], stats, True)
         t0 = _time.perf_counter()
