@@ -180,10 +180,27 @@ def test_plugin_dir_contents():
                               if not l.lstrip().startswith("#")))
     (plugin,) = info["Plugins"]
     assert plugin["Type"] == "resource" and plugin["Name"] == "usdml" and plugin["LibraryPath"] == ""
-    (entry,) = plugin["Info"]["Types"].values()
+    types = plugin["Info"]["Types"]
+    assert set(types) == {"Usdml" + schemas.SCHEMA_NAME, "UsdmlUsdmlLightGroupAPI"}
+    entry = types["Usdml" + schemas.SCHEMA_NAME]
     assert entry["alias"] == {"UsdSchemaBase": schemas.SCHEMA_NAME}
     assert entry["apiSchemaCanOnlyApplyTo"] == list(schemas.APPLIES_TO)
     assert entry["schemaKind"] == "singleApplyAPI" and entry["bases"] == ["UsdAPISchemaBase"]
+    group = types["UsdmlUsdmlLightGroupAPI"]
+    assert group["alias"] == {"UsdSchemaBase": "UsdmlLightGroupAPI"} and group["schemaKind"] == "singleApplyAPI"
+
+
+def test_light_group_api_declares_the_attribute_usdml_reads():
+    """Applying UsdmlLightGroupAPI gives a light the ``usdml:lightGroup`` string the renderer reads."""
+    from pxr import Usd, UsdLux
+
+    from usdml.stage.linking import GROUP_ATTRIBUTE
+
+    stage = Usd.Stage.CreateInMemory()
+    light = UsdLux.SphereLight.Define(stage, "/L").GetPrim()
+    assert light.ApplyAPI("UsdmlLightGroupAPI")
+    attr = light.GetAttribute(GROUP_ATTRIBUTE)
+    assert attr and attr.GetTypeName() == "string" and attr.Get() == ""
 
 
 def test_generated_files_up_to_date():

@@ -78,6 +78,8 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "deforming": len(snap.deforming_meshes) + sum(p.deforming for p in snap.prototypes),
         "lights": len(snap.lights) + len(snap.domes),
         "lightTypes": {**snap.lights.type_counts(), **({"dome": len(snap.domes)} if snap.domes else {})},
+        "linkSets": len(snap.links) if snap.links is not None else 0,
+        "lightGroups": delegate.light_groups(),
         "cameras": [str(c.GetPath()) for c in delegate.cameras],
         "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
         "renderSettings": _render_settings(snap),
@@ -113,6 +115,9 @@ def format_info(info: dict) -> str:
                                                if info["lightTypes"] else ""),
         f"camera      {info['camera']}  (cameras on stage: {len(info['cameras'])})",
     ]
+    if info["linkSets"] or info["lightGroups"] not in ([], ["default"]):
+        lines.insert(-1, f"linking     {info['linkSets']} light/shadow link set(s); light groups "
+                         + ", ".join(info["lightGroups"]))
     if info["unsupported"]:
         lines.append("unsupported " + ", ".join(f"{k} {n(v)}" for k, v in info["unsupported"].items())
                      + " (not rendered)")

@@ -139,7 +139,26 @@ def get_aov(name: str) -> AovSpec:
     return spec
 
 
+#: the prefix of a light group's AOV, ``lightgroup:NAME`` (the direct light of the lights whose
+#: ``usdml:lightGroup`` is NAME; ``lightgroup:default``: the lights that name none)
+LIGHT_GROUP = "lightgroup:"
+#: ``--aovs``' word for one ``lightgroup:NAME`` per group the stage's lights name
+EVERY_LIGHT_GROUP = LIGHT_GROUP + "*"
+
+
+def is_light_group(name: str) -> bool:
+    """Whether ``name`` is a light group's AOV (``lightgroup:NAME``, the wildcard aside)."""
+    return name.startswith(LIGHT_GROUP) and len(name) > len(LIGHT_GROUP) and name != EVERY_LIGHT_GROUP
+
+
+def light_group(name: str) -> str:
+    """The group a ``lightgroup:NAME`` AOV shows."""
+    return name[len(LIGHT_GROUP):]
+
+
 def find_aov(name: str) -> AovSpec | None:
+    if is_light_group(name):
+        return AovSpec(name, _RGB, "half", 0.0, f"direct radiance of light group {light_group(name)}", filtered=True)
     return AOVS.get(ALIASES.get(name, name))
 
 
@@ -190,6 +209,8 @@ def aov_for_render_var(source_name: str, source_type: str = "raw") -> AovSpec | 
     if kind in ("raw", "intrinsic") and name.startswith("lpe:"):
         kind, name = "lpe", name[4:]
     if kind in ("raw", "intrinsic"):
+        if is_light_group(name):
+            return find_aov(name)
         aov = RAW_SOURCE_NAMES.get(name)
     elif kind == "lpe":
         aov = LPE_SOURCE_NAMES.get(re.sub(r"\s+", "", name.removeprefix("lpe:")))

@@ -213,6 +213,8 @@ class _Emitters:
     power: np.ndarray       #: (L, 3) float64 Φ_l
     center: np.ndarray      #: (3,) bounding-sphere centre (distant lights)
     radius: float           #: bounding-sphere radius, scene units
+    #: (L,) each light's light-link set where some light has one (usdml.scene.linking), else None
+    linked: np.ndarray | None = None
 
 
 def _envelope_cos(kind: np.ndarray, span: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -241,6 +243,7 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     tint = np.asarray(lights.focus_tint, np.float64).reshape(n, 3)
     # a light of negative intensity emits no VPLs: its paths would carry negative flux (docs/gi.md)
     intensity = np.maximum(np.asarray(lights.intensity, np.float64).reshape(n, 3), 0.0)
+    intensity *= np.asarray(lights.diffuse, np.float64)[:, None]     # inputs:diffuse: what surfaces bounce on
     a_iso = np.radians(np.clip(cone, 0.0, 180.0))
     a_cos = np.radians(np.clip(cone, 0.0, 90.0))
     span = np.where(kind == _KIND_COS, np.sin(a_cos) ** 2, 1.0 - np.cos(a_iso))
@@ -281,7 +284,8 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     return _Emitters(kind=kind, position=np.asarray(lights.position, np.float64).reshape(n, 3),
                      axis=axis, cylinder_axis=cylinder_axis, intensity=intensity, cone=cone,
                      softness=softness, focus=focus, tint=tint, span=span, p_env=p_env, shaped=shaped,
-                     power=power, center=center, radius=radius)
+                     power=power, center=center, radius=radius,
+                     linked=lights.light_link if snapshot.links is not None and (lights.light_link >= 0).any() else None)
 
 
 def light_power(snapshot: Snapshot, lights: Lights) -> np.ndarray:
@@ -380,7 +384,7 @@ class _Round:
 
 
 def _emit(em: _Emitters, prob: np.ndarray, cdf: np.ndarray, n: int, eps: float, rng: np.random.Generator):
-    """``n`` light paths: origins, unit directions and starting flux × n (RGB float64)."""
+    """``n`` light paths: origins, unit directions, starting flux × n (RGB float64) and each path's light."""
     u = (np.arange(n) + rng.random(n)) / n
     li = np.minimum(np.searchsorted(cdf, u * cdf[-1], side="right"), len(cdf) - 1)
     li = li[rng.permutation(n)]
@@ -416,21 +420,23 @@ def _emit(em: _Emitters, prob: np.ndarray, cdf: np.ndarray, n: int, eps: float, 
         start = em.center - axis * (em.radius * 1.01 + eps + abs(em.radius) * 1e-6 + 1e-6)
         origins[far] = start + t * (r * np.cos(phi[far]))[:, None] + b * (r * np.sin(phi[far]))[:, None]
         dirs[far] = axis
-    return origins, dirs, weight
+    return origins, dirs, weight, li
 
 
 def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounces: int, eps: float,
            rng: np.random.Generator) -> _Round:
-    origins, dirs, flux = _emit(em, prob, cdf, n, eps, rng)
+    origins, dirs, flux, li = _emit(em, prob, cdf, n, eps, rng)
     path = np.arange(n, dtype=np.int64)
     live = _any_positive(flux)
-    origins, dirs, flux, path = origins[live], dirs[live], flux[live], path[live]
+    origins, dirs, flux, path, li = origins[live], dirs[live], flux[live], path[live], li[live]
     out: list[tuple] = []
     for b in range(1, bounces + 1):
         if not len(path):
             break
         h = surface_at_hits(snapshot, backend, origins, dirs)
         hit = h.hit
+        if b == 1 and em.linked is not None:     # light linking: a light leaves no VPL on a prim it does not light
+            hit = hit & _linked(snapshot, backend, em.linked, li, h.geom)
         d = dirs[hit]
         nrm = h.normal[hit]
         missing = ~(_max_abs(nrm) > 0)
@@ -458,6 +464,18 @@ def _trace(snapshot: Snapshot, backend, em: _Emitters, prob, cdf, n: int, bounce
         return _Round(z, z.copy(), z.copy(), np.zeros(0, np.int8), np.zeros(0, np.int64))
     cat = [np.concatenate(x) for x in zip(*out)]
     return _Round(*cat)
+
+
+def _linked(snapshot: Snapshot, backend, light_link: np.ndarray, li: np.ndarray, geom: np.ndarray) -> np.ndarray:
+    """``(n,) bool``: whether each path's first hit (``geom``, the backend's sources) is in its light's light-link
+    set (:class:`usdml.scene.linking.LinkSets`)."""
+    out = np.ones(len(li), bool)
+    links = light_link[li]
+    prim_id, instance_id = backend.ids(np.where(geom >= 0, geom, -1))
+    for link in np.unique(links[links >= 0]):
+        sel = np.flatnonzero(links == link)
+        out[sel] = snapshot.links.members(int(link), prim_id[sel], instance_id[sel])
+    return out
 
 
 def _take(r: _Round, mask: np.ndarray) -> _Round:

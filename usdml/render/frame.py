@@ -16,15 +16,16 @@ from typing import Callable
 
 import numpy as np
 
-from usdml.aov.names import find_aov
+from usdml.aov.names import find_aov, is_light_group, light_group
 from usdml.errors import UsdmlError, log
 from usdml.kernels.brdf import brdf_terms
 from usdml.lighting.dome import dome_to_distant_lights
-from usdml.render.backends import Backends
+from usdml.render.backends import QUERY_ROLES, Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
+from usdml.render.light_classes import LinkedShadows
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
@@ -122,6 +123,8 @@ class FrameRenderer:
         self.indirect = gi_integrator(self.backends, settings, device, delegate.path)
         if self.backends.refined is not None:
             self.direct.before_shading = self._choose_refinement
+        self.direct.linked = LinkedShadows(lambda: Backends(settings, device, backend_options, roles=QUERY_ROLES,
+                                                            unrefinable="ignore"))
         self._previous: Snapshot | None = None
         self._told_camera_light = False
 
@@ -134,10 +137,12 @@ class FrameRenderer:
             return snap.lights
         domes = [dome_to_distant_lights(d, self.settings.dome_samples, self.settings.seed, snap.meters_per_unit)
                  for d in snap.domes]
-        return Lights.concat([snap.lights] + domes)
+        lights = Lights.concat([snap.lights] + domes)
+        return lights if snap.links is None else snap.links.label(lights)
 
     def close(self) -> None:
         self.backends.close()
+        self.direct.linked.close()
 
     def estimates(self, lights: Lights) -> bool:
         """Whether a frame estimates its visibility error (:mod:`usdml.render.estimate`): approximate shadow
@@ -156,6 +161,7 @@ class FrameRenderer:
         stats.estimate = choose_level(self.backends.refined, surface.position, surface.normal, surface.geometric,
                                       frame.lights, self.settings.error_budget, self.settings.seed, frame.snap.time,
                                       self.delegate.path)
+        self.direct.linked.refine_like(self.backends.refined)
 
     def render(self, time: float, width: int, height: int, aovs: set[str],
                progress: Callable[[int], None] | None = None, snapshot: Snapshot | None = None) -> FrameResult:
@@ -167,6 +173,7 @@ class FrameRenderer:
         frame = FrameInputs(snap, lights, width, height)
         samples = self.settings.pixel_samples
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
+        self.direct.groups = any(is_light_group(a) for a in aovs)
         self.indirect.prepare(frame, stats)     # once for every pass of the frame
         self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
@@ -218,7 +225,10 @@ class FrameRenderer:
         stats.gi_update_seconds = seconds.get("gi")
         self._previous = snap
         camera = conform_camera(snap.camera, width, height)
-        return replace(snap, camera=camera), self.frame_lights(snap), camera
+        lights = self.frame_lights(snap)
+        if len(lights) and (lights.shadow_link >= 0).any():
+            stats.update_seconds += self.direct.linked.update(snap, lights)
+        return replace(snap, camera=camera), lights, camera
 
     def _light_by_camera(self, direct, surface: Surface, camera: Camera, time: float, stats: FrameStats) -> None:
         """usdrecord's camera light in place of ``direct``'s radiance (the frame has no lights)."""
@@ -274,6 +284,10 @@ class FrameRenderer:
             "primId": lambda: gb.prim_id,
             "instanceId": lambda: gb.instance_id,
         }
+        for name in aovs:
+            if is_light_group(name):
+                part = (direct.groups or {}).get(light_group(name))
+                table[name] = (lambda p=part: scatter(p, 3) if p is not None else np.zeros((h, w, 3), np.float32))
         unknown = sorted(set(aovs) - set(table))
         if unknown:
             raise UsdmlError(f"unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(table)}")

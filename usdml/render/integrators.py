@@ -27,6 +27,7 @@ from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer
+from usdml.render.light_classes import LightClass, LinkedShadows, light_classes, shade_classes
 from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.shading import lambert_rows
 from usdml.settings import UsdmlSettings
@@ -56,6 +57,16 @@ class Surface:
     geometric: np.ndarray       #: (P, 3) geometric normals
     material: np.ndarray | None = None   #: (P, WIDTH) BRDF rows (``kernels/brdf``), None: every point Lambertian
     emission: np.ndarray | None = None   #: (P, 3) emitted radiance, or None
+    prim_id: np.ndarray | None = None    #: (P,) the G-buffer's primId (light linking's geometry)
+    instance_id: np.ndarray | None = None   #: (P,) its instanceId
+
+    def restricted(self, sel: np.ndarray) -> "Surface":
+        """The surface of the points ``sel`` (a boolean mask over its points) only: the other pixels count as missed."""
+        hit = np.zeros_like(self.hit)
+        hit[np.flatnonzero(self.hit)[sel]] = True
+        return Surface(hit, *(None if getattr(self, f) is None else getattr(self, f)[sel]
+                              for f in ("position", "normal", "albedo", "geometric", "material", "emission",
+                                        "prim_id", "instance_id")))
 
     @classmethod
     def of(cls, gb: GBuffer) -> "Surface":
@@ -63,7 +74,8 @@ class Surface:
         material = None if gb.material is None else gb.material[hit]
         emission = None if gb.emission is None else gb.emission.reshape(-1, 3)[hit]
         return cls(hit, *(getattr(gb, name).reshape(-1, 3)[hit]
-                          for name in ("position", "normal", "albedo", "geometric")), material, emission)
+                          for name in ("position", "normal", "albedo", "geometric")), material, emission,
+                   gb.prim_id.ravel()[hit], gb.instance_id.ravel()[hit])
 
 
 def dome_columns(lights: Lights, domes: list) -> np.ndarray | None:
@@ -81,6 +93,9 @@ def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.n
     distant samples light the diffuse lobe and its specular lobes are sampled from the BRDF
     (:func:`usdml.lighting.dome_specular.dome_specular`)."""
     domes = frame.snap.domes if material is not None else []
+    if domes:       # the domes among the lights shaded (a class of a linked frame holds some only)
+        present = set(frame.lights.paths)
+        domes = [d for d in domes if d.path in present]
     mask = dome_columns(frame.lights, domes)
     direct = shade_with(backend, points, normals, albedo, frame.lights, progress,
                         meters_per_unit=frame.snap.meters_per_unit, geometric=geometric, material=material,
@@ -109,9 +124,41 @@ class EveryLight:
         #: called with ``(frame, surface, stats)`` on each frame's first pass before it is shaded (``--error-budget``
         #: chooses the frame's refinement there: usdml.render.budget)
         self.before_shading: Callable[[FrameInputs, "Surface", FrameStats], None] | None = None
+        #: split the direct light by light group (``lightgroup:`` AOVs asked for): set by the frame renderer
+        self.groups = False
+        #: the shadow backends of shadow-link sets (usdml.render.light_classes), made by the frame renderer
+        self.linked: LinkedShadows | None = None
+        self.classes: list[LightClass] = []
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
-        """Once per frame, before its passes."""
+        """Once per frame, before its passes: the frame's light classes (usdml.render.light_classes)."""
+        self.classes = light_classes(frame.lights, self.groups)
+
+    def by_class(self, frame: FrameInputs, prim_id: np.ndarray, instance_id: np.ndarray, progress: Progress,
+                 shade: Callable[..., DirectResult]) -> DirectResult:
+        """The direct light at points (``prim_id``, ``instance_id`` each) as :func:`usdml.render.light_classes.
+        shade_classes` sums it: ``shade(k, backends, frame of the class's lights, points, progress)`` for each
+        class ``k`` (its index in :attr:`classes`), with the backends of its shadow set; one call over every point
+        (``k`` None) when the frame is one plain class."""
+        if self.single():
+            return shade(None, self.backends, frame, slice(None), progress)
+        n, total = len(prim_id), len(frame.lights)
+        links = frame.snap.links
+
+        def members(link: int) -> np.ndarray:
+            return np.ones(n, bool) if links is None else links.members(link, prim_id, instance_id)
+
+        def one(k: int, sel: np.ndarray) -> DirectResult:
+            cls = self.classes[k]
+            share = None if progress is None else (lambda done, f=len(cls.index) / total: progress(done * f))
+            backends = self.backends if self.linked is None else self.linked.backends(cls.shadow_link, self.backends)
+            return shade(k, backends, replace(frame, lights=frame.lights.subset(cls.index)), sel, share)
+
+        return shade_classes(self.classes, n, members, one, self.groups)
+
+    def single(self) -> bool:
+        """Whether the frame is shaded in one call: no lights, or one plain class and no groups asked."""
+        return not self.classes or (len(self.classes) == 1 and self.classes[0].plain and not self.groups)
 
     def _before_shading(self, frame: FrameInputs, surface: "Surface", stats: FrameStats, first: bool) -> None:
         if first and self.before_shading is not None:
@@ -133,8 +180,12 @@ class EveryLight:
 
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
-        return shade_surface(self.backends.shadow, frame, surface.position, surface.normal, surface.albedo,
-                             surface.geometric, surface.material, self.settings.seed, progress)
+        s = surface
+
+        def shade(_, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
+            return shade_surface(backends.shadow, fr, s.position[sel], s.normal[sel], s.albedo[sel], s.geometric[sel],
+                                 None if s.material is None else s.material[sel], self.settings.seed, share)
+        return self.by_class(frame, s.prim_id, s.instance_id, progress, shade)
 
 
 class EveryLightFused(EveryLight):
@@ -153,15 +204,21 @@ class EveryLightFused(EveryLight):
         if any(s.material is not None for s in surfaces):
             material = np.concatenate([s.material if s.material is not None else lambert_rows(len(s.position))
                                        for s in surfaces])
-        direct = shade_surface(self.backends.shadow, frame, stacked("position"), stacked("normal"), stacked("albedo"),
-                               stacked("geometric"), material, self.settings.seed, progress)
+        points, normals, albedo, geometric = (stacked(name) for name in ("position", "normal", "albedo", "geometric"))
+
+        def shade(_, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
+            return shade_surface(backends.shadow, fr, points[sel], normals[sel], albedo[sel], geometric[sel],
+                                 None if material is None else material[sel], self.settings.seed, share)
+        direct = self.by_class(frame, stacked("prim_id"), stacked("instance_id"), progress, shade)
         stats.shading_seconds += _time.perf_counter() - t0
         lo = 0
         for i, (gb, surface) in enumerate(zip(gbs, surfaces)):
             hi = lo + len(surface.position)
             yield gb, surface, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
                                             direct.queries if i == 0 else 0,
-                                            None if direct.specular is None else direct.specular[lo:hi])
+                                            None if direct.specular is None else direct.specular[lo:hi],
+                                            None if direct.groups is None else
+                                            {k: v[lo:hi] for k, v in direct.groups.items()})
             lo = hi
 
 
@@ -170,19 +227,35 @@ class LghDirect(EveryLight):
 
     def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
         super().__init__(backends, settings, device, where)
-        self.field = None
+        self.fields: list = []                  # a hierarchy per light class (one for a plain frame)
         self.estimate = None                    # the frame's error estimate (usdml.render.lighting_estimate)
+        self._measured = 0                      # the class the estimate measures: the one with the most lights
+        self._part = None                       # (points, radiance) of that class in the pass being shaded
         self._told_no_grid = False
+
+    @property
+    def field(self):
+        """The hierarchy of a plain frame (its only class)."""
+        return self.fields[0] if self.fields else None
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
         from usdml.lighting.lgh.direct import prepare_direct
         from usdml.render.lighting_estimate import direct_estimator
 
-        self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
-        stats.direct_lgh = dict(self.field.stats)
-        self.estimate = direct_estimator(self.field, frame, self.backends.shadow, self.settings)
-        if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:
-            log.warning(f"{self.where}: --direct lgh: none of its {len(self.field.rest)} light(s) at time "
+        super().prepare(frame, stats)
+        parts = [frame.lights] if self.single() else [frame.lights.subset(c.index) for c in self.classes]
+        self.fields = [prepare_direct(lights, self.settings.lgh_levels, device=self.device) for lights in parts]
+        stats.direct_lgh = dict(self.fields[0].stats) if len(self.fields) == 1 else {"classes": len(self.fields)}
+        self._measured = int(np.argmax([len(p) for p in parts])) if parts else 0
+        shadow = self.backends.shadow
+        if not self.single() and self.linked is not None and self.classes:
+            shadow = self.linked.backends(self.classes[self._measured].shadow_link, self.backends).shadow
+        measured = self.fields[self._measured] if self.fields else None
+        self.estimate = direct_estimator(measured, replace(frame, lights=parts[self._measured]) if parts else frame,
+                                         shadow, self.settings)
+        rest = sum(len(f.rest) for f in self.fields)
+        if all(f.lgh is None for f in self.fields) and rest and not self._told_no_grid:
+            log.warning(f"{self.where}: --direct lgh: none of its {rest} light(s) at time "
                         f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
                         "cones or focus, shadows off, black or negative): all are shaded every-light, as --direct all")
             self._told_no_grid = True
@@ -191,7 +264,11 @@ class LghDirect(EveryLight):
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         for gb, surface, direct in super().passes(frame, passes, stats, progress):
             if self.estimate is not None:       # after the frame's last pass, its estimate
-                stats.estimate_direct = (self.estimate.add_surface(surface, direct.radiance, surface.material)
+                measured, radiance = surface, direct.radiance
+                if self._part is not None:      # a linked frame: the measured class on the points it reaches
+                    sel, radiance = self._part
+                    measured = surface.restricted(sel)
+                stats.estimate_direct = (self.estimate.add_surface(measured, radiance, measured.material)
                                          or stats.estimate_direct)
             yield gb, surface, direct
 
@@ -199,20 +276,36 @@ class LghDirect(EveryLight):
               progress: Progress) -> DirectResult:
         from usdml.lighting.lgh.direct import shade_lgh_direct
 
-        shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
+        mpu, sf = frame.snap.meters_per_unit, surface
+        self._part = None
 
-        def shade_rest(p, n, a, rest, geometric=None, material=None):
-            if material is None:
-                return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
-            # the every-light rest as --direct all shades it with material rows (a dome's specular sampled)
-            return shade_surface(shadow, replace(frame, lights=rest), p, n, a, geometric, material,
-                                 self.settings.seed, None)
+        def shade(k, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
+            shadow = backends.shadow
+            field = self.fields[0 if k is None else k]
 
-        direct, s = shade_lgh_direct(surface.position, surface.normal, surface.albedo, self.field, shadow.occluded,
-                                     shade_rest, self.settings, meters_per_unit=mpu, image=(gb.hit, gb.position),
-                                     geometric=surface.geometric, device=self.device, material=surface.material)
-        for k, v in s.items():
-            stats.direct_lgh[k] = stats.direct_lgh.get(k, 0) + v if isinstance(v, (int, float)) else v
+            def shade_rest(p, n, a, rest, geometric=None, material=None):
+                if material is None:
+                    return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+                # the every-light rest as --direct all shades it with material rows (a dome's specular sampled)
+                return shade_surface(shadow, replace(fr, lights=rest), p, n, a, geometric, material,
+                                     self.settings.seed, None)
+
+            hit = gb.hit
+            if k is not None:       # the class's points laid out in the image
+                hit = np.zeros(gb.hit.size, bool)
+                hit[np.flatnonzero(gb.hit.ravel())[sel]] = True
+                hit = hit.reshape(gb.hit.shape)
+            direct, s = shade_lgh_direct(sf.position[sel], sf.normal[sel], sf.albedo[sel], field, shadow.occluded,
+                                         shade_rest, self.settings, meters_per_unit=mpu, image=(hit, gb.position),
+                                         geometric=sf.geometric[sel], device=self.device,
+                                         material=None if sf.material is None else sf.material[sel])
+            for key, v in s.items():
+                stats.direct_lgh[key] = stats.direct_lgh.get(key, 0) + v if isinstance(v, (int, float)) else v
+            if k == self._measured and k is not None:
+                self._part = (sel, direct.radiance)
+            return direct
+
+        direct = self.by_class(frame, sf.prim_id, sf.instance_id, None, shade)
         if progress is not None:
             progress(int(surface.hit.sum()))
         return direct

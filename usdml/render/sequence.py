@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 from tqdm import tqdm
 
 from usdml.aov.exr import camera_matrices, exr_attribute, is_complete_exr, write_exr, write_png_preview
-from usdml.aov.names import AOVS, aov_for_render_var, data_type_matches, find_aov
+from usdml.aov.names import AOVS, EVERY_LIGHT_GROUP, LIGHT_GROUP, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, collect_warnings, log
 from usdml.outputs import make_output_folder
@@ -86,6 +86,10 @@ def plan_products(delegate: StageDelegate, job: RenderJob, frames: list[float]) 
     precision = frame_spec_precision(job.frames)
     if job.output:
         names = job.aovs or list(DEFAULT_AOVS)
+        if EVERY_LIGHT_GROUP in names:      # one lightgroup:NAME per group the stage's lights name
+            at = names.index(EVERY_LIGHT_GROUP)
+            groups = [LIGHT_GROUP + g for g in delegate.light_groups() if LIGHT_GROUP + g not in names]
+            names = names[:at] + groups + names[at + 1:]
         unknown = [n for n in names if find_aov(n) is None]
         if unknown:
             raise UsdmlError(f"--aovs: unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(AOVS)}")

@@ -142,6 +142,27 @@ class Lights:
     shadow: np.ndarray          #: (N,) bool casts shadows (ShadowAPI)
     paths: list[str]            #: (N,) source light prim path
     instance_ids: np.ndarray    #: (N,) int64 PointInstancer instance id, -1 when not instanced
+    #: (N,) int32 the light's ``collection:lightLink`` in the frame's :class:`usdml.scene.linking.LinkSets`,
+    #: -1: every prim (UsdLux's default); set from :attr:`paths` by :meth:`LinkSets.label`
+    light_link: np.ndarray | None = None
+    shadow_link: np.ndarray | None = None   #: (N,) int32 its ``collection:shadowLink`` likewise
+    group: list[str] | None = None          #: (N,) ``usdml:lightGroup``, "" for none
+    #: (N,) float32 ``inputs:diffuse`` and ``inputs:specular`` as factors of the stored radiance and intensity,
+    #: which carry ``emission · m`` with ``m = diffuse`` (``specular`` where diffuse is 0): (1, 1) for a light
+    #: whose two lobes are scaled alike
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
+
+    def __post_init__(self):
+        n = len(self.type)
+        for name in ("light_link", "shadow_link"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.full(n, -1, np.int32))
+        for name in ("diffuse", "specular"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.ones(n, np.float32))
+        if self.group is None:
+            self.group = [""] * n
 
     def __len__(self) -> int:
         return int(self.type.shape[0])
@@ -158,13 +179,15 @@ class Lights:
             "radius": ((), np.float64), "width": ((), np.float64), "height": ((), np.float64),
             "angle": ((), np.float64), "cone_angle": ((), np.float64), "cone_softness": ((), np.float64),
             "focus": ((), np.float64), "focus_tint": ((3,), np.float32), "shadow": ((), bool),
-            "instance_ids": ((), np.int64),
+            "instance_ids": ((), np.int64), "light_link": ((), np.int32), "shadow_link": ((), np.int32),
+            "diffuse": ((), np.float32), "specular": ((), np.float32),
         }
         kw = {}
         for name, (shape, dtype) in shapes.items():
             arrs = [getattr(p, name) for p in parts]
             kw[name] = (np.concatenate(arrs).astype(dtype) if arrs else np.zeros((0,) + shape, dtype))
         kw["paths"] = [s for p in parts for s in p.paths]
+        kw["group"] = [s for p in parts for s in p.group]
         return Lights(**kw)
 
     def subset(self, index: np.ndarray) -> "Lights":
@@ -297,6 +320,8 @@ class Snapshot:
     up_axis: str = "Y"
     #: dome lights, turned into distant lights per frame (:func:`usdml.lighting.dome.dome_to_distant_lights`)
     domes: list[Dome] = field(default_factory=list)
+    #: light and shadow linking and light groups (:class:`usdml.scene.linking.LinkSets`), None: none read
+    links: object | None = None
 
     @property
     def static_meshes(self) -> list[Mesh]:

@@ -23,10 +23,12 @@ from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
+from usdml.scene.linking import group_of
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.diagnostics import composition_message, read_by_usdml, usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
+from usdml.stage.linking import GROUP_ATTRIBUTE, LinkReader, group_name
 from usdml.stage.materials import MaterialResolver
 from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
@@ -189,6 +191,7 @@ class StageDelegate:
             self.cameras = find_cameras(self.stage)
             self._camera_request = camera
             self.skel = SkelResolver(self.warn)
+            self._links = LinkReader(self.stage, self.warn)
             self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
             self._mesh_ids: dict[str, int] = {}
             self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
@@ -257,6 +260,16 @@ class StageDelegate:
                     raise UsdmlError(f"{self.settings_prim.GetPath()}.camera: target {targets[0]} is not a Camera")
                 return prim
         return select_camera(self.stage, request, self.cameras)
+
+    def light_groups(self) -> list[str]:
+        """The light groups the stage's lights name (``usdml:lightGroup``, any time), sorted, with
+        :data:`usdml.scene.linking.DEFAULT_GROUP` when some light names none: what ``--aovs 'lightgroup:*'`` writes."""
+        groups = set()
+        for prim in Usd.PrimRange.Stage(self.stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
+            if prim.HasAPI(UsdLux.LightAPI):
+                value = prim.GetAttribute(GROUP_ATTRIBUTE).Get() if prim.HasAttribute(GROUP_ATTRIBUTE) else None
+                groups.add(group_of(group_name(value, str(prim.GetPath()), lambda _: None)))
+        return sorted(groups)
 
     def render_settings(self, time: float) -> RenderSettings | None:
         """The stage's RenderSettings at ``time`` as plain data (each product's ``productName`` resolved
@@ -357,6 +370,8 @@ class StageDelegate:
             mesh_paths=sorted(self._mesh_ids, key=self._mesh_ids.get), start_time=self.start_time,
             end_time=self.end_time, time_codes_per_second=self.time_codes_per_second,
             meters_per_unit=self.meters_per_unit, up_axis=self.up_axis)
+        snap.links = self._links.links(snap, snap.lights.paths + [d.path for d in snap.domes], t)
+        snap.lights = snap.links.label(snap.lights)
         cam_prim = self.camera_prim
         if cam_prim is not None:
             snap.camera = read_camera(cam_prim, t)

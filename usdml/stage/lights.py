@@ -12,7 +12,8 @@ Radiometry (UsdLux, README "Light units"):
 * distant lights: irradiance at normal incidence ``E = L · π · sin²(angle / 2)``, or with ``normalize``
   ``E = intensity · 2^exposure · color`` (lux); an unnormalized zero-angle distant light uses ``E = L``.
 
-``inputs:diffuse`` is folded into L because usdml shades Lambertian surfaces only. A negative
+``inputs:diffuse`` is folded into L (``inputs:specular`` where diffuse is 0), and each lobe's factor of it is
+the light's label (:func:`lobe_factors`, :attr:`usdml.scene.Lights.diffuse`). A negative
 ``inputs:intensity`` is a light that takes light away (UsdLux allows it; Karma renders it): its L, I and E
 are negative, every channel (colours stay >= 0), and the shading sums it like any other light
 (docs/usd.md, "Negative lights").
@@ -79,16 +80,31 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
     intensity = float(value("inputs:intensity", default_intensity))
     exposure = float(value("inputs:exposure", 0.0))
     color = value("inputs:color", (1.0, 1.0, 1.0))
-    diffuse = float(value("inputs:diffuse", 1.0))
     if (color < 0).any():
         raise UsdmlError(f"{path}.inputs:color: negative color {tuple(color)}; use components >= 0")
     if exposure > 64:
         raise UsdmlError(f"{path}.inputs:exposure: {exposure} stops overflows; use a smaller exposure")
-    radiance = intensity * 2.0 ** exposure * color * max(diffuse, 0.0)
+    radiance = intensity * 2.0 ** exposure * color * _lobe_scale(prim, time)[0]
     if bool(attribute_value(prim, "inputs:enableColorTemperature", time, False)):
         temp = float(value("inputs:colorTemperature", 6500.0))
         radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
     return np.asarray(radiance, np.float64)
+
+
+def _lobe_scale(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float, float]:
+    """``(m, diffuse / m, specular / m)``: the factor the stored radiance carries (``inputs:diffuse``, or
+    ``inputs:specular`` where diffuse is 0) and each lobe's factor of it (negative factors count as 0)."""
+    path = str(prim.GetPath())
+    diffuse = max(float(_finite(path, "inputs:diffuse", attribute_value(prim, "inputs:diffuse", time, 1.0))), 0.0)
+    specular = max(float(_finite(path, "inputs:specular", attribute_value(prim, "inputs:specular", time, 1.0))), 0.0)
+    m = diffuse if diffuse > 0 else specular
+    return (m, diffuse / m, specular / m) if m > 0 else (0.0, 1.0, 1.0)
+
+
+def lobe_factors(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float]:
+    """A light's ``(diffuse, specular)`` factors of its stored radiance (:attr:`usdml.scene.Lights.diffuse`)."""
+    _, diffuse, specular = _lobe_scale(prim, time)
+    return diffuse, specular
 
 
 def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) -> LightParams | None:

@@ -114,6 +114,8 @@ class DirectResult:
     #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf``) when shaded with material
     #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
     specular: np.ndarray | None = None
+    #: light group -> (P, 3) float32 the part of ``radiance`` its lights give (``lightgroup:`` AOVs), or None
+    groups: dict[str, np.ndarray] | None = None
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:
