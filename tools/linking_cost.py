@@ -3,12 +3,14 @@
 without it.
 
 The stage is :func:`linking_reference.instanced_stage`: ``--lights`` point lights instanced by a PointInstancer
-from two prototype lights whose collections differ (two light-link sets and a shadow-link set: the ``warm``
-prototype lights only the boxes of a PointInstancer and one box, the ``cool`` one everything but those boxes,
-shadowed by all but one box), over a ground and ``--boxes`` boxes, a third of them instanced by a second
-PointInstancer. The lights drift frame to frame, so frame 2 is a new frame: its lights and their link sets are
-read again. The frame without linking is the same stage written without the collections (same lights, same
-groups).
+from two prototype lights whose collections differ (two light-link sets and a shadow-link set) over a ground and
+``--boxes`` boxes, a third of them instanced by a second PointInstancer. ``--rules``: ``scene``, the accuracy
+stage's rules (``warm`` lights only the PointInstancer's boxes and one box, ``cool`` everything but those boxes,
+shadowed by all but one box: the linked lights reach fewer pixels, so the linked frame does less work), and
+``one box``, each prototype light unlinked from one box and ``cool`` unshadowed by a third (nearly the same pairs
+as without links: what the machinery itself costs). The lights drift frame to frame, so frame 2 is a new frame:
+its lights and their link sets are read again. The frame without linking is the same stage written without the
+collections (same lights, same groups).
 
 For each case (``lights:mode``; mode ``exact`` and ``voxel``: ``--direct all`` with that visibility; ``lgh``:
 ``--direct lgh``) both stages render frames 1 and 2 with one renderer, one ray per pixel, each timed (frame 2: a
@@ -71,13 +73,17 @@ def timed_frames(stage: str, mode: str, width: int) -> dict:
             "shading_seconds": st.shading_seconds, "resolution": [w, h]}
 
 
-def measure(lights: int, mode: str, width: int, repeat: int, seed: int, boxes: int, folder: Path) -> dict:
+def measure(lights: int, mode: str, width: int, repeat: int, seed: int, boxes: int, rules: str,
+            folder: Path) -> dict:
     from linking_reference import instanced_stage
 
-    stages = {linked: str(folder / f"cost_{lights}_{int(linked)}.usda") for linked in (False, True)}
+    tag = rules.replace(" ", "_")
+    stages = {linked: str(folder / f"cost_{lights}_{tag if linked else 'none'}_{seed}_{boxes}.usda")
+              for linked in (False, True)}
     for linked, path in stages.items():
         if not Path(path).exists():
-            instanced_stage(path, seed, lights, linked, boxes=boxes - boxes // 3, scattered=boxes // 3, frames=2)
+            instanced_stage(path, seed, lights, linked, boxes=boxes - boxes // 3, scattered=boxes // 3, frames=2,
+                            rules=rules)
     pairs = []
     for _ in range(max(1, repeat)):
         without = timed_frames(stages[False], mode, width)
@@ -87,8 +93,8 @@ def measure(lights: int, mode: str, width: int, repeat: int, seed: int, boxes: i
 
     def best(key):
         return min(p["with"][key] for p in pairs) / min(p["without"][key] for p in pairs)
-    return {"lights": lights, "mode": mode, "resolution": pairs[0]["with"]["resolution"], "pairs": pairs,
-            "median_ratio": statistics.median(p["ratio"] for p in pairs), "best_ratio": best("seconds"),
+    return {"lights": lights, "mode": mode, "rules": rules, "resolution": pairs[0]["with"]["resolution"],
+            "pairs": pairs, "median_ratio": statistics.median(p["ratio"] for p in pairs), "best_ratio": best("seconds"),
             "first_median_ratio": statistics.median(p["first_ratio"] for p in pairs),
             "first_best_ratio": best("first_seconds"), "target": TARGETS.get(lights)}
 
@@ -100,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imageWidth", type=int, default=128, help="frame width in pixels (default: %(default)s)")
     p.add_argument("--repeat", type=int, default=3, help="interleaved pairs per case (default: %(default)s)")
     p.add_argument("--boxes", type=int, default=24, help="boxes on the stage (default: %(default)s)")
+    p.add_argument("--rules", default="scene,one box", help="the stage's link rules, comma-separated "
+                   "(linking_reference.INSTANCED_RULES; default: %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="stage seed (odd: reporting; default: %(default)s)")
     p.add_argument("--out", help="folder for the stages (default: a temporary one)")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
@@ -112,16 +120,17 @@ def main(argv: list[str] | None = None) -> int:
         folder = Path(args.out or tmp)
         folder.mkdir(parents=True, exist_ok=True)
         for case in args.cases.split(","):
-            lights, mode = case.split(":")
-            row = measure(int(lights), mode, args.imageWidth, args.repeat, args.seed, args.boxes, folder)
-            rows.append(row)
-            if not args.json:
-                w, h = row["resolution"]
-                each = ", ".join(f"{q['without']['seconds']:.2f}/{q['with']['seconds']:.2f} s" for q in row["pairs"])
-                target = f" (target {row['target']}x)" if row["target"] else ""
-                print(f"{int(lights):>7d} lights {mode:5s} {w}x{h}: frame 2 without/with {each}; median ratio "
-                      f"{row['median_ratio']:.3f}x, best {row['best_ratio']:.3f}x{target}; frame 1: median "
-                      f"{row['first_median_ratio']:.3f}x, best {row['first_best_ratio']:.3f}x", flush=True)
+            for rules in args.rules.split(","):
+                lights, mode = case.split(":")
+                row = measure(int(lights), mode, args.imageWidth, args.repeat, args.seed, args.boxes, rules, folder)
+                rows.append(row)
+                if not args.json:
+                    w, h = row["resolution"]
+                    each = ", ".join(f"{q['without']['seconds']:.2f}/{q['with']['seconds']:.2f}" for q in row["pairs"])
+                    target = f" (target {row['target']}x)" if row["target"] else ""
+                    print(f"{int(lights):>7d} lights {mode:5s} {rules!r:9s} {w}x{h}: frame 2 without/with {each} s; "
+                          f"median ratio {row['median_ratio']:.3f}x, best {row['best_ratio']:.3f}x{target}; frame 1: "
+                          f"median {row['first_median_ratio']:.3f}x, best {row['first_best_ratio']:.3f}x", flush=True)
     if args.json:
         print(json.dumps({"argv": sys.argv[1:] if argv is None else argv, "seed": args.seed, "boxes": args.boxes,
                           "image_width": args.imageWidth,

@@ -211,16 +211,28 @@ def four_light_stage(path, seed: int, linked: bool = True) -> str:
     return str(path)
 
 
+#: :func:`instanced_stage`'s rules: prototype light -> collection -> link() arguments
+INSTANCED_RULES = {
+    "scene": {"warm": {"lightLink": {"includes": ["/World/scatter", "/World/boxes/b0"], "include_root": False}},
+              "cool": {"lightLink": {"excludes": ["/World/scatter/protos/crate"]},
+                       "shadowLink": {"excludes": ["/World/boxes/b1"]}}},
+    "one box": {"warm": {"lightLink": {"excludes": ["/World/boxes/b0"]}},
+                "cool": {"lightLink": {"excludes": ["/World/boxes/b1"]},
+                         "shadowLink": {"excludes": ["/World/boxes/b2"]}}},
+}
+
+
 def instanced_stage(path, seed: int, lights: int = 1000, linked: bool = True, boxes: int = 4,
-                    scattered: int = 8, frames: int = 1) -> str:
+                    scattered: int = 8, frames: int = 1, rules: str = "scene") -> str:
     """``lights`` point lights instanced by the PointInstancer </World/lights> from two prototype lights
     </World/lights/protos/warm> and </World/lights/protos/cool> (groups ``warm`` and ``cool``), over a ground,
     ``boxes`` boxes </World/boxes/b*> and ``scattered`` boxes instanced by the PointInstancer </World/scatter>
-    (prototype </World/scatter/protos/crate>). The two prototypes link differently:
+    (prototype </World/scatter/protos/crate>). The two prototypes link differently (:data:`INSTANCED_RULES`):
 
-    * ``warm``: lightLink includeRoot false, includes </World/scatter> and </World/boxes/b0>;
-    * ``cool``: lightLink excludes the prototype </World/scatter/protos/crate>; shadowLink excludes
-      </World/boxes/b1>.
+    * ``scene``: ``warm``'s lightLink includeRoot false, includes </World/scatter> and </World/boxes/b0>;
+      ``cool``'s lightLink excludes the prototype </World/scatter/protos/crate>, its shadowLink </World/boxes/b1>;
+    * ``one box`` (a frame with nearly the same pairs as without links, for the machinery's cost): each prototype
+      light's lightLink excludes one box, ``cool``'s shadowLink a third one.
 
     The total intensity is the same for any ``lights`` (each light 1/``lights`` of it). ``frames`` > 1: the
     lights drift (up to 0.2 a frame) over frames 1..``frames`` (a sequence whose every frame is new).
@@ -257,9 +269,9 @@ def instanced_stage(path, seed: int, lights: int = 1000, linked: bool = True, bo
         positions.Set(Vt.Vec3fArray.FromNumpy((pos + f * drift).astype(np.float32)), 1 + f)
     stage.SetEndTimeCode(frames)
     if linked:
-        link(warm.GetPrim(), "lightLink", includes=["/World/scatter", "/World/boxes/b0"], include_root=False)
-        link(cool.GetPrim(), "lightLink", excludes=["/World/scatter/protos/crate"])
-        link(cool.GetPrim(), "shadowLink", excludes=["/World/boxes/b1"])
+        for proto in (warm, cool):
+            for which, kwargs in INSTANCED_RULES[rules][proto.GetPrim().GetName()].items():
+                link(proto.GetPrim(), which, **kwargs)
     _camera(stage, eye=(0.0, 1.6 * reach + 1.0, 2.0 * reach + 1.0))
     stage.Save()
     return str(path)
