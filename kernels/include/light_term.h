@@ -14,6 +14,8 @@ typedef struct {
     const float *pos, *axis, *cylinder_axis, *cone, *base, *focus_rgb;  /* 3 floats per light */
     const int32_t *flags;
     float inv_m2, min_d2;
+    const float *target;    /* 3 floats per light: where its shadow rays end (NULL: pos; a mesh light's triangle:
+                             * off its surface, usdml/visibility/emitter_ends.py) */
 } VQLights;
 
 enum { DISTANT = 1, ONE_SIDED = 2, SHAPED = 4, FOCUSED = 8, CASTS_SHADOWS = 16, CYLINDER = 32 };
@@ -59,7 +61,8 @@ static inline int light_term(const VQLights *L, int l, const float *p, const flo
     if (g <= 0.0f) return 0;
     const float *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
     for (int k = 0; k < 3; k++) rgb[k] = bs[k] * g + fc[k] * (g * f);
-    for (int k = 0; k < 3; k++) tgt[k] = dist ? dv[k] : lp[k];
+    const float *tp = L->target ? L->target + 3 * (size_t)l : lp;
+    for (int k = 0; k < 3; k++) tgt[k] = dist ? dv[k] : tp[k];
     return (flags & CASTS_SHADOWS) ? 2 : 1;
 }
 

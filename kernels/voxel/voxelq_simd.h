@@ -525,6 +525,7 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
             int flags = L->flags[l], dist = flags & DISTANT;
             const float *lp = L->pos + 3 * (size_t)l, *ax = L->axis + 3 * (size_t)l, *cy = L->cylinder_axis + 3 * (size_t)l;
             const float *cone = L->cone + 3 * (size_t)l, *bs = L->base + 3 * (size_t)l, *fc = L->focus_rgb + 3 * (size_t)l;
+            const float *tp = L->target ? L->target + 3 * (size_t)l : lp;     /* the shadow ray's end */
             for (int j0 = 0; j0 < m; j0 += W) {
                 M live = IGT(ISET(m - j0), IOTA);
                 V p[3], n[3], g[3], dv[3];
@@ -594,7 +595,7 @@ TARGET VQ_INLINE void SUFFIX(shade_tiles)(const VQScene *s, const VQRule *r, con
                 int c = 0;
                 for (int k = 0; k < 3; k++) {
                     c = COMPRESS_F(sbuf[k] + nb, ok, p[k]);
-                    COMPRESS_F(sbuf[3 + k] + nb, ok, SET(dist ? -ax[k] : lp[k]));
+                    COMPRESS_F(sbuf[3 + k] + nb, ok, SET(dist ? -ax[k] : tp[k]));
                     COMPRESS_F(sbuf[6 + k] + nb, ok, g[k]);
                     COMPRESS_F(srgb[k] + nb, ok, rgb[k]);
                     if (mat) COMPRESS_F(srgb[3 + k] + nb, ok, spec[k]);

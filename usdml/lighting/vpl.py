@@ -235,7 +235,7 @@ def _emitters(snapshot: Snapshot, lights: Lights) -> _Emitters:
     n = len(lights)
     t = np.asarray(lights.type)
     kind = np.where(t == LightType.DISTANT, _KIND_DISTANT,
-                    np.where((t == LightType.DISK) | (t == LightType.RECT), _KIND_COS,
+                    np.where(np.isin(t, (LightType.DISK, LightType.RECT, LightType.TRIANGLE)), _KIND_COS,
                              np.where(t == LightType.CYLINDER, _KIND_CYL, _KIND_ISO)))
     cone = np.asarray(lights.cone_angle, np.float64)
     softness = np.asarray(lights.cone_softness, np.float64)

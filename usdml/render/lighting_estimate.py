@@ -164,12 +164,13 @@ class Emitters:
     @classmethod
     def of_lights(cls, lights: Lights, meters_per_unit: float = 1.0, min_distance: float = 0.0) -> "Emitters":
         """``--direct lgh``'s grid lights (:func:`usdml.lighting.lgh.direct.grid_mask`: points, spheres, disks,
-        rects without shaping or focus)."""
+        rects, mesh lights' triangles without shaping or focus)."""
         kind = np.asarray(lights.type)
         if (np.isin(kind, (LightType.DISTANT, LightType.CYLINDER)).any() or (lights.cone_angle < 180.0).any()
                 or (lights.focus > 0).any()):
             raise ValueError("Emitters: point-like lights without shaping only")
-        return cls(lights.position, lights.intensity, lights.axis, np.isin(kind, (LightType.DISK, LightType.RECT)),
+        return cls(lights.position, lights.intensity, lights.axis,
+                   np.isin(kind, (LightType.DISK, LightType.RECT, LightType.TRIANGLE)),
                    1.0 / meters_per_unit ** 2, max(min_distance, 1e-12) ** 2)
 
     @classmethod

@@ -59,6 +59,9 @@ class Mesh:
     #: the faces' bound surfaces (:class:`usdml.scene.shading.MeshShading`: every UsdPreviewSurface input, images
     #: sampled again at each hit), or None: Lambertian ``albedo`` (displayColor), Storm's fallback surface
     shading: object | None = None
+    #: the ``MeshLightAPI`` applied to it (:class:`usdml.scene.mesh_light.MeshLight`: its triangles are lights,
+    #: :func:`usdml.scene.mesh_light.triangle_lights`), or None
+    light: object | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -110,6 +113,7 @@ class LightType(IntEnum):
     RECT = 3
     DISTANT = 4
     CYLINDER = 5  #: emits from its side, around its axis (the light's X)
+    TRIANGLE = 6  #: one triangle of a MeshLightAPI mesh: xform columns edge1, edge2, unit normal, vertex 0
 
 
 @dataclass(eq=False)
@@ -119,10 +123,10 @@ class Lights:
     Radiometry (UsdLux): ``radiance`` L = intensity · 2^exposure · color (· blackbody) (· diffuse),
     divided by the world-space emitting area in m² when ``normalize`` is on. ``intensity`` is what a
     point-like evaluation needs: radiant intensity along the axis in nit·m² (sphere/point: L·π·r²,
-    disk: L·π·r², rect: L·w·h, lengths in metres), to be divided by the squared distance in metres;
-    for cylinders the intensity perpendicular to their axis, L·2r·length (the side's projected area);
-    or, for distant lights, the irradiance at normal incidence. Both are negative for a light of negative
-    intensity (:meth:`negative`).
+    disk: L·π·r², rect: L·w·h, a mesh light's triangle: L·area, lengths in metres), to be divided by the
+    squared distance in metres; for cylinders the intensity perpendicular to their axis, L·2r·length (the side's
+    projected area); or, for distant lights, the irradiance at normal incidence. Both are negative for a light
+    of negative intensity (:meth:`negative`).
     """
 
     type: np.ndarray            #: (N,) int8 :class:`LightType`

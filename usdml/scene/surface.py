@@ -5,7 +5,7 @@ is the render index's side: which mesh each hit belongs to and its attributes th
 normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose
 of their instance transform), the albedo (textures sampled at the hit, not per corner) and, where a mesh has
 bound surfaces (``Mesh.shading``), each hit's BRDF row (``kernels/brdf``, seen from the ray's origin) and
-emission. Used by the
+emission, plus the radiance of an emitting mesh (``Mesh.light``) toward the ray. Used by the
 G-buffer (:mod:`usdml.render.gbuffer`) and by VPL light paths (:mod:`usdml.lighting.vpl`).
 """
 
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdml.scene import Snapshot
+from usdml.scene.mesh_light import emitted_at_hits
 from usdml.scene.shading import lambert_rows
 
 __all__ = ["Hits", "surface_at_hits", "tangent_space_normal"]
@@ -35,7 +36,8 @@ class Hits:
     #: (N, WIDTH) float32 BRDF rows (``kernels/brdf``; Lambertian rows where a mesh has no surface), or None when
     #: no hit mesh has one (every hit Lambertian); ``albedo`` is then the diffuse reflectance times occlusion
     material: np.ndarray | None = None
-    emission: np.ndarray | None = None     #: (N, 3) float32 emitted radiance (emissiveColor), or None
+    #: (N, 3) float32 emitted radiance (emissiveColor, a mesh light's L on its front), or None
+    emission: np.ndarray | None = None
 
 
 def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.ndarray,
@@ -73,12 +75,15 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
         if to_world is not None:
             nrm = nrm @ np.linalg.inv(to_world)      # inverse transpose, row vectors
         normal[px] = nrm
+        if emission is None and (mesh.shading is not None or mesh.light is not None):
+            emission = np.zeros((n, 3), np.float32)
+        if mesh.light is not None:
+            emission[px] = emitted_at_hits(mesh, tri, dirs[px], to_world, snapshot.meters_per_unit)
         if mesh.shading is None:
             albedo[px] = _blend(mesh.albedo[tri], w)
             continue
         if material is None:
             material = lambert_rows(n, -dirs)
-            emission = np.zeros((n, 3), np.float32)
         eye = -np.asarray(dirs[px], np.float64)
         lambert = _blend(mesh.albedo[tri], w) if mesh.shading.lambert is not None else None
         at = mesh.shading.at(tri, w, eye, lambert)
@@ -89,7 +94,7 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
                                                  at.normal[k], to_world)
         albedo[px] = at.reflectance
         material[px] = at.rows
-        emission[px] = at.emission
+        emission[px] += at.emission
     return Hits(hit=hit, position=position, normal=_unit(normal), geometric=_unit(r["ng"].astype(np.float64)),
                 albedo=albedo, geom=r["geom"], t=r["t"], material=material, emission=emission)
 

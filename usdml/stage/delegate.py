@@ -24,6 +24,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.scene.linking import group_of
+from usdml.scene.mesh_light import triangle_lights
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.diagnostics import composition_message, read_by_usdml, usd_diagnostics
 from usdml.stage.dome import is_dome, read_dome
@@ -31,6 +32,7 @@ from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.linking import GROUP_ATTRIBUTE, LinkReader, group_name
 from usdml.stage.materials import MaterialResolver
 from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
+from usdml.stage.mesh_light import light_varies
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
 
@@ -360,6 +362,7 @@ class StageDelegate:
                 target.add(composed, np.arange(len(composed)), proto_path,
                            inst.animated or nested.animated or deforming)
 
+        light_parts += self._mesh_lights(meshes, prototypes)
         for p in prototypes:
             if not np.isfinite(p.xforms).all():
                 raise UsdmlError(f"{p.instancers[0]}: non-finite (NaN/inf) instance transform; fix its "
@@ -446,6 +449,43 @@ class StageDelegate:
                 meshes.append(mesh)
         return meshes, deforming
 
+    def _mesh_lights(self, meshes: list[Mesh], prototypes: list[Prototype]) -> list[Lights]:
+        """The TRIANGLE lights of every emitting mesh (``MeshLightAPI``), those of a prototype once per instance;
+        a mesh light with no area is one warning (it emits nothing, the frame renders)."""
+        placed = [(m, None, None) for m in meshes] + [
+            (m, p.xforms, None if p.kind == "rigid" else p.instance_ids) for p in prototypes for m in p.meshes]
+        parts = []
+        for mesh, xforms, ids in placed:
+            if mesh.light is None:
+                continue
+            lights = triangle_lights(mesh, xforms, ids, self.meters_per_unit)
+            if not len(lights) and (xforms is None or len(xforms)):
+                self.warn(f"{mesh.path}: mesh light with no area (every face is degenerate) emits nothing; "
+                          "fix its points or remove its MeshLightAPI")
+            parts.append(lights)
+        return parts
+
+    def _count_unsupported(self, kind: str, message: str) -> None:
+        """One more ``kind`` usdml does not render (``usdml info``'s ``unsupported``), said in ``message``."""
+        self.unsupported[kind] = self.unsupported.get(kind, 0) + 1
+        self.warn(message)
+
+    def _unsupported_lux(self, prim: Usd.Prim) -> None:
+        """UsdLux inputs usdml does not render on ``prim``, each counted and said naming the prim: VolumeLightAPI,
+        a LightFilter, a light's ``light:filters``."""
+        path = prim.GetPath()
+        if prim.HasAPI(UsdLux.VolumeLightAPI):
+            self._count_unsupported("VolumeLightAPI", f"{path}: VolumeLightAPI is not supported; the volume "
+                                    "emits no light")
+        if prim.IsA(UsdLux.LightFilter):
+            self._count_unsupported("LightFilter", f"{path}: LightFilter prims are not applied; this filter is "
+                                    "ignored")
+        if prim.HasAPI(UsdLux.LightAPI):
+            targets = UsdLux.LightAPI(prim).GetFiltersRel().GetForwardedTargets()
+            if targets:
+                self._count_unsupported("light:filters", f"{path}.light:filters: light filters are not applied "
+                                        f"({len(targets)} target(s)); the light renders unfiltered")
+
     @staticmethod
     def _kind(root: Usd.Prim) -> str:
         return "native" if root.IsPrototype() else "pointInstancer"
@@ -453,7 +493,7 @@ class StageDelegate:
     def _cached_mesh(self, prim: Usd.Prim, t: Usd.TimeCode, rel: np.ndarray | None, space: str) -> Mesh | None:
         """Read a mesh whose topology and points do not vary; reuse it when its placement is unchanged."""
         mesh_attrs_vary = any(prim.GetAttribute(a).ValueMightBeTimeVarying()
-                              for a in _MESH_ATTRS if prim.HasAttribute(a))
+                              for a in _MESH_ATTRS if prim.HasAttribute(a)) or light_varies(prim)
         key = (str(prim.GetPath()), space)
         cached = self._mesh_cache.get(key)
         if cached is not None and not mesh_attrs_vary and np.array_equal(cached[1], np.eye(4) if rel is None else rel):
@@ -528,6 +568,7 @@ class StageDelegate:
                 self._point_instancer(prim, root, t, xf, anim, content)
                 it.PruneChildren()
                 continue
+            self._unsupported_lux(prim)
             if is_gprim(prim):
                 content.meshes.append((prim, self._relative(prim, root, xf), anim))
             elif prim.IsA(UsdGeom.Gprim) or prim.GetTypeName() in UNSUPPORTED:
@@ -546,7 +587,10 @@ class StageDelegate:
                     self.warn(f"{ppath}: dome lights inside instance prototypes are ignored")
             elif prim.HasAPI(UsdLux.LightAPI):
                 params = read_light(prim, t, self.warn)
-                if params is not None:
+                if params is None:      # said by read_light
+                    kind = prim.GetTypeName() or "LightAPI"
+                    self.unsupported[kind] = self.unsupported.get(kind, 0) + 1
+                else:
                     content.lights.append((params, self._relative(prim, root, xf)))
         return content
 

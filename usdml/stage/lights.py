@@ -66,8 +66,9 @@ def _finite(path: str, name: str, value, what: str = "") -> float | np.ndarray:
     return a
 
 
-def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0) -> np.ndarray:
-    """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) · diffuse, (3,).
+def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: float = 1.0,
+                     with_diffuse: bool = True) -> np.ndarray:
+    """UsdLux radiance before ``normalize``: intensity · 2^exposure · color (· blackbody) (· diffuse), (3,).
 
     Negative where ``inputs:intensity`` is (a light that takes light away). Raises :class:`UsdmlError`
     naming the attribute for NaN/inf, a negative colour, or an exposure that overflows.
@@ -84,14 +85,14 @@ def emitted_radiance(prim: Usd.Prim, time: Usd.TimeCode, default_intensity: floa
         raise UsdmlError(f"{path}.inputs:color: negative color {tuple(color)}; use components >= 0")
     if exposure > 64:
         raise UsdmlError(f"{path}.inputs:exposure: {exposure} stops overflows; use a smaller exposure")
-    radiance = intensity * 2.0 ** exposure * color * _lobe_scale(prim, time)[0]
+    radiance = intensity * 2.0 ** exposure * color * (lobe_scale(prim, time)[0] if with_diffuse else 1.0)
     if bool(attribute_value(prim, "inputs:enableColorTemperature", time, False)):
         temp = float(value("inputs:colorTemperature", 6500.0))
         radiance = radiance * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), np.float64)
     return np.asarray(radiance, np.float64)
 
 
-def _lobe_scale(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float, float]:
+def lobe_scale(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float, float]:
     """``(m, diffuse / m, specular / m)``: the factor the stored radiance carries (``inputs:diffuse``, or
     ``inputs:specular`` where diffuse is 0) and each lobe's factor of it (negative factors count as 0)."""
     path = str(prim.GetPath())
@@ -103,7 +104,7 @@ def _lobe_scale(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float, float
 
 def lobe_factors(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float]:
     """A light's ``(diffuse, specular)`` factors of its stored radiance (:attr:`usdml.scene.Lights.diffuse`)."""
-    _, diffuse, specular = _lobe_scale(prim, time)
+    _, diffuse, specular = lobe_scale(prim, time)
     return diffuse, specular
 
 

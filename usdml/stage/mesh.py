@@ -21,6 +21,7 @@ from pxr import Usd, UsdGeom
 from usdml.errors import UsdmlError
 from usdml.scene import Mesh
 from usdml.stage.implicit import IMPLICIT_TYPES, tessellate
+from usdml.stage.mesh_light import read_mesh_light
 
 #: segments around an implicit surface's axis: usdImaging's (its sphere and cylinder adapters use 10)
 DEFAULT_IMPLICIT_DETAIL = 10
@@ -218,7 +219,8 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
     ``normals`` is ``(values, interpolation)`` or None to compute them: per-triangle geometric
     normals when ``faceted``, else area-weighted smooth ones. ``materials`` (a
     :class:`usdml.stage.materials.MaterialResolver`) gives the faces' bound surfaces (``Mesh.shading``) and their
-    diffuse reflectance as the albedo; faces with none take ``primvars:displayColor``.
+    diffuse reflectance as the albedo; faces with none take ``primvars:displayColor``. A ``MeshLightAPI`` on
+    ``prim`` is read into ``Mesh.light``.
     """
     path = str(prim.GetPath())
     if len(points) == 0:
@@ -278,4 +280,5 @@ def build_mesh(prim: Usd.Prim, time: Usd.TimeCode, mesh_id: int, points: np.ndar
         path=path, id=mesh_id, points=np.ascontiguousarray(world, np.float32), triangles=tris,
         normals=np.ascontiguousarray(corner_normals, np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
         face_index=topo.face.astype(np.int32), double_sided=double_sided,
-        orientation="leftHanded" if left else "rightHanded", deforming=deforming, shading=shading)
+        orientation="leftHanded" if left else "rightHanded", deforming=deforming, shading=shading,
+        light=read_mesh_light(prim, time, warn))

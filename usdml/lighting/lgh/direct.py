@@ -8,8 +8,8 @@ one LGH, two light sources. Per frame:
 1. **Split** (:func:`grid_mask`). Lights the grid represents faithfully become grid lights:
 
    * sphere and point lights, isotropic: radiant intensity ``I`` in every direction;
-   * disk and rect lights, one-sided cosine emitters ``I · max(0, cos θ_l)`` about their axis: an
-     isotropic-equivalent intensity ``I / 4`` with the axis as emission normal, the LGH's cosine lobe
+   * disk and rect lights and mesh lights' triangles, one-sided cosine emitters ``I · max(0, cos θ_l)`` about
+     their axis: an isotropic-equivalent intensity ``I / 4`` with the axis as emission normal, the LGH's cosine lobe
      (:func:`usdml.kernels.lgh.shading.lobe_factor`: ``4 · max(0, cos)``), which is exact for one
      light and for grid lights over lights that face the same way, and tends to isotropic where they
      do not; mixed with isotropic lights the lobe is exact too (the factor is linear in the mean normal).
@@ -125,7 +125,7 @@ def clamp_distance(direct: "DirectField") -> float:
 def grid_mask(lights: Lights) -> np.ndarray:
     """``(N,) bool``: the lights a grid light represents faithfully (see the module doc)."""
     t = np.asarray(lights.type)
-    kind = np.isin(t, (LightType.POINT, LightType.SPHERE, LightType.DISK, LightType.RECT))
+    kind = np.isin(t, (LightType.POINT, LightType.SPHERE, LightType.DISK, LightType.RECT, LightType.TRIANGLE))
     plain = (np.asarray(lights.cone_angle) >= 180.0) & (np.asarray(lights.focus) <= 0.0)
     lum = np.asarray(lights.intensity, np.float64).reshape(-1, 3) @ LUMA
     return kind & plain & np.asarray(lights.shadow, bool) & (lum > 0.0)
@@ -133,8 +133,8 @@ def grid_mask(lights: Lights) -> np.ndarray:
 
 def grid_sources(lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(positions (N, 3), isotropic-equivalent intensities (N, 3), emission normals (N, 3) or None)``
-    of grid lights: ``I`` for isotropic lights, ``I / 4`` about the axis for disk and rect lights."""
-    one_sided = np.isin(np.asarray(lights.type), (LightType.DISK, LightType.RECT))
+    of grid lights: ``I`` for isotropic lights, ``I / 4`` about the axis for disk, rect and triangle lights."""
+    one_sided = np.isin(np.asarray(lights.type), (LightType.DISK, LightType.RECT, LightType.TRIANGLE))
     intensity = np.asarray(lights.intensity, np.float32).reshape(-1, 3).copy()
     if not one_sided.any():
         return np.asarray(lights.position, np.float64), intensity, None

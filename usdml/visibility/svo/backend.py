@@ -48,6 +48,7 @@ from usdml.scene import Changes, Snapshot, world_geometry
 from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, REFINE, STATS, VisibilityBackend, as_flags,
                                    as_vectors, baked_entry, baked_line, members_changed, scene_sphere, settings_with,
                                    static_members)
+from usdml.visibility.emitter_ends import EmitterEnds
 from usdml.visibility.svo.tree import (SvoTree, aligned_grid, cached_tree, cube_grid,
                                        svo_bounds, svo_kernels, top_level, top_table, tree_from_masks,
                                        voxelize_bricks)
@@ -150,6 +151,7 @@ class SvoBackend(VisibilityBackend):
         self._frame: tuple | None = None
         self._gpu: dict = {}
         self._native = None
+        self._ends: EmitterEnds | None = None     # the snapshot's triangle lights (usdml.visibility.emitter_ends)
         self.depth = 0
         self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "trees": 0,
                             "dynamic_rebuilds": 0, "dynamic_seconds": 0.0}
@@ -313,6 +315,7 @@ class SvoBackend(VisibilityBackend):
         """Build the static tree when its geometry changed (else keep it, or load it from the cache) and
         the per-frame tree when one of its meshes or instances changed."""
         static, frame = tree_members(snapshot)
+        self._ends = EmitterEnds.of(snapshot.lights)
         self.built = []
         if not self.depth:
             # a power of two from 16 to 2048 (the parameter table's choices, checked in __init__)
@@ -440,12 +443,16 @@ class SvoBackend(VisibilityBackend):
         run_bands(n, launch, self.workers, bands_per_worker, first_on_caller=self._native is None)
 
     def hit_distances(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
-        """Distance in voxels (of the tree hit) from each ray's offset start to its first occupied voxel; -1: free."""
+        """Distance in voxels (of the tree hit) from each ray's offset start to its first occupied voxel; -1: free.
+        A target on a mesh light's triangle ends ``normal_offset`` voxels off its surface
+        (:mod:`usdml.visibility.emitter_ends`)."""
         if not self._gpu:
             raise RuntimeError("SvoBackend.update() must be called before queries")
         origins = as_vectors(origins, "origins", dtype=None)
         n = origins.shape[0]
         targets = as_vectors(targets, "targets", n, dtype=None)
+        if self._ends is not None:
+            targets = self._ends.lift(targets, distant, self.normal_offset * self.reference_voxel)
         if n == 0 or self._gpu["n_trees"] == 0:
             return np.full(n, -1.0, np.float32)
         if self._native is not None:
@@ -494,6 +501,8 @@ class SvoBackend(VisibilityBackend):
         from usdml.visibility.voxel.backend import widened
 
         h = self.reference_voxel
+        if self._ends is not None:      # the centre ray's end as occluded's (thick_ray's other rays are offset)
+            targets = self._ends.lift(targets, distant, self.normal_offset * h)
         return widened(lambda width: thick_ray(self.occluded, origins, targets, normals, distant, width * h), level)
 
     def blind_reach(self, level: int) -> float:

@@ -48,12 +48,13 @@ import numpy as np
 from usdml.cache import Cache
 from usdml.errors import UsdmlError
 from usdml.parallel import cpu_workers, run_bands
-from usdml.scene import Changes, Lights, Snapshot, world_geometry
+from usdml.scene import Changes, Lights, LightType, Snapshot, world_geometry
 from usdml.scene.light_table import LightTable
 from usdml.settings import VOXEL_REBUILDS
 from usdml.visibility.base import (BAKE, HIT_DISTANCES, MEMORY_ESTIMATE, REFINE, SHADE_DIRECT, STATS, DirectResult,
                                    VisibilityBackend, as_flags, as_vectors, baked_entry, baked_line, members_changed,
                                    scene_sphere, settings_with)
+from usdml.visibility.emitter_ends import EmitterEnds
 from usdml.visibility.voxel.array import (CORE, VoxelArray, array_cost, available_memory, build_array, cached_array,
                                           normalizing_transform, voxel_kernels, warp_module)
 from usdml.visibility.voxel.budget import array_roles, memory_estimate, memory_line
@@ -202,6 +203,7 @@ class VoxelBackend(VisibilityBackend):
         self._deforming: _Group | None = None
         self._protos: dict[str, VoxelArray] = {}      # prototype geometry hash -> array
         self._gpu: dict = {}
+        self._ends: EmitterEnds | None = None     # the snapshot's triangle lights (usdml.visibility.emitter_ends)
         self._scene = None
         self.stats: dict = {"builds": 0, "loaded": 0, "build_seconds": 0.0, "bytes": 0, "arrays": 0,
                             "dynamic_rebuilds": 0, "dynamic_seconds": 0.0}
@@ -336,6 +338,7 @@ class VoxelBackend(VisibilityBackend):
         its meshes or instances changed (Alg. 5 into its slot of the assembled words: nothing is
         reallocated or copied)."""
         plan = self.plan(snapshot)
+        self._ends = EmitterEnds.of(snapshot.lights)
         roles = dict(plan)
         static = roles.get("static")
         per_frame = roles.get("deforming", roles.get("dynamic"))
@@ -609,8 +612,19 @@ class VoxelBackend(VisibilityBackend):
         """The same words on the host, ``(W,) uint32`` (on CPU the very memory the kernels read)."""
         return self._gpu.get("words_np")
 
+    def _ended(self, targets, distant):
+        """``targets`` with those on a mesh light's triangle moved off its surface (usdml.visibility.emitter_ends) by
+        the start's offset: ``normal_offset`` voxels."""
+        if self._ends is None:
+            return targets
+        return self._ends.lift(targets, distant, self.normal_offset * self.reference_voxel)
+
     def hit_distances(self, origins, targets, *, normals=None, distant=None, want_distance: bool = True) -> np.ndarray:
         """Distance in voxels from each ray's (offset, skipped) start to the first occupied voxel; -1: free."""
+        return self._hits(origins, self._ended(targets, distant), normals, distant, want_distance)
+
+    def _hits(self, origins, targets, normals, distant, want_distance: bool) -> np.ndarray:
+        """:meth:`hit_distances` of targets as given."""
         if not self._gpu:
             raise RuntimeError("VoxelBackend.update() must be called before queries")
         if self._native is not None:
@@ -687,14 +701,16 @@ class VoxelBackend(VisibilityBackend):
         return (code & 1) != 0, (code & 2) != 0
 
     def occluded(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
+        targets = self._ended(targets, distant)
         if self._native is not None:      # set by update() (hit_distances says when it was not called)
             return self._native_hits(origins, targets, normals, distant, False, blocked=True)
-        return self.hit_distances(origins, targets, normals=normals, distant=distant, want_distance=False) >= 0.0
+        return self._hits(origins, targets, normals, distant, False) >= 0.0
 
     def occluded_uncertain(self, origins, targets, *, normals=None, distant=None, level: int = 1):
         """``REFINE``: the thick-ray rule (:func:`usdml.visibility.refine.thick_ray`) at each width of ``THICK`` up
         to ``level``'s (a wider rule alone can step over a thin occluder a narrower one meets: the union keeps
         every level a superset of the one below)."""
+        targets = self._ended(targets, distant)
         if self._native is not None:
             # every width up to the level's in one pass of the compiled kernel (a pass per width cost level 2
             # 0.70-0.76 exact rays a query on a tuning city, one pass 0.44-0.49)
@@ -717,7 +733,10 @@ class VoxelBackend(VisibilityBackend):
         whether every light casts shadows."""
         if self._native is not None:
             from usdml.visibility.voxel.native import compiled_lights
-            return compiled_lights(lights, meters_per_unit, min_distance), bool(np.asarray(lights.shadow).all())
+            distant = np.asarray(lights.type) == LightType.DISTANT
+            ends = self._ended(lights.position, distant)        # rays to a mesh light's triangle: off its surface
+            return (compiled_lights(lights, meters_per_unit, min_distance, None if ends is lights.position else ends),
+                    bool(np.asarray(lights.shadow).all()))
         t = LightTable(lights, meters_per_unit, min_distance)
         flags = t.flags        # LightFlag bits, which the kernels name as the same constants
         wp, ks = warp_module(), _shading_kernels()
@@ -745,7 +764,10 @@ class VoxelBackend(VisibilityBackend):
         options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
         if material is not None:
             options["material"] = material
-        if n_p == 0 or n_l == 0 or not self._gpu or (material is not None and self._native is None):
+        # rays to a mesh light's triangles end off its surface (self._ended): the Warp kernel ends them at the light
+        triangles = self._native is None and self._ends is not None and \
+            bool((np.asarray(lights.type) == LightType.TRIANGLE).any())
+        if n_p == 0 or n_l == 0 or not self._gpu or (material is not None and self._native is None) or triangles:
             return plain(points, normals, albedo, lights, self.occluded if self._gpu else None, progress, **options)
         lt, all_cast = self._light_struct(lights, meters_per_unit, min_distance)
         pts = np.asarray(points, np.float32)

@@ -63,12 +63,13 @@ class _Rule(ctypes.Structure):
 class _Lights(ctypes.Structure):
     _fields_ = [("n", ctypes.c_int32), ("pos", _f), ("axis", _f), ("cylinder_axis", _f), ("cone", _f),
                 ("base", _f), ("focus_rgb", _f), ("flags", _i), ("inv_m2", ctypes.c_float),
-                ("min_d2", ctypes.c_float)]
+                ("min_d2", ctypes.c_float), ("target", _f)]
 
 
-def light_struct(pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float) -> _Lights:
+def light_struct(pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2: float, min_d2: float,
+                 target=None) -> _Lights:
     """The lights as the compiled kernels' table (``kernels/include/light_term.h``; the arrays are held by the
-    returned object)."""
+    returned object); ``target`` (L, 3): where each light's shadow rays end (None: at ``pos``)."""
     arrs = [_c(x, np.float32).reshape(-1, 3) for x in (pos, axis, cylinder_axis, cone, base, focus_rgb)]
     fl = _c(flags, np.int32)
     lt = _Lights()
@@ -76,16 +77,19 @@ def light_struct(pos, axis, cylinder_axis, cone, base, focus_rgb, flags, inv_m2:
     lt.pos, lt.axis, lt.cylinder_axis, lt.cone, lt.base, lt.focus_rgb = (_ptr(a, _f) for a in arrs)
     lt.flags = _ptr(fl, _i)
     lt.inv_m2, lt.min_d2 = float(inv_m2), float(min_d2)
-    lt._hold = (arrs, fl)
+    ends = None if target is None else _c(target, np.float32).reshape(-1, 3)
+    lt.target = None if ends is None else _ptr(ends, _f)
+    lt._hold = (arrs, fl, ends)
     return lt
 
 
-def compiled_lights(lights, meters_per_unit: float = 1.0, min_distance: float = 0.0) -> _Lights:
+def compiled_lights(lights, meters_per_unit: float = 1.0, min_distance: float = 0.0, target=None) -> _Lights:
     """``lights`` (:class:`usdml.scene.Lights`) as the compiled kernels' table: the constants of
-    :class:`usdml.scene.light_table.LightTable`, the cone as (cos outer, soft width, focus)."""
+    :class:`usdml.scene.light_table.LightTable`, the cone as (cos outer, soft width, focus); ``target`` (L, 3):
+    where each light's shadow rays end (None: at its position)."""
     t = LightTable(lights, meters_per_unit, min_distance)
     return light_struct(lights.position, lights.axis, np.ascontiguousarray(t.cylinder_axis.T), t.kernel_cone, t.base,
-                        t.focus_rgb, t.flags, t.inv_m2, t.min_d2)
+                        t.focus_rgb, t.flags, t.inv_m2, t.min_d2, target)
 
 
 _P = ctypes.c_void_p
