@@ -219,6 +219,8 @@ INSTANCED_RULES = {
     "one box": {"warm": {"lightLink": {"excludes": ["/World/boxes/b0"]}},
                 "cool": {"lightLink": {"excludes": ["/World/boxes/b1"]},
                          "shadowLink": {"excludes": ["/World/boxes/b2"]}}},
+    "two sets": {"warm": {"lightLink": {"excludes": ["/World/boxes/b0"]}},
+                 "cool": {"lightLink": {"excludes": ["/World/boxes/b1"]}}},
 }
 
 
@@ -232,7 +234,8 @@ def instanced_stage(path, seed: int, lights: int = 1000, linked: bool = True, bo
     * ``scene``: ``warm``'s lightLink includeRoot false, includes </World/scatter> and </World/boxes/b0>;
       ``cool``'s lightLink excludes the prototype </World/scatter/protos/crate>, its shadowLink </World/boxes/b1>;
     * ``one box`` (a frame with nearly the same pairs as without links, for the machinery's cost): each prototype
-      light's lightLink excludes one box, ``cool``'s shadowLink a third one.
+      light's lightLink excludes one box, ``cool``'s shadowLink a third one;
+    * ``two sets``: the light links of ``one box`` alone (two light-link sets, no shadow set).
 
     The total intensity is the same for any ``lights`` (each light 1/``lights`` of it). ``frames`` > 1: the
     lights drift (up to 0.2 a frame) over frames 1..``frames`` (a sequence whose every frame is new).
