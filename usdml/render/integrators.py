@@ -27,7 +27,7 @@ from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer
-from usdml.render.light_classes import LightClass, LinkedShadows, light_classes, shade_classes
+from usdml.render.light_classes import LightClass, LinkedShadows, light_classes, shade_classes, shading_units
 from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.shading import lambert_rows
 from usdml.settings import UsdmlSettings
@@ -138,24 +138,32 @@ class EveryLight:
     def by_class(self, frame: FrameInputs, prim_id: np.ndarray, instance_id: np.ndarray, progress: Progress,
                  shade: Callable[..., DirectResult]) -> DirectResult:
         """The direct light at points (``prim_id``, ``instance_id`` each) as :func:`usdml.render.light_classes.
-        shade_classes` sums it: ``shade(k, backends, frame of the class's lights, points, progress)`` for each
-        class ``k`` (its index in :attr:`classes`), with the backends of its shadow set; one call over every point
-        (``k`` None) when the frame is one plain class."""
+        shade_classes` sums it: ``shade(ks, backends, frame of the lights of classes ks, points, progress)`` for each
+        shading unit (``ks``: indices in :attr:`classes`), with the backends of its shadow set; one call over every
+        point (``ks`` None) when the frame is one plain class."""
         if self.single():
             return shade(None, self.backends, frame, slice(None), progress)
-        n, total = len(prim_id), len(frame.lights)
-        links = frame.snap.links
+        total = len(frame.lights)
 
         def members(link: int) -> np.ndarray:
-            return np.ones(n, bool) if links is None else links.members(link, prim_id, instance_id)
+            return self._members(frame, (prim_id, instance_id), link)
 
-        def one(k: int, sel: np.ndarray) -> DirectResult:
-            cls = self.classes[k]
-            share = None if progress is None else (lambda done, f=len(cls.index) / total: progress(done * f))
-            backends = self.backends if self.linked is None else self.linked.backends(cls.shadow_link, self.backends)
-            return shade(k, backends, replace(frame, lights=frame.lights.subset(cls.index)), sel, share)
+        def one(ks: tuple[int, ...], sel: np.ndarray) -> DirectResult:
+            index = np.concatenate([self.classes[k].index for k in ks])
+            share = None if progress is None else (lambda done, f=len(index) / total: progress(done * f))
+            shadow_link = self.classes[ks[0]].shadow_link
+            backends = self.backends if self.linked is None else self.linked.backends(shadow_link, self.backends)
+            return shade(ks, backends, replace(frame, lights=frame.lights.subset(index)), sel, share)
 
-        return shade_classes(self.classes, n, members, one, self.groups)
+        return shade_classes(self.classes, len(prim_id), members, one, self.groups)
+
+    @staticmethod
+    def _members(frame: FrameInputs, points, link: int) -> np.ndarray:
+        """``(P,) bool``: the points (a :class:`Surface`, or its ``(prim_id, instance_id)``) light-link set ``link``
+        reaches."""
+        prim_id, instance_id = (points.prim_id, points.instance_id) if isinstance(points, Surface) else points
+        links = frame.snap.links
+        return np.ones(len(prim_id), bool) if links is None else links.members(link, prim_id, instance_id)
 
     def single(self) -> bool:
         """Whether the frame is shaded in one call: no lights, or one plain class and no groups asked."""
@@ -224,49 +232,59 @@ class EveryLightFused(EveryLight):
 
 
 class LghDirect(EveryLight):
-    """``--direct lgh``: a hierarchy over the frame's lights, gathered in every pass (module doc)."""
+    """``--direct lgh``: a hierarchy over the frame's lights, gathered in every pass (module doc); with linking or
+    light groups, a hierarchy per shading unit's lights (:func:`usdml.render.light_classes.shading_units`), made
+    the first time the frame shades that unit."""
 
     def __init__(self, backends: Backends, settings: UsdmlSettings, device: str, where: str):
         super().__init__(backends, settings, device, where)
-        self.fields: list = []                  # a hierarchy per light class (one for a plain frame)
+        self.fields: dict = {}                  # class indices of a unit (None: every light) -> its hierarchy
         self.estimate = None                    # the frame's error estimate (usdml.render.lighting_estimate)
-        self._measured = 0                      # the class the estimate measures: the one with the most lights
-        self._part = None                       # (points, radiance) of that class in the pass being shaded
+        self._measured = None                   # the unit the estimate measures: the frame's first pass's largest
+        self._part = None                       # (points, radiance) of that unit in the pass being shaded
+        self._frame = None
         self._told_no_grid = False
 
     @property
     def field(self):
-        """The hierarchy of a plain frame (its only class)."""
-        return self.fields[0] if self.fields else None
+        """The hierarchy over every light of the frame (a plain frame's only one), or None."""
+        return self.fields.get(None)
 
     def prepare(self, frame: FrameInputs, stats: FrameStats) -> None:
+        super().prepare(frame, stats)
+        self.fields, self.estimate, self._measured, self._frame = {}, None, None, frame
+        stats.direct_lgh = {}
+        if self.single():
+            self._field(None, frame, frame.lights, stats)
+            self._measure(None, self.backends.shadow, frame.lights, stats)
+
+    def _field(self, ks, frame: FrameInputs, lights: Lights, stats: FrameStats):
         from usdml.lighting.lgh.direct import prepare_direct
+
+        if ks not in self.fields:
+            field = self.fields[ks] = prepare_direct(lights, self.settings.lgh_levels, device=self.device)
+            for k, v in field.stats.items():
+                stats.direct_lgh[k] = stats.direct_lgh.get(k, 0) + v if isinstance(v, (int, float)) else v
+            if field.lgh is None and len(field.rest) and not self._told_no_grid:
+                log.warning(f"{self.where}: --direct lgh: none of its {len(field.rest)} light(s) at time "
+                            f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
+                            "cones or focus, shadows off, black or negative): all are shaded every-light, as --direct all")
+                self._told_no_grid = True
+        return self.fields[ks]
+
+    def _measure(self, ks, shadow, lights: Lights, stats: FrameStats) -> None:
+        """The frame's estimate measures unit ``ks`` (its hierarchy against every light of it)."""
         from usdml.render.lighting_estimate import direct_estimator
 
-        super().prepare(frame, stats)
-        parts = [frame.lights] if self.single() else [frame.lights.subset(c.index) for c in self.classes]
-        self.fields = [prepare_direct(lights, self.settings.lgh_levels, device=self.device) for lights in parts]
-        stats.direct_lgh = dict(self.fields[0].stats) if len(self.fields) == 1 else {"classes": len(self.fields)}
-        self._measured = int(np.argmax([len(p) for p in parts])) if parts else 0
-        shadow = self.backends.shadow
-        if not self.single() and self.linked is not None and self.classes:
-            shadow = self.linked.backends(self.classes[self._measured].shadow_link, self.backends).shadow
-        measured = self.fields[self._measured] if self.fields else None
-        self.estimate = direct_estimator(measured, replace(frame, lights=parts[self._measured]) if parts else frame,
-                                         shadow, self.settings)
-        rest = sum(len(f.rest) for f in self.fields)
-        if all(f.lgh is None for f in self.fields) and rest and not self._told_no_grid:
-            log.warning(f"{self.where}: --direct lgh: none of its {rest} light(s) at time "
-                        f"{frame.snap.time:g} can go in the hierarchy (distant, dome or cylinder lights, shaping "
-                        "cones or focus, shadows off, black or negative): all are shaded every-light, as --direct all")
-            self._told_no_grid = True
+        self._measured = ks
+        self.estimate = direct_estimator(self.fields[ks], replace(self._frame, lights=lights), shadow, self.settings)
 
     def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         for gb, surface, direct in super().passes(frame, passes, stats, progress):
             if self.estimate is not None:       # after the frame's last pass, its estimate
                 measured, radiance = surface, direct.radiance
-                if self._part is not None:      # a linked frame: the measured class on the points it reaches
+                if self._part is not None:      # a linked frame: the measured unit on the points it reaches
                     sel, radiance = self._part
                     measured = surface.restricted(sel)
                 stats.estimate_direct = (self.estimate.add_surface(measured, radiance, measured.material)
@@ -279,10 +297,19 @@ class LghDirect(EveryLight):
 
         mpu, sf = frame.snap.meters_per_unit, surface
         self._part = None
+        if self._measured is None and not self.single() and len(sf.position):
+            units = shading_units(self.classes, lambda link: self._members(frame, sf, link))
+            ks, _ = max(units, key=lambda u: sum(len(self.classes[k].index) for k in u[0]) * int(u[1].sum()))
+            index = np.concatenate([self.classes[k].index for k in ks])
+            lights = frame.lights.subset(index)
+            self._field(ks, frame, lights, stats)
+            backends = self.backends if self.linked is None else \
+                self.linked.backends(self.classes[ks[0]].shadow_link, self.backends)
+            self._measure(ks, backends.shadow, lights, stats)
 
-        def shade(k, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
+        def shade(ks, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
             shadow = backends.shadow
-            field = self.fields[0 if k is None else k]
+            field = self._field(ks, fr, fr.lights, stats)
 
             def shade_rest(p, n, a, rest, geometric=None, material=None):
                 if material is None:
@@ -292,7 +319,7 @@ class LghDirect(EveryLight):
                                      self.settings.seed, None)
 
             hit = gb.hit
-            if k is not None:       # the class's points laid out in the image
+            if ks is not None:      # the unit's points laid out in the image
                 hit = np.zeros(gb.hit.size, bool)
                 hit[np.flatnonzero(gb.hit.ravel())[sel]] = True
                 hit = hit.reshape(gb.hit.shape)
@@ -302,7 +329,7 @@ class LghDirect(EveryLight):
                                          material=None if sf.material is None else sf.material[sel])
             for key, v in s.items():
                 stats.direct_lgh[key] = stats.direct_lgh.get(key, 0) + v if isinstance(v, (int, float)) else v
-            if k == self._measured and k is not None:
+            if ks is not None and ks == self._measured:
                 self._part = (sel, direct.radiance)
             return direct
 

@@ -1,12 +1,14 @@
 """Light linking, shadow linking, light groups and per-lobe light factors in every direct-light path, by classes.
 
 A frame's lights fall into *classes*: the lights that share a light-link set, a shadow-link set, a light group
-(when ``lightgroup:`` AOVs are asked for) and lobe factors (:class:`usdml.scene.Lights`). Each class is shaded by
-the integrator's own method (every light with any backend's fused kernel, or a hierarchy) over the points its
-light set reaches, with the shadows of the geometry its shadow set includes (:class:`LinkedShadows`: the frame's
-backends built again over that geometry), and the classes' direct light is summed. Direct light is a sum over
-lights, so this is the frame's light exactly; each class costs its own points × its own lights, so splitting adds
-no pairs: the overhead is one call per class (measured in ``tools/linking_cost.py``).
+(when ``lightgroup:`` AOVs are asked for) and lobe factors (:class:`usdml.scene.Lights`). Classes that differ in
+their light-link set only form a *bundle*, and a bundle's points are split by which of its classes reach them
+(:func:`shading_units`): each such part is shaded once, by the union of those classes' lights, with the
+integrator's own method (every light with any backend's fused kernel, or a hierarchy over that union), with the
+shadows of the geometry the bundle's shadow set includes (:class:`LinkedShadows`: the frame's backends built again
+over that geometry); the parts' direct light is summed. Direct light is a sum over lights, so this is the frame's
+light exactly. A point that every light set reaches is shaded in one call over all the lights, as if nothing were
+linked: two light-link sets over the same pixels cost one gather, not two (``tools/linking_cost.py``).
 
 A frame whose lights are all one class of every prim, no group asked and factors (1, 1) — every stage that
 authors none of it — is shaded in one call, as before.
@@ -26,7 +28,7 @@ from usdml.scene import Lights, Snapshot, diff
 from usdml.scene.linking import EVERY_PRIM, LinkSets, group_of
 from usdml.visibility.base import DirectResult
 
-__all__ = ["LightClass", "LinkedShadows", "light_classes", "shade_classes"]
+__all__ = ["LightClass", "LinkedShadows", "light_classes", "shade_classes", "shading_units"]
 
 
 @dataclass
@@ -118,11 +120,33 @@ class LinkedShadows:
         self._current = {}
 
 
+def shading_units(classes: list[LightClass], members: Callable[[int], np.ndarray]) -> list[tuple[tuple[int, ...], np.ndarray]]:
+    """How a frame's points are shaded (module doc): ``(class indices, points)`` pairs, each the points (a boolean
+    mask) reached by exactly those classes of a bundle (classes that differ in their light-link set only: one
+    shadow set, group and lobe factors), shaded together by the union of their lights. A point every class of a
+    bundle reaches is one call over all of them, as if nothing were linked."""
+    bundles: dict[tuple, list[int]] = {}
+    for k, c in enumerate(classes):
+        bundles.setdefault((c.shadow_link, c.group, c.diffuse, c.specular), []).append(k)
+    reach: dict[int, np.ndarray] = {}
+    units = []
+    for ks in bundles.values():
+        rows = np.stack([reach.setdefault(classes[k].light_link, members(classes[k].light_link)) for k in ks])
+        signature = np.packbits(rows, axis=0, bitorder="little")      # (ceil(B/8), n)
+        keys, inverse = np.unique(signature, axis=1, return_inverse=True)
+        inverse = inverse.ravel()
+        for j in range(keys.shape[1]):
+            bits = np.unpackbits(keys[:, j], bitorder="little")[:len(ks)].astype(bool)
+            if bits.any():
+                units.append((tuple(k for k, b in zip(ks, bits) if b), inverse == j))
+    return units
+
+
 def shade_classes(classes: list[LightClass], n_points: int, members: Callable[[int], np.ndarray],
-                  shade: Callable[[int, np.ndarray], DirectResult], groups: bool) -> DirectResult:
-    """The direct light of ``n_points`` points by ``classes``: ``shade(k, points)`` (class ``k``; the points, a boolean
-    mask, that ``members(class.light_link)`` reaches) for each, lobe factors applied, summed; ``groups``: the
-    result's :attr:`DirectResult.groups` holds each group's radiance."""
+                  shade: Callable[[tuple[int, ...], np.ndarray], DirectResult], groups: bool) -> DirectResult:
+    """The direct light of ``n_points`` points by ``classes``: ``shade(ks, points)`` for each of
+    :func:`shading_units` (classes ``ks``; the points, a boolean mask, they reach), lobe factors applied, summed;
+    ``groups``: the result's :attr:`DirectResult.groups` holds each group's radiance."""
     radiance = np.zeros((n_points, 3), np.float32)
     specular = None
     blocked = np.zeros(n_points, np.float64)
@@ -130,11 +154,9 @@ def shade_classes(classes: list[LightClass], n_points: int, members: Callable[[i
     kind = np.int32        # facing's type: counts, or the hierarchy's fractional ones
     queries = 0
     by_group: dict[str, np.ndarray] = {}
-    for k, cls in enumerate(classes):
-        sel = members(cls.light_link)
-        if not sel.any():
-            continue
-        r = shade(k, sel)
+    for ks, sel in shading_units(classes, members):
+        cls = classes[ks[0]]
+        r = shade(ks, sel)
         part, spec = _lobes(r, cls)
         radiance[sel] += part
         if spec is not None:
