@@ -23,6 +23,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from usdml.errors import log
+from usdml.lighting.area.params import LIGHT_SAMPLES
 from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
@@ -76,15 +77,16 @@ def dome_columns(lights: Lights, domes: list) -> np.ndarray | None:
 
 
 def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
-                  geometric: np.ndarray, material: np.ndarray | None, seed: int, progress: Progress) -> DirectResult:
-    """Every light of ``frame`` at the points (:func:`usdml.lighting.direct.shade_with`); with material rows a dome's
-    distant samples light the diffuse lobe and its specular lobes are sampled from the BRDF
-    (:func:`usdml.lighting.dome_specular.dome_specular`)."""
+                  geometric: np.ndarray, material: np.ndarray | None, seed: int, progress: Progress,
+                  light_samples: int = LIGHT_SAMPLES) -> DirectResult:
+    """Every light of ``frame`` at the points (:func:`usdml.lighting.direct.shade_with`, ``light_samples`` points on
+    each light with area, placed by ``seed``); with material rows a dome's distant samples light the diffuse lobe and
+    its specular lobes are sampled from the BRDF (:func:`usdml.lighting.dome_specular.dome_specular`)."""
     domes = frame.snap.domes if material is not None else []
     mask = dome_columns(frame.lights, domes)
     direct = shade_with(backend, points, normals, albedo, frame.lights, progress,
                         meters_per_unit=frame.snap.meters_per_unit, geometric=geometric, material=material,
-                        diffuse_only=mask)
+                        diffuse_only=mask, light_samples=light_samples, seed=seed)
     if mask is not None:
         from usdml.lighting.dome_specular import dome_specular
 
@@ -134,7 +136,8 @@ class EveryLight:
     def shade(self, frame: FrameInputs, gb: GBuffer, surface: Surface, stats: FrameStats,
               progress: Progress) -> DirectResult:
         return shade_surface(self.backends.shadow, frame, surface.position, surface.normal, surface.albedo,
-                             surface.geometric, surface.material, self.settings.seed, progress)
+                             surface.geometric, surface.material, self.settings.seed, progress,
+                             self.settings.light_samples)
 
 
 class EveryLightFused(EveryLight):
@@ -154,14 +157,16 @@ class EveryLightFused(EveryLight):
             material = np.concatenate([s.material if s.material is not None else lambert_rows(len(s.position))
                                        for s in surfaces])
         direct = shade_surface(self.backends.shadow, frame, stacked("position"), stacked("normal"), stacked("albedo"),
-                               stacked("geometric"), material, self.settings.seed, progress)
+                               stacked("geometric"), material, self.settings.seed, progress,
+                               self.settings.light_samples)
         stats.shading_seconds += _time.perf_counter() - t0
         lo = 0
         for i, (gb, surface) in enumerate(zip(gbs, surfaces)):
             hi = lo + len(surface.position)
             yield gb, surface, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
                                             direct.queries if i == 0 else 0,
-                                            None if direct.specular is None else direct.specular[lo:hi])
+                                            None if direct.specular is None else direct.specular[lo:hi],
+                                            None if direct.variance is None else direct.variance[lo:hi])
             lo = hi
 
 
@@ -200,13 +205,15 @@ class LghDirect(EveryLight):
         from usdml.lighting.lgh.direct import shade_lgh_direct
 
         shadow, mpu = self.backends.shadow, frame.snap.meters_per_unit
+        seed, samples = self.settings.seed, self.settings.light_samples
 
         def shade_rest(p, n, a, rest, geometric=None, material=None):
             if material is None:
-                return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+                return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric,
+                                  light_samples=samples, seed=seed)
             # the every-light rest as --direct all shades it with material rows (a dome's specular sampled)
-            return shade_surface(shadow, replace(frame, lights=rest), p, n, a, geometric, material,
-                                 self.settings.seed, None)
+            return shade_surface(shadow, replace(frame, lights=rest), p, n, a, geometric, material, seed, None,
+                                 samples)
 
         direct, s = shade_lgh_direct(surface.position, surface.normal, surface.albedo, self.field, shadow.occluded,
                                      shade_rest, self.settings, meters_per_unit=mpu, image=(gb.hit, gb.position),

@@ -689,8 +689,9 @@ def direct_estimator(field, frame, shadow, settings) -> FrameEstimator | None:
     mpu, rest = snap.meters_per_unit, field.rest
 
     def exact_part(points, normals, albedo, geometric, material=None):
-        return shade_with(shadow, points, normals, albedo, rest, None, meters_per_unit=mpu,
-                          geometric=geometric, material=material).radiance.astype(np.float64)
+        return shade_with(shadow, points, normals, albedo, rest, None, meters_per_unit=mpu, geometric=geometric,
+                          material=material, light_samples=settings.light_samples,
+                          seed=settings.seed).radiance.astype(np.float64)
 
     return FrameEstimator("direct", Emitters.of_lights(field.grid, mpu), shadow.occluded,
                           settings.seed, snap.time, settings.pixel_samples, frame.width,

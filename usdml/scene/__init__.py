@@ -110,6 +110,7 @@ class LightType(IntEnum):
     RECT = 3
     DISTANT = 4
     CYLINDER = 5  #: emits from its side, around its axis (the light's X)
+    TRIANGLE = 6  #: one triangle of a MeshLightAPI mesh: xform columns edge1, edge2, unit normal, vertex 0
 
 
 @dataclass(eq=False)

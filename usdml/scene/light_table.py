@@ -45,7 +45,7 @@ class LightFlag(IntFlag):
     kernels (``usdml.kernels.voxel.shading``) and ``kernels/include/light_term.h`` test the same bits."""
 
     DISTANT = 1         #: a distant light: direction ``-axis``, no falloff
-    ONE_SIDED = 2       #: disk or rect: ``max(0, cos θ_l)`` emission profile
+    ONE_SIDED = 2       #: disk, rect or triangle: ``max(0, cos θ_l)`` emission profile
     SHAPED = 4          #: shaping cone narrower than 180°
     FOCUSED = 8         #: shaping focus > 0
     CASTS_SHADOWS = 16  #: ShadowAPI ``inputs:shadow:enable``
@@ -68,7 +68,7 @@ class LightTable:
         self.position = lights.position.T.astype(np.float32)           # (3, L)
         self.axis = lights.axis.T.astype(np.float32)                   # (3, L)
         self.distant = lights.type == LightType.DISTANT
-        self.one_sided = (lights.type == LightType.DISK) | (lights.type == LightType.RECT)
+        self.one_sided = np.isin(lights.type, (LightType.DISK, LightType.RECT, LightType.TRIANGLE))
         self.cylinder = lights.type == LightType.CYLINDER
         self.cylinder_axis = lights.cylinder_axis().T.astype(np.float32)   # (3, L)
         self.cone = lights.cone_angle.astype(np.float32)

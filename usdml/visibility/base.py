@@ -114,6 +114,9 @@ class DirectResult:
     #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf``) when shaded with material
     #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
     specular: np.ndarray | None = None
+    #: (P,) float32 variance of the luminance of ``radiance`` from sampling lights with area
+    #: (:func:`usdml.lighting.area.shading.shade_area`), None where no light was sampled
+    variance: np.ndarray | None = None
 
 
 def as_vectors(a, name: str, n: int | None = None, dtype=np.float64) -> np.ndarray:

@@ -15,7 +15,8 @@ one LGH, two light sources. Per frame:
      do not; mixed with isotropic lights the lobe is exact too (the factor is linear in the mean normal).
 
    Everything else is shaded every-light through the visibility backend, exactly as ``--direct all``
-   does: distant lights (and the distant lights a dome is sampled into), cylinder lights, lights with
+   does: lights with area (spheres, disks and rects of non-zero size among them: their shadow rays go to points
+   sampled on them, :mod:`usdml.lighting.area`), distant lights (and the distant lights a dome is sampled into), cylinder lights, lights with
    a shaping cone or focus (their profile is not a cosine lobe), lights with ``shadow:enable`` off,
    lights of zero luminance (they light nothing and would only stand in the grid's counts) and lights of
    negative intensity (they take light away: the hierarchy sums intensities into grid lights and draws its
@@ -57,6 +58,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from usdml.lighting.area.sampling import sampled
 from usdml.lighting.direct import DirectResult
 from usdml.scene import Lights, LightType
 
@@ -125,7 +127,8 @@ def clamp_distance(direct: "DirectField") -> float:
 def grid_mask(lights: Lights) -> np.ndarray:
     """``(N,) bool``: the lights a grid light represents faithfully (see the module doc)."""
     t = np.asarray(lights.type)
-    kind = np.isin(t, (LightType.POINT, LightType.SPHERE, LightType.DISK, LightType.RECT))
+    # lights with area are sampled over it every-light (soft shadows, no blow-up near them: docs/area-lights.md)
+    kind = np.isin(t, (LightType.POINT, LightType.SPHERE, LightType.DISK, LightType.RECT)) & ~sampled(lights)
     plain = (np.asarray(lights.cone_angle) >= 180.0) & (np.asarray(lights.focus) <= 0.0)
     lum = np.asarray(lights.intensity, np.float64).reshape(-1, 3) @ LUMA
     return kind & plain & np.asarray(lights.shadow, bool) & (lum > 0.0)
