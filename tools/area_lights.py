@@ -2,8 +2,8 @@
 
 One stage per shape: a 24 x 24 ground (albedo 0.5) and a box on it, seen from straight above (90 degrees of view),
 lit by one UsdLux RectLight (2 x 1), DiskLight (radius 0.75) or SphereLight (radius 0.5) 3 units up beside the
-box, radiance L = 10 (normalize off), metersPerUnit 1. usdml renders its ``direct`` AOV (``--visibility exact``,
-16 primary rays per pixel, box filter); Mitsuba 3 (``scalar_rgb``, path tracer, ``max_depth`` 2, box filter,
+box, radiance L = 10 (normalize off), metersPerUnit 1. usdml renders its ``direct`` AOV (``--visibility exact`` and
+others, 16 primary rays per pixel unless ``--pixel-samples`` says, box filter); Mitsuba 3 (``scalar_rgb``, path tracer, ``max_depth`` 2, box filter,
 its own ``rectangle`` / ``disk`` / ``sphere`` shapes with an ``area`` emitter of the same radiance) renders the same
 scene from a scene dictionary written here from the same numbers (nothing of usdml's code), twice with other seeds:
 the reference is their mean, its noise ``RMS(a - b) / 2``. A third Mitsuba render without the box gives the
@@ -13,7 +13,10 @@ Prints, per shape and visibility backend: the median relative error over the pen
 RMSE (over the ground's mean), Mitsuba's own noise on the same terms, and the shading seconds of the frame's
 lights as area lights and as points of the same intensity (size 0); ``--json`` writes them.
 
-    .venv/bin/python tools/area_lights.py --width 128 --spp 1024 --json docs/data/area-lights.json
+    .venv/bin/python tools/area_lights.py --width 96 --spp 1024
+    .venv/bin/python tools/area_lights.py --city 500
+
+(Mitsuba's stratified sampler takes a square sample count: 256, 1024.)
 """
 
 from __future__ import annotations
@@ -120,15 +123,15 @@ def mitsuba_render(shape: str, width: int, spp: int, seed: int, box: bool = True
     return np.array(mi.render(scene, spp=spp, seed=seed), np.float64)[..., :3]
 
 
-def usdml_render(path: str, width: int, visibility: str, light_samples: int | None = None):
-    """``(direct (H, W, 3), P, normal, hit, FrameRenderer)`` of the stage (the renderer left open)."""
+def usdml_render(path: str, width: int, visibility: str, light_samples: int | None = None, pixel_samples: int = 16):
+    """``(FrameResult, FrameRenderer)`` of the stage: ``direct``, ``P``, ``normal`` (the renderer left open)."""
     from usdml.render.frame import FrameRenderer
     from usdml.settings import UsdmlSettings
     from usdml.stage import StageDelegate
 
     options = {} if light_samples is None else {"light_samples": light_samples}
     d = StageDelegate(path)
-    r = FrameRenderer(d, UsdmlSettings(visibility=visibility, pixel_samples=16, **options))
+    r = FrameRenderer(d, UsdmlSettings(visibility=visibility, pixel_samples=pixel_samples, **options))
     result = r.render(d.start_time, width, width, {"direct", "P", "normal"})
     return result, r
 
@@ -160,7 +163,8 @@ def shading_seconds(renderer, result, repeat: int = 3) -> dict:
     return out
 
 
-def compare(shape: str, width: int, spp: int, backends: list[str], folder: str, light_samples=None) -> dict:
+def compare(shape: str, width: int, spp: int, backends: list[str], folder: str, light_samples=None,
+            pixel_samples: int = 16) -> dict:
     path = os.path.join(folder, f"{shape}.usda")
     write_stage(path, shape)
     t0 = time.perf_counter()
@@ -174,11 +178,12 @@ def compare(shape: str, width: int, spp: int, backends: list[str], folder: str, 
     mean = ref.mean()
     noise = float(np.sqrt(np.mean((a - b) ** 2)) / 2 / mean)
     noise_pen = float(np.median(np.abs(a - b).mean(axis=2)[penumbra] / 2 / np.maximum(lum[penumbra], 1e-12)))
-    out = {"shape": shape, "width": width, "spp": spp, "penumbra_pixels": int(penumbra.sum()),
+    out = {"shape": shape, "width": width, "spp": spp, "pixel_samples": pixel_samples,
+           "penumbra_pixels": int(penumbra.sum()),
            "mitsuba_noise_rel_rmse": noise, "mitsuba_noise_penumbra_median": noise_pen,
            "mitsuba_seconds": mitsuba_seconds, "backends": {}}
     for backend in backends:
-        result, renderer = usdml_render(path, width, backend, light_samples)
+        result, renderer = usdml_render(path, width, backend, light_samples, pixel_samples)
         try:
             got = result.buffers["direct"][..., :3].astype(np.float64)
             rel = np.abs(got.mean(axis=2)[penumbra] / lum[penumbra] - 1)
@@ -195,6 +200,40 @@ def compare(shape: str, width: int, spp: int, backends: list[str], folder: str, 
     return out
 
 
+def city_cost(points: int, backends: list[str], stage: str = "stages/city.usda", width: int = 128) -> dict:
+    """The cost at many lights: ``points`` pixels of the city (1,024 SphereLights of radius 0.1 made points by
+    ``treatAsPoint``) shaded by :func:`usdml.lighting.direct.shade_with` with its lights as authored and with
+    ``treatAsPoint`` off (1,024 sphere area lights, the same intensity), per backend: seconds and shadow rays."""
+    from usdml.lighting.direct import shade_with
+    from usdml.render.frame import FrameRenderer, centre_gbuffer
+    from usdml.settings import UsdmlSettings
+    from usdml.stage import StageDelegate
+
+    out = {"stage": stage, "points": points, "backends": {}}
+    for backend in backends:
+        d = StageDelegate(os.path.abspath(stage))
+        r = FrameRenderer(d, UsdmlSettings(visibility=backend, pixel_samples=1))
+        try:
+            snap, lights, _ = r.advance(d.start_time, width, width * 9 // 16)
+            _, gb = centre_gbuffer(snap, r.backends.primary, width, width * 9 // 16)
+            hit = np.flatnonzero(gb.hit.ravel())
+            pick = hit[np.linspace(0, len(hit) - 1, points).astype(int)]
+            p, n = gb.position.reshape(-1, 3)[pick], gb.normal.reshape(-1, 3)[pick]
+            g, a = gb.geometric.reshape(-1, 3)[pick], gb.albedo.reshape(-1, 3)[pick]
+            area = lights.subset(np.arange(len(lights)))
+            area.type[area.type == 0] = 1               # POINT -> SPHERE: treatAsPoint off, radius as authored
+            row = {"lights": len(lights)}
+            for name, ls in (("points", lights), ("area", area)):
+                t0 = time.perf_counter()
+                res = shade_with(r.backends.shadow, p, n, a, ls, meters_per_unit=snap.meters_per_unit, geometric=g)
+                row[name] = {"seconds": time.perf_counter() - t0, "rays": int(res.queries)}
+            row["ratio"] = row["area"]["seconds"] / row["points"]["seconds"]
+            out["backends"][backend] = row
+        finally:
+            r.close()
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--width", type=int, default=96)
@@ -202,12 +241,26 @@ def main(argv=None) -> int:
     ap.add_argument("--shapes", default="rect,disk,sphere")
     ap.add_argument("--backends", default="exact,voxel")
     ap.add_argument("--light-samples", type=int, default=None, help="usdml's light_samples (default: its default)")
+    ap.add_argument("--pixel-samples", type=int, default=16, help="usdml's primary rays per pixel (box filter)")
     ap.add_argument("--json", default=None, help="write the figures here")
+    ap.add_argument("--city", type=int, default=0, metavar="N",
+                    help="instead: the cost at 1,024 lights, N pixels of stages/city.usda (city_cost)")
     args = ap.parse_args(argv)
+    if args.city:
+        cost = city_cost(args.city, args.backends.split(","))
+        for name, row in cost["backends"].items():
+            print(f"city {name:6s} {row['lights']} lights, {args.city} px: points {row['points']['seconds']:.2f} s "
+                  f"({row['points']['rays']} rays), area {row['area']['seconds']:.2f} s ({row['area']['rays']} rays): "
+                  f"{row['ratio']:.1f}x", flush=True)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(cost, f, indent=1)
+        return 0
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for shape in args.shapes.split(","):
-            row = compare(shape, args.width, args.spp, args.backends.split(","), folder, args.light_samples)
+            row = compare(shape, args.width, args.spp, args.backends.split(","), folder, args.light_samples,
+                          args.pixel_samples)
             rows.append(row)
             for name, b in row["backends"].items():
                 print(f"{shape:7s} {name:6s} penumbra median {100 * b['penumbra_median']:.2f} % "

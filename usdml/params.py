@@ -190,7 +190,7 @@ _OPTIONS = (
 
 #: the schema attributes' documentation (``Param.doc``) where it says more than the flag's help
 _DOCS = {
-    "direct": """Direct lighting: all shades every pixel against every light; lgh puts the stage's point, sphere, disk and rect lights in a lighting grid hierarchy (paper 004) and shades it with importance-sampled, filtered shadow rays through the visibility backend.
+    "direct": """Direct lighting: all shades every pixel against every light; lgh puts the stage's point lights (and sphere, disk and rect lights of size 0) in a lighting grid hierarchy (paper 004) and shades it with importance-sampled, filtered shadow rays through the visibility backend.
 
     Distant and dome lights, cylinder lights, lights with a shaping cone or
     focus and lights with shadows off stay every-light under lgh. lgh pays

@@ -123,12 +123,16 @@ def header(kind: str, estimate: LightingEstimate) -> dict:
 
 
 def frame_headers(stats) -> dict:
-    """The EXR attributes of a frame's lighting estimates (:class:`usdml.render.frame_stats.FrameStats`)."""
+    """The EXR attributes of a frame's lighting estimates (:class:`usdml.render.frame_stats.FrameStats`), the area
+    lights' sampling noise among them (``usdml:estimate:area:rel_rmse``, ``usdml:estimate:area:light_samples``)."""
     out = {}
     for kind in STREAM:
         estimate = getattr(stats, f"estimate_{kind}", None)
         if estimate:
             out.update(header(kind, estimate))
+    area = getattr(stats, "estimate_area", None)
+    if area:
+        out.update({f"usdml:estimate:area:{k}": v for k, v in area.items()})
     return out
 
 

@@ -162,16 +162,17 @@ def _rect(p, c, ex, ey, normal, u, v, inv_m2, min_d2, k):
         yv = np.where(hv * hv < 1 - 1e-12, hv * dd / np.sqrt(np.maximum(1.0 - hv * hv, 1e-300)), y1)
     solid = np.isfinite(omega) & (omega > SOLID_ANGLE_MIN) & np.isfinite(xu) & np.isfinite(yv)
     # in the frame (x, y, z) at p the rect's corner is (x0, y0, z0): the sample is p + xu·x + yv·y + z0·z
-    x_s = p + np.nan_to_num(xu)[..., None] * xa[None, :, None, :] + np.nan_to_num(yv)[..., None] * ya[None, :, None, :] \
-        + z0[..., None] * zs
-    x_a = c + (u - 0.5)[..., None] * ex[None, :, None, :] + (v - 0.5)[..., None] * ey[None, :, None, :]
-    w_a, e_a = _surface(p, x_a, normal, inv_m2, min_d2, k)
-    w_s, _ = _falloff(x_s - p, inv_m2, min_d2)
-    front = (np.einsum("plki,li->plk", p - c, normal) > 0)
-    area = (xl * yl)[None, :, None]
-    e_s = np.where(front, np.nan_to_num(omega), 0.0) * inv_m2 / area / k
-    x = np.where(solid[..., None], x_s, x_a)
-    return x, np.where(solid[..., None], w_s, w_a), np.where(solid, e_s, e_a)
+    offset = (np.nan_to_num(xu)[..., None] * xa[None, :, None, :] + np.nan_to_num(yv)[..., None] * ya[None, :, None, :]
+              + z0[..., None] * zs)
+    w, _ = _falloff(offset, inv_m2, min_d2)
+    front = np.einsum("plki,li->plk", p - c, normal) > 0
+    e = np.where(front, np.nan_to_num(omega), 0.0) * (inv_m2 / k) / (xl * yl)[None, :, None]
+    x = p + offset
+    if not solid.all():         # far off (or degenerate): by area
+        x_a = c + (u - 0.5)[..., None] * ex[None, :, None, :] + (v - 0.5)[..., None] * ey[None, :, None, :]
+        w_a, e_a = _surface(p, x_a, normal, inv_m2, min_d2, k)
+        x, w, e = (np.where(solid[..., None], x, x_a), np.where(solid[..., None], w, w_a), np.where(solid, e, e_a))
+    return x, w, e
 
 
 def sample_lights(points: np.ndarray, lights: Lights, k: int, seed: int, meters_per_unit: float = 1.0,

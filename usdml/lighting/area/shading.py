@@ -22,13 +22,14 @@ import numpy as np
 
 from usdml.lighting.area.sampling import sample_lights
 from usdml.lighting.brdf_sums import brdf_sums
+from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
 
 __all__ = ["AreaResult", "SAMPLES_PER_CHUNK", "noise_estimate", "shade_area"]
 
-#: (point, light, sample) triples evaluated per block
-SAMPLES_PER_CHUNK = 1 << 19
+#: (point, light, sample) triples evaluated per block (small enough for the blocks to share the cores)
+SAMPLES_PER_CHUNK = 1 << 16
 #: Rec. 709 luminance weights
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
@@ -68,7 +69,6 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
     facing = np.zeros(n_p, np.int32)
     blocked = np.zeros(n_p, np.float64)
     variance = np.zeros(n_p, np.float32)
-    queries = 0
     if n_p == 0 or n_l == 0:
         return AreaResult(radiance, specular, facing, blocked, 0, variance)
     table = LightTable(lights, meters_per_unit, min_distance)
@@ -76,8 +76,10 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
     luma_base, luma_focus = table.base @ LUMA, table.focus_rgb @ LUMA
     offset = normals if geometric is None else geometric
     step = max(1, SAMPLES_PER_CHUNK // (n_l * k))
-    for lo in range(0, n_p, step):
+
+    def block(lo: int) -> int:
         hi = min(n_p, lo + step)
+        asked = 0
         s = sample_lights(points[lo:hi], lights, k, seed, meters_per_unit, min_distance)
         w = s.directions.astype(np.float32)
         n = normals[lo:hi].astype(np.float32)
@@ -99,10 +101,9 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
             if len(pi):
                 hit = np.asarray(occluded(points[lo + pi], s.targets[pi, li, ki], normals=offset[lo + pi],
                                           distant=s.distant[li]), bool)
-                queries += len(pi)
+                asked = len(pi)
                 g[pi[hit], li[hit], ki[hit]] = 0.0
-                hidden = np.zeros(g.shape[:2], np.float64)
-                np.add.at(hidden, (pi[hit], li[hit]), 1.0)
+                hidden = np.bincount(pi[hit] * n_l + li[hit], minlength=(hi - lo) * n_l).reshape(hi - lo, n_l)
                 blocked[lo:hi] = (hidden / np.maximum(facing_samples, 1)).sum(axis=1)
         y = g * luma_base[None, :, None] + (0.0 if f is None else g * f * luma_focus[None, :, None])
         variance[lo:hi] = (y.var(axis=2, ddof=1) * k).sum(axis=1) if k > 1 else 0.0
@@ -115,6 +116,10 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
             radiance[lo:hi] = g2 @ columns.base
             if f2 is not None:
                 radiance[lo:hi] += (g2 * f2) @ columns.focus_rgb
+        return asked
+
+    # blocks write disjoint rows: NumPy's work on one overlaps the shadow rays of another (both release the GIL)
+    queries = sum(iter_parallel(block, range(0, n_p, step), cpu_workers()))
     rho = albedo.astype(np.float32) / np.float32(np.pi)
     radiance *= rho
     variance *= (rho @ LUMA) ** 2
