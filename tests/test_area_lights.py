@@ -147,3 +147,45 @@ def test_soft_shadows_against_mitsuba(tmp_path):
         assert exact["penumbra_median"] < 0.06, (shape, exact)
         assert exact["rel_rmse"] < 0.04 + 2 * row["mitsuba_noise_rel_rmse"], (shape, exact, row)
         assert abs(exact["mean_ratio"] - 1) < 0.01, (shape, exact)
+
+
+def test_material_rows_and_the_lgh_s_shadow_rays_sample_area_lights():
+    """Lambertian material rows (kernels/brdf) give the Lambertian result with each sample's own direction, and
+    ``--direct lgh`` keeps lights with area in its hierarchy, its shadow rays going to points sampled on them."""
+    from usdml.lighting.lgh.direct import grid_mask
+    from usdml.scene import Lights
+    from usdml.scene.shading import lambert_rows
+
+    lights = Lights.concat([_light(LightType.RECT, (0.0, 2.0, 0.0), width=1.5, height=0.5),
+                            _light(LightType.SPHERE, (1.0, 1.0, 0.5), radius=0.3, rotate=False),
+                            _light(LightType.POINT, (-1.0, 1.0, 0.5), radius=0.3, rotate=False)])
+    rng = np.random.default_rng(6)
+    pts = np.c_[rng.uniform(-2, 2, 50), np.zeros(50), rng.uniform(-2, 2, 50)]
+    n = np.tile([0.0, 1.0, 0.0], (50, 1))
+    albedo = np.full((50, 3), 0.5)
+    plain = shade_direct(pts, n, albedo, lights, None, seed=2)
+    rows = shade_direct(pts, n, albedo, lights, None, seed=2, material=lambert_rows(50, np.tile([0, 1.0, 0], (50, 1))))
+    np.testing.assert_allclose(rows.radiance, plain.radiance, rtol=2e-5, atol=1e-7)
+    assert plain.variance is not None and (plain.variance > 0).any()
+    assert grid_mask(lights).tolist() == [True, True, True]
+    # --direct lgh: rays aimed at the rect's or the sphere's centre go to points on them, the point's stay
+    from usdml.lighting.area.targets import AreaTargets
+
+    area = AreaTargets.of(lights, seed=2)
+    origins = np.repeat(pts[:4], 3, axis=0)
+    aimed = np.tile(lights.position, (4, 1))
+    moved = area.retarget(origins, aimed)
+    np.testing.assert_array_equal(moved[2::3], aimed[2::3])
+    assert np.allclose(moved[0::3, 1], 2.0) and (np.abs(moved[0::3, 0]) <= 0.75).all()     # on the rect
+    assert np.allclose(np.linalg.norm(moved[1::3] - lights.position[1], axis=1), 0.3)       # on the sphere
+    assert not np.allclose(moved[0::3], aimed[0::3])
+    twice = area.retarget(np.repeat(origins[:1], 2, axis=0), np.repeat(aimed[:1], 2, axis=0))
+    assert not np.allclose(twice[0], twice[1])          # a point's two rays to one light: two strata
+    # a few lights with area go every-light (exactly --direct all's light), many into the hierarchy
+    from usdml.lighting.lgh.direct import prepare_direct
+
+    few = prepare_direct(lights, light_samples=16)
+    assert len(few.grid) == 1 and len(few.rest) == 2 and few.area is None
+    many = Lights.concat([lights] * 40)                 # 80 lights with area x 16 samples > 1,024 rays a point
+    field = prepare_direct(many, light_samples=16)
+    assert len(field.grid) == 120 and len(field.rest) == 0 and len(field.area.lights) == 80

@@ -183,7 +183,9 @@ class LghDirect(EveryLight):
         from usdml.lighting.lgh.direct import prepare_direct
         from usdml.render.lighting_estimate import direct_estimator
 
-        self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device)
+        self.field = prepare_direct(frame.lights, self.settings.lgh_levels, device=self.device, seed=self.settings.seed,
+                                    meters_per_unit=frame.snap.meters_per_unit,
+                                    light_samples=self.settings.light_samples)
         stats.direct_lgh = dict(self.field.stats)
         self.estimate = direct_estimator(self.field, frame, self.backends.shadow, self.settings)
         if self.field.lgh is None and len(self.field.rest) and not self._told_no_grid:

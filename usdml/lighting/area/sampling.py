@@ -33,7 +33,7 @@ import numpy as np
 from usdml.scene import Lights, LightType
 from usdml.scene.hashing import GOLDEN, fold_bits, mix, unit
 
-__all__ = ["AreaSamples", "lattice", "sample_lights", "sampled"]
+__all__ = ["AreaSamples", "lattice", "sample_lights", "sample_pairs", "sampled"]
 
 #: 1/φ, the Fibonacci lattice's second coordinate step
 INV_PHI = 0.6180339887498949
@@ -61,12 +61,13 @@ def lattice(k: int) -> np.ndarray:
     return np.stack([(i + 0.5) / k, np.mod(i * INV_PHI, 1.0)], axis=1)
 
 
-def shifts(points: np.ndarray, positions: np.ndarray, seed: int) -> np.ndarray:
+def shifts(points: np.ndarray, positions: np.ndarray, seed: int, pairs: bool = False) -> np.ndarray:
     """``(P, L, 2) float64`` Cranley–Patterson offsets in [0, 1)² per (shading point, light), keyed by ``seed``
-    and the float32 bits of ``points`` (P, 3) and of the lights' ``positions`` (L, 3)."""
+    and the float32 bits of ``points`` (P, 3) and of the lights' ``positions`` (L, 3); ``pairs``: ``(N, 2)`` for
+    point i with light i (P = L = N)."""
     hp = fold_bits(np.full(len(points), mix(np.uint64(seed) ^ _POINT_KEY)), points)
     hl = fold_bits(np.full(len(positions), _LIGHT_KEY), positions)
-    h = mix(hp[:, None] ^ hl[None, :])
+    h = mix(hp ^ hl) if pairs else mix(hp[:, None] ^ hl[None, :])
     return np.stack([unit(h.ravel()), unit(mix(h.ravel() ^ GOLDEN))], axis=1).reshape(h.shape + (2,))
 
 
@@ -180,9 +181,28 @@ def sample_lights(points: np.ndarray, lights: Lights, k: int, seed: int, meters_
     """``k`` samples on each of ``lights`` (all of them :func:`sampled`) seen from ``points`` (P, 3) world units
     (module doc); ``min_distance`` clamps the falloff's distance (scene units) as
     :class:`usdml.scene.light_table.LightTable` does."""
-    p = np.asarray(points, np.float64).reshape(-1, 1, 1, 3)
-    n_p, n_l = p.shape[0], len(lights)
     uv = np.mod(lattice(k)[None, None] + shifts(points, lights.position, seed)[:, :, None, :], 1.0)
+    return _samples(np.asarray(points, np.float64).reshape(-1, 1, 1, 3), uv, lights, k, meters_per_unit,
+                    min_distance)
+
+
+def sample_pairs(points: np.ndarray, lights: Lights, seed: int, rank: np.ndarray, count: np.ndarray,
+                 meters_per_unit: float = 1.0) -> AreaSamples:
+    """One sample on light i seen from point i (``points`` (N, 3), ``lights`` N entries, all :func:`sampled`): the
+    ``rank[i]``-th point of the lattice of ``count[i]`` (the rays a point sends to one light stratified over it,
+    shifted by the point's and the light's offset): arrays ``(N, 1, ...)``, ``distant`` (N,)."""
+    rank, count = np.asarray(rank, np.float64), np.maximum(np.asarray(count, np.float64), 1.0)
+    base = np.stack([(rank + 0.5) / count, np.mod(rank * INV_PHI, 1.0)], axis=1)
+    uv = np.mod(base + shifts(points, lights.position, seed, pairs=True), 1.0)[:, None, :]
+    s = _samples(np.asarray(points, np.float64).reshape(1, -1, 1, 3), uv[None], lights, 1, meters_per_unit, 0.0)
+    return AreaSamples(s.targets[0], s.directions[0], s.emit[0], s.distant)
+
+
+def _samples(p_all: np.ndarray, uv: np.ndarray, lights: Lights, k: int, meters_per_unit: float,
+             min_distance: float) -> AreaSamples:
+    """The samples of :func:`sample_lights` from points ``p`` (P, 1, 1, 3) against every light, or (1, L, 1, 3)
+    one point per light, at the unit-square points ``uv`` (P or 1, L, K, 2)."""
+    n_p, n_l = p_all.shape[0], len(lights)
     targets = np.zeros((n_p, n_l, k, 3))
     directions = np.zeros((n_p, n_l, k, 3))
     emit = np.zeros((n_p, n_l, k))
@@ -192,6 +212,7 @@ def sample_lights(points: np.ndarray, lights: Lights, k: int, seed: int, meters_
     centre = np.asarray(lights.position, np.float64)
     for kind in np.unique(t):
         cols = np.flatnonzero(t == kind)
+        p = p_all if p_all.shape[1] == 1 else p_all[:, cols]      # one point per light: the kind's points
         u, v = uv[:, cols][..., 0], uv[:, cols][..., 1]
         c = centre[cols][None, :, None, :]
         m = xf[cols]
