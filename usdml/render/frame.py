@@ -19,7 +19,7 @@ import numpy as np
 from usdml.aov.names import find_aov
 from usdml.errors import UsdmlError, log
 from usdml.kernels.brdf import brdf_terms
-from usdml.lighting.area.shading import noise_estimate
+from usdml.lighting.area.shading import AreaEstimate, noise_estimate
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
@@ -198,8 +198,8 @@ class FrameRenderer:
             image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
         if sampled:
             variance, radiance = (np.concatenate(a) for a in zip(*sampled))
-            stats.estimate_area = {"rel_rmse": noise_estimate(variance, radiance, samples),
-                                   "light_samples": int(self.settings.light_samples)}
+            stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
+                                               int(self.settings.light_samples))
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
         blank = blank_frame(hit, lit, albedo, len(lights), camera)

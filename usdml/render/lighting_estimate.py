@@ -132,13 +132,17 @@ def frame_headers(stats) -> dict:
             out.update(header(kind, estimate))
     area = getattr(stats, "estimate_area", None)
     if area:
-        out.update({f"usdml:estimate:area:{k}": v for k, v in area.items()})
+        out.update({f"usdml:estimate:area:{k}": v for k, v in area.as_dict().items()})
     return out
 
 
-def frame_estimates(stats) -> dict[str, LightingEstimate]:
-    """``{"gi": ..., "direct": ...}``: the lighting estimates a frame carries (empty: none)."""
-    return {kind: e for kind in STREAM if (e := getattr(stats, f"estimate_{kind}", None))}
+def frame_estimates(stats) -> dict:
+    """``{"gi": ..., "direct": ..., "area": ...}``: the lighting estimates a frame carries (empty: none); ``area``
+    the noise of its lights with area (:class:`usdml.lighting.area.shading.AreaEstimate`)."""
+    out = {kind: e for kind in STREAM if (e := getattr(stats, f"estimate_{kind}", None))}
+    if getattr(stats, "estimate_area", None):
+        out["area"] = stats.estimate_area
+    return out
 
 
 def lighting_rng(seed: int, time: float, kind: str) -> np.random.Generator:

@@ -15,7 +15,7 @@ stratification makes conservative) times K, summed over the lights, is the varia
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
@@ -26,7 +26,7 @@ from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
 
-__all__ = ["AreaResult", "SAMPLES_PER_CHUNK", "noise_estimate", "shade_area"]
+__all__ = ["AreaEstimate", "AreaResult", "SAMPLES_PER_CHUNK", "noise_estimate", "shade_area"]
 
 #: (point, light, sample) triples evaluated per block (small enough for the blocks to share the cores)
 SAMPLES_PER_CHUNK = 1 << 16
@@ -126,6 +126,17 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
     if specular is not None:
         radiance += specular
     return AreaResult(radiance, specular, facing, blocked, queries, variance)
+
+
+@dataclass
+class AreaEstimate:
+    """A frame's estimate of the noise its lights with area leave in ``direct`` (:func:`noise_estimate`)."""
+
+    rel_rmse: float         #: relative RMSE of ``direct`` from the sampling
+    light_samples: int      #: samples per light and shading point
+
+    def as_dict(self) -> dict:
+        return asdict(self)
 
 
 def noise_estimate(variance: np.ndarray, direct: np.ndarray, passes: int = 1) -> float:
