@@ -201,12 +201,12 @@ def test_a_render_states_its_area_lights_noise(new_stage, tmp_path, capsys):
     from usdml.aov.exr import read_exr
     from usdml.cli import main
 
-    def rect(stage):
+    def rect(stage):        # a 3 x 1 panel 2 above the ground, facing it
         light = UsdLux.RectLight.Define(stage, "/World/panel")
-        light.CreateWidthAttr(3.0)
-        light.CreateIntensityAttr(50.0)
-        light.AddTranslateOp().Set((0, 2, 0))
-        light.AddRotateXOp().Set(-90)
+        for name, value in (("inputs:width", 3.0), ("inputs:intensity", 50.0)):
+            light.GetPrim().GetAttribute(name).Set(value)
+        for op, value in ((light.AddTranslateOp(), (0, 2, 0)), (light.AddRotateXOp(), -90)):
+            op.Set(value)
 
     path = ground_stage(new_stage, rect)
     out = tmp_path / "f.exr"
