@@ -217,7 +217,9 @@ def test_preview_pngs_are_in_the_summary(new_stage, tmp_path, capsys):
     out = tmp_path / "p.####.exr"
     capsys.readouterr()
     assert main(["render", path, str(out), "--frames", "1:2", "--imageWidth", "8", "--preview"]) == 0
-    listed = [line.strip() for line in capsys.readouterr().out.splitlines()[1:]]
+    # after the first line, each frame's estimates (its sphere light has area: "frame 1: lights with area ..."), then
+    # the files
+    listed = [line.strip() for line in capsys.readouterr().out.splitlines()[1:] if not line.startswith("frame ")]
     assert listed == [str(tmp_path / "p.0001.exr"), str(tmp_path / "p.0002.exr"),
                       str(tmp_path / "p.0001.png"), str(tmp_path / "p.0002.png")]
     summary = _json_render(capsys, ["render", path, str(out), "--frames", "1:3", "--imageWidth", "8", "--preview",
