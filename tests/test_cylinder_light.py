@@ -159,8 +159,9 @@ def test_sampled_side_is_the_true_cylinder_side_and_the_point_model_its_far_fiel
         if d > 50:
             at_centre = shade_direct(points, -w, albedo, point, None).radiance[:, 0]
             errors.append(np.abs(at_centre / want - 1).max())
-    # the sampling's noise (16 points, uniform along the length): measured 0.052 at 3, 0.005 and 0.003 at 100, 200
-    assert sampled[0] < 0.1 and max(sampled[1:]) < 0.01, sampled
+    # the sampling's noise (16 points, by the angle along the length): measured 0.028 at 3, 0.005 and 0.003 at 100
+    # and 200
+    assert sampled[0] < 0.06 and max(sampled[1:]) < 0.01, sampled
     assert errors[0] < 0.01 and errors[1] < 0.005, errors
     assert 0.4 < errors[1] / errors[0] < 0.6, errors        # first order: halves with twice the distance
     # and the power of I⊥·sin θ over the sphere is a Lambertian area's π·L·A
@@ -197,9 +198,8 @@ def test_cylinder_light_above_a_plane_matches_the_closed_form(new_stage):
     side = _side_irradiance(400.0, 0.2, 4.0, centre, axis, pts, np.tile([0.0, 1.0, 0.0], (200, 1)))
     lit = side > 1e-3 * side.max()
     rel = np.abs(got.reshape(-1)[pick][lit] / (ALBEDO / math.pi * side[lit]) - 1)
-    # 16 points along a tube 4 long, uniform along it: noise, unbiased (measured median 0.012, max 0.17 a pixel;
-    # the mean 0.2 %)
-    assert np.median(rel) < 0.03 and rel.max() < 0.3, (np.median(rel), rel.max())
+    # 16 points on a tube 4 long: noise, unbiased (measured median 0.013, max 0.049 a pixel; the mean 0.6 %)
+    assert np.median(rel) < 0.03 and rel.max() < 0.1, (np.median(rel), rel.max())
     mean = got.reshape(-1)[pick][lit].mean() / (ALBEDO / math.pi * side[lit]).mean()
     assert abs(mean - 1) < 0.01, mean
     assert b["shadow"].max() == 0

@@ -11,10 +11,12 @@ that ``E ≈ Σ_k emit_k · cos θ_s,k · S_k · V_k · I``:
 
 * rect, disk, mesh triangle (one-sided, sampled uniformly by area ``A``; ``I = L·A``):
   ``emit = max(0, cos θ_l) / (K d²)``, d in metres, θ_l between the light's normal and the point;
-* cylinder (sampled over the half of its side that faces the point, where all of its visible side lies: uniformly
-  along it, by ``p(φ) = cos φ / 2`` around it, φ from the direction to the point; ``I⊥ = L·2r·length``):
-  ``emit = max(0, n_x·(P − x)/d) / (cos φ · K d²)``, which is ``sin θ_c / (K d²)`` far away (no noise there);
-  with radius 0 (``treatAsLine``) the line, uniformly along its length: ``emit = sin θ_c / (K d²)``;
+* cylinder (sampled over the half of its side that faces the point, where all of its visible side lies: along
+  it uniformly in the angle θ the length subtends from the point, ``t = t_p + h tan θ`` (h the point's distance to
+  the axis, t_p its place along it), by ``p(φ) = cos φ / 2`` around it, φ from the direction to the point;
+  ``I⊥ = L·2r·length``): ``emit = s · max(0, n_x·(P − x)/d) / (cos φ · K d²)`` with ``s = Δθ (h² + (t − t_p)²) /
+  (h · length)`` the uniform density over this one, so the 1/d² along it cancels, and ``sin θ_c / (K d²)`` far
+  away; with radius 0 (``treatAsLine``) the line: ``emit = s · sin θ_c / (K d²)``;
 * sphere (uniform in the solid angle ``Ω = 2π(1 − cos θ_max)`` it covers seen from the point, the shadow ray to the
   nearer intersection; ``I = L·π r²``): ``emit = Ω / (π r² K)``, no distance: no point-light blow-up at close range;
 * distant light with angle ``2α`` (uniform in the cone of directions; ``E₀ = L·π sin²α``):
@@ -236,10 +238,18 @@ def _samples(p_all: np.ndarray, uv: np.ndarray, lights: Lights, k: int, meters_p
             w, e = _surface(p, x, np.asarray(lights.axis, np.float64)[cols], inv_m2, min_d2, k)
         elif kind == LightType.CYLINDER:
             axis = _unit(m[:, :3, 0])[None, :, None, :]
-            along = (u - 0.5)[..., None] * np.asarray(lights.width, np.float64)[cols][None, :, None, None] * axis
+            length = np.asarray(lights.width, np.float64)[cols][None, :, None]
             radius = np.asarray(lights.radius, np.float64)[cols][None, :, None]
             q = p - c
-            perp = q - np.einsum("plki,plki->plk", q, axis)[..., None] * axis
+            t_p = np.einsum("plki,plki->plk", q, axis)
+            perp = q - t_p[..., None] * axis
+            # along the axis by the angle the length subtends from the point (uniform in θ, t = t_p + h tan θ):
+            # the 1/d² along it cancels; ``stretch`` is the uniform density's ratio to it
+            h = np.maximum(np.linalg.norm(perp, axis=-1), 1e-12 * np.maximum(length, 1e-300))
+            lo, hi = np.arctan((-length / 2 - t_p) / h), np.arctan((length / 2 - t_p) / h)
+            at = t_p + h * np.tan(lo + u * (hi - lo))
+            stretch = (hi - lo) * (h * h + (at - t_p) ** 2) / (h * np.maximum(length, 1e-300))
+            along = np.clip(at, -length / 2, length / 2)[..., None] * axis
             fallback = np.broadcast_to(_unit(m[:, :3, 1])[None, :, None, :], perp.shape)
             n0 = np.where((np.linalg.norm(perp, axis=-1) > 0)[..., None], _unit(perp), fallback)
             phi = np.arcsin(2.0 * v - 1.0)              # p(φ) = cos φ / 2 about the direction to the point
@@ -248,7 +258,7 @@ def _samples(p_all: np.ndarray, uv: np.ndarray, lights: Lights, k: int, meters_p
             w, fall = _falloff(x - p, inv_m2, min_d2)
             side = np.maximum(-np.einsum("plki,plki->plk", nx, w), 0.0) / np.maximum(np.cos(phi), 1e-12)
             line = np.sqrt(np.maximum(1.0 - np.einsum("plki,plki->plk", w, axis) ** 2, 0.0))
-            e = np.where(radius > 0, side, line) * fall / k
+            e = np.where(radius > 0, side, line) * stretch * fall / k
         elif kind == LightType.SPHERE:
             r = np.asarray(lights.radius, np.float64)[cols][None, :, None]
             to = c - p
