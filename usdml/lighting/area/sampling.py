@@ -9,8 +9,10 @@ onto the shape, and each sample carries ``emit``, its share of the light's ``int
 nit·m², or a distant light's irradiance) at the shading point before the receiver's cosine and the shaping cone, so
 that ``E ≈ Σ_k emit_k · cos θ_s,k · S_k · V_k · I``:
 
-* rect, disk, mesh triangle (one-sided, sampled uniformly by area ``A``; ``I = L·A``):
+* disk, mesh triangle (one-sided, sampled uniformly by area ``A``; ``I = L·A``):
   ``emit = max(0, cos θ_l) / (K d²)``, d in metres, θ_l between the light's normal and the point;
+* rect (uniform in the solid angle Ω it covers, :func:`_rect`; by area as a disk where Ω is tiny):
+  ``emit = Ω / (A K)``, none behind it;
 * cylinder (sampled over the half of its side that faces the point, where all of its visible side lies: along
   it uniformly in the angle θ the length subtends from the point, ``t = t_p + h tan θ`` (h the point's distance to
   the axis, t_p its place along it), by ``p(φ) = cos φ / 2`` around it, φ from the direction to the point;
