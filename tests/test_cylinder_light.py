@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
-from conftest import add_cube_mesh, assert_direct, ground_stage, render_aovs
+from conftest import ALBEDO, add_cube_mesh, ground_stage, render_aovs
 from usdml.cli import main
 from usdml.lighting.direct import shade_direct, shade_with
 from usdml.scene import Lights, LightType
@@ -129,10 +129,11 @@ def test_bad_cylinder_attributes_end_the_render_with_one_line(new_stage, tmp_pat
 
 # ---------------------------------------------------------------------------------------------- the profile
 
-def test_point_model_is_the_far_field_of_the_true_cylinder_side(new_stage):
-    """I(ω) = L·2r·length·sin θ is the projected area of the side: usdml's irradiance converges to the
-    true cylinder's (integrated over its surface) as the distance grows, with an error of first order
-    in size / distance (the visible half of the side is nearer than the centre; a sphere has none)."""
+def test_sampled_side_is_the_true_cylinder_side_and_the_point_model_its_far_field(new_stage):
+    """Shadow rays to points sampled on the side (usdml.lighting.area) give the true cylinder's irradiance
+    (integrated over its surface) at any distance, where the point at the centre, I(ω) = L·2r·length·sin θ
+    (the projected area of the side), is off by an error of first order in size / distance (the visible half
+    of the side is nearer than the centre; a sphere has none)."""
     stage = new_stage()
     c = _cylinder(stage, radius=0.3, length=1.2, intensity=7.0)
     c.AddTranslateOp().Set((1.0, 2.0, 3.0))
@@ -146,13 +147,21 @@ def test_point_model_is_the_far_field_of_the_true_cylinder_side(new_stage):
     sin = np.sqrt(1 - (w @ axis) ** 2)
     w = w[sin > 0.3]
     assert sin.max() > 0.99 and (sin < 0.5).any()      # across the axis and nearer to it
-    errors = []
-    for d in (100.0, 200.0):
+    errors, sampled = [], []
+    point = Lights.concat([lights])
+    point.radius[:], point.width[:] = 0.0, 0.0          # no size: the point at the centre
+    for d in (3.0, 100.0, 200.0):
         points = np.array([1.0, 2.0, 3.0]) + d * w
         albedo = np.full((len(w), 3), math.pi, np.float32)
-        got = shade_direct(points, -w, albedo, lights, None).radiance[:, 0]
         want = _side_irradiance(7.0, 0.3, 1.2, np.array([1.0, 2.0, 3.0]), axis, points, -w)
-        errors.append(np.abs(got / want - 1).max())
+        got = shade_direct(points, -w, albedo, lights, None, light_samples=16).radiance[:, 0]
+        sampled.append(np.abs(got / want - 1).max())
+        if d > 50:
+            at_centre = shade_direct(points, -w, albedo, point, None).radiance[:, 0]
+            errors.append(np.abs(at_centre / want - 1).max())
+    # the sampling's noise (16 points, by the angle along the length): measured 0.028 at 3, 0.005 and 0.003 at 100
+    # and 200
+    assert sampled[0] < 0.06 and max(sampled[1:]) < 0.01, sampled
     assert errors[0] < 0.01 and errors[1] < 0.005, errors
     assert 0.4 < errors[1] / errors[0] < 0.6, errors        # first order: halves with twice the distance
     # and the power of I⊥·sin θ over the sphere is a Lambertian area's π·L·A
@@ -181,7 +190,18 @@ def test_cylinder_light_above_a_plane_matches_the_closed_form(new_stage):
     d2 = (to ** 2).sum(-1)
     w = to / np.sqrt(d2)[..., None]
     sin_c = np.sqrt(np.maximum(1 - (w @ axis) ** 2, 0))
-    assert_direct(b, 400 * 2 * 0.2 * 4.0 * sin_c * w[..., 1] / d2)
+    # the true side's irradiance (the point model, 400·2·0.2·4·sin θ_c·cos θ / d², is its far field only)
+    got = b["direct"][..., 0].astype(np.float64)
+    assert (sin_c > 0).all()
+    pick = np.random.default_rng(1).choice(p.shape[0] * p.shape[1], 200, replace=False)
+    pts = p.reshape(-1, 3)[pick]
+    side = _side_irradiance(400.0, 0.2, 4.0, centre, axis, pts, np.tile([0.0, 1.0, 0.0], (200, 1)))
+    lit = side > 1e-3 * side.max()
+    rel = np.abs(got.reshape(-1)[pick][lit] / (ALBEDO / math.pi * side[lit]) - 1)
+    # 16 points on a tube 4 long: noise, unbiased (measured median 0.013, max 0.049 a pixel; the mean 0.6 %)
+    assert np.median(rel) < 0.03 and rel.max() < 0.1, (np.median(rel), rel.max())
+    mean = got.reshape(-1)[pick][lit].mean() / (ALBEDO / math.pi * side[lit]).mean()
+    assert abs(mean - 1) < 0.01, mean
     assert b["shadow"].max() == 0
 
 
@@ -251,12 +271,12 @@ def test_voxel_render_of_a_cylinder_light_against_exact(new_stage):
         finally:
             r.close()
     exact, voxel = images["exact"], images["voxel"]
-    shadowed = exact["shadow"] == 1
+    shadowed = exact["shadow"] > 0.5
     assert 0.05 < shadowed.mean() < 0.5            # the box's shadow is in view
     e, v = exact["direct"][..., 0].astype(np.float64), voxel["direct"][..., 0].astype(np.float64)
     err = np.abs(v - e).sum() / e.sum()
-    assert err < 0.03, err                          # measured 0.016 (and 0.016 of the pixels' shadow)
-    assert (voxel["shadow"] != exact["shadow"]).mean() < 0.03
+    assert err < 0.03, err
+    assert np.abs(voxel["shadow"] - exact["shadow"]).mean() < 0.03
 
 
 # ---------------------------------------------------------------------------------------------- VPLs

@@ -271,7 +271,12 @@ def test_a_frame_builds_each_lights_map_once_whatever_the_pixel_samples(new_stag
     from usdml.settings import UsdmlSettings
     from usdml.stage import StageDelegate
 
-    path = ground_stage(new_stage, lambda s: UsdLux.SphereLight.Define(s, "/World/bulb").AddTranslateOp().Set((1, 4, 0)))
+    def bulb(s):        # a point light: its map answers its rays (a light with area sends its rays to exact)
+        light = UsdLux.SphereLight.Define(s, "/World/bulb")
+        light.AddTranslateOp().Set((1, 4, 0))
+        light.CreateTreatAsPointAttr(True)
+
+    path = ground_stage(new_stage, bulb)
     images = {}
     for name in ("insm", "exact"):
         d = StageDelegate(path)

@@ -101,7 +101,7 @@ def _lights(positions, intensity, kinds=None, axis=(0.0, -1.0, 0.0), **over) -> 
     fields = dict(type=kinds.astype(np.int8), position=np.asarray(positions, np.float64),
                   axis=np.tile(np.asarray(axis, np.float64), (n, 1)), xform=xform,
                   radiance=np.asarray(intensity, np.float32), intensity=np.asarray(intensity, np.float32),
-                  radius=np.full(n, 0.05), width=np.ones(n), height=np.ones(n), angle=np.zeros(n),
+                  radius=np.zeros(n), width=np.zeros(n), height=np.zeros(n), angle=np.zeros(n),   # no area
                   cone_angle=np.full(n, 180.0), cone_softness=np.zeros(n), focus=np.zeros(n),
                   focus_tint=np.zeros((n, 3), np.float32), shadow=np.ones(n, bool), paths=["/L"] * n,
                   instance_ids=np.arange(n))

@@ -220,7 +220,9 @@ def test_preview_pngs_are_in_the_summary(new_stage, tmp_path, capsys):
     out = tmp_path / "p.####.exr"
     capsys.readouterr()
     assert main(["render", path, str(out), "--frames", "1:2", "--imageWidth", "8", "--preview"]) == 0
-    listed = [line.strip() for line in capsys.readouterr().out.splitlines()[1:]]
+    # after the first line, each frame's estimates (its sphere light has area: "frame 1: lights with area ..."), then
+    # the files
+    listed = [line.strip() for line in capsys.readouterr().out.splitlines()[1:] if not line.startswith("frame ")]
     assert listed == [str(tmp_path / "p.0001.exr"), str(tmp_path / "p.0002.exr"),
                       str(tmp_path / "p.0001.png"), str(tmp_path / "p.0002.png")]
     summary = _json_render(capsys, ["render", path, str(out), "--frames", "1:3", "--imageWidth", "8", "--preview",
@@ -402,7 +404,10 @@ def test_centimetre_stage_renders_like_the_metre_stage(new_stage, tmp_path, norm
         stage.Save()
         images.append(render_aovs(stage.GetRootLayer().realPath, width=32, aovs=("direct",))["direct"])
     assert images[0].max() > 0
-    np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-7)
+    # the sphere and the disk have area: their samples are keyed by the points' float32 bits, which the two
+    # stages do not share, so the pixels agree within the sampling's noise and the images' means closely
+    np.testing.assert_allclose(images[1].mean(), images[0].mean(), rtol=2e-3)
+    np.testing.assert_allclose(images[1], images[0], rtol=0.05, atol=1e-4)
 
 
 def test_camera_light_only_when_the_stage_has_no_lights(new_stage, tmp_path, capsys):

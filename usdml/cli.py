@@ -190,6 +190,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
                  f"queries re-asked of exact" if "budget" in e else ""))
     for f, kinds in summary.get("lightingEstimates", {}).items():
         for kind, e in kinds.items():
+            if kind == "area":
+                print(f"frame {f}: lights with area: estimated rel. RMSE of their sampling {100 * e['rel_rmse']:.2f} % "
+                      f"({e['light_samples']} samples a light)")
+                continue
             print(f"frame {f}: {kind} LGH vs brute force: estimated rel. RMSE {100 * e['rel_rmse']:.2f} % "
                   f"[{100 * e['rel_rmse_lo']:.2f}, {100 * e['rel_rmse_hi']:.2f}], bias {100 * e['rel_bias']:+.2f} % "
                   f"({e['pixels']} pixels, {e['rays']:,} rays)")

@@ -161,7 +161,8 @@ def _reference_subset(delegate: StageDelegate, settings, frame: float, width: in
         t0 = _time.perf_counter()
         r = shade_with(renderer.backends.shadow, gb.position.reshape(-1, 3)[pick], gb.normal.reshape(-1, 3)[pick],
                        gb.albedo.reshape(-1, 3)[pick], lights, None, meters_per_unit=snap.meters_per_unit,
-                       geometric=gb.geometric.reshape(-1, 3)[pick])
+                       geometric=gb.geometric.reshape(-1, 3)[pick], light_samples=settings.light_samples,
+                       seed=settings.seed)
         return pick, r.radiance, _time.perf_counter() - t0, len(hit)
     finally:
         renderer.close()

@@ -29,6 +29,7 @@ import math
 from dataclasses import replace
 
 from usdml.errors import UsdmlError
+from usdml.lighting.area import params as area
 from usdml.lighting.lgh import params as lgh
 from usdml.param import (BAKE, BENCH, COMMANDS, COMPARE, FARM, INFO, LIGHTING, LIGHTING_COMMANDS, LIT, RENDER,
                          STAGE_COMMANDS, VIS, VISIBILITY, VOXEL_COMMANDS, Param, Range)
@@ -142,6 +143,7 @@ _SETTINGS = (
     # -- sampling
     Param("dome_samples", int, 256, "distant lights each DomeLight is importance-sampled into per frame", **LIT,
           range=Range(1), metavar="K", source="measured (usdml.lighting.dome): 1.0 % mean irradiance error at 256"),
+    *area.SAMPLING,
     Param("pixel_samples", int, 4, "primary rays per pixel, a square number s x s (correlated multi-jittered: "
           "one in each cell of an s x s grid and in each thin row and column; box filter); 1 = the pixel centre", (RENDER,), LIGHTING, attribute="usdml:pixelSamples", metavar="N",
           valid=_square, rule=_SQUARE_RULE, source="measured (usdml): halves edge error at 4"),
@@ -193,7 +195,7 @@ _OPTIONS = (
 
 #: the schema attributes' documentation (``Param.doc``) where it says more than the flag's help
 _DOCS = {
-    "direct": """Direct lighting: all shades every pixel against every light; lgh puts the stage's point, sphere, disk and rect lights in a lighting grid hierarchy (paper 004) and shades it with importance-sampled, filtered shadow rays through the visibility backend.
+    "direct": """Direct lighting: all shades every pixel against every light; lgh puts the stage's point lights (and sphere, disk and rect lights of size 0) in a lighting grid hierarchy (paper 004) and shades it with importance-sampled, filtered shadow rays through the visibility backend.
 
     Distant and dome lights, cylinder lights, lights with a shaping cone or
     focus and lights with shadows off stay every-light under lgh. lgh pays

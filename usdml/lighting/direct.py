@@ -3,13 +3,17 @@
 For a surface point P with unit normal n and Lambertian albedo ρ, each light contributes
 outgoing radiance ``ρ/π · E``, with irradiance
 
-* point, sphere, disk, rect, cylinder lights (treated as points at their centre):
+* point lights, and lights whose size is zero (as points at their centre):
   ``E = I · S(θ_l) · max(0, n·ω) / d²`` (d in metres) where ω is the unit direction to the light, d its distance,
   θ_l the angle between the light's axis and −ω, ``I`` the light's radiant intensity
   (:class:`usdml.scene.Lights`); disk and rect lights emit one-sided with a ``max(0, cos θ_l)``
   profile, sphere and point lights isotropically, cylinder lights with the projected area of their
   side, ``sin θ_c`` (θ_c the angle between −ω and the cylinder's axis, its local X);
 * distant lights: ``E = E₀ · max(0, n·ω)`` with ω = −axis.
+
+Lights with area (rect, disk, sphere, cylinder, mesh triangles, distant lights with an angle:
+:func:`usdml.lighting.area.sampling.sampled`) are the same sum at ``light_samples`` points sampled on each, a shadow
+ray to each (:func:`usdml.lighting.area.shading.shade_area`): soft shadows, and no blow-up close to them.
 
 ``S`` is UsdLux shaping: zero outside the cone half-angle, a smoothstep from ``cos(angle)`` to
 ``cos(angle·(1−softness))`` across the cone edge, and focus as ``focusTint + (1 − focusTint)·cos^focus θ_l``
@@ -28,6 +32,9 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.lighting.area.params import LIGHT_SAMPLES
+from usdml.lighting.area.sampling import sampled
+from usdml.lighting.area.shading import AreaResult, shade_area
 from usdml.lighting.brdf_sums import brdf_sums
 from usdml.parallel import cpu_workers, iter_parallel
 from usdml.scene import Lights
@@ -114,7 +121,8 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
                  progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                  min_distance: float = 0.0, geometric: np.ndarray | None = None,
                  answers: np.ndarray | None = None, material: np.ndarray | None = None,
-                 diffuse_only: np.ndarray | None = None) -> DirectResult:
+                 diffuse_only: np.ndarray | None = None, light_samples: int = LIGHT_SAMPLES,
+                 seed: int = 0) -> DirectResult:
     """Shade ``P`` surface points by every light.
 
     Parameters
@@ -138,10 +146,20 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     diffuse_only : (L,) bool, optional
         With ``material``: lights that light the diffuse lobe only (a dome's distant samples: its specular is
         :func:`usdml.lighting.dome_specular.dome_specular`'s).
+    light_samples, seed : points sampled on each light with area, and the seed that places them
+        (:func:`usdml.lighting.area.shading.shade_area`; with ``answers``, which hold one answer per light,
+        every light is shaded as a point).
 
     Loop order (DESIGN, "Performance shape"): a block of pixels against all lights, dense float32
     ``(pixels, lights)`` arrays; the sum over lights is a matrix product.
     """
+    area = _area_columns(lights, diffuse_only) if answers is None else None
+    if area is not None:
+        point = shade_direct(points, normals, albedo, lights.subset(~area), occluded, progress, meters_per_unit,
+                             min_distance, geometric, None, material,
+                             None if diffuse_only is None else diffuse_only[~area])
+        return _plus_area(point, shade_area(points, normals, albedo, lights.subset(area), occluded, light_samples,
+                                            seed, meters_per_unit, min_distance, geometric, material))
     n_p, n_l = len(points), len(lights)
     radiance = np.zeros((n_p, 3), np.float32)
     specular = np.zeros((n_p, 3), np.float32) if material is not None else None
@@ -193,6 +211,26 @@ def shade_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, li
     return DirectResult(radiance, shadow.astype(np.float32), facing.astype(np.int32), queries, specular)
 
 
+def _area_columns(lights: Lights, diffuse_only: np.ndarray | None) -> np.ndarray | None:
+    """``(L,) bool`` the lights sampled over their area (a dome's samples, ``diffuse_only``, never), or None when
+    there are none."""
+    area = sampled(lights)
+    if diffuse_only is not None:
+        area &= ~np.asarray(diffuse_only, bool)
+    return area if area.any() else None
+
+
+def _plus_area(point: DirectResult, area: AreaResult) -> DirectResult:
+    """The point lights' result with the area lights' added: light, facing lights, blocked share, rays."""
+    facing = point.facing.astype(np.int64) + area.facing
+    blocked = point.shadow.astype(np.float64) * point.facing + area.blocked
+    shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0).astype(np.float32)
+    specular = None if point.specular is None else point.specular + area.specular
+    variance = area.variance if point.variance is None else point.variance + area.variance
+    return DirectResult(point.radiance + area.radiance, shadow, facing.astype(np.int32), point.queries + area.queries,
+                        specular, variance)
+
+
 def _material_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, rows: np.ndarray,
                    normals: np.ndarray, diffuse_only: np.ndarray | None):
     """:func:`usdml.lighting.brdf_sums.brdf_sums` of a block; the ``diffuse_only`` lights' pairs add their
@@ -211,19 +249,27 @@ def _material_sums(g: np.ndarray, f: np.ndarray | None, w, table: LightTable, ro
 def shade_with(backend, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, lights: Lights,
                progress: Callable[[int], None] | None = None, meters_per_unit: float = 1.0,
                min_distance: float = 0.0, geometric: np.ndarray | None = None,
-               material: np.ndarray | None = None, diffuse_only: np.ndarray | None = None) -> DirectResult:
+               material: np.ndarray | None = None, diffuse_only: np.ndarray | None = None,
+               light_samples: int = LIGHT_SAMPLES, seed: int = 0) -> DirectResult:
     """:func:`shade_direct` with ``backend``'s shadows (a :class:`usdml.visibility.base.VisibilityBackend`,
     updated): its fused kernel where it declares ``SHADE_DIRECT`` (handed this module's
     :func:`shade_direct` for what it does not fuse), else :func:`shade_direct` over its ``occluded``. With
     ``material`` rows the fused kernel sums both lobes where it can (the voxel backend's compiled one) and hands the
     rest to :func:`shade_direct` over ``occluded`` (the same shadows; ``tools/material_cost.py`` times both).
-    Arguments and result as :func:`shade_direct`."""
+    Lights with area go to :func:`usdml.lighting.area.shading.shade_area` over ``occluded`` (no fused kernel samples
+    them; docs/area-lights.md measures the cost). Arguments and result as :func:`shade_direct`."""
+    area = _area_columns(lights, diffuse_only)
+    if area is not None:
+        point = shade_with(backend, points, normals, albedo, lights.subset(~area), progress, meters_per_unit,
+                           min_distance, geometric, material, None if diffuse_only is None else diffuse_only[~area])
+        return _plus_area(point, shade_area(points, normals, albedo, lights.subset(area), backend.occluded,
+                                            light_samples, seed, meters_per_unit, min_distance, geometric, material))
     options = dict(meters_per_unit=meters_per_unit, min_distance=min_distance, geometric=geometric)
     if material is not None:
         options["material"] = material
         if diffuse_only is not None and diffuse_only.any():
             options["diffuse_only"] = diffuse_only
     # a fused kernel sums both lobes of every light: lights that light one lobe only go through shade_direct
-    if backend.supports(SHADE_DIRECT) and "diffuse_only" not in options:
+    if backend.supports(SHADE_DIRECT) and "diffuse_only" not in options and len(lights):
         return backend.shade_direct(points, normals, albedo, lights, progress, plain=shade_direct, **options)
     return shade_direct(points, normals, albedo, lights, backend.occluded, progress, **options)

@@ -19,6 +19,7 @@ import numpy as np
 from usdml.aov.names import find_aov, is_light_group, light_group
 from usdml.errors import UsdmlError, log
 from usdml.kernels.brdf import brdf_terms
+from usdml.lighting.area.shading import AreaEstimate, noise_estimate
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import QUERY_ROLES, Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
@@ -182,6 +183,7 @@ class FrameRenderer:
         image = _PixelFilter(width, height)
         hit = lit = albedo = seen = False   # any pixel: hit, lit, with a non-zero albedo, a light seen (blank_frame)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
+        sampled = []            # (variance, direct radiance) of each pass whose lights with area were sampled
         for i, (offsets, (gb, surface, direct)) in enumerate(
                 zip(passes, self.direct.passes(frame, passes, stats, pixel_progress))):
             if i == 0 and self.estimates(lights):
@@ -197,12 +199,18 @@ class FrameRenderer:
             if pixel_progress is not None:
                 pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
             stats.shadow_queries += direct.queries
+            if direct.variance is not None:
+                sampled.append((direct.variance, direct.radiance))
             hit, lit = hit or bool(surface.hit.any()), lit or bool(
                 direct.radiance.any() or np.any(indirect) or any(e is not None and e.any() for e in (
                     surface.emission, gb.light, gb.background)))
             seen = seen or gb.emitter is not None
             albedo = albedo or bool(surface.albedo.any())
             image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
+        if sampled:
+            variance, radiance = (np.concatenate(a) for a in zip(*sampled))
+            stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
+                                               int(self.settings.light_samples))
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
         blank = blank_frame(hit, lit, albedo, len(lights), camera, seen)

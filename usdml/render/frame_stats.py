@@ -6,6 +6,7 @@ from dataclasses import dataclass, fields, is_dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:       # the estimates' modules import the lighting layer; the annotations only name them
+    from usdml.lighting.area.shading import AreaEstimate
     from usdml.render.estimate import VisibilityEstimate
     from usdml.render.lighting_estimate import LightingEstimate
 
@@ -39,6 +40,9 @@ class FrameStats:
     #: sample of pixels, with 95 % intervals
     estimate_gi: LightingEstimate | None = None
     estimate_direct: LightingEstimate | None = None
+    #: lights with area: the relative RMSE of ``direct`` their sampling leaves, estimated from each point's samples
+    #: (:class:`usdml.lighting.area.shading.AreaEstimate`)
+    estimate_area: AreaEstimate | None = None
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel

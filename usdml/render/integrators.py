@@ -23,6 +23,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from usdml.errors import log
+from usdml.lighting.area.params import LIGHT_SAMPLES
 from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
@@ -88,10 +89,11 @@ def dome_columns(lights: Lights, domes: list) -> np.ndarray | None:
 
 
 def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
-                  geometric: np.ndarray, material: np.ndarray | None, seed: int, progress: Progress) -> DirectResult:
-    """Every light of ``frame`` at the points (:func:`usdml.lighting.direct.shade_with`); with material rows a dome's
-    distant samples light the diffuse lobe and its specular lobes are sampled from the BRDF
-    (:func:`usdml.lighting.dome_specular.dome_specular`)."""
+                  geometric: np.ndarray, material: np.ndarray | None, seed: int, progress: Progress,
+                  light_samples: int = LIGHT_SAMPLES) -> DirectResult:
+    """Every light of ``frame`` at the points (:func:`usdml.lighting.direct.shade_with`, ``light_samples`` points on
+    each light with area, placed by ``seed``); with material rows a dome's distant samples light the diffuse lobe and
+    its specular lobes are sampled from the BRDF (:func:`usdml.lighting.dome_specular.dome_specular`)."""
     domes = frame.snap.domes if material is not None else []
     if domes:       # the domes among the lights shaded (a class of a linked frame holds some only)
         present = set(frame.lights.paths)
@@ -99,7 +101,7 @@ def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.n
     mask = dome_columns(frame.lights, domes)
     direct = shade_with(backend, points, normals, albedo, frame.lights, progress,
                         meters_per_unit=frame.snap.meters_per_unit, geometric=geometric, material=material,
-                        diffuse_only=mask)
+                        diffuse_only=mask, light_samples=light_samples, seed=seed)
     if mask is not None:
         from usdml.lighting.dome_specular import dome_specular
 
@@ -193,7 +195,8 @@ class EveryLight:
 
         def shade(_, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
             return shade_surface(backends.shadow, fr, s.position[sel], s.normal[sel], s.albedo[sel], s.geometric[sel],
-                                 None if s.material is None else s.material[sel], self.settings.seed, share)
+                                 None if s.material is None else s.material[sel], self.settings.seed, share,
+                                 self.settings.light_samples)
         return self.by_class(frame, s.prim_id, s.instance_id, progress, shade)
 
 
@@ -217,7 +220,8 @@ class EveryLightFused(EveryLight):
 
         def shade(_, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
             return shade_surface(backends.shadow, fr, points[sel], normals[sel], albedo[sel], geometric[sel],
-                                 None if material is None else material[sel], self.settings.seed, share)
+                                 None if material is None else material[sel], self.settings.seed, share,
+                                 self.settings.light_samples)
         direct = self.by_class(frame, stacked("prim_id"), stacked("instance_id"), progress, shade)
         stats.shading_seconds += _time.perf_counter() - t0
         lo = 0
@@ -226,7 +230,8 @@ class EveryLightFused(EveryLight):
             yield gb, surface, DirectResult(direct.radiance[lo:hi], direct.shadow[lo:hi], direct.facing[lo:hi],
                                             direct.queries if i == 0 else 0,
                                             None if direct.specular is None else direct.specular[lo:hi],
-                                            None if direct.groups is None else
+                                            variance=None if direct.variance is None else direct.variance[lo:hi],
+                                            groups=None if direct.groups is None else
                                             {k: v[lo:hi] for k, v in direct.groups.items()})
             lo = hi
 
@@ -262,7 +267,9 @@ class LghDirect(EveryLight):
         from usdml.lighting.lgh.direct import prepare_direct
 
         if ks not in self.fields:
-            field = self.fields[ks] = prepare_direct(lights, self.settings.lgh_levels, device=self.device)
+            field = self.fields[ks] = prepare_direct(lights, self.settings.lgh_levels, device=self.device,
+                                                     seed=self.settings.seed, meters_per_unit=frame.snap.meters_per_unit,
+                                                     light_samples=self.settings.light_samples)
             for k, v in field.stats.items():
                 stats.direct_lgh[k] = stats.direct_lgh.get(k, 0) + v if isinstance(v, (int, float)) else v
             if field.lgh is None and len(field.rest) and not self._told_no_grid:
@@ -307,16 +314,19 @@ class LghDirect(EveryLight):
                 self.linked.backends(self.classes[ks[0]].shadow_link, self.backends)
             self._measure(ks, backends.shadow, lights, stats)
 
+        seed, samples = self.settings.seed, self.settings.light_samples
+
         def shade(ks, backends: Backends, fr: FrameInputs, sel, share: Progress) -> DirectResult:
             shadow = backends.shadow
             field = self._field(ks, fr, fr.lights, stats)
 
             def shade_rest(p, n, a, rest, geometric=None, material=None):
                 if material is None:
-                    return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric)
+                    return shade_with(shadow, p, n, a, rest, None, meters_per_unit=mpu, geometric=geometric,
+                                      light_samples=samples, seed=seed)
                 # the every-light rest as --direct all shades it with material rows (a dome's specular sampled)
-                return shade_surface(shadow, replace(fr, lights=rest), p, n, a, geometric, material,
-                                     self.settings.seed, None)
+                return shade_surface(shadow, replace(fr, lights=rest), p, n, a, geometric, material, seed, None,
+                                     samples)
 
             hit = gb.hit
             if ks is not None:      # the unit's points laid out in the image

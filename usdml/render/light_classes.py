@@ -154,10 +154,14 @@ def shade_classes(classes: list[LightClass], n_points: int, members: Callable[[i
     kind = np.int32        # facing's type: counts, or the hierarchy's fractional ones
     queries = 0
     by_group: dict[str, np.ndarray] = {}
+    variance = None
     for ks, sel in shading_units(classes, members):
         cls = classes[ks[0]]
         r = shade(ks, sel)
         part, spec = _lobes(r, cls)
+        if r.variance is not None:      # independent samples: variances add (a lobe factor scales its part's)
+            variance = np.zeros(n_points, np.float32) if variance is None else variance
+            variance[sel] += r.variance * np.float32(max(cls.diffuse, cls.specular) ** 2)
         radiance[sel] += part
         if spec is not None:
             specular = np.zeros((n_points, 3), np.float32) if specular is None else specular
@@ -171,7 +175,7 @@ def shade_classes(classes: list[LightClass], n_points: int, members: Callable[[i
             g[sel] += part
     shadow = np.where(facing > 0, blocked / np.maximum(facing, 1), 0.0).astype(np.float32)
     return DirectResult(radiance, shadow, facing.astype(kind), queries, specular,
-                        groups=by_group if groups else None)
+                        groups=by_group if groups else None, variance=variance)
 
 
 def _lobes(r: DirectResult, cls: LightClass) -> tuple[np.ndarray, np.ndarray | None]:

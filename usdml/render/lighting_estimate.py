@@ -123,18 +123,26 @@ def header(kind: str, estimate: LightingEstimate) -> dict:
 
 
 def frame_headers(stats) -> dict:
-    """The EXR attributes of a frame's lighting estimates (:class:`usdml.render.frame_stats.FrameStats`)."""
+    """The EXR attributes of a frame's lighting estimates (:class:`usdml.render.frame_stats.FrameStats`), the area
+    lights' sampling noise among them (``usdml:estimate:area:rel_rmse``, ``usdml:estimate:area:light_samples``)."""
     out = {}
     for kind in STREAM:
         estimate = getattr(stats, f"estimate_{kind}", None)
         if estimate:
             out.update(header(kind, estimate))
+    area = getattr(stats, "estimate_area", None)
+    if area:
+        out.update({f"usdml:estimate:area:{k}": v for k, v in area.as_dict().items()})
     return out
 
 
-def frame_estimates(stats) -> dict[str, LightingEstimate]:
-    """``{"gi": ..., "direct": ...}``: the lighting estimates a frame carries (empty: none)."""
-    return {kind: e for kind in STREAM if (e := getattr(stats, f"estimate_{kind}", None))}
+def frame_estimates(stats) -> dict:
+    """``{"gi": ..., "direct": ..., "area": ...}``: the lighting estimates a frame carries (empty: none); ``area``
+    the noise of its lights with area (:class:`usdml.lighting.area.shading.AreaEstimate`)."""
+    out = {kind: e for kind in STREAM if (e := getattr(stats, f"estimate_{kind}", None))}
+    if getattr(stats, "estimate_area", None):
+        out["area"] = stats.estimate_area
+    return out
 
 
 def lighting_rng(seed: int, time: float, kind: str) -> np.random.Generator:
@@ -690,8 +698,9 @@ def direct_estimator(field, frame, shadow, settings) -> FrameEstimator | None:
     mpu, rest = snap.meters_per_unit, field.rest
 
     def exact_part(points, normals, albedo, geometric, material=None):
-        return shade_with(shadow, points, normals, albedo, rest, None, meters_per_unit=mpu,
-                          geometric=geometric, material=material).radiance.astype(np.float64)
+        return shade_with(shadow, points, normals, albedo, rest, None, meters_per_unit=mpu, geometric=geometric,
+                          material=material, light_samples=settings.light_samples,
+                          seed=settings.seed).radiance.astype(np.float64)
 
     return FrameEstimator("direct", Emitters.of_lights(field.grid, mpu), shadow.occluded,
                           settings.seed, snap.time, settings.pixel_samples, frame.width,

@@ -52,7 +52,7 @@ class SequenceResult:
     #: ``--error-budget``), by timecode
     estimates: dict[float, VisibilityEstimate] = field(default_factory=dict)
     #: ``--gi lgh`` / ``--direct lgh``: each rendered frame's ``{"gi": ..., "direct": ...}`` LGH estimates, by timecode
-    lighting_estimates: dict[float, dict[str, LightingEstimate]] = field(default_factory=dict)
+    lighting_estimates: dict[float, dict[str, LightingEstimate]] = field(default_factory=dict)   # and "area"
     warnings: list[str] = field(default_factory=list)   #: what the stage and the render warned about
     dask: DaskRun | None = None     #: rendered on Dask: what the run adds
 

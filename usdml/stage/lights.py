@@ -50,6 +50,7 @@ class LightParams:
     focus: float
     focus_tint: np.ndarray
     shadow: bool
+    line: bool = False          # a cylinder light with treatAsLine: sampled along its axis
 
 
 def attribute_value(prim: Usd.Prim, name: str, time: Usd.TimeCode, fallback):
@@ -142,9 +143,10 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
         if prim.GetAttribute("inputs:texture:file") and prim.GetAttribute("inputs:texture:file").Get(time):
             warn(f"{path}: RectLight texture is not supported; using its color")
     elif ltype == LightType.CYLINDER:
-        # treatAsLine (a zero-radius hint) changes nothing: every light is shaded as a point at its
-        # centre with its shape's emission profile, and the radius still sets the emitting area
+        # treatAsLine: shadow rays go to points along the axis (a line), while the radius still sets the
+        # emitting area (expand keeps it for the intensity and stores the line's world radius as 0)
         radius, width = float(value("inputs:radius", 0.5)), float(value("inputs:length", 1.0))
+        line = bool(attribute_value(prim, "treatAsLine", time, False))
         for name, v in (("radius", radius), ("length", width)):
             if v < 0:
                 raise UsdmlError(f"{path}.inputs:{name}: negative {name} {v:g}; use a {name} >= 0")
@@ -168,7 +170,8 @@ def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) 
             warn(f"{path}: IES profiles are not supported; using the cone only")
     shadow = bool(attribute_value(prim, "inputs:shadow:enable", time, True))
     return LightParams(path, ltype, radiance, normalize, radius, width, height, angle,
-                       cone_angle, softness, focus, np.asarray(tint, np.float64), shadow)
+                       cone_angle, softness, focus, np.asarray(tint, np.float64), shadow,
+                       ltype == LightType.CYLINDER and line)
 
 
 def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | None = None,
@@ -229,7 +232,8 @@ def expand(params: LightParams, xforms: np.ndarray, instance_ids: np.ndarray | N
     return Lights(
         type=np.full(n, int(t), np.int8), position=m[:, :3, 3].copy(), axis=axis, xform=m.copy(),
         radiance=radiance.astype(np.float32), intensity=intensity.astype(np.float32),
-        radius=radius if t in (LightType.SPHERE, LightType.POINT, LightType.DISK, LightType.CYLINDER) else np.zeros(n),
+        radius=radius if t in (LightType.SPHERE, LightType.POINT, LightType.DISK) or (
+            t == LightType.CYLINDER and not params.line) else np.zeros(n),
         width=params.width * sx if t in (LightType.RECT, LightType.CYLINDER) else np.zeros(n),
         height=params.height * sy if t == LightType.RECT else np.zeros(n),
         angle=np.full(n, params.angle), cone_angle=np.full(n, params.cone_angle),

@@ -114,6 +114,9 @@ class DirectResult:
     #: (P, 3) float32 the specular part of ``radiance`` (ΣE·ks, ``kernels/brdf``) when shaded with material
     #: rows, else None (Lambertian: all of ``radiance`` is diffuse)
     specular: np.ndarray | None = None
+    #: (P,) float32 variance of the luminance of ``radiance`` from sampling lights with area
+    #: (:func:`usdml.lighting.area.shading.shade_area`), None where no light was sampled
+    variance: np.ndarray | None = None
     #: light group -> (P, 3) float32 the part of ``radiance`` its lights give (``lightgroup:`` AOVs), or None
     groups: dict[str, np.ndarray] | None = None
 
@@ -199,6 +202,9 @@ class VisibilityBackend(abc.ABC):
 
     #: registry name (``make_backend(name)``)
     name: str = ""
+    #: how far (world units) a shadow ray's end on an emitting surface the backend holds (a mesh light's triangle)
+    #: must be off it not to be blocked by that surface (:mod:`usdml.visibility.emitter_ends`); 0: exactly on it
+    emitter_offset: float = 0.0
     #: optional capabilities it implements (module doc): a subset of ``CAPABILITIES``
     capabilities: frozenset[str] = frozenset()
     #: its constructor takes ``(settings, *, device, report, progress, **values)``: the settings it reads, those

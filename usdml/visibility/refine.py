@@ -169,6 +169,11 @@ class Refined(VisibilityBackend):
     def stats(self):
         return MappingProxyType(dict(self.approx.stats))
 
+    @property
+    def emitter_offset(self) -> float:
+        """The approximate backend's (its answers are the ones an emitting surface would block)."""
+        return self.approx.emitter_offset
+
     def _count(self, key: str, n: int) -> None:
         with self._lock:       # shading asks from several threads at once
             self.counts[key] += n

@@ -14,6 +14,12 @@ one LGH, two light sources. Per frame:
      light and for grid lights over lights that face the same way, and tends to isotropic where they
      do not; mixed with isotropic lights the lobe is exact too (the factor is linear in the mean normal).
 
+   Sphere, disk and rect lights with area: a few (their samples' rays per point, lights × ``usdml:light:samples``,
+   up to :data:`MAX_SAMPLES`: :func:`area_every_light`) are shaded every-light, exactly as ``--direct all`` does;
+   more are grid lights like points at their centres (their unshadowed light is the point's, the far field of
+   their shapes: too bright or too dark within a few sizes of a large one), and a shadow ray aimed at one goes
+   to a point sampled on it (:class:`usdml.lighting.area.targets.AreaTargets`): soft shadows.
+
    Everything else is shaded every-light through the visibility backend, exactly as ``--direct all``
    does: distant lights (and the distant lights a dome is sampled into), cylinder lights, lights with
    a shaping cone or focus (their profile is not a cosine lobe), lights with ``shadow:enable`` off,
@@ -57,6 +63,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from usdml.lighting.area.params import LIGHT_SAMPLES
+from usdml.lighting.area.sampling import sampled
+from usdml.lighting.area.targets import AreaTargets
 from usdml.lighting.direct import DirectResult
 from usdml.scene import Lights, LightType
 
@@ -131,6 +140,14 @@ def grid_mask(lights: Lights) -> np.ndarray:
     return kind & plain & np.asarray(lights.shadow, bool) & (lum > 0.0)
 
 
+def area_every_light(lights: Lights, grid: np.ndarray, light_samples: int) -> np.ndarray:
+    """``(N,) bool``: the lights with area among the ``grid`` ones when they are few enough to be shaded every-light,
+    exactly as ``--direct all`` does (their samples' rays per point, lights × ``light_samples``, no more than
+    :data:`MAX_SAMPLES`, the most shadow rays the hierarchy's automatic choice sends per pixel); none otherwise."""
+    area = sampled(lights) & grid
+    return area if int(area.sum()) * max(int(light_samples), 1) <= MAX_SAMPLES else np.zeros_like(area)
+
+
 def grid_sources(lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(positions (N, 3), isotropic-equivalent intensities (N, 3), emission normals (N, 3) or None)``
     of grid lights: ``I`` for isotropic lights, ``I / 4`` about the axis for disk, rect and triangle lights."""
@@ -159,6 +176,8 @@ class DirectField:
     #: chose it (:func:`choose_gather`), else None: the hierarchy
     each: object | None = None
     chosen: bool = False            #: whether :func:`choose_gather` has chosen for the frame
+    #: the grid's lights with area, where shadow rays aimed at them go (None: none has area)
+    area: AreaTargets | None = None
 
     @property
     def source(self):
@@ -166,13 +185,17 @@ class DirectField:
         return self.lgh if self.each is None else self.each
 
 
-def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> DirectField:
+def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu", seed: int = 0,
+                   meters_per_unit: float = 1.0, light_samples: int = LIGHT_SAMPLES) -> DirectField:
     """Split the frame's ``lights`` and build the hierarchy over the grid lights (once per frame,
-    however many primary rays per pixel gather from it); ``levels`` as ``usdml:lgh:levels``."""
+    however many primary rays per pixel gather from it); ``levels`` as ``usdml:lgh:levels``; ``seed`` places the
+    shadow rays' points on the grid's lights with area, ``light_samples`` (``usdml:light:samples``) decides whether
+    there are few enough of them to shade every-light (:func:`area_every_light`)."""
     from usdml.lighting.lgh.build import build_lgh
 
     t0 = _time.perf_counter()
     mask = grid_mask(lights)
+    mask &= ~area_every_light(lights, mask, light_samples)
     grid, rest = lights.subset(mask), lights.subset(~mask)
     stats = {"grid_lights": len(grid), "every_light": len(rest)}
     if len(grid) == 0:
@@ -184,7 +207,7 @@ def prepare_direct(lights: Lights, levels: int = 0, device: str = "cpu") -> Dire
     stats["lgh_levels"] = lgh.depth
     stats["lgh_h1"] = float(lgh.h1)
     stats["grid_light_count"] = int(len(lgh.position))
-    return DirectField(grid, rest, lgh, sources, stats)
+    return DirectField(grid, rest, lgh, sources, stats, area=AreaTargets.of(grid, seed, meters_per_unit))
 
 
 def choose_gather(points: np.ndarray, direct: DirectField, settings, device: str = "cpu",
@@ -311,6 +334,8 @@ def shade_lgh_direct(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray
     n = len(points)
     stats: dict = {}
     t0 = _time.perf_counter()
+    if direct.area is not None and occluded is not None:
+        occluded = direct.area.wrap(occluded)          # shadow rays to points on the lights with area
     brdf = {} if material is None else {"material": material}
     rest = shade_rest(points, normals, albedo, direct.rest, geometric=geometric, **brdf) if len(direct.rest) else \
         DirectResult(np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.int32), 0,

@@ -442,6 +442,11 @@ class SvoBackend(VisibilityBackend):
         # a Warp launch's first band alone first (it loads the module); the compiled walk's all at once
         run_bands(n, launch, self.workers, bands_per_worker, first_on_caller=self._native is None)
 
+    @property
+    def emitter_offset(self) -> float:
+        """A ray's end on a mesh light's triangle is moved off it by the start's offset, ``normal_offset`` voxels."""
+        return self.normal_offset * self.reference_voxel if self._gpu else 0.0
+
     def hit_distances(self, origins, targets, *, normals=None, distant=None) -> np.ndarray:
         """Distance in voxels (of the tree hit) from each ray's offset start to its first occupied voxel; -1: free.
         A target on a mesh light's triangle ends ``normal_offset`` voxels off its surface

@@ -612,6 +612,11 @@ class VoxelBackend(VisibilityBackend):
         """The same words on the host, ``(W,) uint32`` (on CPU the very memory the kernels read)."""
         return self._gpu.get("words_np")
 
+    @property
+    def emitter_offset(self) -> float:
+        """A ray's end on a mesh light's triangle is moved off it by the start's offset, ``normal_offset`` voxels."""
+        return self.normal_offset * self.reference_voxel if self._gpu else 0.0
+
     def _ended(self, targets, distant):
         """``targets`` with those on a mesh light's triangle moved off its surface (usdml.visibility.emitter_ends) by
         the start's offset: ``normal_offset`` voxels."""
