@@ -143,6 +143,10 @@ def test_membership_is_usd_collection_membership(new_stage):
                     assert got == query.IsPathIncluded(Sdf.Path(asked)), (light_path, asked)
                     checked += 1
     assert checked >= 5 * 7
+    from usdml.info import stage_info
+
+    info = stage_info(d)
+    assert info["linkSets"] == len(links) >= 5 and info["lightGroups"] == ["default"]
     # two instances of one prototype, one in the collection: they differ
     one = snap.lights.light_link[snap.lights.paths.index("/World/one_instance")]
     native = next(p for p in snap.prototypes if p.kind == "native")
