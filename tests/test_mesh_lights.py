@@ -13,7 +13,6 @@ from pxr import Sdf, UsdGeom, UsdLux
 from conftest import ALBEDO, ROOT, add_quad, add_top_camera, render_aovs
 from usdml.cli import main
 from usdml.lighting.vpl import light_power
-from usdml.scene import LightType
 from usdml.stage import StageDelegate
 
 sys.path.insert(0, str(ROOT / "tools"))
@@ -88,7 +87,7 @@ def test_panel_irradiance_matches_lamberts_formula(new_stage):
 
 def test_triangle_lights_units_and_orientation(new_stage, warnings_log):
     stage = new_stage()
-    down = _panel(stage, "/World/down", quads=2, intensity=8.0)
+    _panel(stage, "/World/down", quads=2, intensity=8.0)
     up = _panel(stage, "/World/up", quads=1, height=5.0, down=False)
     up.GetPrim().CreateAttribute("inputs:normalize", Sdf.ValueTypeNames.Bool).Set(True)
     up.GetPrim().CreateAttribute("inputs:exposure", Sdf.ValueTypeNames.Float).Set(1.0)

@@ -20,10 +20,10 @@ import re
 from typing import Callable
 
 import numpy as np
-from pxr import Sdf, Usd, UsdLux
+from pxr import Sdf, Usd
 
 from usdml.scene import Snapshot
-from usdml.scene.linking import DEFAULT_GROUP, EVERY_PRIM, LightLabel, LinkSets
+from usdml.scene.linking import EVERY_PRIM, LightLabel, LinkSets
 from usdml.stage.lights import attribute_value, lobe_factors
 
 __all__ = ["GROUP_ATTRIBUTE", "LinkReader", "group_name"]
