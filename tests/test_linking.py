@@ -328,3 +328,31 @@ def test_vpls_land_only_on_the_prims_a_light_lights(new_stage):
     second = vpls.position[vpls.bounce == 2]
     assert np.any(np.abs(second[:, [0, 2]]).max(axis=1) > 1.5)     # the box's bounce reaches the ground
     exact.close()
+
+
+def test_a_light_is_seen_with_its_own_radiance_whatever_its_lobe_factors(new_stage):
+    """``inputs:diffuse`` scales what a light lights, not what the camera sees (Karma): a rect light facing the
+    camera shows its L = intensity in ``emission``, and a dome its own radiance in ``background``."""
+    from usdml.render.visible_lights import dome_seen
+    from usdml.scene.dome import Dome
+
+    def build(stage):
+        rect = UsdLux.RectLight.Define(stage, "/World/panel")
+        rect.CreateIntensityAttr(3.0)
+        rect.CreateDiffuseAttr(0.5)
+        rect.AddTranslateOp().Set((0.0, 5.0, 0.0))
+        rect.AddRotateXOp().Set(90.0)        # its -Z (the emitting side) up, toward the camera
+        dome = UsdLux.DomeLight.Define(stage, "/World/dome")
+        dome.CreateIntensityAttr(0.7)
+        dome.CreateDiffuseAttr(0.25)
+
+    path = _scene(new_stage, build)
+    b = _render(path, aovs=("emission", "direct"), width=32, visible_lights=True)
+    seen = b["emission"][..., 0]
+    assert (np.abs(seen - 3.0) < 1e-3).sum() >= 4          # the panel's pixels: L, not 0.5·L
+    d = StageDelegate(path)
+    snap = d.snapshot(d.start_time)
+    dome = snap.domes[0]
+    assert isinstance(dome, Dome)
+    sky = dome_seen(snap.domes, np.array([[0.0, 1.0, 0.0]]), snap.links)
+    np.testing.assert_allclose(sky, [[0.7, 0.7, 0.7]], rtol=1e-5)

@@ -136,7 +136,7 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int,
         if snapshot.domes:
             sky = ~h.hit & ~on_light
             background = np.zeros((n, 3), np.float32)
-            background[sky] = dome_seen(snapshot.domes, dirs[sky])
+            background[sky] = dome_seen(snapshot.domes, dirs[sky], snapshot.links)
             background = background.reshape(shape + (3,))
             emitter |= sky
         emitter = emitter.reshape(shape) if emitter.any() else None

@@ -33,12 +33,14 @@ SEEN_TYPES = (LightType.SPHERE, LightType.DISK, LightType.RECT, LightType.CYLIND
 _CHUNK = 1 << 20
 
 
-def dome_seen(domes: list, dirs: np.ndarray) -> np.ndarray:
+def dome_seen(domes: list, dirs: np.ndarray, links=None) -> np.ndarray:
     """``(N, 3) float32`` radiance of every dome seen along world directions ``dirs (N, 3)`` (unit, away from the
-    camera), summed over the domes."""
+    camera), summed over the domes: their own, without the lobe factor their radiance carries (``links``: the
+    snapshot's :class:`usdml.scene.linking.LinkSets`, whose labels hold it)."""
     out = np.zeros((len(dirs), 3), np.float64)
     for dome in domes:
-        out += dome.radiance_at(dirs)
+        label = None if links is None else links.labels.get(dome.path)
+        out += dome.radiance_at(dirs) / (1.0 if label is None else label.scale)
     return out.astype(np.float32)
 
 
@@ -134,7 +136,9 @@ def _radiance_toward(lights: Lights, li: np.ndarray, d: np.ndarray) -> np.ndarra
     scale = smoothstep_cone(cos_l, lights.cone_angle[li], lights.cone_softness[li]).astype(np.float64)
     focus, tint = lights.focus[li], lights.focus_tint[li].astype(np.float64)
     profile = np.where((focus > 0)[:, None], tint + (1 - tint) * (np.maximum(cos_l, 0.0) ** focus)[:, None], 1.0)
-    return lights.radiance[li].astype(np.float64) * scale[:, None] * profile
+    # the light's own radiance: without the lobe factor its stored radiance carries (Lights.scale)
+    own = lights.radiance[li].astype(np.float64) / lights.scale[li].astype(np.float64)[:, None]
+    return own * scale[:, None] * profile
 
 
 def lights_seen(lights: Lights, camera: Camera, width: int, height: int, origins: np.ndarray, dirs: np.ndarray,

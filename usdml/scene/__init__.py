@@ -156,13 +156,15 @@ class Lights:
     #: whose two lobes are scaled alike
     diffuse: np.ndarray | None = None
     specular: np.ndarray | None = None
+    #: (N,) float32 that factor ``m`` itself (1 where it is 0): the camera sees ``radiance / scale``, the light's own
+    scale: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.type)
         for name in ("light_link", "shadow_link"):
             if getattr(self, name) is None:
                 setattr(self, name, np.full(n, -1, np.int32))
-        for name in ("diffuse", "specular"):
+        for name in ("diffuse", "specular", "scale"):
             if getattr(self, name) is None:
                 setattr(self, name, np.ones(n, np.float32))
         if self.group is None:
@@ -184,7 +186,7 @@ class Lights:
             "angle": ((), np.float64), "cone_angle": ((), np.float64), "cone_softness": ((), np.float64),
             "focus": ((), np.float64), "focus_tint": ((3,), np.float32), "shadow": ((), bool),
             "instance_ids": ((), np.int64), "light_link": ((), np.int32), "shadow_link": ((), np.int32),
-            "diffuse": ((), np.float32), "specular": ((), np.float32),
+            "diffuse": ((), np.float32), "specular": ((), np.float32), "scale": ((), np.float32),
         }
         kw = {}
         for name, (shape, dtype) in shapes.items():

@@ -46,6 +46,7 @@ class LightLabel:
     group: str = ""
     diffuse: float = 1.0
     specular: float = 1.0
+    scale: float = 1.0      #: the factor the stored radiance carries (:attr:`usdml.scene.Lights.scale`)
 
 
 @dataclass(eq=False)
@@ -62,7 +63,7 @@ class LinkSets:
         return len(self.names)
 
     def label(self, lights: Lights) -> Lights:
-        """``lights`` with :attr:`Lights.light_link`, ``shadow_link``, ``group``, ``diffuse`` and ``specular`` set
+        """``lights`` with :attr:`Lights.light_link`, ``shadow_link``, ``group``, ``diffuse``, ``specular``, ``scale`` set
         from their paths (a path without a label keeps the defaults)."""
         if not self.labels or not len(lights):
             return lights
@@ -71,7 +72,8 @@ class LinkSets:
                        shadow_link=np.fromiter((r.shadow_link for r in rows), np.int32, len(rows)),
                        group=[r.group for r in rows],
                        diffuse=np.fromiter((r.diffuse for r in rows), np.float32, len(rows)),
-                       specular=np.fromiter((r.specular for r in rows), np.float32, len(rows)))
+                       specular=np.fromiter((r.specular for r in rows), np.float32, len(rows)),
+                       scale=np.fromiter((r.scale for r in rows), np.float32, len(rows)))
 
     def members(self, link: int, prim_id: np.ndarray, instance_id: np.ndarray) -> np.ndarray:
         """``(P,) bool``: the hit points (``prim_id``, ``instance_id`` of each, as the G-buffer's) that set

@@ -13,7 +13,7 @@ Radiometry (UsdLux, README "Light units"):
   ``E = intensity · 2^exposure · color`` (lux); an unnormalized zero-angle distant light uses ``E = L``.
 
 ``inputs:diffuse`` is folded into L (``inputs:specular`` where diffuse is 0), and each lobe's factor of it is
-the light's label (:func:`lobe_factors`, :attr:`usdml.scene.Lights.diffuse`). A negative
+the light's label (:func:`lobe_scale`, :attr:`usdml.scene.Lights.diffuse`). A negative
 ``inputs:intensity`` is a light that takes light away (UsdLux allows it; Karma renders it): its L, I and E
 are negative, every channel (colours stay >= 0), and the shading sums it like any other light
 (docs/usd.md, "Negative lights").
@@ -101,12 +101,6 @@ def lobe_scale(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float, float]
     specular = max(float(_finite(path, "inputs:specular", attribute_value(prim, "inputs:specular", time, 1.0))), 0.0)
     m = diffuse if diffuse > 0 else specular
     return (m, diffuse / m, specular / m) if m > 0 else (0.0, 1.0, 1.0)
-
-
-def lobe_factors(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[float, float]:
-    """A light's ``(diffuse, specular)`` factors of its stored radiance (:attr:`usdml.scene.Lights.diffuse`)."""
-    _, diffuse, specular = lobe_scale(prim, time)
-    return diffuse, specular
 
 
 def read_light(prim: Usd.Prim, time: Usd.TimeCode, warn: Callable[[str], None]) -> LightParams | None:

@@ -24,7 +24,7 @@ from pxr import Sdf, Usd
 
 from usdml.scene import Snapshot
 from usdml.scene.linking import EVERY_PRIM, LightLabel, LinkSets
-from usdml.stage.lights import attribute_value, lobe_factors
+from usdml.stage.lights import attribute_value, lobe_scale
 
 __all__ = ["GROUP_ATTRIBUTE", "LinkReader", "group_name"]
 
@@ -80,8 +80,8 @@ class LinkReader:
                     rows.append(member)
                 link.append(sets[key])
             group = group_name(attribute_value(prim, GROUP_ATTRIBUTE, time, ""), path, self._warn_once)
-            diffuse, specular = lobe_factors(prim, time)
-            label = LightLabel(link[0], link[1], group, diffuse, specular)
+            m, diffuse, specular = lobe_scale(prim, time)
+            label = LightLabel(link[0], link[1], group, diffuse, specular, m if m > 0 else 1.0)
             if label != LightLabel():
                 labels[path] = label
         return _sets(snap, geometry, names, rows, labels)
