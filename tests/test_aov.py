@@ -476,3 +476,17 @@ def test_frame_spec_default_is_stage_start():
 def test_frame_spec_errors(spec, match):
     with pytest.raises(FrameSpecError, match=match):
         frame_spec(spec, 1, 10)
+
+
+def test_exr_says_its_colours_are_linear_rec709_d65(tmp_path):
+    """Every EXR carries OpenEXR's ``chromaticities``: ITU-R BT.709's primaries and D65 white (the numbers from the
+    recommendation, read back by OpenImageIO, a reader sharing no usdml code)."""
+    from usdml.aov.exr import write_exr
+
+    path = tmp_path / "c.exr"
+    write_exr(path, {"color": np.zeros((2, 3, 4), np.float32)})
+    spec = oiio.ImageInput.open(str(path)).spec()
+    got = spec.getattribute("chromaticities")
+    bt709 = (0.640, 0.330, 0.300, 0.600, 0.150, 0.060)
+    d65 = (0.3127, 0.3290)
+    np.testing.assert_allclose(got, bt709 + d65, atol=1e-6)

@@ -36,6 +36,11 @@ Header.
   ``exr = (A @ world_to_ndc).T`` with ``A`` mapping x -> (x + 1) / 2, y -> (1 - y) / 2 and keeping
   z and w. Pixel (i, j) has its centre at NDC ((i + 0.5) / W, (j + 0.5) / H).
   :func:`usdml_world_to_camera` / :func:`usdml_world_to_ndc` undo both conversions.
+* ``chromaticities`` (OpenEXR's standard attribute): the primaries and white point of the colours, the rendering
+  space's: linear Rec.709 / sRGB primaries (ITU-R BT.709: red 0.64, 0.33; green 0.30, 0.60; blue 0.15, 0.06) and
+  D65 white (0.3127, 0.3290), :data:`REC709_CHROMATICITIES`. usdml renders in that space: textures are decoded to
+  it (``sourceColorSpace``), colours are taken as given in it, as Storm does. ``write_png_preview`` encodes the
+  same primaries with the sRGB transfer function.
 * ``usdml:timeCode`` (double), ``usdml:stage`` (string, the stage's path),
   ``usdml:settings`` (string, JSON with sorted keys; a render writes what its pixels depend on and
   ``usdml:settingsDigest``, :mod:`usdml.render.identity`), ``usdml:aovs`` (string, JSON
@@ -66,7 +71,7 @@ from usdml.errors import UsdmlError
 from usdml.outputs import atomic_write, write_image
 
 __all__ = [
-    "ExrError", "write_exr", "read_exr", "is_complete_exr", "exr_attribute", "write_png_preview",
+    "ExrError", "REC709_CHROMATICITIES", "write_exr", "read_exr", "is_complete_exr", "exr_attribute", "write_png_preview",
     "exr_world_to_camera", "exr_world_to_ndc", "usdml_world_to_camera", "usdml_world_to_ndc",
     "camera_matrices", "COMPRESSIONS",
 ]
@@ -142,6 +147,10 @@ def _compressions() -> dict[str, Any]:
 #: b44 / b44a (half channels), dwaa / dwab (lossy on colour-named half channels); plus whatever the
 #: installed OpenEXR adds (zstd, htj2k...)
 COMPRESSIONS: tuple[str, ...] = tuple(sorted(_compressions()))
+
+#: the rendering space's primaries and white point, OpenEXR's ``chromaticities`` order (red x, y, green x, y, blue x, y,
+#: white x, y): linear Rec.709 / sRGB (ITU-R BT.709) with D65 white (module doc)
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 #: header attributes that describe the image itself, not metadata
 _STRUCTURAL = frozenset({
@@ -293,6 +302,7 @@ def write_exr(
 
     header["usdml:version"] = __version__
     header["usdml:aovs"] = json.dumps(layer_aovs)
+    header["chromaticities"] = REC709_CHROMATICITIES
     if world_to_camera is not None:
         header["worldToCamera"] = exr_world_to_camera(world_to_camera)
     if world_to_ndc is not None:
