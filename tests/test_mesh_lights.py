@@ -266,3 +266,16 @@ def test_approximate_backends_do_not_shadow_a_mesh_light_with_its_own_surface(ne
     mask = exact > 1e-3 * exact.max()
     rel = np.abs(approx[mask] - exact[mask]) / exact[mask]
     assert np.percentile(rel, 99) < 1e-3, np.percentile(rel, 99)
+
+
+@pytest.mark.parametrize("backend", ["voxel", "svo"])
+def test_direct_lgh_does_not_shadow_a_mesh_light_with_its_own_surface(new_stage, backend):
+    """``--direct lgh`` over 2,048 triangles keeps them in its hierarchy and aims each shadow ray at a point sampled on
+    its triangle (usdml.lighting.area.targets): that end too is off the surface (emitter_ends.off_emitters). Nothing
+    else is in the way, so the frame is exact's; with the ends on the panel voxel was 14 % darker (median)."""
+    path = _ground_stage(new_stage, lambda s: _panel(s, "/World/panel", quads=32))
+    exact = _direct(path, direct="lgh")
+    approx = _direct(path, direct="lgh", visibility=backend, **({"voxel_resolution": 64} if backend == "voxel" else {}))
+    mask = exact > 1e-3 * exact.max()
+    rel = np.abs(approx[mask] - exact[mask]) / exact[mask]
+    assert np.percentile(rel, 99) < 1e-3, np.percentile(rel, 99)

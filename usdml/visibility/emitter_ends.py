@@ -20,13 +20,28 @@ import numpy as np
 
 from usdml.scene import Lights, LightType
 
-__all__ = ["EmitterEnds"]
+__all__ = ["EmitterEnds", "off_emitters"]
 
 
 def _keys(points: np.ndarray) -> np.ndarray:
     """``(N,) uint64`` hash of each row's float32 bits (equal rows, equal keys)."""
     bits = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3)).view(np.uint32).astype(np.uint64)
     return (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) ^ bits[:, 2]
+
+
+def off_emitters(targets: np.ndarray, lights: Lights, index: np.ndarray, occluded) -> np.ndarray:
+    """Points sampled on lights (``targets`` (N, 3), on lights ``index`` (N,) of ``lights``) as shadow-ray ends for
+    ``occluded`` (a backend's bound method): those on a triangle light moved its backend's ``emitter_offset`` along
+    the triangle's normal, off the surface the backend holds (the ends :class:`EmitterEnds` gives its centroid);
+    ``targets`` itself where none moves. Used wherever a point is sampled on a light for a shadow ray (lights with
+    area, ``usdml.lighting.area``)."""
+    lift = float(getattr(getattr(occluded, "__self__", None), "emitter_offset", 0.0) or 0.0)
+    on = (np.asarray(lights.type)[index] == LightType.TRIANGLE) if lift > 0 else None
+    if on is None or not on.any():
+        return targets
+    out = np.array(targets, np.float64)
+    out[on] += np.asarray(lights.axis, np.float64)[np.asarray(index)[on]] * lift
+    return out
 
 
 class EmitterEnds:

@@ -23,8 +23,9 @@ import numpy as np
 from usdml.lighting.area.sampling import sample_lights
 from usdml.lighting.brdf_sums import brdf_sums
 from usdml.parallel import cpu_workers, iter_parallel
-from usdml.scene import Lights, LightType
+from usdml.scene import Lights
 from usdml.scene.light_table import LightTable, smoothstep_cone
+from usdml.visibility.emitter_ends import off_emitters
 
 __all__ = ["AreaEstimate", "AreaResult", "SAMPLES_PER_CHUNK", "noise_estimate", "shade_area"]
 
@@ -76,12 +77,6 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
     luma_base, luma_focus = table.base @ LUMA, table.focus_rgb @ LUMA
     offset = normals if geometric is None else geometric
     step = max(1, SAMPLES_PER_CHUNK // (n_l * k))
-    # a point sampled on a mesh light's triangle lies on a surface the backend holds: the ray ends the backend's
-    # emitter_offset off it, on the emitting side (usdml.visibility.emitter_ends)
-    lift = float(getattr(getattr(occluded, "__self__", None), "emitter_offset", 0.0) or 0.0)
-    emitting = (np.asarray(lights.type) == LightType.TRIANGLE) if lift > 0 else None
-    if emitting is not None and not emitting.any():
-        emitting = None
 
     def block(lo: int) -> int:
         hi = min(n_p, lo + step)
@@ -105,11 +100,8 @@ def shade_area(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ligh
         if occluded is not None:
             pi, li, ki = np.nonzero(live & table.casts[None, :, None])
             if len(pi):
-                targets = s.targets[pi, li, ki]
-                if emitting is not None:
-                    on = emitting[li]
-                    targets = np.array(targets, np.float64)
-                    targets[on] += np.asarray(lights.axis, np.float64)[li[on]] * lift
+                # a point on a mesh light's triangle ends off the surface the backend holds
+                targets = off_emitters(s.targets[pi, li, ki], lights, li, occluded)
                 hit = np.asarray(occluded(points[lo + pi], targets, normals=offset[lo + pi],
                                           distant=s.distant[li]), bool)
                 asked = len(pi)

@@ -17,6 +17,7 @@ import numpy as np
 from usdml.lighting.area.sampling import sample_pairs, sampled
 from usdml.scene import Lights
 from usdml.scene.hashing import fold_bits
+from usdml.visibility.emitter_ends import off_emitters
 
 __all__ = ["AreaTargets"]
 
@@ -42,9 +43,10 @@ class AreaTargets:
         """The targets of ``lights``, or None when none of them has area."""
         return cls(lights, seed, meters_per_unit) if len(lights) and sampled(lights).any() else None
 
-    def retarget(self, origins: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    def retarget(self, origins: np.ndarray, targets: np.ndarray, occluded=None) -> np.ndarray:
         """``targets`` (N, 3) with each one at a light with area moved to a point sampled on that light, seen from
-        its ray's origin (``origins`` (N, 3)); the others as they are."""
+        its ray's origin (``origins`` (N, 3)); the others as they are. A point on a mesh light's triangle ends off the
+        surface ``occluded``'s backend holds (:func:`usdml.visibility.emitter_ends.off_emitters`)."""
         targets = np.asarray(targets)
         keys = _keys(targets)
         at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
@@ -64,7 +66,7 @@ class AreaTargets:
         s = sample_pairs(np.asarray(origins, np.float64)[rows], self.lights.subset(light), self.seed, rank, count,
                          self.meters_per_unit)
         out = np.array(targets, copy=True)
-        out[rows] = s.targets[:, 0]
+        out[rows] = off_emitters(s.targets[:, 0], self.lights, light, occluded)
         return out
 
     def wrap(self, occluded: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
@@ -73,5 +75,5 @@ class AreaTargets:
             distant = kw.get("distant")
             if distant is not None and np.asarray(distant).any():
                 return occluded(origins, targets, **kw)     # directions: no light of the hierarchy
-            return occluded(origins, self.retarget(origins, targets), **kw)
+            return occluded(origins, self.retarget(origins, targets, occluded), **kw)
         return query
