@@ -471,7 +471,7 @@ def _linked(snapshot: Snapshot, backend, light_link: np.ndarray, li: np.ndarray,
     set (:class:`usdml.scene.linking.LinkSets`)."""
     out = np.ones(len(li), bool)
     links = light_link[li]
-    prim_id, instance_id = backend.ids(np.where(geom >= 0, geom, -1))
+    prim_id, instance_id = backend.ids(geom)
     for link in np.unique(links[links >= 0]):
         sel = np.flatnonzero(links == link)
         out[sel] = snapshot.links.members(int(link), prim_id[sel], instance_id[sel])

@@ -148,7 +148,7 @@ class EveryLight:
         total = len(frame.lights)
 
         def members(link: int) -> np.ndarray:
-            return self._members(frame, (prim_id, instance_id), link)
+            return self._members(frame, prim_id, instance_id, link)
 
         def one(ks: tuple[int, ...], sel: np.ndarray) -> DirectResult:
             index = np.concatenate([self.classes[k].index for k in ks])
@@ -160,10 +160,9 @@ class EveryLight:
         return shade_classes(self.classes, len(prim_id), members, one, self.groups)
 
     @staticmethod
-    def _members(frame: FrameInputs, points, link: int) -> np.ndarray:
-        """``(P,) bool``: the points (a :class:`Surface`, or its ``(prim_id, instance_id)``) light-link set ``link``
+    def _members(frame: FrameInputs, prim_id: np.ndarray, instance_id: np.ndarray, link: int) -> np.ndarray:
+        """``(P,) bool``: the points (the G-buffer's ``prim_id``, ``instance_id`` of each) light-link set ``link``
         reaches."""
-        prim_id, instance_id = (points.prim_id, points.instance_id) if isinstance(points, Surface) else points
         links = frame.snap.links
         return np.ones(len(prim_id), bool) if links is None else links.members(link, prim_id, instance_id)
 
@@ -305,7 +304,7 @@ class LghDirect(EveryLight):
         mpu, sf = frame.snap.meters_per_unit, surface
         self._part = None
         if self._measured is None and not self.single() and len(sf.position):
-            units = shading_units(self.classes, lambda link: self._members(frame, sf, link))
+            units = shading_units(self.classes, lambda link: self._members(frame, sf.prim_id, sf.instance_id, link))
             ks, _ = max(units, key=lambda u: sum(len(self.classes[k].index) for k in u[0]) * int(u[1].sum()))
             index = np.concatenate([self.classes[k].index for k in ks])
             lights = frame.lights.subset(index)

@@ -86,12 +86,10 @@ class LinkSets:
         out = np.zeros(len(prim_id), bool)
         out[inside] = row[prim_id[inside]]
         instance_id = np.asarray(instance_id, np.int64)
-        for mesh_id, (ids, member) in self.instanced.items():
+        for mesh_id in self.instanced:
             sel = np.flatnonzero(prim_id == mesh_id)
-            if not len(sel):
-                continue
-            k = np.clip(np.searchsorted(ids, instance_id[sel]), 0, len(ids) - 1)
-            out[sel] = member[link, k] & (ids[k] == instance_id[sel])
+            if len(sel):
+                out[sel] = self._instance_mask(link, mesh_id, instance_id[sel])
         return out
 
     def filtered(self, snap: Snapshot, link: int) -> Snapshot:

@@ -49,11 +49,11 @@ class LinkReader:
     membership is asked again each frame (the geometry may change), cached by path."""
 
     def __init__(self, stage: Usd.Stage, warn: Callable[[str], None]):
+        """``warn``: the delegate's :class:`usdml.errors.Warnings`, which says each distinct message once."""
         self.stage = stage
         self.warn = warn
         self._queries: dict[tuple[str, str], Usd.UsdCollectionMembershipQuery | None] = {}
         self._included: dict[tuple[str, str, str], bool] = {}
-        self._said: set[str] = set()
 
     def links(self, snap: Snapshot, light_paths: list[str], time: Usd.TimeCode) -> LinkSets:
         """The :class:`LinkSets` of ``snap``'s geometry for the lights at ``light_paths`` (the snapshot's and its
@@ -79,17 +79,12 @@ class LinkReader:
                     names.append(f"{path}.collection:{which}")
                     rows.append(member)
                 link.append(sets[key])
-            group = group_name(attribute_value(prim, GROUP_ATTRIBUTE, time, ""), path, self._warn_once)
+            group = group_name(attribute_value(prim, GROUP_ATTRIBUTE, time, ""), path, self.warn)
             m, diffuse, specular = lobe_scale(prim, time)
             label = LightLabel(link[0], link[1], group, diffuse, specular, m if m > 0 else 1.0)
             if label != LightLabel():
                 labels[path] = label
         return _sets(snap, geometry, names, rows, labels)
-
-    def _warn_once(self, message: str) -> None:
-        if message not in self._said:
-            self._said.add(message)
-            self.warn(message)
 
     def _query(self, prim: Usd.Prim, which: str):
         key = (str(prim.GetPath()), which)
@@ -100,7 +95,7 @@ class LinkReader:
                 for rel in (api.GetIncludesRel(), api.GetExcludesRel()):
                     for target in rel.GetTargets():
                         if not self.stage.GetPrimAtPath(target) and not self.stage.GetPropertyAtPath(target):
-                            self._warn_once(f"{rel.GetPath()}: {target} does not exist; the collection ignores it")
+                            self.warn(f"{rel.GetPath()}: {target} does not exist; the collection ignores it")
                 query = api.ComputeMembershipQuery()
             self._queries[key] = query
         return self._queries[key]
