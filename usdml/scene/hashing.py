@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GOLDEN", "fold_bits", "mix", "unit"]
+__all__ = ["GOLDEN", "fold_bits", "mix", "point_keys", "unit"]
 
 #: 2⁶⁴ / φ, SplitMix64's increment
 GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -31,6 +31,14 @@ def fold_bits(h: np.ndarray, values: np.ndarray) -> np.ndarray:
     for c in range(bits.shape[1]):
         h = mix(h ^ bits[:, c])
     return h
+
+
+def point_keys(points: np.ndarray) -> np.ndarray:
+    """(N,) uint64 hashes of the float32 bits of ``points`` (N, 3): equal points (to the bit), equal keys. A shadow
+    ray's target is matched to the light it was aimed at this way (``usdml.visibility.emitter_ends``,
+    ``usdml.lighting.area.targets``)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3).astype(np.float32)
+    return fold_bits(np.zeros(len(pts), np.uint64), pts)
 
 
 def unit(h: np.ndarray) -> np.ndarray:

@@ -19,14 +19,9 @@ from __future__ import annotations
 import numpy as np
 
 from usdml.scene import Lights, LightType
+from usdml.scene.hashing import point_keys
 
 __all__ = ["EmitterEnds", "off_emitters"]
-
-
-def _keys(points: np.ndarray) -> np.ndarray:
-    """``(N,) uint64`` hash of each row's float32 bits (equal rows, equal keys)."""
-    bits = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3)).view(np.uint32).astype(np.uint64)
-    return (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) ^ bits[:, 2]
 
 
 def off_emitters(targets: np.ndarray, lights: Lights, index: np.ndarray, occluded) -> np.ndarray:
@@ -49,7 +44,7 @@ class EmitterEnds:
 
     def __init__(self, position: np.ndarray, normal: np.ndarray):
         self.position = np.asarray(position, np.float32).reshape(-1, 3)
-        keys = _keys(self.position)
+        keys = point_keys(self.position)
         order = np.argsort(keys, kind="stable")
         self._keys, self._order = keys[order], order
         self.normal = np.asarray(normal, np.float64).reshape(-1, 3)
@@ -68,7 +63,7 @@ class EmitterEnds:
         t = np.asarray(targets)
         if not len(t) or distance <= 0:
             return targets
-        keys = _keys(t)
+        keys = point_keys(t)
         at = np.minimum(np.searchsorted(self._keys, keys), len(self._keys) - 1)
         light = self._order[at]
         hit = (self._keys[at] == keys) & (self.position[light] == np.asarray(t, np.float32)).all(axis=1)

@@ -16,15 +16,10 @@ import numpy as np
 
 from usdml.lighting.area.sampling import sample_pairs, sampled
 from usdml.scene import Lights
-from usdml.scene.hashing import fold_bits
+from usdml.scene.hashing import fold_bits, point_keys
 from usdml.visibility.emitter_ends import off_emitters
 
 __all__ = ["AreaTargets"]
-
-
-def _keys(positions: np.ndarray) -> np.ndarray:
-    """(N,) uint64 hashes of the float32 bits of ``positions`` (N, 3)."""
-    return fold_bits(np.zeros(len(positions), np.uint64), np.asarray(positions, np.float64).astype(np.float32))
 
 
 class AreaTargets:
@@ -33,7 +28,7 @@ class AreaTargets:
     def __init__(self, lights: Lights, seed: int, meters_per_unit: float = 1.0):
         mask = sampled(lights)
         self.lights = lights.subset(mask)
-        keys = _keys(self.lights.position)
+        keys = point_keys(self.lights.position)
         self.order = np.argsort(keys, kind="stable")
         self.keys = keys[self.order]
         self.seed, self.meters_per_unit = int(seed), float(meters_per_unit)
@@ -48,7 +43,7 @@ class AreaTargets:
         its ray's origin (``origins`` (N, 3)); the others as they are. A point on a mesh light's triangle ends off the
         surface ``occluded``'s backend holds (:func:`usdml.visibility.emitter_ends.off_emitters`)."""
         targets = np.asarray(targets)
-        keys = _keys(targets)
+        keys = point_keys(targets)
         at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
         rows = np.flatnonzero(self.keys[at] == keys)
         if not len(rows):
