@@ -57,8 +57,8 @@ class LinkReader:
 
     def links(self, snap: Snapshot, light_paths: list[str], time: Usd.TimeCode) -> LinkSets:
         """The :class:`LinkSets` of ``snap``'s geometry for the lights at ``light_paths`` (the snapshot's and its
-        domes'), at ``time``."""
-        geometry = _geometry_paths(snap)
+        domes'), at ``time``. The geometry's paths are listed only when some light authors a collection."""
+        geometry: list[str] | None = None
         sets: dict[bytes, int] = {}
         names: list[str] = []
         rows: list[np.ndarray] = []
@@ -69,7 +69,10 @@ class LinkReader:
                 continue
             link = []
             for which in ("lightLink", "shadowLink"):
-                member = self._membership(prim, which, geometry)
+                query = self._query(prim, which)
+                if query is not None and geometry is None:
+                    geometry = _geometry_paths(snap)
+                member = None if query is None else self._membership(path, which, query, geometry)
                 if member is None or member.all():
                     link.append(EVERY_PRIM)
                     continue
@@ -84,7 +87,7 @@ class LinkReader:
             label = LightLabel(link[0], link[1], group, diffuse, specular, m if m > 0 else 1.0)
             if label != LightLabel():
                 labels[path] = label
-        return _sets(snap, geometry, names, rows, labels)
+        return _sets(snap, geometry, names, rows, labels) if names else LinkSets(labels=labels)
 
     def _query(self, prim: Usd.Prim, which: str):
         key = (str(prim.GetPath()), which)
@@ -100,12 +103,9 @@ class LinkReader:
             self._queries[key] = query
         return self._queries[key]
 
-    def _membership(self, prim: Usd.Prim, which: str, geometry: list[str]) -> np.ndarray | None:
-        """``(G,) bool`` per geometry path, or None when the collection is not authored (every prim)."""
-        query = self._query(prim, which)
-        if query is None:
-            return None
-        light = str(prim.GetPath())
+    def _membership(self, light: str, which: str, query, geometry: list[str]) -> np.ndarray:
+        """``(G,) bool``: whether light ``light``'s collection ``which`` (its membership ``query``) includes each
+        geometry path."""
         out = np.empty(len(geometry), bool)
         for i, path in enumerate(geometry):
             key = (light, which, path)
