@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-from conftest import ALBEDO, add_quad, add_top_camera
+from conftest import ALBEDO, add_cube_mesh, add_quad, add_top_camera
 from usdml.cli import main
 from usdml.lighting.vpl import generate_vpls
 from usdml.render.frame import FrameRenderer
@@ -27,14 +27,9 @@ BULB, POWER, R = (0.0, 6.0, 0.0), 5000.0, 0.1
 
 
 def _box(stage, path, centre, size=1.0, color=(0.5, 0.5, 0.5)):
-    m = UsdGeom.Mesh.Define(stage, path)
-    c, h = np.asarray(centre, float), size / 2
-    corners = [tuple(c + h * np.array(s)) for s in
-               [(-1, -1, -1), (1, -1, -1), (1, 1, -1), (-1, 1, -1), (-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1)]]
-    faces = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (1, 2, 6, 5), (0, 4, 7, 3)]
-    m.CreatePointsAttr(corners)
-    m.CreateFaceVertexCountsAttr([4] * 6)
-    m.CreateFaceVertexIndicesAttr([i for f in faces for i in f])
+    """conftest's cube of edge ``size``, moved to ``centre``, of albedo ``color``."""
+    m = add_cube_mesh(stage, path, size)
+    m.AddTranslateOp().Set(tuple(map(float, centre)))
     m.CreateDisplayColorPrimvar().Set([color])
     return m
 
