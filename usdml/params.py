@@ -152,6 +152,13 @@ _SETTINGS = (
           "(their radiance, in the emission AOV; rects and disks from the front), alpha 1 there; off: unseen, as "
           "Storm (alpha 0 where no surface)", (RENDER,), LIGHTING, attribute="usdml:visibleLights",
           source="Karma and Cycles (docs/visible-lights.md)"),
+    Param("motion_blur", bool, True, "motion blur over the camera's shutter (shutter:open/close, in timecodes "
+          "around the frame): each pixel sample a time slice of the shutter, the stage, lights and camera at that "
+          "time; off (or RenderSettings disableMotionBlur): every sample at the frame's time",
+          (RENDER,), LIGHTING, attribute="usdml:motionBlur", source="UsdGeom.Camera shutter (docs/motion-blur.md)"),
+    Param("depth_of_field", bool, True, "depth of field: a thin lens of the camera's focalLength / fStop focused "
+          "at focusDistance (fStop 0: a pinhole); off (or RenderSettings disableDepthOfField): a pinhole",
+          (RENDER,), LIGHTING, attribute="usdml:depthOfField", source="UsdGeom.Camera lens (docs/depth-of-field.md)"),
     Param("seed", int, 0, "random seed (VPLs, shadow samples, dome light sampling)", **LIT, range=Range(0),
           metavar="N"),
 )

@@ -10,6 +10,7 @@ renderer (:mod:`usdml.render.integrators`); a frame's numbers are a :class:`Fram
 
 from __future__ import annotations
 
+import itertools
 import time as _time
 from dataclasses import dataclass, field, replace
 from typing import Callable
@@ -24,7 +25,9 @@ from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import QUERY_ROLES, Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
-from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
+from usdml.render.gbuffer import GBuffer, PixelPass, build_gbuffer, pixel_offsets
+from usdml.render.lens import lens_points
+from usdml.render.shutter import pass_times
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.render.light_classes import LinkedShadows
 from usdml.scene import Camera, Lights, Snapshot, diff
@@ -170,50 +173,71 @@ class FrameRenderer:
     def render(self, time: float, width: int, height: int, aovs: set[str],
                progress: Callable[[int], None] | None = None, snapshot: Snapshot | None = None) -> FrameResult:
         """Render ``aovs`` of timecode ``time`` at ``width`` × ``height``; ``progress(n)`` per shaded pixels.
-        ``snapshot``: the stage at ``time`` as the caller has just read it (not read again)."""
+        ``snapshot``: the stage at ``time`` as the caller has just read it (not read again).
+
+        With motion blur (:func:`usdml.render.shutter.pass_times`) each pass is a time slice: the stage, the
+        backends, the lights and the camera are brought to the pass's time before it is traced and shaded."""
         stats = FrameStats()
         t0 = _time.perf_counter()
-        snap, lights, camera = self.advance(time, width, height, stats, snapshot)
-        frame = FrameInputs(snap, lights, width, height)
         samples = self.settings.pixel_samples
+        if snapshot is None or snapshot.time != time:
+            snapshot = self.delegate.snapshot(time)
+            stats.snapshot_seconds += _time.perf_counter() - t0
+        times = pass_times(snapshot, self.settings, samples)
+        if times is None:
+            snap, lights, camera = self.advance(time, width, height, stats, snapshot)
+        else:       # the frame's own camera for its metadata; the slices are advanced to below
+            snap, camera = snapshot, conform_camera(snapshot.camera, width, height)
+            snap = replace(snap, camera=camera)
+            stats.shutter_times = times
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
         self.direct.groups = any(is_light_group(a) for a in aovs)
-        self.indirect.prepare(frame, stats)     # once for every pass of the frame
-        self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
-        hit = lit = albedo = seen = False   # any pixel: hit, lit, with a non-zero albedo, a light seen (blank_frame)
-        passes = list(pixel_offsets(width, height, samples, self.settings.seed))
+        flags = _Seen()
+        lens = camera.lens_radius > 0 and self.settings.depth_of_field and not (
+            snap.render_settings is not None and snap.render_settings.disable_depth_of_field)
+        if lens:
+            stats.lens_radius = camera.lens_radius
+        passes = [PixelPass(offsets, points) for offsets, points in zip(
+            pixel_offsets(width, height, samples, self.settings.seed),
+            lens_points(width, height, samples, self.settings.seed) if lens else itertools.repeat(None))]
         sampled = []            # (variance, direct radiance) of each pass whose lights with area were sampled
-        for i, (offsets, (gb, surface, direct)) in enumerate(
-                zip(passes, self.direct.passes(frame, passes, stats, pixel_progress))):
-            if i == 0 and self.estimates(lights):
-                stats.estimate = estimate_visibility(
-                    surface.position, surface.normal, surface.geometric, lights, self.backends.primary,
-                    self.backends.shadow, frame_rng(self.settings.seed, time),
-                    frame_pairs=len(surface.position) * len(lights) * samples)
-            if self.camera_light and len(lights) == 0:
-                t1 = _time.perf_counter()
-                self._light_by_camera(direct, surface, camera, snap.time, stats)
-                stats.shading_seconds += _time.perf_counter() - t1
-            indirect = self.indirect.gather(frame, gb, surface, stats)
-            if pixel_progress is not None:
-                pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
-            stats.shadow_queries += direct.queries
-            if direct.variance is not None:
-                sampled.append((direct.variance, direct.radiance))
-            hit, lit = hit or bool(surface.hit.any()), lit or bool(
-                direct.radiance.any() or np.any(indirect) or any(e is not None and e.any() for e in (
-                    surface.emission, gb.light, gb.background)))
-            seen = seen or gb.emitter is not None
-            albedo = albedo or bool(surface.albedo.any())
-            image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
+        # slices in time order, so the backends move forward through the shutter
+        slices = [(time, passes)] if times is None else [(t, [passes[k]]) for t, k in sorted(zip(times, range(samples)))]
+        for first, (t, group) in enumerate(slices):
+            if times is not None:
+                slice_snap, lights, slice_camera = self.advance(t, width, height, stats)
+            else:
+                slice_snap, slice_camera = snap, camera
+            frame = FrameInputs(slice_snap, lights, width, height)
+            self.indirect.prepare(frame, stats)     # once for every pass of the slice
+            self.direct.prepare(frame, stats)
+            for i, (rays, (gb, surface, direct)) in enumerate(
+                    zip(group, self.direct.passes(frame, group, stats, pixel_progress))):
+                if i == 0 and first == 0 and self.estimates(lights):
+                    stats.estimate = estimate_visibility(
+                        surface.position, surface.normal, surface.geometric, lights, self.backends.primary,
+                        self.backends.shadow, frame_rng(self.settings.seed, time),
+                        frame_pairs=len(surface.position) * len(lights) * samples)
+                if self.camera_light and len(lights) == 0:
+                    t1 = _time.perf_counter()
+                    self._light_by_camera(direct, surface, slice_camera, slice_snap.time, stats)
+                    stats.shading_seconds += _time.perf_counter() - t1
+                indirect = self.indirect.gather(frame, gb, surface, stats)
+                if pixel_progress is not None:
+                    pixel_progress(int((~surface.hit).sum()))          # background pixels: nothing to shade
+                stats.shadow_queries += direct.queries
+                if direct.variance is not None:
+                    sampled.append((direct.variance, direct.radiance))
+                flags.add(gb, surface, direct, indirect)
+                image.add(self._buffers(gb, surface, direct, indirect, slice_camera, aovs), rays.offsets)
         if sampled:
             variance, radiance = (np.concatenate(a) for a in zip(*sampled))
             stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
                                                int(self.settings.light_samples))
         if self.backends.refined is not None and stats.estimate is not None:
             stats.estimate = replace(stats.estimate, **self.backends.refined.fractions())
-        blank = blank_frame(hit, lit, albedo, len(lights), camera, seen)
+        blank = blank_frame(flags.hit, flags.lit, flags.albedo, len(lights), camera, flags.seen)
         if blank:
             log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
         stats.lights = len(lights)
@@ -231,10 +255,11 @@ class FrameRenderer:
         t0 = _time.perf_counter()
         snap = snapshot if snapshot is not None and snapshot.time == time else self.delegate.snapshot(time)
         require_geometry(self.delegate, snap)
-        stats.snapshot_seconds = _time.perf_counter() - t0
+        stats.snapshot_seconds += _time.perf_counter() - t0
         seconds = self.backends.update(snap, diff(self._previous, snap))
-        stats.update_seconds = seconds["primary"] + seconds.get("shadow", 0.0)
-        stats.gi_update_seconds = seconds.get("gi")
+        stats.update_seconds += seconds["primary"] + seconds.get("shadow", 0.0)
+        if "gi" in seconds:
+            stats.gi_update_seconds = (stats.gi_update_seconds or 0.0) + seconds["gi"]
         self._previous = snap
         camera = conform_camera(snap.camera, width, height)
         lights = self.frame_lights(snap)
@@ -311,6 +336,20 @@ class FrameRenderer:
         if unknown:
             raise UsdmlError(f"unknown AOV(s) {', '.join(unknown)}; usdml writes {', '.join(table)}")
         return {name: table[name]() for name in aovs}
+
+
+class _Seen:
+    """What any pass of a frame showed, for :func:`blank_frame`: a hit, light, a non-zero albedo, a light seen."""
+
+    def __init__(self):
+        self.hit = self.lit = self.albedo = self.seen = False
+
+    def add(self, gb: GBuffer, surface: Surface, direct, indirect: np.ndarray) -> None:
+        self.hit = self.hit or bool(surface.hit.any())
+        self.lit = self.lit or bool(direct.radiance.any() or np.any(indirect) or any(
+            e is not None and e.any() for e in (surface.emission, gb.light, gb.background)))
+        self.seen = self.seen or gb.emitter is not None
+        self.albedo = self.albedo or bool(surface.albedo.any())
 
 
 class _PixelFilter:

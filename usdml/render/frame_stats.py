@@ -46,6 +46,9 @@ class FrameStats:
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel
+    #: motion blur: the times (timecodes) the frame's passes were rendered at, one per pass (None: the frame's time)
+    shutter_times: list | None = None
+    lens_radius: float | None = None        #: depth of field: the thin lens's radius in scene units (None: a pinhole)
     seconds: float = 0.0                    #: the whole frame
 
     def as_dict(self) -> dict:

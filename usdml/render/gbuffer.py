@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdml.render.lens import thin_lens_rays
 from usdml.render.visible_lights import dome_seen, lights_seen
 from usdml.scene import Camera, Snapshot
 from usdml.scene.surface import surface_at_hits
@@ -52,6 +53,15 @@ class GBuffer:
         return self.width * self.height
 
 
+@dataclass(frozen=True)
+class PixelPass:
+    """One primary ray per pixel: where in the pixel it goes and, with depth of field, where on the lens it
+    leaves (:mod:`usdml.render.lens`)."""
+
+    offsets: np.ndarray                 #: (H·W, 2) sub-pixel positions (:func:`pixel_offsets`)
+    lens: np.ndarray | None = None      #: (H·W, 2) unit-disk lens points, or None: a pinhole
+
+
 def pixel_offsets(width: int, height: int, samples: int, seed: int):
     """Yield ``samples`` (an s × s square) arrays ``(H·W, 2)`` float64 of where in each pixel a
     primary ray goes, ``(x right, y down)`` in [0, 1), one array per pass.
@@ -79,9 +89,11 @@ def pixel_offsets(width: int, height: int, samples: int, seed: int):
         yield np.stack([x, y], axis=1)
 
 
-def camera_rays(camera: Camera, width: int, height: int,
-                offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World-space rays through every pixel, at its centre or at ``offsets`` (:func:`pixel_offsets`).
+def camera_rays(camera: Camera, width: int, height: int, offsets: np.ndarray | None = None,
+                lens: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World-space rays through every pixel, at its centre or at ``offsets`` (:func:`pixel_offsets`); with
+    ``lens`` (``(H·W, 2)`` unit-disk points, :func:`usdml.render.lens.lens_points`) and a camera with a lens
+    (:attr:`~usdml.scene.Camera.lens_radius`), from those points of a thin lens (:mod:`usdml.render.lens`).
 
     Returns ``(origins (H·W, 3), unit directions (H·W, 3), tmax (H·W,))`` as float64, row-major from
     the top-left pixel; ``origins`` lie on the near plane, ``tmax`` reaches the far plane.
@@ -102,6 +114,9 @@ def camera_rays(camera: Camera, width: int, height: int,
     seg = far - near
     length = np.linalg.norm(seg, axis=1)
     d_cam = seg / length[:, None]
+    radius = camera.lens_radius
+    if lens is not None and radius > 0:
+        near, d_cam, length = thin_lens_rays(d_cam, lens, radius, camera.focus_distance, camera.clipping_range)
     m = camera.xform
     origins = near @ m[:3, :3].T + m[:3, 3]
     dirs = d_cam @ m[:3, :3].T
@@ -114,13 +129,13 @@ def face_forward(v: np.ndarray, toward: np.ndarray) -> np.ndarray:
     return np.where((np.einsum("ij,ij->i", v, toward) < 0)[:, None], -v, v)
 
 
-def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int,
-                  offsets: np.ndarray | None = None, visible_lights: bool = False) -> GBuffer:
+def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int, offsets: np.ndarray | None = None,
+                  visible_lights: bool = False, lens: np.ndarray | None = None) -> GBuffer:
     """Trace primary rays with ``backend.intersect`` (the exact backend) and fill the G-buffer; rays
-    through pixel centres, or through ``offsets`` (:func:`camera_rays`); ``visible_lights``: the rays see the
-    snapshot's area lights and domes too (module doc)."""
+    through pixel centres, or through ``offsets`` and ``lens`` (:func:`camera_rays`); ``visible_lights``: the
+    rays see the snapshot's area lights and domes too (module doc)."""
     camera = snapshot.camera
-    origins, dirs, tmax = camera_rays(camera, width, height, offsets)
+    origins, dirs, tmax = camera_rays(camera, width, height, offsets, lens)
     n = width * height
     if visible_lights:
         t_light, light = lights_seen(snapshot.lights, camera, width, height, origins, dirs, tmax)

@@ -27,7 +27,7 @@ from usdml.lighting.area.params import LIGHT_SAMPLES
 from usdml.lighting.direct import DirectResult, shade_with
 from usdml.render.backends import Backends
 from usdml.render.frame_stats import FrameStats
-from usdml.render.gbuffer import GBuffer, build_gbuffer
+from usdml.render.gbuffer import GBuffer, PixelPass, build_gbuffer
 from usdml.render.light_classes import LightClass, LinkedShadows, light_classes, shade_classes, shading_units
 from usdml.scene import Lights, LightType, Snapshot
 from usdml.scene.shading import lambert_rows
@@ -111,10 +111,11 @@ def shade_surface(backend, frame: FrameInputs, points: np.ndarray, normals: np.n
     return direct
 
 
-def _gbuffer(frame: FrameInputs, backends: Backends, offsets: np.ndarray, stats: FrameStats,
+def _gbuffer(frame: FrameInputs, backends: Backends, rays: PixelPass, stats: FrameStats,
              visible_lights: bool) -> GBuffer:
     t0 = _time.perf_counter()
-    gb = build_gbuffer(frame.snap, backends.primary, frame.width, frame.height, offsets, visible_lights)
+    gb = build_gbuffer(frame.snap, backends.primary, frame.width, frame.height, rays.offsets, visible_lights,
+                       rays.lens)
     stats.gbuffer_seconds += _time.perf_counter() - t0
     return gb
 
@@ -174,13 +175,13 @@ class EveryLight:
         if first and self.before_shading is not None:
             self.before_shading(frame, surface, stats)
 
-    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+    def passes(self, frame: FrameInputs, passes: list[PixelPass], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
-        """``(G-buffer, its surface, direct light)`` of each pass through ``passes`` (sub-pixel offsets,
-        :func:`usdml.render.gbuffer.pixel_offsets`), one at a time: the caller finishes a pass before the
+        """``(G-buffer, its surface, direct light)`` of each pass of ``passes`` (its sub-pixel offsets and lens
+        points, :class:`usdml.render.gbuffer.PixelPass`), one at a time: the caller finishes a pass before the
         next is traced."""
-        for i, offsets in enumerate(passes):
-            gb = _gbuffer(frame, self.backends, offsets, stats, self.settings.visible_lights)
+        for i, rays in enumerate(passes):
+            gb = _gbuffer(frame, self.backends, rays, stats, self.settings.visible_lights)
             surface = Surface.of(gb)
             self._before_shading(frame, surface, stats, i == 0)
             t0 = _time.perf_counter()
@@ -202,9 +203,9 @@ class EveryLight:
 class EveryLightFused(EveryLight):
     """``--direct all`` over a ``LIGHT_MAJOR`` backend, every pass shaded by one call (module doc)."""
 
-    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+    def passes(self, frame: FrameInputs, passes: list[PixelPass], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
-        gbs = [_gbuffer(frame, self.backends, offsets, stats, self.settings.visible_lights) for offsets in passes]
+        gbs = [_gbuffer(frame, self.backends, rays, stats, self.settings.visible_lights) for rays in passes]
         surfaces = [Surface.of(gb) for gb in gbs]
         self._before_shading(frame, surfaces[0], stats, True)
         t0 = _time.perf_counter()
@@ -285,7 +286,7 @@ class LghDirect(EveryLight):
         self._measured = ks
         self.estimate = direct_estimator(self.fields[ks], replace(self._frame, lights=lights), shadow, self.settings)
 
-    def passes(self, frame: FrameInputs, passes: list[np.ndarray], stats: FrameStats,
+    def passes(self, frame: FrameInputs, passes: list[PixelPass], stats: FrameStats,
                progress: Progress) -> Iterator[tuple[GBuffer, Surface, DirectResult]]:
         for gb, surface, direct in super().passes(frame, passes, stats, progress):
             if self.estimate is not None:       # after the frame's last pass, its estimate

@@ -26,6 +26,7 @@ from usdml.params import DEFAULT_WIDTH, ignored
 from usdml.render.estimate import VisibilityEstimate
 from usdml.render.estimate import header as estimate_header
 from usdml.render.lighting_estimate import LightingEstimate, frame_estimates, frame_headers
+from usdml.render.shutter import camera_headers
 from usdml.render.frame import DEFAULT_AOVS, FrameRenderer
 from usdml.render.identity import DIGEST_ATTR, frame_settings, settings_digest, settings_json
 from usdml.render.result import SequenceResult
@@ -273,7 +274,8 @@ def _render_sequence(job: RenderJob) -> SequenceResult:
                               metadata={"usdml:renderProduct": product.source, DIGEST_ATTR: digest,
                                         "usdml:camera": result.camera.path or "(framing)",
                                         **(estimate_header(result.stats.estimate) if result.stats.estimate is not None
-                                           else {}), **frame_headers(result.stats)})
+                                           else {}), **frame_headers(result.stats),
+                                        **camera_headers(result.stats, result.camera)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)

@@ -241,6 +241,19 @@ class Camera:
     vertical_aperture_offset: float = 0.0
     clipping_range: tuple[float, float] = (1.0, 1000000.0)
     projection: str = "perspective"     #: "perspective" or "orthographic"
+    f_stop: float = 0.0                 #: the lens's f-number; 0: a pinhole (no depth of field)
+    focus_distance: float = 0.0         #: scene units from the camera to the plane in focus
+    #: (open, close) of the shutter in timecodes around the frame's time; open == close: no motion blur
+    shutter: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def lens_radius(self) -> float:
+        """The thin lens's radius in scene units: ``focalLength / fStop / 2`` with the focal length in tenths of
+        a scene unit (USD's lens unit, GfCamera's ``FOCAL_LENGTH_UNIT``); 0 where there is no depth of field (fStop
+        or focusDistance 0, an orthographic camera)."""
+        if self.projection != "perspective" or self.f_stop <= 0 or self.focus_distance <= 0:
+            return 0.0
+        return self.focal_length * 0.1 / self.f_stop / 2.0
 
     @property
     def aspect(self) -> float:
@@ -305,6 +318,8 @@ class RenderSettings:
     pixel_aspect_ratio: float
     products: list[RenderProduct]
     included_purposes: list[str] = field(default_factory=lambda: ["default", "render"])
+    disable_motion_blur: bool = False       #: UsdRender's ``disableMotionBlur``
+    disable_depth_of_field: bool = False    #: UsdRender's ``disableDepthOfField``
 
 
 @dataclass(eq=False)

@@ -45,6 +45,8 @@ def _choices(cameras: list[Usd.Prim]) -> str:
 
 
 def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
+    """The camera at ``time``; its lens (``fStop``, ``focusDistance``) and shutter (``shutter:open``/``close``)
+    checked: negative, non-finite or a shutter that closes before it opens is a one-line error."""
     cam = UsdGeom.Camera(prim).GetCamera(time)
     path = str(prim.GetPath())
     xform = np.array(cam.transform, np.float64).T
@@ -62,8 +64,18 @@ def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
     near, far = cam.clippingRange.min, cam.clippingRange.max
     if not (0 < near < far):
         raise UsdmlError(f"{path}.clippingRange: ({near}, {far}) must satisfy 0 < near < far")
+    f_stop, focus = float(cam.fStop), float(cam.focusDistance)
+    for name, value in (("fStop", f_stop), ("focusDistance", focus)):
+        if not np.isfinite(value) or value < 0:
+            raise UsdmlError(f"{path}.{name}: {value:g} at time {time.GetValue():g} must be finite and >= 0 "
+                             "(0: no depth of field)")
+    camera = UsdGeom.Camera(prim)
+    shutter = (float(camera.GetShutterOpenAttr().Get(time)), float(camera.GetShutterCloseAttr().Get(time)))
+    if not np.isfinite(shutter).all() or shutter[1] < shutter[0]:
+        raise UsdmlError(f"{path}: shutter:close ({shutter[1]:g}) is before shutter:open ({shutter[0]:g}); "
+                         "the shutter closes after it opens (in timecodes around the frame; equal: no motion blur)")
     return Camera(
-        path=path, xform=xform, focal_length=cam.focalLength,
+        path=path, xform=xform, focal_length=cam.focalLength, f_stop=f_stop, focus_distance=focus, shutter=shutter,
         horizontal_aperture=cam.horizontalAperture, vertical_aperture=cam.verticalAperture,
         horizontal_aperture_offset=cam.horizontalApertureOffset,
         vertical_aperture_offset=cam.verticalApertureOffset, clipping_range=(near, far),

@@ -31,7 +31,8 @@ from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.linking import GROUP_ATTRIBUTE, LinkReader, group_name
 from usdml.stage.materials import MaterialResolver
-from usdml.stage.mesh import DEFAULT_IMPLICIT_DETAIL, is_gprim, points_vary, read_gprim, read_mesh
+from usdml.stage.mesh import (DEFAULT_IMPLICIT_DETAIL, is_gprim, moves_by_velocity, points_vary, read_gprim,
+                              read_mesh)
 from usdml.stage.mesh_light import light_varies
 from usdml.stage.render_settings import read_render_settings, read_usdml_settings, settings_prim
 from usdml.stage.skel import SkelResolver
@@ -378,6 +379,13 @@ class StageDelegate:
         cam_prim = self.camera_prim
         if cam_prim is not None:
             snap.camera = read_camera(cam_prim, t)
+            lens = snap.camera.f_stop > 0 and snap.camera.lens_radius == 0
+            if lens and snap.camera.projection != "perspective":
+                self.warn(f"{snap.camera.path}.fStop: depth of field is not rendered for an orthographic camera; "
+                          "rendered sharp")
+            elif lens:
+                self.warn(f"{snap.camera.path}.focusDistance: 0 with fStop {snap.camera.f_stop:g} focuses nowhere; "
+                          "rendered sharp (author focusDistance, in scene units, for depth of field)")
         else:
             bounds = snap.world_bounds()
             if bounds is not None:
@@ -623,10 +631,8 @@ class StageDelegate:
                       "prototypes; those instances skipped")
         varying = anim or any(prim.GetAttribute(a).ValueMightBeTimeVarying()
                               for a in _PI_ATTRS if prim.HasAttribute(a))
-        for a in ("velocities", "accelerations", "angularVelocities"):
-            # one positions sample plus velocities still moves: USD extrapolates from the sample
-            value = prim.GetAttribute(a).Get(t) if prim.HasAttribute(a) else None
-            varying |= value is not None and len(value) > 0 and bool(np.any(np.asarray(value)))
+        # one positions sample plus velocities still moves: USD extrapolates from the sample
+        varying |= moves_by_velocity(prim, t, ("velocities", "accelerations", "angularVelocities"))
         for j, target in enumerate(targets):
             sel = (indices == j) & mask
             if not sel.any():

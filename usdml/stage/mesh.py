@@ -151,9 +151,22 @@ def is_gprim(prim: Usd.Prim) -> bool:
     return prim.IsA(UsdGeom.Mesh) or prim.GetTypeName() in IMPLICIT_TYPES
 
 
+def moves_by_velocity(prim: Usd.Prim, time: Usd.TimeCode,
+                      names: tuple[str, ...] = ("velocities", "accelerations")) -> bool:
+    """Whether ``prim`` authors a non-zero one of ``names`` at ``time``: USD then extrapolates its points (or
+    instances) from their time sample, so they move even with a single sample."""
+    for name in names:
+        value = prim.GetAttribute(name).Get(time) if prim.HasAttribute(name) else None
+        if value is not None and len(value) and np.any(np.asarray(value)):
+            return True
+    return False
+
+
 def points_vary(prim: Usd.Prim) -> bool:
-    """Whether the gprim's shape (points, or an implicit surface's sizes) might change over time."""
-    return any(prim.GetAttribute(a).ValueMightBeTimeVarying() for a in _SHAPE_ATTRS if prim.HasAttribute(a))
+    """Whether the gprim's shape (points, or an implicit surface's sizes) might change over time: time samples, or
+    points that move by their ``velocities`` (:func:`moves_by_velocity`)."""
+    return (any(prim.GetAttribute(a).ValueMightBeTimeVarying() for a in _SHAPE_ATTRS if prim.HasAttribute(a))
+            or (prim.IsA(UsdGeom.PointBased) and moves_by_velocity(prim, Usd.TimeCode.EarliestTime())))
 
 
 def read_gprim(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, mesh_id: int,
@@ -186,11 +199,16 @@ def read_mesh(prim: Usd.Prim, time: Usd.TimeCode, to_space: np.ndarray | None, m
     whose normals come from the surface. Without normals, polygonal meshes shade faceted, subdivision
     meshes smooth; so does a polygonal mesh whose authored normals are ignored (``authored_normals``
     False: skinned), since it authored them smooth.
+    Points with ``velocities`` (and ``accelerations``) are USD's at ``time``: extrapolated from the sample at or
+    before it (``UsdGeomPointBased.ComputePointsAtTime``).
     Returns None (after a warning) for a mesh with nothing renderable.
     """
     mesh = UsdGeom.Mesh(prim)
     if points is None:
-        points = _array(mesh.GetPointsAttr().Get(time), np.float64, 3, f"{prim.GetPath()}.points", warn)
+        # with velocities USD defines the points between (and past) samples by them: UsdGeomPointBased's rule
+        value = mesh.ComputePointsAtTime(time, time) if moves_by_velocity(prim, time) else \
+            mesh.GetPointsAttr().Get(time)
+        points = _array(value, np.float64, 3, f"{prim.GetPath()}.points", warn)
     normals = None
     polygonal = mesh.GetSubdivisionSchemeAttr().Get(time) == UsdGeom.Tokens.none
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")

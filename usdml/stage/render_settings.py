@@ -80,7 +80,9 @@ def read_render_settings(prim: Usd.Prim, time: Usd.TimeCode) -> RenderSettings:
     return RenderSettings(
         path=str(prim.GetPath()), camera=_target(rs.GetCameraRel()), resolution=resolution,
         pixel_aspect_ratio=float(rs.GetPixelAspectRatioAttr().Get(time) or 1.0), products=products,
-        included_purposes=[str(p) for p in purposes] if purposes is not None else ["default", "render"])
+        included_purposes=[str(p) for p in purposes] if purposes is not None else ["default", "render"],
+        disable_motion_blur=bool(rs.GetDisableMotionBlurAttr().Get(time)),
+        disable_depth_of_field=bool(rs.GetDisableDepthOfFieldAttr().Get(time)))
 
 
 def read_usdml_settings(prim: Usd.Prim | None) -> UsdmlSettings:
