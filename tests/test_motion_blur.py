@@ -275,3 +275,6 @@ def test_the_exr_says_what_was_blurred(tmp_path):
     assert spec.getattribute("usdml:shutter:slices") == 4
     assert spec.getattribute("usdml:lens:fStop") == 2.0
     assert abs(spec.getattribute("usdml:lens:radius") - FOCAL * 0.1 / 2.0 / 2) < 1e-6
+    info = subprocess.run([sys.executable, "-m", "usdml.cli", "info", str(tmp_path / "cli.usda")],
+                          capture_output=True, text=True)
+    assert "shutter -0.25..0.25; f/2 focused at 10" in info.stdout, info.stdout

@@ -13,12 +13,16 @@ rendered through :class:`usdml.render.frame.FrameRenderer` with the exact backen
 * ``lens``: depth of field on.
 
 Each case is rendered ``--repeat`` times after one warm-up frame, interleaved (sharp, blur, lens, sharp, ...),
-and the median ratio to ``sharp`` is reported, with where the blurred frame's extra time went (snapshots and
-backend updates, from :class:`usdml.render.frame_stats.FrameStats`).
+and the median ratio to ``sharp`` is reported, with where the frame's time went to reading the stage and
+updating the backends (:class:`usdml.render.frame_stats.FrameStats`). With several ``--visibility`` backends
+each is timed the same way, and its ``direct`` is compared with the first backend's (exact) in the same case:
+the mean |difference| over the mean, the error an approximate backend brings to a blurred frame.
 
 Usage::
 
     python tools/final_frames_cost.py --width 96 --samples 16 --repeat 3 --json
+    python tools/final_frames_cost.py --stage stages/park.usda --visibility exact,voxel,svo --cases sharp,blur \
+        --width 64 --samples 16 --repeat 1
 """
 
 from __future__ import annotations
@@ -68,48 +72,61 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--shutter", default="-0.25,0.25")
     ap.add_argument("--fstop", type=float, default=2.8)
+    ap.add_argument("--visibility", default="exact", help="backends, comma-separated (exact first: the reference)")
+    ap.add_argument("--cases", default="sharp,blur,lens")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+
+    import numpy as np
 
     from usdml.render.frame import FrameRenderer
     from usdml.settings import UsdmlSettings
     from usdml.stage import StageDelegate
 
     shutter = tuple(float(v) for v in args.shutter.split(","))
-    cases = {"sharp": dict(motion_blur=False, depth_of_field=False), "blur": dict(depth_of_field=False),
+    kinds = {"sharp": dict(motion_blur=False, depth_of_field=False), "blur": dict(depth_of_field=False),
              "lens": dict(motion_blur=False)}
+    backends = args.visibility.split(",")
+    cases = [(b, k) for b in backends for k in args.cases.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         path, camera = overlay(args.stage, Path(tmp), shutter, args.fstop)
-        renderers = {name: FrameRenderer(StageDelegate(path), UsdmlSettings(pixel_samples=args.samples, **kw))
-                     for name, kw in cases.items()}
-        height = None
-        seconds: dict[str, list[float]] = {name: [] for name in cases}
-        stats: dict[str, dict] = {}
+        renderers = {(b, k): FrameRenderer(StageDelegate(path), UsdmlSettings(
+            pixel_samples=args.samples, visibility=b, **kinds[k]), backend_options={"report": lambda _: None})
+            for b, k in cases}
+        height = StageDelegate(path).snapshot(args.frame).camera.resolution(args.width)[1]
+        seconds: dict = {c: [] for c in cases}
+        stats: dict = {}
+        direct: dict = {}
         try:
             for run in range(args.repeat + 1):
-                for name, r in renderers.items():
-                    if height is None:
-                        height = r.delegate.snapshot(args.frame).camera.resolution(args.width)[1]
+                for case, r in renderers.items():
                     t0 = time.perf_counter()
-                    result = r.render(args.frame, args.width, height, {"color"})
+                    result = r.render(args.frame, args.width, height, {"color", "direct"})
                     if run:
-                        seconds[name].append(time.perf_counter() - t0)
-                        stats[name] = result.stats.as_dict()
+                        seconds[case].append(time.perf_counter() - t0)
+                        stats[case] = result.stats.as_dict()
+                        direct[case] = result.buffers["direct"].astype(np.float64)
         finally:
             for r in renderers.values():
                 r.close()
-    base = statistics.median(seconds["sharp"])
+    rows = []
+    for b, k in cases:
+        base = statistics.median(seconds[(b, "sharp")]) if (b, "sharp") in seconds else None
+        ref = direct.get((backends[0], k))
+        row = {"visibility": b, "case": k, "seconds": statistics.median(seconds[(b, k)]),
+               "ratio_to_sharp": statistics.median(seconds[(b, k)]) / base if base else None,
+               "snapshot_update_seconds": stats[(b, k)]["snapshot_seconds"] + stats[(b, k)]["update_seconds"],
+               "direct_rel_error_vs_" + backends[0]: float(np.abs(direct[(b, k)] - ref).mean() / ref.mean())}
+        rows.append(row)
     out = {"stage": args.stage, "camera": camera, "frame": args.frame, "width": args.width, "height": height,
-           "samples": args.samples, "shutter": shutter, "fstop": args.fstop,
-           "seconds": {k: statistics.median(v) for k, v in seconds.items()},
-           "ratio": {k: statistics.median(v) / base for k, v in seconds.items()},
-           "blur_snapshot_update_seconds": stats["blur"]["snapshot_seconds"] + stats["blur"]["update_seconds"],
-           "sharp_snapshot_update_seconds": stats["sharp"]["snapshot_seconds"] + stats["sharp"]["update_seconds"]}
+           "samples": args.samples, "shutter": shutter, "fstop": args.fstop, "repeat": args.repeat, "rows": rows}
     if args.json:
         print(json.dumps(out, indent=1))
     else:
-        for k in cases:
-            print(f"{k:6s} {out['seconds'][k]:8.2f} s  {out['ratio'][k]:5.2f}x")
+        for r in rows:
+            ratio = f"{r['ratio_to_sharp']:5.2f}x" if r["ratio_to_sharp"] else "   -  "
+            print(f"{r['visibility']:6s} {r['case']:6s} {r['seconds']:8.2f} s  {ratio}  "
+                  f"update {r['snapshot_update_seconds']:6.2f} s  error {list(r.values())[-1]:.4f}")
     return 0
 
 

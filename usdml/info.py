@@ -82,6 +82,9 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "lightGroups": delegate.light_groups(),
         "cameras": [str(c.GetPath()) for c in delegate.cameras],
         "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
+        "shutter": list(snap.camera.shutter) if snap.camera else None,
+        "lens": {"fStop": snap.camera.f_stop, "focusDistance": snap.camera.focus_distance,
+                 "radius": snap.camera.lens_radius} if snap.camera and snap.camera.lens_radius else None,
         "renderSettings": _render_settings(snap),
         "usdmlSettings": settings.as_dict(),
         "backends": {name: backend_class(name).summary for name in backend_names()},
@@ -95,6 +98,16 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "warnings": list(delegate.warn.messages),
         "loadSeconds": round(seconds, 3),
     }
+
+
+def _lens_and_shutter(info: dict) -> str:
+    """``; shutter -0.25..0.25; f/2.8 at 500`` where the camera blurs (motion blur, depth of field), else ""."""
+    out = ""
+    if info["shutter"] and info["shutter"][1] > info["shutter"][0]:
+        out += f"; shutter {info['shutter'][0]:g}..{info['shutter'][1]:g}"
+    if info["lens"]:
+        out += f"; f/{info['lens']['fStop']:g} focused at {info['lens']['focusDistance']:g}"
+    return out
 
 
 def format_info(info: dict) -> str:
@@ -113,7 +126,7 @@ def format_info(info: dict) -> str:
         f"deforming   {info['deforming']}",
         f"lights      {n(info['lights'])}" + (" (" + ", ".join(f"{k} {n(v)}" for k, v in info["lightTypes"].items()) + ")"
                                                if info["lightTypes"] else ""),
-        f"camera      {info['camera']}  (cameras on stage: {len(info['cameras'])})",
+        f"camera      {info['camera']}  (cameras on stage: {len(info['cameras'])})" + _lens_and_shutter(info),
     ]
     if info["linkSets"] or info["lightGroups"] not in ([], ["default"]):
         lines.insert(-1, f"linking     {info['linkSets']} light/shadow link set(s); light groups "
