@@ -1,49 +1,41 @@
 """Depth of field: a thin lens from the camera's focalLength, fStop and focusDistance (usdml.render.lens).
 
-The reference is the thin lens's own geometry, written here from the optics and sharing no usdml code: a point
+The reference is the thin lens's own geometry, from the optics and sharing no usdml code
+(``tools/final_frames_accuracy.py``'s ``disk_blur``, and its stage): a point
 of the plane at depth D, seen through a lens of radius r focused at F, is spread over a disk of radius
 r·|D/F − 1| on that plane around where the pinhole ray meets it; a half-plane's edge is therefore blurred into
 the disk's area fraction beyond the edge (a circular segment), averaged over the pixel.
 """
 
-import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdGeom, UsdLux, UsdRender
+from pxr import Usd, UsdRender
 
 from usdml.render.frame import FrameRenderer
 from usdml.render.lens import concentric_disk, lens_points
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
+from final_frames_accuracy import disk_blur as tool_disk_blur, edge_stage as tool_edge_stage  # noqa: E402
+
 FOCAL, APERTURE, DEPTH = 100.0, 10.0, 1000.0       # lens units (mm in a centimetre stage); the plane 10 m away
 
 
 def edge_stage(path, f_stop=1.0, focus=300.0, render_settings=None):
-    """A centimetre stage: a camera at the origin looking down -Z, a plane at depth DEPTH filling x < 0."""
-    s = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageMetersPerUnit(s, 0.01)
-    cam = UsdGeom.Camera.Define(s, "/cam")
-    cam.CreateFocalLengthAttr(FOCAL)
-    cam.CreateHorizontalApertureAttr(APERTURE)
-    cam.CreateVerticalApertureAttr(APERTURE / 2)
-    cam.CreateFStopAttr(f_stop)
-    cam.CreateFocusDistanceAttr(focus)
-    m = UsdGeom.Mesh.Define(s, "/plane")
-    big = 1e4
-    m.CreatePointsAttr([(-big, -big, -DEPTH), (0, -big, -DEPTH), (0, big, -DEPTH), (-big, big, -DEPTH)])
-    m.CreateFaceVertexCountsAttr([4])
-    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    UsdLux.DistantLight.Define(s, "/sun")
+    """A centimetre stage: a camera at the origin looking down -Z, a plane at depth DEPTH filling x < 0
+    (the tool's), and, with ``render_settings``, RenderSettings whose disableDepthOfField is that."""
+    path = tool_edge_stage(path, FOCAL, f_stop, focus, DEPTH, APERTURE)
     if render_settings is not None:
-        rs = UsdRender.Settings.Define(s, "/Render/settings")
-        rs.CreateDisableDepthOfFieldAttr(render_settings)
+        s = Usd.Stage.Open(path)
+        UsdRender.Settings.Define(s, "/Render/settings").CreateDisableDepthOfFieldAttr(render_settings)
         s.SetMetadata("renderSettingsPrimPath", "/Render/settings")
-    s.Save()
-    return str(path)
+        s.Save()
+    return path
 
 
 def coverage(path, width, samples, **settings):
@@ -56,15 +48,7 @@ def coverage(path, width, samples, **settings):
 
 
 def disk_blur(width, f_stop=1.0, focus=300.0):
-    """The thin lens's coverage of each pixel column by the plane (module doc), 64 points across each pixel."""
-    radius = FOCAL * 0.1 / f_stop / 2 * abs(DEPTH / focus - 1)     # lens units are tenths of a scene unit
-    half = DEPTH * APERTURE / 2 / FOCAL
-    across = (np.arange(64) + 0.5) / 64
-    out = []
-    for x in range(width):
-        d = np.clip((-half + (x + across) / width * 2 * half) / radius, -1.0, 1.0)
-        out.append(np.mean((np.arccos(d) - d * np.sqrt(1 - d * d)) / math.pi))
-    return np.array(out)
+    return tool_disk_blur(width, FOCAL, f_stop, focus, DEPTH, APERTURE)
 
 
 def test_an_out_of_focus_edge_is_the_thin_lens_disk_blur(tmp_path):

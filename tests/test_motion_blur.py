@@ -1,5 +1,6 @@
 """Motion blur over the camera's shutter (usdml.render.shutter): every way a stage moves, against the coverage a
-moving box has by its own kinematics, computed here from the sweep and sharing no usdml code.
+moving quad has by its own kinematics (``tools/final_frames_accuracy.py``: its stages and its ``swept``
+reference, sharing no usdml code), and shadows and lights against their own geometry computed here.
 
 The stages are metres, 24 timecodes per second, frames 1–3; a quad 1 m wide, 10 m in front of a camera at the
 origin looking down -Z, whose centre moves 8 m per frame along X (so over a 180° shutter, -0.25 to 0.25 around
@@ -10,40 +11,23 @@ averaged over the pixel.
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
+import pytest
+from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
 
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 
-DEPTH, APERTURE, FOCAL, SPEED = 10.0, 20.0, 25.0, 8.0
-WIDTH = 96
-QUAD = [(-0.5, -0.5, -DEPTH), (0.5, -0.5, -DEPTH), (0.5, 0.5, -DEPTH), (-0.5, 0.5, -DEPTH)]
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
+from final_frames_accuracy import APERTURE, FOCAL, KINDS, blur_stage, swept  # noqa: E402
+
+SPEED, WIDTH, SHUTTER = 8.0, 96, (-0.25, 0.25)
 
 
-def new(path, shutter=(-0.25, 0.25), camera_speed=0.0):
-    s = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageMetersPerUnit(s, 1.0)
-    s.SetTimeCodesPerSecond(24)
-    s.SetStartTimeCode(1)
-    s.SetEndTimeCode(3)
-    cam = UsdGeom.Camera.Define(s, "/cam")
-    cam.CreateFocalLengthAttr(FOCAL)
-    cam.CreateHorizontalApertureAttr(APERTURE)
-    cam.CreateVerticalApertureAttr(APERTURE / 2)
-    cam.CreateShutterOpenAttr(shutter[0])
-    cam.CreateShutterCloseAttr(shutter[1])
-    if camera_speed:
-        op = cam.AddTranslateOp()
-        for t in (1, 2, 3):
-            op.Set(Gf.Vec3d(camera_speed * (t - 2), 0, 0), t)
-    UsdLux.DistantLight.Define(s, "/sun")
-    return s
-
-
-def quad(s, path, points=QUAD):
+def quad(s, path, points):
     m = UsdGeom.Mesh.Define(s, path)
     m.CreatePointsAttr(points)
     m.CreateFaceVertexCountsAttr([4])
@@ -51,35 +35,20 @@ def quad(s, path, points=QUAD):
     return m
 
 
-def moving_box(s):
-    """The quad under an Xform ``/box`` translated SPEED m per frame along X (module doc)."""
-    quad(s, "/box/quad")
-    op = UsdGeom.Xform.Define(s, "/box").AddTranslateOp()
-    for t in (1, 2, 3):
-        op.Set(Gf.Vec3d(SPEED * (t - 2), 0, 0), t)
-
-
 def ground_from_above(path, shutter):
-    """A Y-up stage: a 40 m ground (both sides) and :func:`new`'s camera 10 m above it looking straight down, so
-    image X is world X."""
-    s = new(path, shutter)
+    """A Y-up stage: a 40 m ground (both sides) and a camera 10 m above it looking straight down, so image X is
+    world X (the tool's camera and lens, its quad and light removed)."""
+    s = Usd.Stage.Open(blur_stage(path, "camera", 0.0, 1.0, shutter))
     UsdGeom.SetStageUpAxis(s, "Y")
     s.RemovePrim("/sun")
+    s.RemovePrim("/quad")
     cam = UsdGeom.Camera(s.GetPrimAtPath("/cam"))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 10, 0))
+    where = cam.GetPrim().GetAttribute("xformOp:translate")
+    where.Clear()                               # the tool's still camera has samples; this one stays put
+    where.Set(Gf.Vec3d(0, 10, 0))
     cam.AddRotateXOp().Set(-90.0)
     quad(s, "/ground", [(-20, 0, 20), (20, 0, 20), (20, 0, -20), (-20, 0, -20)]).CreateDoubleSidedAttr(True)
     return s
-
-
-def swept(sweep=(-2.0, 2.0), width=WIDTH):
-    """Each pixel column's coverage: the fraction of 512 shutter times at which the quad covers each of 64 points
-    across the pixel (the view at depth DEPTH spans ±DEPTH·APERTURE/2/FOCAL)."""
-    half = DEPTH * APERTURE / 2 / FOCAL
-    centre = sweep[0] + (sweep[1] - sweep[0]) * (np.arange(512) + 0.5) / 512
-    across = (np.arange(64) + 0.5) / 64
-    return np.array([np.mean(np.abs(-half + (x + across[:, None]) / width * 2 * half - centre[None]) < 0.5)
-                     for x in range(width)])
 
 
 def render(path, samples=64, time=2.0, aovs=("color",), **settings):
@@ -91,100 +60,38 @@ def render(path, samples=64, time=2.0, aovs=("color",), **settings):
         r.close()
 
 
-def coverage_error(path, sweep=(-2.0, 2.0), **settings) -> float:
+def coverage_error(path, shutter=SHUTTER, **settings) -> float:
     """Mean |coverage − swept| over the pixels the sweep or the render touches (the issue's measure)."""
     alpha = render(path, **settings).buffers["color"][..., 3].astype(np.float64)
-    want = np.broadcast_to(swept(sweep), alpha.shape)
+    want = np.broadcast_to(swept(WIDTH, SPEED, 1.0, shutter), alpha.shape)
     rows = np.abs(np.arange(alpha.shape[0]) - alpha.shape[0] / 2 + 0.5) < alpha.shape[0] * 0.1   # inside the quad
     touched = (want > 0) | (alpha > 0)
     return float(np.abs(alpha - want)[touched & rows[:, None]].mean())
 
 
-def test_transform_blur_covers_each_pixel_for_its_share_of_the_shutter(tmp_path):
-    s = new(tmp_path / "xform.usda")
-    moving_box(s)
-    s.Save()
-    assert coverage_error(tmp_path / "xform.usda") <= 0.03
-    sharp = render(tmp_path / "xform.usda", motion_blur=False).buffers["color"][..., 3]
-    assert coverage_error(tmp_path / "xform.usda", motion_blur=False) > 0.2      # what the issue found: sharp
-    assert set(np.unique(sharp)) == {0.0, 1.0}
+@pytest.mark.parametrize("kind", KINDS)
+def test_each_way_of_moving_covers_each_pixel_for_its_share_of_the_shutter(tmp_path, kind):
+    """Transform, points time samples, velocities of one sample, a PointInstancer's velocity, a skinned joint and
+    the camera moving past a still quad: each blurs as the sweep's kinematics say."""
+    path = blur_stage(tmp_path / f"{kind}.usda", kind, SPEED, 1.0, SHUTTER)
+    assert coverage_error(path) <= 0.03
+
+
+def test_without_motion_blur_the_frame_is_sharp(tmp_path):
+    path = blur_stage(tmp_path / "xform.usda", "xform", SPEED, 1.0, SHUTTER)
+    assert coverage_error(path, motion_blur=False) > 0.2      # what the issue found: sharp at the frame's time
+    assert set(np.unique(render(path, motion_blur=False).buffers["color"][..., 3])) == {0.0, 1.0}
 
 
 def test_a_shutter_after_the_frame_blurs_forward(tmp_path):
-    s = new(tmp_path / "open.usda", shutter=(0.0, 0.5))
-    moving_box(s)
-    s.Save()
-    assert coverage_error(tmp_path / "open.usda", sweep=(0.0, 4.0)) <= 0.03
-
-
-def test_deformation_blur_from_points_time_samples(tmp_path):
-    s = new(tmp_path / "points.usda")
-    m = quad(s, "/quad")
-    for t in (1, 2, 3):
-        m.GetPointsAttr().Set([(x + SPEED * (t - 2), y, z) for x, y, z in QUAD], t)
-    s.Save()
-    assert coverage_error(tmp_path / "points.usda") <= 0.03
-
-
-def test_deformation_blur_from_velocities_of_one_sample(tmp_path):
-    """USD moves points by their velocities (units per second) from the sample at or before the time."""
-    s = new(tmp_path / "vel.usda")
-    m = quad(s, "/quad")
-    m.GetPointsAttr().Set([(x - 2.0, y, z) for x, y, z in QUAD], 1.75)
-    m.CreateVelocitiesAttr().Set([(SPEED * 24, 0, 0)] * 4, 1.75)
-    s.Save()
-    assert coverage_error(tmp_path / "vel.usda") <= 0.03
-
-
-def test_point_instancer_blur_from_positions_and_velocities(tmp_path):
-    s = new(tmp_path / "pi.usda")
-    pi = UsdGeom.PointInstancer.Define(s, "/pi")
-    quad(s, "/pi/protos/quad", [(x, y, 0.0) for x, y, _ in QUAD])
-    pi.CreatePrototypesRel().SetTargets(["/pi/protos/quad"])
-    pi.CreateProtoIndicesAttr([0])
-    pi.CreatePositionsAttr().Set([(-2.0, 0, -DEPTH)], 1.75)
-    pi.CreateVelocitiesAttr().Set([(SPEED * 24, 0, 0)], 1.75)
-    s.Save()
-    assert coverage_error(tmp_path / "pi.usda") <= 0.03
-
-
-def test_skinned_blur(tmp_path):
-    """A quad skinned to one joint whose translation moves it: UsdSkel posed at each pass's time."""
-    s = new(tmp_path / "skel.usda")
-    UsdSkel.Root.Define(s, "/rig")
-    skel = UsdSkel.Skeleton.Define(s, "/rig/skel")
-    skel.CreateJointsAttr(["root"])
-    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
-    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
-    anim = UsdSkel.Animation.Define(s, "/rig/skel/anim")
-    anim.CreateJointsAttr(["root"])
-    anim.CreateRotationsAttr().Set(Vt.QuatfArray([Gf.Quatf(1)]))
-    anim.CreateScalesAttr().Set(Vt.Vec3hArray([(1, 1, 1)]))
-    for t in (1, 2, 3):
-        anim.CreateTranslationsAttr().Set(Vt.Vec3fArray([(SPEED * (t - 2), 0, 0)]), t)
-    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    m = quad(s, "/rig/quad")
-    binding = UsdSkel.BindingAPI.Apply(m.GetPrim())
-    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
-    binding.CreateJointIndicesPrimvar(True, 1).Set([0])
-    binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
-    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
-    s.Save()
-    assert coverage_error(tmp_path / "skel.usda") <= 0.03
-
-
-def test_camera_motion_blurs_a_still_quad(tmp_path):
-    """The camera moving -8 m per frame sees the still quad sweep as the moving quad does."""
-    s = new(tmp_path / "cam.usda", camera_speed=-SPEED)
-    quad(s, "/quad")
-    s.Save()
-    assert coverage_error(tmp_path / "cam.usda") <= 0.03
+    path = blur_stage(tmp_path / "open.usda", "xform", SPEED, 1.0, (0.0, 0.5))
+    assert coverage_error(path, (0.0, 0.5)) <= 0.03
 
 
 def test_shadows_are_traced_at_each_pass_time(tmp_path):
     """A plate 2 m above the ground moving 2 m per frame under a light 45° from vertical: the ground beside its
     path (the plate's own pixels excluded) is shadowed the fraction of the shutter the plate's shadow covers it."""
-    s = ground_from_above(tmp_path / "shadow.usda", (-0.25, 0.25))
+    s = ground_from_above(tmp_path / "shadow.usda", SHUTTER)
     plate = quad(s, "/plate/quad", [(-0.5, 2, 0.5), (0.5, 2, 0.5), (0.5, 2, -0.5), (-0.5, 2, -0.5)])
     plate.CreateDoubleSidedAttr(True)
     op = UsdGeom.Xform.Define(s, "/plate").AddTranslateOp()
@@ -231,8 +138,7 @@ def test_a_moving_light_is_averaged_over_the_shutter(tmp_path):
 
 
 def test_render_settings_disable_motion_blur_and_determinism(tmp_path):
-    s = new(tmp_path / "rs.usda")
-    moving_box(s)
+    s = Usd.Stage.Open(blur_stage(tmp_path / "rs.usda", "xform", SPEED, 1.0, SHUTTER))
     rs = UsdRender.Settings.Define(s, "/Render/settings")
     s.SetMetadata("renderSettingsPrimPath", "/Render/settings")
     s.Save()
@@ -247,9 +153,7 @@ def test_render_settings_disable_motion_blur_and_determinism(tmp_path):
 
 
 def test_a_shutter_closing_before_it_opens_is_one_line(tmp_path):
-    s = new(tmp_path / "bad.usda", shutter=(0.25, -0.25))
-    quad(s, "/quad")
-    s.Save()
+    blur_stage(tmp_path / "bad.usda", "xform", SPEED, 1.0, (0.25, -0.25))
     run = subprocess.run([sys.executable, "-m", "usdml.cli", "render", str(tmp_path / "bad.usda"),
                           str(tmp_path / "out.exr"), "--imageWidth", "16"], capture_output=True, text=True)
     assert run.returncode == 2 and "Traceback" not in run.stderr
@@ -260,8 +164,7 @@ def test_a_shutter_closing_before_it_opens_is_one_line(tmp_path):
 def test_the_exr_says_what_was_blurred(tmp_path):
     import OpenImageIO as oiio
 
-    s = new(tmp_path / "cli.usda")
-    moving_box(s)
+    s = Usd.Stage.Open(blur_stage(tmp_path / "cli.usda", "xform", SPEED, 1.0, SHUTTER))
     cam = UsdGeom.Camera(s.GetPrimAtPath("/cam"))
     cam.CreateFStopAttr(2.0)
     cam.CreateFocusDistanceAttr(10.0)
