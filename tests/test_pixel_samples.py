@@ -16,7 +16,7 @@ from conftest import add_cube_mesh, add_quad
 from usdml.cli import main
 from usdml.params import PARAMS
 from usdml.render.frame import FrameRenderer
-from usdml.render.gbuffer import pixel_offsets
+from usdml.render.sampling import pixel_offsets
 from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 from usdml.errors import UsdmlError

@@ -25,8 +25,9 @@ from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import QUERY_ROLES, Backends
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
-from usdml.render.gbuffer import GBuffer, PixelPass, build_gbuffer, pixel_offsets
+from usdml.render.gbuffer import GBuffer, PixelPass, build_gbuffer
 from usdml.render.lens import lens_points
+from usdml.render.sampling import pixel_offsets
 from usdml.render.shutter import pass_times
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.render.light_classes import LinkedShadows
@@ -199,7 +200,7 @@ class FrameRenderer:
         if lens:
             stats.lens_radius = camera.lens_radius
         passes = [PixelPass(offsets, points) for offsets, points in zip(
-            pixel_offsets(width, height, samples, self.settings.seed),
+            pixel_offsets(width, height, samples, self.settings.seed, shifted=times is not None),
             lens_points(width, height, samples, self.settings.seed) if lens else itertools.repeat(None))]
         sampled = []            # (variance, direct radiance) of each pass whose lights with area were sampled
         # slices in time order, so the backends move forward through the shutter

@@ -1,12 +1,12 @@
 """The G-buffer: what each pixel's camera ray hits first (paper 000, Alg. 3 input).
 
 Pixel (x, y) spans ``[x, x + 1) / W × [y, y + 1) / H`` of the film, row 0 at the top; a ray goes
-through the point ``offsets`` places in it (the centre, ``(½, ½)``, unless :func:`pixel_offsets`
-asks for correlated multi-jittered sub-pixel positions). Rays
-start on the near clipping plane and end on the far one, so clipping is honoured. Each hit has two
-normals: the geometric normal of the triangle hit (Embree's), turned to face the camera (usdml
-shades both sides of every surface), and the shading normal interpolated from the mesh's per-corner
-normals (instanced ones through the inverse transpose of their instance transform), turned to the
+through the point ``offsets`` places in it (the centre, ``(½, ½)``, unless
+:func:`usdml.render.sampling.pixel_offsets` asks for correlated multi-jittered sub-pixel positions) and, with
+depth of field, from the lens point ``lens`` places (:mod:`usdml.render.lens`). Rays start on the near clipping
+plane and end on the far one, so clipping is honoured. Each hit has two normals: the geometric normal of the
+triangle hit (Embree's), turned to face the camera (usdml shades both sides of every surface), and the shading
+normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose of their instance transform), turned to the
 geometric normal's side. Which lights face a point, and where its shadow rays start, follow the
 geometric normal; only the cosine of shading follows the shading normal, so tilted authored normals
 never let a light behind the surface light it. With ``visible_lights`` the camera rays also see the lights
@@ -58,40 +58,14 @@ class PixelPass:
     """One primary ray per pixel: where in the pixel it goes and, with depth of field, where on the lens it
     leaves (:mod:`usdml.render.lens`)."""
 
-    offsets: np.ndarray                 #: (H·W, 2) sub-pixel positions (:func:`pixel_offsets`)
+    offsets: np.ndarray                 #: (H·W, 2) sub-pixel positions (:func:`usdml.render.sampling.pixel_offsets`)
     lens: np.ndarray | None = None      #: (H·W, 2) unit-disk lens points, or None: a pinhole
-
-
-def pixel_offsets(width: int, height: int, samples: int, seed: int):
-    """Yield ``samples`` (an s × s square) arrays ``(H·W, 2)`` float64 of where in each pixel a
-    primary ray goes, ``(x right, y down)`` in [0, 1), one array per pass.
-
-    Correlated multi-jittered sampling (Kensler 2013, after Chiu, Shirley and Wang 1994): pass
-    ``k = (i, j)`` puts one ray in cell (i, j) of an s × s grid over the pixel, and the rays' x (and
-    y) also fall one in each of the s² thin columns (rows), so a vertical or horizontal edge is
-    resolved in s² steps, not s; per pixel a random permutation of the sub-columns (sub-rows) and a
-    jitter inside them, drawn from ``seed`` (and the pass for the jitter). A single sample is the
-    pixel centre, unjittered.
-    """
-    s = round(samples ** 0.5)
-    n = width * height
-    if s == 1:
-        yield np.full((n, 2), 0.5)
-        return
-    rng = np.random.default_rng([seed, 0x5A4D])
-    perm_x = np.argsort(rng.random((n, s)), axis=1)     # sub-column of the ray in grid row j
-    perm_y = np.argsort(rng.random((n, s)), axis=1)     # sub-row of the ray in grid column i
-    for k in range(samples):
-        i, j = k % s, k // s
-        jitter = np.random.default_rng([seed, 0x5A4D, k]).random((n, 2))
-        x = (i + (perm_x[:, j] + jitter[:, 0]) / s) / s
-        y = (j + (perm_y[:, i] + jitter[:, 1]) / s) / s
-        yield np.stack([x, y], axis=1)
 
 
 def camera_rays(camera: Camera, width: int, height: int, offsets: np.ndarray | None = None,
                 lens: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World-space rays through every pixel, at its centre or at ``offsets`` (:func:`pixel_offsets`); with
+    """World-space rays through every pixel, at its centre or at ``offsets``
+    (:func:`usdml.render.sampling.pixel_offsets`); with
     ``lens`` (``(H·W, 2)`` unit-disk points, :func:`usdml.render.lens.lens_points`) and a camera with a lens
     (:attr:`~usdml.scene.Camera.lens_radius`), from those points of a thin lens (:mod:`usdml.render.lens`).
 

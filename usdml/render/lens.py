@@ -9,7 +9,8 @@ pinhole ray through the same film point meets the plane in focus, so that plane 
 default) or focusDistance 0 is a pinhole; an orthographic camera has no lens here (said once by the delegate).
 
 Lens points are stratified with the pixel samples: each pixel's ``samples`` points fall one in each cell of an
-s × s grid (and of its thin rows and columns: correlated multi-jittered, as :func:`usdml.render.gbuffer.pixel_offsets`),
+s × s grid (and of its thin rows and columns: correlated multi-jittered,
+:func:`usdml.render.sampling.pixel_offsets`),
 mapped to the disk by Shirley and Chiu's concentric map (which keeps the strata compact). The lens cell a pass
 takes is shifted per pixel by a seeded offset, so a pixel's sub-pixel cell and lens cell are paired at random (a
 fixed pairing would give every pixel the same bias).
@@ -20,6 +21,8 @@ from __future__ import annotations
 from typing import Iterator
 
 import numpy as np
+
+from usdml.render.sampling import pixel_offsets
 
 #: the lens points' stream of random numbers beside the sub-pixel positions' (``0x5A4D``)
 _LENS_STREAM = 0x4C45
@@ -39,23 +42,11 @@ def concentric_disk(u: np.ndarray) -> np.ndarray:
 def lens_points(width: int, height: int, samples: int, seed: int) -> Iterator[np.ndarray]:
     """Yield ``samples`` arrays ``(H·W, 2)`` float64 of where on the unit disk each pixel's ray leaves the lens,
     one per pass (module doc). One sample per pixel: a seeded uniform point per pixel."""
-    s = round(samples ** 0.5)
-    n = width * height
-    rng = np.random.default_rng([seed, _LENS_STREAM])
-    if s == 1:
-        yield concentric_disk(rng.random((n, 2)))
+    if round(samples ** 0.5) == 1:
+        yield concentric_disk(np.random.default_rng([seed, _LENS_STREAM]).random((width * height, 2)))
         return
-    perm_x = np.argsort(rng.random((n, s)), axis=1)
-    perm_y = np.argsort(rng.random((n, s)), axis=1)
-    shift = rng.integers(0, samples, n)
-    rows = np.arange(n)
-    for k in range(samples):
-        m = (k + shift) % samples                       # the lens cell this pixel's pass k takes
-        i, j = m % s, m // s
-        jitter = np.random.default_rng([seed, _LENS_STREAM, k]).random((n, 2))
-        x = (i + (perm_x[rows, j] + jitter[:, 0]) / s) / s
-        y = (j + (perm_y[rows, i] + jitter[:, 1]) / s) / s
-        yield concentric_disk(np.stack([x, y], axis=1))
+    for square in pixel_offsets(width, height, samples, seed, _LENS_STREAM, shifted=True):
+        yield concentric_disk(square)
 
 
 def thin_lens_rays(directions: np.ndarray, lens: np.ndarray, radius: float, focus: float,

@@ -11,7 +11,8 @@ there, shadows included. Every moving thing then moves as USD says it is at that
 interpolated between their time samples, ``velocities``/``accelerations`` (meshes and PointInstancers) and
 ``angularVelocities`` extrapolated, skeletons posed, cameras and lights moved. The ``samples`` passes take one
 time each from ``samples`` equal strata of the shutter, jittered, in a seeded order, so each pixel's samples are
-stratified in time and the pairing of a pass's time with its sub-pixel cell differs from frame to frame.
+stratified in time; each pixel pairs its sub-pixel cells with the passes by a seeded shift
+(:func:`usdml.render.sampling.pixel_offsets` ``shifted``), so no pairing of times and cells is shared by every pixel.
 
 Every pixel of a pass shares its time (an accumulation buffer, not a time per ray): a fast object at few samples
 shows as faint copies rather than noise. A time per ray needs geometry at every time in one structure (Embree's
