@@ -6,8 +6,8 @@ through the point ``offsets`` places in it (the centre, ``(½, ½)``, unless
 depth of field, from the lens point ``lens`` places (:mod:`usdml.render.lens`). Rays start on the near clipping
 plane and end on the far one, so clipping is honoured. Each hit has two normals: the geometric normal of the
 triangle hit (Embree's), turned to face the camera (usdml shades both sides of every surface), and the shading
-normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose of their instance transform), turned to the
-geometric normal's side. Which lights face a point, and where its shadow rays start, follow the
+normal interpolated from the mesh's per-corner normals (instanced ones through the inverse transpose of their
+instance transform), turned to the geometric normal's side. Which lights face a point, and where its shadow rays start, follow the
 geometric normal; only the cosine of shading follows the shading normal, so tilted authored normals
 never let a light behind the surface light it. With ``visible_lights`` the camera rays also see the lights
 (:mod:`usdml.render.visible_lights`): an area light in front of every surface ends the ray (no surface there),
