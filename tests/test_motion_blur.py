@@ -113,9 +113,12 @@ def test_shadows_are_traced_at_each_pass_time(tmp_path):
     assert np.abs(row[beside] - want[beside]).mean() <= 0.03
 
 
-def test_a_moving_light_is_averaged_over_the_shutter(tmp_path):
+@pytest.mark.parametrize("integrators", [{}, {"direct": "lgh"}, {"gi": "lgh", "vpl_count": 2000}],
+                         ids=["all", "direct-lgh", "gi-lgh"])
+def test_a_moving_light_is_averaged_over_the_shutter(tmp_path, integrators):
     """A point light 1 m above the ground moving 2 m per frame: the ground's direct light is its irradiance
-    I·cos/d² averaged over the shutter (by quadrature here), relative to the unblurred frame's."""
+    I·cos/d² averaged over the shutter (by quadrature here), relative to the unblurred frame's; through every
+    direct integrator, and with VPLs prepared per slice."""
     s = ground_from_above(tmp_path / "light.usda", (-0.5, 0.5))
     light = UsdLux.SphereLight.Define(s, "/lamp")
     light.CreateTreatAsPointAttr(True)
@@ -123,8 +126,9 @@ def test_a_moving_light_is_averaged_over_the_shutter(tmp_path):
     for t in (1, 2, 3):
         op.Set(Gf.Vec3d(2.0 * (t - 2), 1.0, 0), t)
     s.Save()
-    blurred = render(tmp_path / "light.usda", 16, aovs=("direct",)).buffers["direct"][..., 0].astype(np.float64)
-    still = render(tmp_path / "light.usda", 16, aovs=("direct",), motion_blur=False).buffers["direct"][..., 0]
+    blurred = render(tmp_path / "light.usda", 16, aovs=("direct",), **integrators).buffers["direct"][..., 0]
+    still = render(tmp_path / "light.usda", 16, aovs=("direct",), motion_blur=False, **integrators).buffers["direct"]
+    blurred, still = blurred.astype(np.float64), still[..., 0]
     half = 10 * APERTURE / 2 / FOCAL
     x = -half + (np.arange(WIDTH) + 0.5) / WIDTH * 2 * half
     lamp = -1.0 + 2.0 * (np.arange(4096) + 0.5) / 4096                  # the lamp's X over the shutter

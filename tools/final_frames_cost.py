@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fstop", type=float, default=2.8)
     ap.add_argument("--visibility", default="exact", help="backends, comma-separated (exact first: the reference)")
     ap.add_argument("--cases", default="sharp,blur,lens")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a setting for every case (UsdmlSettings field), e.g. direct=lgh")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
 
@@ -87,11 +89,16 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {"sharp": dict(motion_blur=False, depth_of_field=False), "blur": dict(depth_of_field=False),
              "lens": dict(motion_blur=False)}
     backends = args.visibility.split(",")
+    extra = {}
+    for item in args.set:
+        key, value = item.split("=", 1)
+        extra[key] = value if not value.lstrip("-").replace(".", "", 1).isdigit() else \
+            (float(value) if "." in value else int(value))
     cases = [(b, k) for b in backends for k in args.cases.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         path, camera = overlay(args.stage, Path(tmp), shutter, args.fstop)
         renderers = {(b, k): FrameRenderer(StageDelegate(path), UsdmlSettings(
-            pixel_samples=args.samples, visibility=b, **kinds[k]), backend_options={"report": lambda _: None})
+            pixel_samples=args.samples, visibility=b, **kinds[k], **extra), backend_options={"report": lambda _: None})
             for b, k in cases}
         height = StageDelegate(path).snapshot(args.frame).camera.resolution(args.width)[1]
         seconds: dict = {c: [] for c in cases}
@@ -119,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                "direct_rel_error_vs_" + backends[0]: float(np.abs(direct[(b, k)] - ref).mean() / ref.mean())}
         rows.append(row)
     out = {"stage": args.stage, "camera": camera, "frame": args.frame, "width": args.width, "height": height,
-           "samples": args.samples, "shutter": shutter, "fstop": args.fstop, "repeat": args.repeat, "rows": rows}
+           "samples": args.samples, "shutter": shutter, "fstop": args.fstop, "repeat": args.repeat, "settings": extra,
+           "rows": rows}
     if args.json:
         print(json.dumps(out, indent=1))
     else:

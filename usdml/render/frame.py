@@ -31,7 +31,7 @@ from usdml.render.sampling import pixel_offsets
 from usdml.render.shutter import pass_times
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.render.light_classes import LinkedShadows
-from usdml.scene import Camera, Lights, Snapshot, diff
+from usdml.scene import Camera, Changes, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
 
@@ -134,6 +134,7 @@ class FrameRenderer:
         self.direct.linked = LinkedShadows(lambda: Backends(settings, device, backend_options, roles=QUERY_ROLES,
                                                             unrefinable="ignore"))
         self._previous: Snapshot | None = None
+        self.changes: Changes | None = None     #: what the last :meth:`advance` found changed
         self._told_camera_light = False
 
     def frame_lights(self, snap: Snapshot) -> Lights:
@@ -177,7 +178,8 @@ class FrameRenderer:
         ``snapshot``: the stage at ``time`` as the caller has just read it (not read again).
 
         With motion blur (:func:`usdml.render.shutter.pass_times`) each pass is a time slice: the stage, the
-        backends, the lights and the camera are brought to the pass's time before it is traced and shaded."""
+        backends, the lights and the camera are brought to the pass's time before it is traced and shaded; the
+        integrators are prepared again (VPLs, hierarchies) only when the geometry or the lights moved."""
         stats = FrameStats()
         t0 = _time.perf_counter()
         samples = self.settings.pixel_samples
@@ -204,6 +206,7 @@ class FrameRenderer:
             lens_points(width, height, samples, self.settings.seed) if lens else itertools.repeat(None))]
         sampled = []            # (variance, direct radiance) of each pass whose lights with area were sampled
         # slices in time order, so the backends move forward through the shutter
+        prepared = None         # the lights the integrators were last prepared for (motion blur: per slice)
         slices = [(time, passes)] if times is None else [(t, [passes[k]]) for t, k in sorted(zip(times, range(samples)))]
         for first, (t, group) in enumerate(slices):
             if times is not None:
@@ -211,8 +214,11 @@ class FrameRenderer:
             else:
                 slice_snap, slice_camera = snap, camera
             frame = FrameInputs(slice_snap, lights, width, height)
-            self.indirect.prepare(frame, stats)     # once for every pass of the slice
-            self.direct.prepare(frame, stats)
+            state = None if times is None else lights.state_hash()
+            if first == 0 or self.changes.geometry or state != prepared:
+                self.indirect.prepare(frame, stats)     # once for every pass of the slice, while anything moves
+                self.direct.prepare(frame, stats)
+                prepared = state
             for i, (rays, (gb, surface, direct)) in enumerate(
                     zip(group, self.direct.passes(frame, group, stats, pixel_progress))):
                 if i == 0 and first == 0 and self.estimates(lights):
@@ -257,7 +263,8 @@ class FrameRenderer:
         snap = snapshot if snapshot is not None and snapshot.time == time else self.delegate.snapshot(time)
         require_geometry(self.delegate, snap)
         stats.snapshot_seconds += _time.perf_counter() - t0
-        seconds = self.backends.update(snap, diff(self._previous, snap))
+        self.changes = diff(self._previous, snap)
+        seconds = self.backends.update(snap, self.changes)
         stats.update_seconds += seconds["primary"] + seconds.get("shadow", 0.0)
         if "gi" in seconds:
             stats.gi_update_seconds = (stats.gi_update_seconds or 0.0) + seconds["gi"]

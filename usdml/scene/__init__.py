@@ -448,9 +448,13 @@ class Changes:
     camera: bool
 
     @property
+    def geometry(self) -> bool:
+        """Any mesh or instance moved, deformed, appeared or went."""
+        return self.static or bool(self.deforming) or any(self.prototypes.values())
+
+    @property
     def anything(self) -> bool:
-        return (self.static or bool(self.deforming) or self.lights or self.camera
-                or any(self.prototypes.values()))
+        return self.geometry or self.lights or self.camera
 
 
 def _mesh_changed(a: Mesh, b: Mesh) -> bool:
