@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.aov.cryptomatte import RankFilter, is_cryptomatte
 from usdml.aov.names import find_aov, is_light_group, light_group
 from usdml.errors import UsdmlError, log
 from usdml.kernels.brdf import brdf_terms
@@ -27,6 +28,7 @@ from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.render.light_classes import LinkedShadows
+from usdml.render.mattes import FrameMattes, MatteIds
 from usdml.scene import Camera, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
@@ -107,6 +109,8 @@ class FrameResult:
     camera: Camera                      #: the conformed camera the frame was rendered with
     snapshot: Snapshot
     stats: FrameStats = field(default_factory=FrameStats)
+    #: Cryptomatte AOV -> {name: id} of the names its written ranks hold (:func:`usdml.aov.cryptomatte.header`)
+    manifests: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class FrameRenderer:
@@ -131,6 +135,7 @@ class FrameRenderer:
                                                             unrefinable="ignore"))
         self._previous: Snapshot | None = None
         self._told_camera_light = False
+        self._matte_ids = MatteIds(delegate.warn)
 
     def frame_lights(self, snap: Snapshot) -> Lights:
         """The snapshot's lights plus each dome light importance-sampled into distant lights.
@@ -180,6 +185,8 @@ class FrameRenderer:
         self.direct.groups = any(is_light_group(a) for a in aovs)
         self.indirect.prepare(frame, stats)     # once for every pass of the frame
         self.direct.prepare(frame, stats)
+        crypto = {a for a in aovs if is_cryptomatte(a)}
+        mattes = self._mattes(snap, crypto) if crypto else None
         image = _PixelFilter(width, height)
         hit = lit = albedo = seen = False   # any pixel: hit, lit, with a non-zero albedo, a light seen (blank_frame)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
@@ -206,7 +213,9 @@ class FrameRenderer:
                     surface.emission, gb.light, gb.background)))
             seen = seen or gb.emitter is not None
             albedo = albedo or bool(surface.albedo.any())
-            image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
+            buffers = self._buffers(gb, surface, direct, indirect, camera, aovs - crypto)
+            buffers.update({a: mattes.pass_ids(gb.geom, gb.triangle, a) for a in crypto})
+            image.add(buffers, offsets)
         if sampled:
             variance, radiance = (np.concatenate(a) for a in zip(*sampled))
             stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
@@ -220,7 +229,17 @@ class FrameRenderer:
         stats.pixels = width * height
         stats.pixel_samples = samples
         stats.seconds = _time.perf_counter() - t0
-        return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
+        buffers = image.result()
+        return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats,
+                           manifests={a: mattes.manifest(a, image.present[a]) for a in crypto})
+
+    def _mattes(self, snap: Snapshot, crypto: set[str]) -> FrameMattes:
+        """The frame's Cryptomatte ids of the primary backend's geometry (:mod:`usdml.render.mattes`)."""
+        names = self.delegate.mattes(snap)
+        if "CryptoAsset" in crypto and not names.assets:
+            self.delegate.warn(f"{self.delegate.path}: no prim in view has a kind of component (or one derived from "
+                               "it); CryptoAsset has no ids (author kind = \"component\" on each asset's root prim)")
+        return FrameMattes(names, self.backends.primary.sources, self._matte_ids)
 
     def advance(self, time: float, width: int, height: int, stats: FrameStats | None = None,
                 snapshot: Snapshot | None = None) -> tuple[Snapshot, Lights, Camera]:
@@ -316,7 +335,8 @@ class FrameRenderer:
 class _PixelFilter:
     """Combines the AOV buffers of a pixel's primary rays (one pass per sub-pixel position): the
     :attr:`~usdml.aov.names.AovSpec.filtered` AOVs averaged (a box filter), the others taken from the
-    ray nearest the pixel centre."""
+    ray nearest the pixel centre; the :attr:`~usdml.aov.names.AovSpec.ranked` (Cryptomatte) AOVs' ids ranked by
+    coverage (:class:`usdml.aov.cryptomatte.RankFilter`)."""
 
     def __init__(self, width: int, height: int):
         self.shape = (height, width)
@@ -324,13 +344,17 @@ class _PixelFilter:
         self.sums: dict[str, np.ndarray] = {}
         self.nearest: dict[str, np.ndarray] = {}
         self.best = np.full(self.shape, np.inf)
+        self.ranks: dict[str, RankFilter] = {}
+        self.present: dict[str, np.ndarray] = {}    #: ranked AOV -> the ids :meth:`result` wrote
 
     def add(self, buffers: dict[str, np.ndarray], offsets: np.ndarray) -> None:
         d2 = ((offsets - 0.5) ** 2).sum(1).reshape(self.shape)
         closer = d2 < self.best
         self.best = np.minimum(self.best, d2)
         for name, b in buffers.items():
-            if find_aov(name).filtered:
+            if find_aov(name).ranked:
+                self.ranks.setdefault(name, RankFilter(b.size)).add(b)
+            elif find_aov(name).filtered:
                 self.sums[name] = self.sums.get(name, 0.0) + b.astype(np.float64)
             elif name not in self.nearest:
                 self.nearest[name] = b
@@ -342,4 +366,7 @@ class _PixelFilter:
     def result(self) -> dict[str, np.ndarray]:
         out = {name: (s / self.passes).astype(np.float32) for name, s in self.sums.items()}
         out.update(self.nearest)
+        for name, ranks in self.ranks.items():
+            pixels, self.present[name] = ranks.result()
+            out[name] = pixels.reshape(self.shape + (pixels.shape[1],))
         return out
