@@ -284,6 +284,29 @@ def test_unknown_crypto_layer_is_one_line(new_stage, tmp_path, capsys, edge_file
     assert not (tmp_path / "x.exr").exists()
 
 
+def test_ranking_filter_against_counting():
+    """Ranks of random passes (more than six ids a pixel, ties) against counting them one pixel at a time."""
+    from usdml.aov.cryptomatte import RankFilter
+
+    rng = np.random.default_rng(5)
+    pixels, samples = 300, 16
+    choices = np.array([0, 3, 5, 7, 11, 13, 17, 19, 23], np.uint32)
+    passes = [rng.choice(choices, pixels, p=[0.2, 0.3, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05]) for _ in range(samples)]
+    f = RankFilter(pixels)
+    for ids in passes:
+        f.add(ids)
+    pixels_out, written = f.result()
+    every = np.stack(passes, 1)
+    for p in range(pixels):
+        seen, count = np.unique(every[p][every[p] != 0], return_counts=True)
+        best = sorted(zip(-count, seen))[:6]           # coverage down, then the smaller id
+        ids = [int(i) for _, i in best] + [0] * (6 - len(best))
+        coverage = [-c / samples for c, _ in best] + [0.0] * (6 - len(best))
+        assert list(pixels_out[p, 0::2].view(np.uint32)) == ids, p
+        assert np.allclose(pixels_out[p, 1::2], coverage), p
+    assert set(written.tolist()) == set(pixels_out[:, 0::2].view(np.uint32).ravel().tolist()) - {0}
+
+
 def test_name_that_cannot_be_encoded_is_said_and_has_no_id():
     from usdml.render.mattes import MatteIds
 
@@ -292,3 +315,16 @@ def test_name_that_cannot_be_encoded_is_said_and_has_no_id():
     assert ids[0] == struct.unpack("<I", struct.pack("<f", spec_id("/World/ok")))[0]
     assert list(ids[1:]) == [0, 0, 0]
     assert len(said) == 1 and "/World/bad" in said[0]
+
+
+def test_no_component_and_no_material_are_said_once(new_stage, tmp_path, capsys):
+    stage = new_stage("plain.usda", start=1)
+    _ortho_camera(stage, 16, 4)
+    _rect(stage, "/World/Right", [XE, XR])
+    stage.Save()
+    out = _render(stage.GetRootLayer().realPath, tmp_path / "plain.#.exr", "CryptoAsset,CryptoMaterial",
+                  extra=("--frames", "1,2"))
+    said = capsys.readouterr().err.splitlines()
+    assert sum("CryptoAsset has no ids" in m for m in said) == 1 and sum("CryptoMaterial has no ids" in m for m in said) == 1
+    for frame in (1, 2):
+        assert Cryptomatte(str(out).replace("#", str(frame)), "CryptoAsset").manifest == {}

@@ -86,56 +86,62 @@ def header(layers: Mapping[str, str], manifests: Mapping[str, Mapping[str, int]]
 
 
 class RankFilter:
-    """The ranking pixel filter of one Cryptomatte AOV over a frame's passes (module doc)."""
+    """The ranking pixel filter of one Cryptomatte AOV over a frame's passes (module doc).
+
+    Slots are columns, ``(slots, P)``, filled left to right per pixel: a pass compares each hit with its pixel's
+    first slot, and only the pixels not settled there (an edge's, a few per cent) with the next; most pixels see one
+    id and are done in one gather."""
 
     def __init__(self, pixels: int):
         self.passes = 0
-        self.ids = np.zeros((pixels, 0), np.uint32)        # slot ids, 0: empty
-        self.counts = np.zeros((pixels, 0), np.uint16)     # passes that hit the slot's id
+        self.ids = np.zeros((0, pixels), np.uint32)        # slot ids, 0: empty
+        self.counts = np.zeros((0, pixels), np.uint16)     # passes that hit the slot's id
 
     def add(self, ids: np.ndarray) -> None:
         """One pass: ``ids`` (P,) uint32, the id each pixel's ray hit (0: nothing named)."""
         self.passes += 1
         ids = np.asarray(ids, np.uint32).ravel()
         rows = np.flatnonzero(ids)
-        if not len(rows):
-            return
         v = ids[rows]
-        same = self.ids[rows] == v[:, None]
-        found = same.any(axis=1)
-        if found.any():
-            self.counts[rows[found], same[found].argmax(axis=1)] += 1
-        new, v = rows[~found], v[~found]
-        if not len(new):
-            return
-        free = self.ids[new] == 0
-        if not free.any(axis=1).all():              # some pixel has seen more ids than there are slots
-            grow = max(1, self.ids.shape[1])
-            self.ids = np.pad(self.ids, ((0, 0), (0, grow)))
-            self.counts = np.pad(self.counts, ((0, 0), (0, grow)))
-            free = self.ids[new] == 0
-        col = free.argmax(axis=1)
-        self.ids[new, col] = v
-        self.counts[new, col] = 1
+        for col, count in zip(self.ids, self.counts):
+            if not len(rows):
+                return
+            slot = col[rows]
+            same, empty = slot == v, slot == 0
+            count[rows[same]] += 1
+            col[rows[empty]] = v[empty]
+            count[rows[empty]] = 1
+            rest = ~(same | empty)
+            rows, v = rows[rest], v[rest]
+        if len(rows):                   # some pixel has seen more ids than there are slots: one slot more
+            self.ids = np.concatenate([self.ids, np.zeros((1, self.ids.shape[1]), np.uint32)])
+            self.counts = np.concatenate([self.counts, np.zeros((1, self.ids.shape[1]), np.uint16)])
+            self.ids[-1, rows] = v
+            self.counts[-1, rows] = 1
 
     def ranked(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (P, RANKS) uint32, coverage (P, RANKS) float32)``: the first ranks of each pixel, by coverage
         then by the smaller id; 0 and 0 past a pixel's ids."""
-        p, slots = self.ids.shape
+        slots, p = self.ids.shape
         ids = np.zeros((p, RANKS), np.uint32)
-        coverage = np.zeros((p, RANKS), np.float32)
-        if slots == 0 or self.passes == 0:
-            return ids, coverage
-        # one uint64 key: the count above, the id's complement below, so a descending sort is (count desc, id asc)
-        key = (self.counts.astype(np.uint64) << np.uint64(32)) | (~self.ids).astype(np.uint64)
-        key[self.counts == 0] = 0
-        order = np.argsort(~key, axis=1, kind="stable")[:, :RANKS]
-        k = order.shape[1]
-        ids[:, :k] = np.take_along_axis(self.ids, order, axis=1)
-        counts = np.take_along_axis(self.counts, order, axis=1)
-        ids[:, :k][counts == 0] = 0
-        coverage[:, :k] = counts / np.float32(self.passes)
-        return ids, coverage
+        counts = np.zeros((p, RANKS), np.uint16)
+        if slots:
+            ids[:, 0], counts[:, 0] = self.ids[0], self.counts[0]
+        # pixels with one id are ranked; the others (a second slot in use) are sorted by one uint64 key: the count
+        # above, the id's complement below, so a descending sort is (count desc, id asc)
+        many = np.flatnonzero(self.counts[1]) if slots > 1 else np.zeros(0, np.int64)
+        if len(many):
+            c, i = self.counts[:, many].T, self.ids[:, many].T
+            key = (c.astype(np.uint64) << np.uint64(32)) | (~i).astype(np.uint64)
+            key[c == 0] = 0
+            order = np.argsort(~key, axis=1, kind="stable")[:, :RANKS]
+            k = order.shape[1]
+            ids[many, :k] = np.take_along_axis(i, order, axis=1)
+            counts[many, :k] = np.take_along_axis(c, order, axis=1)
+            ids[many, k:] = 0
+            counts[many, k:] = 0
+        ids[counts == 0] = 0
+        return ids, (counts / np.float32(max(self.passes, 1))).astype(np.float32)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         """``(pixels (P, 2·RANKS) float32 in the channel order of ``RANK_CHANNELS``, the ids written (K,) uint32)``."""

@@ -237,8 +237,10 @@ class FrameRenderer:
         """The frame's Cryptomatte ids of the primary backend's geometry (:mod:`usdml.render.mattes`)."""
         names = self.delegate.mattes(snap)
         if "CryptoAsset" in crypto and not names.assets:
-            self.delegate.warn(f"{self.delegate.path}: no prim in view has a kind of component (or one derived from "
-                               "it); CryptoAsset has no ids (author kind = \"component\" on each asset's root prim)")
+            self.delegate.warn(f"{self.delegate.path}: no geometry is in a prim of kind component (or a kind derived "
+                               "from it); CryptoAsset has no ids (author kind = \"component\" on each asset's root)")
+        if "CryptoMaterial" in crypto and not names.materials:
+            self.delegate.warn(f"{self.delegate.path}: no geometry has a material bound; CryptoMaterial has no ids")
         return FrameMattes(names, self.backends.primary.sources, self._matte_ids)
 
     def advance(self, time: float, width: int, height: int, stats: FrameStats | None = None,
