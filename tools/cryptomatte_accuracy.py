@@ -13,7 +13,7 @@ ray's), the same on interior pixels (the centre ray's object also hit by the 8 n
 
 Stages: ``family``: a seeded family of boxes (rotated, of several sizes, some in kind-component assets, some
 with GeomSubset materials), two native instances of a three-mesh asset and a PointInstancer of 8 boxes, seen by a
-perspective camera; the generator has no parameter fitted to the measure: even seeds were used while writing it,
+perspective camera (16:9); the generator has no parameter fitted to the measure: even seeds were used while writing it,
 odd seeds are the ones reported. ``shaderball``: the usd-wg Standard Shader Ball (``../shared/assets``).
 
 **Cost** (``--cost``): the ranking filter's seconds per pass per megapixel and its bytes per pixel on the
@@ -40,6 +40,10 @@ from pathlib import Path
 import mmh3
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from stage_build import define_camera  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 SHADERBALL = ROOT.parent / "shared" / "assets" / "usd-wg" / "StandardShaderBall" / "standard_shader_ball_scene.usda"
 
@@ -54,19 +58,13 @@ def spec_bits(name: str) -> int:
 # --- the family ---------------------------------------------------------------------------------------------
 
 def family_stage(seed: int, path: str) -> str:
-    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
+    from pxr import Kind, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
     rng = np.random.default_rng([seed, 53])
     stage = Usd.Stage.CreateNew(path)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
-    cam.CreateFocalLengthAttr(30)
-    cam.CreateHorizontalApertureAttr(36)
-    cam.CreateVerticalApertureAttr(27)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 1000))
-    cam.AddTranslateOp().Set((0, 6, 18))
-    cam.AddRotateXOp().Set(-18)
+    define_camera(stage, (0.0, 6.0, 18.0), (0.0, 0.0, 0.0), (0.1, 1000.0))
     UsdLux.DistantLight.Define(stage, "/World/sun").CreateIntensityAttr(2.0)
     looks = [UsdShade.Material.Define(stage, f"/World/Looks/m{k}") for k in range(3)]
     for k, mat in enumerate(looks):
