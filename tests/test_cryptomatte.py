@@ -226,7 +226,12 @@ def test_instances_native_and_point_instancer(new_stage, tmp_path):
     stage = new_stage("inst.usda", start=1)
     _ortho_camera(stage, 16, 4)
     proto = UsdGeom.Xform.Define(stage, "/Asset")
-    _rect(stage, "/Asset/geo", [-1.0, 1.0], -1.0, 1.0)
+    _rect(stage, "/Asset/geo", [-1.0, 1.0], -1.0, 0.0)
+    _rect(stage, "/Leaf/geo", [-1.0, 1.0], 0.0, 1.0)            # nested: an instance inside the asset
+    stage.GetPrimAtPath("/Leaf").SetSpecifier(Sdf.SpecifierClass)
+    leaf = stage.DefinePrim("/Asset/leaf", "Xform")
+    leaf.GetReferences().AddInternalReference("/Leaf")
+    leaf.SetInstanceable(True)
     UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Asset/geo")).Bind(_material(stage, "/Asset/Mat"))
     stage.GetPrimAtPath("/Asset").SetSpecifier(Sdf.SpecifierClass)
     for i, x in enumerate((-6.0, -2.0)):
@@ -244,15 +249,51 @@ def test_instances_native_and_point_instancer(new_stage, tmp_path):
     stage.Save()
     out = _render(stage.GetRootLayer().realPath, tmp_path / "inst.exr", "CryptoObject,CryptoMaterial,CryptoAsset")
     obj = Cryptomatte(out, "CryptoObject")
-    centres = obj.first()[1, [2, 6, 10, 14]]         # pixel columns at x = -6, -2, 2, 6
-    # native instances: each its instance proxy path; PointInstancer instances share their prototype mesh's
-    assert list(centres) == ["/World/Inst_0/geo", "/World/Inst_1/geo", "/World/PI/Protos/rock/geo",
-                             "/World/PI/Protos/rock/geo"]
+    centres = obj.first()[:, [2, 6, 10, 14]]         # pixel columns at x = -6, -2, 2, 6; rows y = 1.5 .. -1.5
+    # native instances: each its instance proxy path; PointInstancer instances share their prototype mesh's;
+    # instances nested in an instanced asset share the path through the first instances
+    assert list(centres[2]) == ["/World/Inst_0/geo", "/World/Inst_1/geo", "/World/PI/Protos/rock/geo",
+                                "/World/PI/Protos/rock/geo"]
+    assert list(centres[1, :2]) == ["/World/Inst_0/leaf/geo"] * 2
+    assert not [n for n in obj.manifest if "__Prototype" in n]
     # instances share the material bound inside their prototype, named through the first instance
     assert set(Cryptomatte(out, "CryptoMaterial").manifest) == {"/World/Inst_0/Mat"}
     asset = Cryptomatte(out, "CryptoAsset")
     assert set(asset.manifest) == {"/World/Inst_0", "/World/Inst_1"}
-    assert asset.matte("/World/Inst_1")[1, 6] == 1.0 and asset.matte("/World/Inst_0")[1, 6] == 0.0
+    assert asset.matte("/World/Inst_1")[2, 6] == 1.0 and asset.matte("/World/Inst_0")[2, 6] == 0.0
+
+
+@pytest.mark.slow          # a LocalCluster of two processes: some 10 s here
+def test_workers_name_and_rank_as_one_process(tmp_path, capsys):
+    """Frames on a Dask LocalCluster (other processes: USD numbers native prototypes its own way in each) write the
+    same Cryptomatte layers and manifests as one process."""
+    pytest.importorskip("distributed")
+    stage = Usd.Stage.CreateNew(str(tmp_path / "many.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(2)
+    _ortho_camera(stage, 16, 4)
+    for k in range(4):                  # four assets: four prototypes whose numbering USD may change
+        _rect(stage, f"/A{k}/geo", [-1.0, 1.0], -1.0, 1.0)
+        UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath(f"/A{k}/geo")).Bind(_material(stage, f"/A{k}/Mat"))
+        stage.GetPrimAtPath(f"/A{k}").SetSpecifier(Sdf.SpecifierClass)
+        for i in range(2):
+            inst = UsdGeom.Xform.Define(stage, f"/World/I{k}_{i}")
+            inst.GetPrim().GetReferences().AddInternalReference(f"/A{k}")
+            inst.GetPrim().SetInstanceable(True)
+            inst.AddTranslateOp().Set((-7.0 + 2 * (2 * k + i), 0.0, 0.0))
+    stage.Save()
+    args = ["--frames", "1:2", "--aovs", "CryptoObject,CryptoMaterial", "--imageWidth", "16", "--pixel-samples", "4"]
+    assert main(["render", stage.GetRootLayer().realPath, str(tmp_path / "one" / "m.#.exr"), *args]) == 0
+    assert main(["render", stage.GetRootLayer().realPath, str(tmp_path / "farm" / "m.#.exr"), *args,
+                 "--workers", "2", "--chunk-size", "1", "--nthreads", "1"]) == 0
+    for f in (1, 2):
+        for layer in ("CryptoObject", "CryptoMaterial"):
+            one = Cryptomatte(tmp_path / "one" / f"m.{f}.exr", layer)
+            farm = Cryptomatte(tmp_path / "farm" / f"m.{f}.exr", layer)
+            assert one.hex == farm.hex and one.ids.tobytes() == farm.ids.tobytes()
+            assert one.coverage.tobytes() == farm.coverage.tobytes()
+    assert len(one.manifest) == 4 and "/World/I0_0/Mat" in one.manifest       # CryptoMaterial: one per asset
 
 
 def test_render_var_route_and_determinism(tmp_path, edge_file):

@@ -16,7 +16,10 @@ The rules (``docs/cryptomatte.md``):
   ``component`` or derived from it: the unit a pipeline publishes as an asset. Geometry in no component has no id.
 
 Paths inside a native prototype (``/__Prototype_N/...``, whose numbering changes between processes) are named
-through the prototype's first instance by path, the same in every process and on every farm worker.
+through the prototype's first instance by path, the same in every process and on every farm worker. An instance
+nested in another instance's prototype is named so too: the snapshot keeps the outer prototype as its instancer, not
+the nested instance's proxy path, so every nested instance shares the path through the first outer and inner
+instances (``/World/Chair_0/leg/geo``).
 """
 
 from __future__ import annotations
@@ -76,7 +79,8 @@ class MatteReader:
             obj = np.empty((len(p.meshes), p.instance_count), np.int32)
             asset = np.empty_like(obj)
             for k, m in enumerate(p.meshes):
-                by_instancer = {s: named(instance_path(p, m.path, s)) for s in dict.fromkeys(p.instancers)}
+                by_instancer = {s: named(m.path if s.startswith("/__Prototype_") else instance_path(p, m.path, s))
+                                for s in dict.fromkeys(p.instancers)}
                 pairs = np.array([by_instancer[s] for s in p.instancers], np.int32).reshape(-1, 2)
                 obj[k], asset[k] = pairs[:, 0], pairs[:, 1]
             proto_object.append(obj)
@@ -104,15 +108,18 @@ class MatteReader:
 
     def stable(self, path: str) -> str:
         """``path`` with a native prototype's root (``/__Prototype_N``) replaced by its first instance's path (by
-        path order, itself made stable: instances nest), so names do not depend on USD's prototype numbering."""
+        path order, itself made stable: instances nest; instances under a class skipped), so names do not depend on
+        USD's prototype numbering."""
         if not path.startswith("/__Prototype_"):
             return path
         root, _, rest = path[1:].partition("/")
         root = "/" + root
         if root not in self._first:
             proto = self.stage.GetPrimAtPath(root)
-            instances = sorted(str(i.GetPath()) for i in proto.GetInstances()) if proto else []
-            self._first[root] = self.stable(instances[0]) if instances else root
+            # instances under a class (abstract: not rendered) do not name it; nested ones sort by their stable path
+            instances = [self.stable(str(i.GetPath())) for i in (proto.GetInstances() if proto else [])
+                         if not i.IsAbstract()]
+            self._first[root] = min(instances, default=root)
         return self._first[root] + ("/" + rest if rest else "")
 
     def asset(self, path: str) -> str | None:
