@@ -222,6 +222,12 @@ def test_asset_by_kind(edge_file):
     assert np.allclose(c.matte("/World/AssetA"), _coverage_truth(-9, XE)[None, :], atol=1 / 16)
 
 
+def test_info_counts_the_names(edge_file, capsys):
+    assert main(["info", str(edge_file.parent / "edge.usda"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["cryptomatteNames"] == {"CryptoObject": 2, "CryptoMaterial": 2, "CryptoAsset": 1}
+
+
 def test_instances_native_and_point_instancer(new_stage, tmp_path):
     stage = new_stage("inst.usda", start=1)
     _ortho_camera(stage, 16, 4)
