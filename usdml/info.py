@@ -80,6 +80,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
         "lightTypes": {**snap.lights.type_counts(), **({"dome": len(snap.domes)} if snap.domes else {})},
         "linkSets": len(snap.links) if snap.links is not None else 0,
         "lightGroups": delegate.light_groups(),
+        "cryptomatteNames": _matte_counts(delegate.mattes(snap)),
         "cameras": [str(c.GetPath()) for c in delegate.cameras],
         "camera": snap.camera.path if snap.camera and snap.camera.path else ("(framing)" if snap.camera else None),
         "shutter": list(snap.camera.shutter) if snap.camera else None,
@@ -110,6 +111,12 @@ def _lens_and_shutter(info: dict) -> str:
     return out
 
 
+def _matte_counts(names) -> dict[str, int]:
+    """How many names each Cryptomatte AOV can write (:class:`usdml.scene.mattes.MatteNames`)."""
+    return {"CryptoObject": len(names.objects), "CryptoMaterial": len(names.materials),
+            "CryptoAsset": len(names.assets)}
+
+
 def format_info(info: dict) -> str:
     """The human-readable summary printed by ``usdml info``."""
     n = "{:,}".format
@@ -131,6 +138,8 @@ def format_info(info: dict) -> str:
     if info["linkSets"] or info["lightGroups"] not in ([], ["default"]):
         lines.insert(-1, f"linking     {info['linkSets']} light/shadow link set(s); light groups "
                          + ", ".join(info["lightGroups"]))
+    lines.insert(-1, "mattes      " + ", ".join(f"{n(v)} {k}" for k, v in info["cryptomatteNames"].items())
+                 + " (Cryptomatte names, at most a frame's manifest)")
     if info["unsupported"]:
         lines.append("unsupported " + ", ".join(f"{k} {n(v)}" for k, v in info["unsupported"].items())
                      + " (not rendered)")

@@ -5,6 +5,7 @@
 * :mod:`usdml.aov.exr` -- atomic multi-channel EXR writing / reading, completeness checks for
   ``--resume``, sRGB PNG previews, OpenEXR camera-matrix conventions.
 * :mod:`usdml.aov.naming` -- usdrecord's FrameSpec and ``#`` frame-number rule.
+* :mod:`usdml.aov.cryptomatte` -- Cryptomatte ids (MurmurHash3), the ranking pixel filter, the header's manifests.
 """
 
 from usdml.aov.exr import (

@@ -380,9 +380,17 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
     unprefixed = {find_aov(a).name: layer for layer, a in layer_aovs.items()
                   if find_aov(a) is not None and not find_aov(a).prefixed}
 
+    # layers whose channels follow their name directly (Cryptomatte's CryptoObject00.R): layer -> its suffixes
+    joined = {layer: set(spec.suffixes) for layer, spec in
+              [(n, a) for n, a in AOVS.items()] + [(n, find_aov(a)) for n, a in layer_aovs.items() if find_aov(a)]
+              if spec.separator == ""}
     groups: dict[str, dict[str, np.ndarray]] = {}
     for name, a in pixels.items():
-        if name in ("R", "G", "B", "A"):
+        whole = next((layer for layer, suffixes in joined.items()
+                      if name.startswith(layer) and name[len(layer):] in suffixes), None)
+        if whole is not None:
+            layer, suffix = whole, name[len(whole):]
+        elif name in ("R", "G", "B", "A"):
             layer, suffix = unprefixed.get("color", "color"), name
         elif name == "Z":
             layer, suffix = unprefixed.get("depth", "depth"), name

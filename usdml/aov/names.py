@@ -26,6 +26,10 @@ AOV (aliases)         EXR channels             type     meaning; value where no 
 ``Peye``              ``Peye.X/Y/Z``           float    position in USD eye space (-Z forward); 0
 ``primId``            ``primId.id``            uint     prim index; no hit: -1 (stored 0xFFFFFFFF)
 ``instanceId``        ``instanceId.id``        uint     instance index; -1 (stored 0xFFFFFFFF)
+``CryptoObject``      ``CryptoObject00.R/G/B/  float    Cryptomatte of prim paths: ids and coverage of
+                      A``, ``01``, ``02``               6 ranks (docs/cryptomatte.md); id 0, coverage 0
+``CryptoMaterial``    likewise                 float    Cryptomatte of bound material paths
+``CryptoAsset``       likewise                 float    Cryptomatte of asset (kind component) paths
 ====================  =======================  =======  ==========================================
 
 Choices, and why:
@@ -68,6 +72,10 @@ class AovSpec:
     #: averaged over a pixel's primary rays (box filter); otherwise the value of the ray nearest the
     #: pixel centre (depth, positions and normals are not meaningful averaged, ids not at all, as in Hydra)
     filtered: bool = False
+    #: a Cryptomatte AOV (:mod:`usdml.aov.cryptomatte`): each pass gives an id per pixel, and the ids are ranked by
+    #: the fraction of a pixel's passes that hit them, written as ``<layer>00 .. 02`` (rank id, coverage, ...)
+    ranked: bool = False
+    separator: str = "."        #: between the layer and a suffix (Cryptomatte's ``CryptoObject00.R``: none)
 
     @property
     def components(self) -> int:
@@ -87,7 +95,7 @@ class AovSpec:
         if not self.prefixed:
             return self.suffixes
         prefix = layer or self.name
-        return tuple(f"{prefix}.{s}" for s in self.suffixes)
+        return tuple(f"{prefix}{self.separator}{s}" for s in self.suffixes)
 
     def shape(self, height: int, width: int) -> tuple[int, ...]:
         """Buffer shape: ``(H, W)`` for one channel, ``(H, W, C)`` otherwise (row 0 = top)."""
@@ -99,6 +107,15 @@ class AovSpec:
             return np.full(self.shape(height, width), -1, np.int64)
         return np.full(self.shape(height, width), self.clear, np.float32)
 
+
+#: Cryptomatte's layers and what names their ids (:mod:`usdml.aov.cryptomatte`)
+CRYPTOMATTE = {"CryptoObject": "prim paths", "CryptoMaterial": "bound material paths",
+               "CryptoAsset": "asset (kind component) paths"}
+#: ranks per Cryptomatte AOV: the specification's suggested default, 3 RGBA layers
+RANKS = 6
+#: a Cryptomatte AOV's channels after its layer name: ``00.R`` (rank 0 id), ``00.G`` (its coverage), ``00.B``
+#: (rank 1 id), ``00.A``, ``01.R`` ..
+RANK_CHANNELS = tuple(f"{k // 4:02d}.{'RGBA'[k % 4]}" for k in range(2 * RANKS))
 
 _RGB = ("R", "G", "B")
 _XYZ = ("X", "Y", "Z")
@@ -130,6 +147,8 @@ AOVS: dict[str, AovSpec] = {a.name: a for a in (
             hydra=True),
     AovSpec("primId", ("id",), "uint", -1, "prim index, -1 where no prim", hydra=True),
     AovSpec("instanceId", ("id",), "uint", -1, "instance index, -1 where no instance", hydra=True),
+    *(AovSpec(name, RANK_CHANNELS, "float", 0.0, f"Cryptomatte {what}: 6 ranks of (id, coverage)", ranked=True,
+              separator="") for name, what in CRYPTOMATTE.items()),
 )}
 
 #: other names accepted for an AOV (Hydra's ``cameraDepth``, RenderMan's ``N``)
@@ -180,6 +199,9 @@ RAW_SOURCE_NAMES: dict[str, str] = {
     "direct": "direct", "indirect": "indirect", "albedo": "albedo",
     "diffuse": "diffuse", "specular": "specular", "emission": "emission", "background": "background",
     "shadow": "shadow", "lightCount": "lightCount",
+    # Cryptomatte: its layer names, and Arnold's AOV names for them
+    **{name: name for name in CRYPTOMATTE}, "crypto_object": "CryptoObject", "crypto_material": "CryptoMaterial",
+    "crypto_asset": "CryptoAsset",
 }
 
 #: ``sourceType`` "lpe" expressions (whitespace ignored, ``lpe:`` prefix optional) -> AOV.
@@ -253,6 +275,8 @@ def data_type_matches(aov: AovSpec, data_type: str | None) -> bool:
         return True
     if data_type.startswith(("int", "uint")) != aov.is_id:
         return False
+    if aov.ranked:          # the layout is the Cryptomatte specification's whatever type the RenderVar names
+        return True
     if aov.name == "color":
         return n in (3, 4)
     return n == aov.components

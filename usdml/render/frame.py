@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from usdml.aov.cryptomatte import RankFilter, is_cryptomatte
 from usdml.aov.names import find_aov, is_light_group, light_group
 from usdml.errors import UsdmlError, log
 from usdml.kernels.brdf import brdf_terms
@@ -31,6 +32,7 @@ from usdml.render.sampling import pixel_offsets
 from usdml.render.shutter import pass_times
 from usdml.render.integrators import FrameInputs, Surface, direct_integrator, gi_integrator
 from usdml.render.light_classes import LinkedShadows
+from usdml.render.mattes import FrameMattes, MatteIds
 from usdml.scene import Camera, Changes, Lights, Snapshot, diff
 from usdml.settings import UsdmlSettings
 from usdml.stage.delegate import StageDelegate, require_geometry
@@ -111,6 +113,8 @@ class FrameResult:
     camera: Camera                      #: the conformed camera the frame was rendered with
     snapshot: Snapshot
     stats: FrameStats = field(default_factory=FrameStats)
+    #: Cryptomatte AOV -> {name: id} of the names its written ranks hold (:func:`usdml.aov.cryptomatte.header`)
+    manifests: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 class FrameRenderer:
@@ -136,6 +140,7 @@ class FrameRenderer:
         self._previous: Snapshot | None = None
         self.changes: Changes | None = None     #: what the last :meth:`advance` found changed
         self._told_camera_light = False
+        self._matte_ids = MatteIds(delegate.warn)
 
     def frame_lights(self, snap: Snapshot) -> Lights:
         """The snapshot's lights plus each dome light importance-sampled into distant lights.
@@ -195,6 +200,8 @@ class FrameRenderer:
             stats.shutter_times = times
         pixel_progress = None if progress is None else (lambda n: progress(n / samples))
         self.direct.groups = any(is_light_group(a) for a in aovs)
+        crypto = {a for a in aovs if is_cryptomatte(a)}
+        mattes = None           # the Cryptomatte ids of the primary backend's geometry, made again when it moves
         image = _PixelFilter(width, height)
         flags = _Seen()
         lens = camera.lens_radius > 0 and self.settings.depth_of_field and not (
@@ -219,6 +226,8 @@ class FrameRenderer:
                 self.indirect.prepare(frame, stats)     # once for every pass of the slice, while anything moves
                 self.direct.prepare(frame, stats)
                 prepared = state
+            if crypto and (mattes is None or self.changes.geometry):
+                mattes = self._mattes(slice_snap, crypto)
             for i, (rays, (gb, surface, direct)) in enumerate(
                     zip(group, self.direct.passes(frame, group, stats, pixel_progress))):
                 if i == 0 and first == 0 and self.estimates(lights):
@@ -237,7 +246,9 @@ class FrameRenderer:
                 if direct.variance is not None:
                     sampled.append((direct.variance, direct.radiance))
                 flags.add(gb, surface, direct, indirect)
-                image.add(self._buffers(gb, surface, direct, indirect, slice_camera, aovs), rays.offsets)
+                buffers = self._buffers(gb, surface, direct, indirect, slice_camera, aovs - crypto)
+                buffers.update({a: mattes.pass_ids(gb.geom, gb.triangle, a) for a in crypto})
+                image.add(buffers, rays.offsets)
         if sampled:
             variance, radiance = (np.concatenate(a) for a in zip(*sampled))
             stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
@@ -251,7 +262,19 @@ class FrameRenderer:
         stats.pixels = width * height
         stats.pixel_samples = samples
         stats.seconds = _time.perf_counter() - t0
-        return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
+        buffers = image.result()
+        return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats,
+                           manifests={a: mattes.manifest(a, image.present[a]) for a in crypto})
+
+    def _mattes(self, snap: Snapshot, crypto: set[str]) -> FrameMattes:
+        """The frame's Cryptomatte ids of the primary backend's geometry (:mod:`usdml.render.mattes`)."""
+        names = self.delegate.mattes(snap)
+        if "CryptoAsset" in crypto and not names.assets:
+            self.delegate.warn(f"{self.delegate.path}: no geometry is in a prim of kind component (or a kind derived "
+                               "from it); CryptoAsset has no ids (author kind = \"component\" on each asset's root)")
+        if "CryptoMaterial" in crypto and not names.materials:
+            self.delegate.warn(f"{self.delegate.path}: no geometry has a material bound; CryptoMaterial has no ids")
+        return FrameMattes(names, self.backends.primary.sources, self._matte_ids)
 
     def advance(self, time: float, width: int, height: int, stats: FrameStats | None = None,
                 snapshot: Snapshot | None = None) -> tuple[Snapshot, Lights, Camera]:
@@ -363,7 +386,8 @@ class _Seen:
 class _PixelFilter:
     """Combines the AOV buffers of a pixel's primary rays (one pass per sub-pixel position): the
     :attr:`~usdml.aov.names.AovSpec.filtered` AOVs averaged (a box filter), the others taken from the
-    ray nearest the pixel centre."""
+    ray nearest the pixel centre; the :attr:`~usdml.aov.names.AovSpec.ranked` (Cryptomatte) AOVs' ids ranked by
+    coverage (:class:`usdml.aov.cryptomatte.RankFilter`)."""
 
     def __init__(self, width: int, height: int):
         self.shape = (height, width)
@@ -371,13 +395,17 @@ class _PixelFilter:
         self.sums: dict[str, np.ndarray] = {}
         self.nearest: dict[str, np.ndarray] = {}
         self.best = np.full(self.shape, np.inf)
+        self.ranks: dict[str, RankFilter] = {}
+        self.present: dict[str, np.ndarray] = {}    #: ranked AOV -> the ids :meth:`result` wrote
 
     def add(self, buffers: dict[str, np.ndarray], offsets: np.ndarray) -> None:
         d2 = ((offsets - 0.5) ** 2).sum(1).reshape(self.shape)
         closer = d2 < self.best
         self.best = np.minimum(self.best, d2)
         for name, b in buffers.items():
-            if find_aov(name).filtered:
+            if find_aov(name).ranked:
+                self.ranks.setdefault(name, RankFilter(b.size)).add(b)
+            elif find_aov(name).filtered:
                 self.sums[name] = self.sums.get(name, 0.0) + b.astype(np.float64)
             elif name not in self.nearest:
                 self.nearest[name] = b
@@ -389,4 +417,7 @@ class _PixelFilter:
     def result(self) -> dict[str, np.ndarray]:
         out = {name: (s / self.passes).astype(np.float32) for name, s in self.sums.items()}
         out.update(self.nearest)
+        for name, ranks in self.ranks.items():
+            pixels, self.present[name] = ranks.result()
+            out[name] = pixels.reshape(self.shape + (pixels.shape[1],))
         return out

@@ -38,6 +38,10 @@ class GBuffer:
     depth: np.ndarray       #: (H, W) float32 camera-space depth (distance along the view axis), inf on a miss
     prim_id: np.ndarray     #: (H, W) int32 ``Mesh.id``, -1 on a miss
     instance_id: np.ndarray  #: (H, W) int64 instance id, -1 on a miss or a non-instanced mesh
+    #: (H, W) int32 the primary backend's geometry source hit (its ``source``), -1 on a miss; and (H, W) int32 the
+    #: triangle of that source's mesh (Cryptomatte's names: :mod:`usdml.render.mattes`)
+    geom: np.ndarray | None = None
+    triangle: np.ndarray | None = None
     #: (H·W, WIDTH) float32 BRDF rows of the hits (``kernels/brdf``), or None when every surface is Lambertian
     material: np.ndarray | None = None
     emission: np.ndarray | None = None   #: (H, W, 3) float32 emitted radiance (emissiveColor), or None
@@ -140,5 +144,6 @@ def build_gbuffer(snapshot: Snapshot, backend, width: int, height: int, offsets:
         normal=normal.astype(np.float32).reshape(shape + (3,)),
         geometric=geometric.astype(np.float32).reshape(shape + (3,)), albedo=h.albedo.reshape(shape + (3,)),
         depth=depth.reshape(shape), prim_id=prim_id.reshape(shape), instance_id=instance_id.reshape(shape),
+        geom=h.geom.reshape(shape), triangle=h.triangle.reshape(shape),
         material=h.material, emission=None if h.emission is None else h.emission.reshape(shape + (3,)),
         light=seen, background=background, emitter=emitter)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 
 from tqdm import tqdm
 
+from usdml.aov.cryptomatte import header as cryptomatte_header
 from usdml.aov.exr import camera_matrices, exr_attribute, is_complete_exr, write_exr, write_png_preview
 from usdml.aov.names import AOVS, EVERY_LIGHT_GROUP, LIGHT_GROUP, aov_for_render_var, data_type_matches, find_aov
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
@@ -275,7 +276,8 @@ def _render_sequence(job: RenderJob) -> SequenceResult:
                                         "usdml:camera": result.camera.path or "(framing)",
                                         **(estimate_header(result.stats.estimate) if result.stats.estimate is not None
                                            else {}), **frame_headers(result.stats),
-                                        **camera_headers(result.stats, result.camera)})
+                                        **camera_headers(result.stats, result.camera),
+                                        **cryptomatte_header(product.layers, result.manifests)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)

@@ -32,6 +32,7 @@ class Hits:
     geometric: np.ndarray   #: (N, 3) float64 unit world geometric normal (of the triangle's winding)
     albedo: np.ndarray      #: (N, 3) float32 linear RGB (textures sampled at the hit)
     geom: np.ndarray        #: (N,) int32 backend geometry source, -1 on a miss
+    triangle: np.ndarray    #: (N,) int32 triangle of that source's mesh, -1 on a miss
     t: np.ndarray           #: (N,) float32 ray parameter, inf on a miss
     #: (N, WIDTH) float32 BRDF rows (``kernels/brdf``; Lambertian rows where a mesh has no surface), or None when
     #: no hit mesh has one (every hit Lambertian); ``albedo`` is then the diffuse reflectance times occlusion
@@ -96,7 +97,7 @@ def surface_at_hits(snapshot: Snapshot, backend, origins: np.ndarray, dirs: np.n
         material[px] = at.rows
         emission[px] += at.emission
     return Hits(hit=hit, position=position, normal=_unit(normal), geometric=_unit(r["ng"].astype(np.float64)),
-                albedo=albedo, geom=r["geom"], t=r["t"], material=material, emission=emission)
+                albedo=albedo, geom=r["geom"], triangle=r["prim"], t=r["t"], material=material, emission=emission)
 
 
 def _blend(corners: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ from usdml.errors import UsdmlError, Warnings, tf_message
 from usdml.params import MAX_IMPLICIT_DETAIL
 from usdml.scene import Dome, Lights, Mesh, Prototype, RenderSettings, Snapshot
 from usdml.scene.linking import group_of
+from usdml.scene.mattes import MatteNames
 from usdml.scene.mesh_light import triangle_lights
 from usdml.stage.camera import find_cameras, framing_camera, read_camera, select_camera
 from usdml.stage.diagnostics import composition_message, read_by_usdml, usd_diagnostics
@@ -31,6 +32,7 @@ from usdml.stage.dome import is_dome, read_dome
 from usdml.stage.lights import LightParams, expand, read_light
 from usdml.stage.linking import GROUP_ATTRIBUTE, LinkReader, group_name
 from usdml.stage.materials import MaterialResolver
+from usdml.stage.mattes import MatteReader
 from usdml.stage.mesh import (DEFAULT_IMPLICIT_DETAIL, is_gprim, moves_by_velocity, points_vary, read_gprim,
                               read_mesh)
 from usdml.stage.mesh_light import light_varies
@@ -198,6 +200,7 @@ class StageDelegate:
             self._mesh_cache: dict[tuple[str, str], tuple[Mesh | None, np.ndarray]] = {}
             self._mesh_ids: dict[str, int] = {}
             self._first_instance: dict[str, Usd.Prim] = {}     # native prototype -> its instance posing it
+            self._mattes: MatteReader | None = None             # made when a frame asks for Cryptomatte
             self._assign_mesh_ids()
 
     @property
@@ -205,6 +208,13 @@ class StageDelegate:
         """The stage's :class:`usdml.stage.materials.MaterialResolver` (what each material authors that usdml does
         not render: its ``unsupported``)."""
         return self._gprim.get("materials")
+
+    def mattes(self, snap: Snapshot) -> MatteNames:
+        """The names of ``snap``'s geometry for Cryptomatte (:mod:`usdml.stage.mattes`)."""
+        if self._mattes is None:
+            self._mattes = MatteReader(self.stage, self.materials, self.warn)
+        with self._diagnostics():
+            return self._mattes.names(snap)
 
     @contextlib.contextmanager
     def _diagnostics(self) -> Iterator[None]:

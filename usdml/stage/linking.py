@@ -26,7 +26,7 @@ from usdml.scene import Snapshot
 from usdml.scene.linking import EVERY_PRIM, LightLabel, LinkSets
 from usdml.stage.lights import attribute_value, lobe_scale
 
-__all__ = ["GROUP_ATTRIBUTE", "LinkReader", "group_name"]
+__all__ = ["GROUP_ATTRIBUTE", "LinkReader", "group_name", "instance_path"]
 
 #: the light-group attribute
 GROUP_ATTRIBUTE = "usdml:lightGroup"
@@ -124,7 +124,7 @@ def _authored(api: Usd.CollectionAPI) -> bool:
             or bool(expression and expression.HasAuthoredValue()))
 
 
-def _instance_path(proto, mesh_path: str, instancer: str) -> str:
+def instance_path(proto, mesh_path: str, instancer: str) -> str:
     """The path a prototype mesh's instance is asked by (module doc)."""
     root = proto.path.split("[", 1)[0]
     if proto.kind == "native" and mesh_path.startswith(root):
@@ -140,7 +140,7 @@ def _geometry_paths(snap: Snapshot) -> list[str]:
     paths = [m.path for m in snap.meshes]
     for p in snap.prototypes:
         for m in p.meshes:
-            paths.extend(_instance_path(p, m.path, s) for s in p.instancers)
+            paths.extend(instance_path(p, m.path, s) for s in p.instancers)
     return paths
 
 

@@ -635,29 +635,35 @@ class MaterialResolver:
         """The gprim's surfaces per triangle (its own bound material, and each ``materialBind`` GeomSubset's),
         evaluated at the corners and ready to sample per hit; None when no face has a surface usdml renders
         (then the caller shades displayColor, Lambertian, as Storm's fallback surface does)."""
-        self._use_stage(prim.GetStage())
-        n_tri = len(topo.face)
         parts: list[tuple[np.ndarray | None, SurfaceNetwork]] = []
-        covered = np.zeros(n_tri, bool)
-        seen = self._through_instance(prim, instance)
-        for subset in UsdGeom.Subset.GetGeomSubsets(UsdGeom.Imageable(seen), UsdGeom.Tokens.face, "materialBind"):
-            faces = np.asarray(subset.GetIndicesAttr().Get(time) or [], np.int64)
-            mask = np.isin(topo.face, faces) & ~covered
-            if not mask.any():
-                continue
-            covered |= mask
-            path = self.bound_path(subset.GetPrim())
+        for mask, path in self.face_bindings(prim, time, topo.face, instance):
             net = self.network_at(path, time) if path is not None else None
             if net is not None:
                 parts.append((mask, net))
-        if not covered.all():
-            path = self.bound_path(prim, instance)
-            net = self.network_at(path, time) if path is not None else None
-            if net is not None:
-                parts.append((None if not covered.any() else ~covered, net))
         if not parts:
             return None
         return _build_shading(self, prim, time, topo, n_points, parts)
+
+    def face_bindings(self, prim: Usd.Prim, time: Usd.TimeCode, face: np.ndarray,
+                      instance: Usd.Prim | None = None) -> list[tuple[np.ndarray | None, str | None]]:
+        """Which material path (:meth:`bound_path`, None: none bound) each triangle of the gprim is bound to, as
+        ``(mask, path)`` pairs: each ``materialBind`` GeomSubset's faces (the first subset naming a face wins), then
+        the prim's own binding for the faces no subset names (``mask`` None: every triangle). ``face`` (T,) is the
+        authored face of each triangle; masks are (T,) bool and never overlap."""
+        self._use_stage(prim.GetStage())
+        out: list[tuple[np.ndarray | None, str | None]] = []
+        covered = np.zeros(len(face), bool)
+        seen = self._through_instance(prim, instance)
+        for subset in UsdGeom.Subset.GetGeomSubsets(UsdGeom.Imageable(seen), UsdGeom.Tokens.face, "materialBind"):
+            faces = np.asarray(subset.GetIndicesAttr().Get(time) or [], np.int64)
+            mask = np.isin(face, faces) & ~covered
+            if not mask.any():
+                continue
+            covered |= mask
+            out.append((mask, self.bound_path(subset.GetPrim())))
+        if not covered.all():
+            out.append((None if not covered.any() else ~covered, self.bound_path(prim, instance)))
+        return out
 
     def albedo(self, prim: Usd.Prim, time: Usd.TimeCode, topo: Topology, n_points: int,
                instance: Usd.Prim | None = None) -> np.ndarray | None:
