@@ -41,6 +41,7 @@ LAYER_OF = {
     # a method's rows of the parameter table, in its folder: they import only usdml.param
     "usdml.visibility.voxel.params": "leaf", "usdml.visibility.svo.params": "leaf",
     "usdml.visibility.insm.params": "leaf", "usdml.lighting.lgh.params": "leaf", "usdml.lighting.area.params": "leaf",
+    "usdml.render.denoise.params": "leaf",
     # the preview surface's material rows and their NumPy reference (NumPy only): the scene writes rows, lighting
     # and the kernels read them
     "usdml.kernels.brdf": "leaf",

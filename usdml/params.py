@@ -15,8 +15,9 @@ camelCase (``voxel_max_skip`` -> ``usdml:voxel:maxSkip``; one word: ``gi`` -> ``
 its flag or attribute only where it differs (``vpl_count`` -> ``--vpls``); a render option has no attribute.
 
 A method's rows are declared in its folder (``usdml/visibility/voxel/params.py``, ``usdml/lighting/lgh/params.py``
-...) with :class:`usdml.param.Param`; the frame-wide rows stay here. A leaf module: it imports nothing of usdml
-but :mod:`usdml.errors`, :mod:`usdml.param`, the methods' row modules and the backend registry, and no ``pxr``.
+...) with :class:`usdml.param.Param`, as are denoising's (``usdml/render/denoise/params.py``); the frame-wide rows
+stay here. A leaf module: it imports nothing of usdml but :mod:`usdml.errors`, :mod:`usdml.param`, the row modules
+and the backend registry, and no ``pxr``.
 The registry is read when a table is needed, not at import: a backend registered later is a ``visibility``
 choice, and the parameter rows it declares (``register(..., params=...)``, or a built-in backend's
 ``usdml/visibility/<name>/params.py``) join the table.
@@ -33,6 +34,7 @@ from usdml.lighting.area import params as area
 from usdml.lighting.lgh import params as lgh
 from usdml.param import (BAKE, BENCH, COMMANDS, COMPARE, FARM, INFO, LIGHTING, LIGHTING_COMMANDS, LIT, RENDER,
                          STAGE_COMMANDS, VIS, VISIBILITY, VOXEL_COMMANDS, Param, Range)
+from usdml.render.denoise import params as denoise
 from usdml.visibility import registry
 
 #: image width in pixels when neither ``--imageWidth`` nor a RenderSettings resolution gives one
@@ -154,6 +156,8 @@ _SETTINGS = (
           source="Karma and Cycles (docs/visible-lights.md)"),
     Param("seed", int, 0, "random seed (VPLs, shadow samples, dome light sampling)", **LIT, range=Range(0),
           metavar="N"),
+    # -- after the frame: denoising (issue 53 item 4)
+    *denoise.ROWS,
 )
 
 #: the options of a render beside the settings (``usdml render``'s own flags, :class:`usdml.Recorder`'s keywords,

@@ -22,6 +22,7 @@ from usdml.kernels.brdf import brdf_terms
 from usdml.lighting.area.shading import AreaEstimate, noise_estimate
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import QUERY_ROLES, Backends
+from usdml.render.denoise.oidn import GUIDES, denoise_frame, wanted
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, build_gbuffer, pixel_offsets
@@ -181,6 +182,9 @@ class FrameRenderer:
         self.indirect.prepare(frame, stats)     # once for every pass of the frame
         self.direct.prepare(frame, stats)
         image = _PixelFilter(width, height)
+        # --denoise: the AOVs it denoises, and the guides it needs rendered with them (docs/denoising.md)
+        denoised = wanted(self.settings.denoise_aovs, sorted(aovs)) if self.settings.denoise else []
+        rendered = set(aovs) | set(GUIDES) if denoised else set(aovs)
         hit = lit = albedo = seen = False   # any pixel: hit, lit, with a non-zero albedo, a light seen (blank_frame)
         passes = list(pixel_offsets(width, height, samples, self.settings.seed))
         sampled = []            # (variance, direct radiance) of each pass whose lights with area were sampled
@@ -206,7 +210,7 @@ class FrameRenderer:
                     surface.emission, gb.light, gb.background)))
             seen = seen or gb.emitter is not None
             albedo = albedo or bool(surface.albedo.any())
-            image.add(self._buffers(gb, surface, direct, indirect, camera, aovs), offsets)
+            image.add(self._buffers(gb, surface, direct, indirect, camera, rendered), offsets)
         if sampled:
             variance, radiance = (np.concatenate(a) for a in zip(*sampled))
             stats.estimate_area = AreaEstimate(noise_estimate(variance, radiance, samples),
@@ -216,11 +220,14 @@ class FrameRenderer:
         blank = blank_frame(hit, lit, albedo, len(lights), camera, seen)
         if blank:
             log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
+        buffers = image.result()
+        if denoised:
+            stats.denoise = denoise_frame(buffers, denoised)
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples
         stats.seconds = _time.perf_counter() - t0
-        return FrameResult(time=time, buffers=image.result(), camera=camera, snapshot=snap, stats=stats)
+        return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats)
 
     def advance(self, time: float, width: int, height: int, stats: FrameStats | None = None,
                 snapshot: Snapshot | None = None) -> tuple[Snapshot, Lights, Camera]:
@@ -285,6 +292,7 @@ class FrameRenderer:
         world_to_eye = np.linalg.inv(camera.xform)
         table = {
             "color": lambda: np.concatenate([beauty * opaque[..., None], opaque[..., None]], axis=2),
+            "color_noisy": lambda: table["color"](),        # --denoise replaces color, not this
             "direct": lambda: radiance,
             "indirect": lambda: indirect_img,
             "diffuse": lambda: radiance - specular(),
@@ -295,6 +303,7 @@ class FrameRenderer:
             "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
             "depth": lambda: gb.depth,
             "normal": lambda: gb.normal,
+            "denoiseNormal": lambda: gb.normal,             # the same, box-filtered (AovSpec.filtered)
             "Neye": lambda: (gb.normal.reshape(-1, 3) @ world_to_eye[:3, :3].T).reshape(h, w, 3) * alpha[..., None],
             "P": lambda: gb.position.astype(np.float32),
             "Peye": lambda: ((gb.position.reshape(-1, 3) @ world_to_eye[:3, :3].T + world_to_eye[:3, 3])
