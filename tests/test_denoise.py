@@ -14,6 +14,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender
 from conftest import add_top_camera
 from usdml.aov.exr import read_exr
 from usdml.cli import main
+from usdml.render.denoise.params import PREFILTERS
 
 pytest.importorskip("pyoidn")
 
@@ -87,6 +88,7 @@ def test_the_guides_keep_an_albedo_edge(new_stage):
     """Seeded noise (40 %) on a noise-free frame (a sun on two albedos): denoised with its albedo guide, the two
     pixels either side of the edge are within 8 % of the noise-free frame (measured 6.6 and 4.1 %), the frame
     within 3 % (1.9 %); with a flat albedo in the guide's place the edge smears (28 and 14 %)."""
+    from usdml.params import PARAMS
     from usdml.render.denoise.oidn import GUIDES, denoise_frame
     from usdml.render.frame import FrameRenderer
     from usdml.settings import UsdmlSettings
@@ -108,7 +110,7 @@ def test_the_guides_keep_an_albedo_edge(new_stage):
         frame["color"][..., :3] *= 1 + 0.4 * noise
         if guide == "flat":
             frame["albedo"] = np.full_like(b["albedo"], 0.5)
-        denoise_frame(frame, ["color"])
+        denoise_frame(frame, ["color"], PARAMS["denoise_prefilter"].default)
         rel = np.abs(frame["color"][..., :3] / clean - 1)
         errors[guide] = (np.median(rel[:, edge:edge + 2], axis=(0, 2)), np.median(rel))
     (left, right), whole = errors["albedo"]
@@ -116,16 +118,17 @@ def test_the_guides_keep_an_albedo_edge(new_stage):
     assert errors["flat"][0][0] > 2 * left, errors          # the guide is what keeps the edge
 
 
-def test_same_frame_twice_same_pixels():
+@pytest.mark.parametrize("prefilter", PREFILTERS)
+def test_same_frame_twice_same_pixels(prefilter):
     from usdml.render.denoise.oidn import denoise_frame
 
     rng = np.random.default_rng(3)
     frame = {"color": rng.random((40, 48, 4), dtype=np.float32), "albedo": rng.random((40, 48, 3), dtype=np.float32),
              "denoiseNormal": rng.standard_normal((40, 48, 3)).astype(np.float32)}
     a, b, one = dict(frame), dict(frame), dict(frame)
-    denoise_frame(a, ["color"])
-    denoise_frame(b, ["color"])
-    denoise_frame(one, ["color"], threads=1)
+    denoise_frame(a, ["color"], prefilter)
+    denoise_frame(b, ["color"], prefilter)
+    denoise_frame(one, ["color"], prefilter, threads=1)
     assert np.array_equal(a["color"], b["color"])
     assert np.array_equal(a["color"], one["color"])         # OIDN's CPU device: the same on 1 thread as on all
     assert not np.array_equal(a["color"], frame["color"])

@@ -16,12 +16,12 @@ stated per stage; the reference is their mean. The error is the mean over pixels
 ``|frame - reference|`` (color's RGB, linear), over the whole frame and over the far edge's band (the pixels
 within 12 of its column on the box's rows).
 
-Seeds 0-3 tune (they chose prefiltering the guides, ``PREFILTER``), seeds 4-7 report. Cost: the seconds of the
-denoise step per megapixel at ``--cost-width`` (a frame of that width, once warm, median of 3), and its share of
-the frame's render.
+Each ``--denoise-prefilter`` mode is measured on the same noisy buffers. Seeds 0-3 tune (they chose the default
+mode), seeds 4-7 report. Cost: the seconds of the denoise step per megapixel at ``--cost-width`` (a frame of that
+width, once warm, median of 3), and its share of the frame's render.
 
-    .venv/bin/python tools/denoise_accuracy.py --seeds 4:8 --json docs/data/denoise_accuracy.json
-    .venv/bin/python tools/denoise_accuracy.py --seeds 0:4 --compare-prefilter
+    .venv/bin/python tools/denoise_accuracy.py --seeds 0:4 --cost-width 0
+    .venv/bin/python tools/denoise_accuracy.py --seeds 4:8 --json /tmp/denoise_accuracy.json
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ FOCAL, APERTURE, FSTOP, FOCUS = 0.7, 0.36, 1.0, 3.0
 CAMERA_AT, TILT = (0.0, 0.8, 3.0), -8.0
 FAR = 10.0                  # the far box's front face, metres from the camera
 FAR_ALBEDO = 0.95           # brighter than any ground: what finds the far edge in the albedo
+PREFILTERS = ("accurate", "fast", "none")      # --denoise-prefilter's modes
 
 
 def write_stage(path: str, seed: int) -> None:
@@ -126,7 +127,7 @@ def far_edge_band(albedo: np.ndarray) -> np.ndarray:
     return band
 
 
-def measure(seed: int, prefilter_modes=(True,), width: int = WIDTH) -> dict:
+def measure(seed: int, prefilters=PREFILTERS, width: int = WIDTH) -> dict:
     from usdml.render.denoise.oidn import denoise_frame
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -140,68 +141,73 @@ def measure(seed: int, prefilter_modes=(True,), width: int = WIDTH) -> dict:
            "reference_noise": float(np.abs(refs[0] - refs[1]).mean() / 2),
            "noisy_error": float(np.abs(noisy["color"][..., :3] - ref).mean()),
            "noisy_edge_error": float(np.abs(noisy["color"][..., :3] - ref)[band].mean())}
-    for prefilter in prefilter_modes:
+    for prefilter in prefilters:
         buffers = dict(noisy)
-        done = denoise_frame(buffers, ["color"], prefilter=prefilter)
-        key = "denoised" if prefilter else "denoised_raw_guides"
+        done = denoise_frame(buffers, ["color"], prefilter)
         diff = np.abs(buffers["color"][..., :3] - ref)
-        row[f"{key}_error"] = float(diff.mean())
-        row[f"{key}_edge_error"] = float(diff[band].mean())
-        row[f"{key}_ratio"] = row[f"{key}_error"] / row["noisy_error"]
-        row[f"{key}_seconds"] = done["seconds"]
+        row[prefilter] = {"error": float(diff.mean()), "edge_error": float(diff[band].mean()),
+                          "ratio": float(diff.mean()) / row["noisy_error"], "seconds": done["seconds"]}
         assert np.array_equal(buffers["color"][..., 3], noisy["color"][..., 3])      # alpha as rendered
     return row
 
 
-def cost(width: int, prefilter: bool = True) -> dict:
-    """Seconds of the denoise step per megapixel on a ``width`` x 3/4 ``width`` frame (median of 3, warm)."""
-    from usdml.render.denoise.oidn import denoise_frame
+def cost(width: int, prefilters) -> list[dict]:
+    """Seconds of the denoise step per megapixel on a ``width`` x 3/4 ``width`` frame for each mode: the median
+    of 3, the modes interleaved (the machine's load falls on each alike), warm."""
     from usdml.parallel import cpu_workers
+    from usdml.render.denoise.oidn import denoise_frame
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "cost.usda")
         write_stage(path, 0)
         buffers, seconds = render(path, 4, 1, 0, width)
-    denoise_frame(dict(buffers), ["color"], prefilter=prefilter)      # loads OIDN's weights once
-    times = [denoise_frame(dict(buffers), ["color"], prefilter=prefilter)["seconds"] for _ in range(3)]
+    times = {m: [] for m in prefilters}
+    for rep in range(4):
+        for m in prefilters:
+            t = denoise_frame(dict(buffers), ["color"], m)["seconds"]
+            if rep:                 # the first round loads OIDN's weights
+                times[m].append(t)
     mp = buffers["color"].shape[0] * buffers["color"].shape[1] / 1e6
-    t = statistics.median(times)
-    return {"width": width, "megapixels": mp, "threads": cpu_workers("cpu"), "prefilter": prefilter,
-            "seconds": t, "seconds_per_megapixel": t / mp, "frame_seconds": seconds, "share_of_frame": t / (t + seconds)}
+    out = []
+    for m in prefilters:
+        t = statistics.median(times[m])
+        out.append({"width": width, "megapixels": mp, "threads": cpu_workers("cpu"), "prefilter": m, "seconds": t,
+                    "seconds_per_megapixel": t / mp, "frame_seconds": seconds, "share_of_frame": t / (t + seconds)})
+    return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="4:8", help="stages lo:hi (default %(default)s: the reporting half)")
     ap.add_argument("--width", type=int, default=WIDTH)
-    ap.add_argument("--compare-prefilter", action="store_true", help="also denoise with the guides as rendered")
+    ap.add_argument("--prefilters", default=",".join(PREFILTERS),
+                    help="the --denoise-prefilter modes to measure (default %(default)s)")
     ap.add_argument("--cost-width", type=int, default=512, help="frame width of the cost figure (0: none)")
     ap.add_argument("--json", default=None, help="write the figures here")
     args = ap.parse_args(argv)
     lo, hi = map(int, args.seeds.split(":"))
-    modes = (True, False) if args.compare_prefilter else (True,)
+    modes = tuple(args.prefilters.split(","))
     rows = []
     for seed in range(lo, hi):
         row = measure(seed, modes, args.width)
         rows.append(row)
         print(f"seed {seed}: reference noise {row['reference_noise']:.4f}; error noisy {row['noisy_error']:.4f}, "
-              f"denoised {row['denoised_error']:.4f} ({row['denoised_ratio']:.2f}x)"
-              + (f", raw guides {row['denoised_raw_guides_error']:.4f} ({row['denoised_raw_guides_ratio']:.2f}x)"
-                 if "denoised_raw_guides_error" in row else "")
-              + f"; far edge noisy {row['noisy_edge_error']:.4f}, denoised {row['denoised_edge_error']:.4f}",
-              flush=True)
-    out = {"seeds": args.seeds, "rows": rows,
-           "worst_ratio": max(r["denoised_ratio"] for r in rows),
-           "mean_ratio": float(np.mean([r["denoised_ratio"] for r in rows])),
-           "worst_edge_error": max(r["denoised_edge_error"] for r in rows)}
-    print(f"denoised / noisy error: mean {out['mean_ratio']:.2f}, worst {out['worst_ratio']:.2f} (target <= 0.6); "
-          f"far edge error worst {out['worst_edge_error']:.4f} (target <= 0.04)")
+              f"far edge {row['noisy_edge_error']:.4f}; denoised "
+              + ", ".join(f"{m} {row[m]['error']:.4f} ({row[m]['ratio']:.2f}x, far edge {row[m]['edge_error']:.4f})"
+                          for m in modes), flush=True)
+    out = {"seeds": args.seeds, "width": args.width, "rows": rows, "modes": {}}
+    for m in modes:
+        ratios = [r[m]["ratio"] for r in rows]
+        out["modes"][m] = {"mean_ratio": float(np.mean(ratios)), "worst_ratio": max(ratios),
+                           "worst_edge_error": max(r[m]["edge_error"] for r in rows)}
+        print(f"{m}: denoised / noisy error mean {np.mean(ratios):.2f}, worst {max(ratios):.2f} (target <= 0.6); "
+              f"far edge error worst {out['modes'][m]['worst_edge_error']:.4f} (target <= 0.04)")
     if args.cost_width:
-        out["cost"] = [cost(args.cost_width, p) for p in modes]
+        out["cost"] = cost(args.cost_width, modes)
         for c in out["cost"]:
-            print(f"cost at {c['width']} px wide ({c['megapixels']:.2f} MP, {c['threads']} threads, prefilter "
-                  f"{c['prefilter']}): {c['seconds']:.2f} s, {c['seconds_per_megapixel']:.1f} s/MP, "
-                  f"{100 * c['share_of_frame']:.0f} % of the frame ({c['frame_seconds']:.2f} s to render)")
+            print(f"cost {c['prefilter']} at {c['width']} px wide ({c['megapixels']:.2f} MP, {c['threads']} threads): "
+                  f"{c['seconds']:.2f} s, {c['seconds_per_megapixel']:.1f} s/MP, {100 * c['share_of_frame']:.0f} % of "
+                  f"the frame ({c['frame_seconds']:.2f} s to render)", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)

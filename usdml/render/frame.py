@@ -222,7 +222,7 @@ class FrameRenderer:
             log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
         buffers = image.result()
         if denoised:
-            stats.denoise = denoise_frame(buffers, denoised)
+            stats.denoise = denoise_frame(buffers, denoised, self.settings.denoise_prefilter)
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples

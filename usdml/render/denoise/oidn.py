@@ -34,8 +34,6 @@ from usdml.render.denoise.params import aov_list
 
 #: the guide AOVs a denoising frame renders, box-filtered like color
 GUIDES = ("albedo", "denoiseNormal")
-#: denoise the guides before the beauty (docs/denoising.md: chosen by tools/denoise_accuracy.py)
-PREFILTER = True
 
 
 def wanted(value: str, written) -> list[str]:
@@ -81,7 +79,9 @@ class _Oidn:
             raise UsdmlError(f"--denoise: Open Image Denoise failed {what}: {message}")
 
     def filter(self, images: dict[str, np.ndarray], output: np.ndarray, clean_aux: bool = False) -> None:
-        """Run one ``RT`` filter, HDR, quality high, over ``images`` (slot -> (H, W, 3) float32), into ``output``."""
+        """Run one ``RT`` filter over ``images`` (slot -> (H, W, 3) float32) into ``output``: a beauty (``color``
+        among them) in HDR mode at quality high; a guide alone at quality balanced (as good a beauty afterwards on
+        the tuning stages of tools/denoise_accuracy.py, in half the time or less)."""
         import pyoidn
 
         flt = pyoidn.Filter(self.device, pyoidn.OIDN_FILTER_TYPE_RT)
@@ -92,7 +92,7 @@ class _Oidn:
             if "color" in images:
                 flt.set_bool("hdr", True)
                 flt.set_bool("cleanAux", clean_aux)
-            flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
+            flt.set_quality(pyoidn.OIDN_QUALITY_HIGH if "color" in images else pyoidn.OIDN_QUALITY_BALANCED)
             flt.commit()
             self.check("to set up its filter")
             flt.execute()
@@ -123,15 +123,15 @@ def _rgb(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image[..., :3], dtype=np.float32)
 
 
-def guides(buffers: dict[str, np.ndarray], oidn: _Oidn, prefilter: bool = True) -> dict[str, np.ndarray]:
+def guides(buffers: dict[str, np.ndarray], oidn: _Oidn, prefilter: str) -> dict[str, np.ndarray]:
     """The frame's guides (``albedo``, ``normal``: (H, W, 3) float32), each first denoised by OIDN on its own
-    where ``prefilter``."""
+    where ``prefilter`` is ``accurate``."""
     out = {}
     for slot, name in zip(("albedo", "normal"), GUIDES):
         image = _rgb(buffers[name])
         if slot == "albedo":
             image = np.clip(image, 0.0, 1.0)      # OIDN's albedo is a reflectance in [0, 1]
-        if prefilter:
+        if prefilter == "accurate":
             clean = np.empty_like(image)
             oidn.filter({slot: image}, clean)
             image = clean
@@ -139,31 +139,33 @@ def guides(buffers: dict[str, np.ndarray], oidn: _Oidn, prefilter: bool = True) 
     return out
 
 
-def denoise_frame(buffers: dict[str, np.ndarray], names: list[str], threads: int | None = None,
-                  prefilter: bool = PREFILTER) -> dict:
+def denoise_frame(buffers: dict[str, np.ndarray], names: list[str], prefilter: str,
+                  threads: int | None = None) -> dict:
     """Denoise ``names`` (radiance AOVs of ``buffers``, (H, W, 3) or ``color``'s (H, W, 4)) in place, guided by
     :data:`GUIDES` (which ``buffers`` must hold), on ``threads`` (default :func:`usdml.parallel.cpu_workers`);
-    alpha is left as it is. ``prefilter``: denoise the guides first and tell OIDN they are clean (``cleanAux``),
-    else hand them over as they are. Returns what was done, for the frame's stats and header:
-    ``{"aovs", "denoiser", "seconds"}``."""
+    alpha is left as it is. ``prefilter`` (``--denoise-prefilter``, Cycles' choices): ``accurate`` denoises the
+    guides first and tells OIDN they are clean (``cleanAux``); ``fast`` hands them over as rendered for OIDN to
+    clean inside its filter; ``none`` hands them over as rendered as clean. Returns what was done, for the
+    frame's stats and header: ``{"aovs", "denoiser", "seconds"}``."""
     t0 = _time.perf_counter()
     oidn = _denoiser(cpu_workers("cpu", threads))
     aux = guides(buffers, oidn, prefilter)
     for name in names:
         noisy = buffers[name]
         clean = np.empty(noisy.shape[:2] + (3,), np.float32)
-        oidn.filter({"color": _rgb(noisy), **aux}, clean, clean_aux=prefilter)
+        oidn.filter({"color": _rgb(noisy), **aux}, clean, clean_aux=prefilter != "fast")
         out = noisy.astype(np.float32, copy=True)
         out[..., :3] = clean
         buffers[name] = out
     return {"aovs": list(names), "denoiser": describe(oidn, prefilter), "seconds": _time.perf_counter() - t0}
 
 
-def describe(oidn: _Oidn, prefilter: bool) -> str:
+def describe(oidn: _Oidn, prefilter: str) -> str:
     """How a frame was denoised, for its header."""
-    aux = "each prefiltered by OIDN, cleanAux" if prefilter else "as rendered"
+    aux = {"accurate": "each prefiltered by OIDN at quality balanced, cleanAux", "fast": "as rendered, cleaned inside the filter",
+           "none": "as rendered, cleanAux"}[prefilter]
     return (f"Intel Open Image Denoise {oidn.version} (CPU, {oidn.threads} threads; RT filter, HDR, quality high; "
-            f"guides albedo and denoiseNormal, {aux})")
+            f"guides albedo and denoiseNormal {aux})")
 
 
 def headers(done: dict | None) -> dict:
