@@ -145,6 +145,15 @@ def test_a_non_radiance_aov_is_one_line(capsys, tmp_path, new_stage):
     assert "--denoise-aovs" in line and "depth" in line and "radiance" in line
 
 
+def test_a_denoise_flag_without_denoise_is_ignored_with_a_warning(capsys, tmp_path, new_stage):
+    path = _split_ground(new_stage)
+    out = tmp_path / "o.exr"
+    assert main(["render", path, str(out), "--imageWidth", "16", "--denoise-prefilter", "fast"]) == 0
+    err = capsys.readouterr().err
+    assert "--denoise-prefilter is ignored: it applies with --denoise (here: --no-denoise)" in err
+    assert "usdml:denoise" not in read_exr(out)[1]
+
+
 def test_denoise_aovs_from_the_render_settings(tmp_path, new_stage):
     """usdml:denoise and usdml:denoise:aovs on the RenderSettings prim: direct is denoised, color is not."""
     path = _split_ground(new_stage, "rs.usda")

@@ -294,10 +294,17 @@ def ignored(given, settings) -> list[str]:
         p = rows[name]
         if p.applies is None or any(getattr(settings, f) in values for f, values in p.applies):
             continue
-        need = " or ".join(f"{rows[f].flag} {'/'.join(values)}" for f, values in p.applies)
-        here = ", ".join(f"{rows[f].flag} {getattr(settings, f)}" for f in dict(p.applies))
+        need = " or ".join(_setting(rows[f], values) for f, values in p.applies)
+        here = ", ".join(_setting(rows[f], (getattr(settings, f),)) for f in dict(p.applies))
         out.append(f"{p.flag} is ignored: it applies with {need} (here: {here})")
     return out
+
+
+def _setting(row: Param, values: tuple) -> str:
+    """A setting's values as a flag gives them: ``--gi lgh/svo``; a switch ``--denoise`` or ``--no-denoise``."""
+    if row.type is bool:
+        return row.flag if values == (True,) else f"--no-{row.flag[2:]}"
+    return f"{row.flag} {'/'.join(map(str, values))}"
 
 
 def default_help(param: Param) -> str:

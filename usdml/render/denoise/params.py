@@ -46,14 +46,14 @@ ROWS = (
                "denoised", applies=_ON, source="color: the beauty"),
     Param("denoise_prefilter", str, "accurate", "how --denoise treats its guides (Cycles' choices): accurate "
           "denoises them first and hands them over as clean (cleanAux), fast hands them over as rendered for OIDN to "
-          "clean inside its filter (about a fifth of the time), none hands them over as rendered as clean",
+          "clean inside its filter (several times faster), none hands them over as rendered as clean",
           (RENDER,), LIGHTING, choices=PREFILTERS, metavar="MODE", applies=_ON,
           source="accurate: the least error on every tuning stage of tools/denoise_accuracy.py (docs/CHANGELOG.md), "
                  "OIDN's and Cycles' choice for final frames",
           doc="""How --denoise treats its guides, with Cycles' names: accurate denoises the albedo and denoiseNormal guides with OIDN first and tells the beauty's filter they are clean (cleanAux); fast hands them over as rendered and OIDN cleans them inside the beauty's filter; none hands them over as rendered and tells OIDN they are clean.
 
     accurate is OIDN's recommendation for final frames and had the least
-    error on every tuning stage; fast costs about a fifth of its time; none
-    suits guides that are truly noise-free (no depth of field, no motion
-    blur) and costs about two thirds (docs/denoising.md)."""),
+    error on every tuning stage; fast is several times faster; none suits
+    guides that are truly noise-free (no depth of field, no motion blur)
+    (docs/denoising.md, docs/CHANGELOG.md)."""),
 )
