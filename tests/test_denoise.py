@@ -189,3 +189,14 @@ def test_missing_library_is_one_line_before_any_frame(tmp_path, new_stage):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert out.exists()
+
+
+def test_missing_library_on_dask_is_one_line_before_the_cluster(tmp_path, new_stage):
+    """The same check in the submitting process of a Dask render: no cluster started, no task sent."""
+    path = _split_ground(new_stage)
+    run = subprocess.run([sys.executable, "-c", _NO_PYOIDN, "render", path, str(tmp_path / "o.####.exr"),
+                          "--imageWidth", "16", "--denoise", "--workers", "1"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 2, run.stderr
+    (line,) = _errors(run.stderr)
+    assert "not installed" in line and "dask:" not in run.stderr and "Traceback" not in run.stderr
