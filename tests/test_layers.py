@@ -41,6 +41,7 @@ LAYER_OF = {
     # a method's rows of the parameter table, in its folder: they import only usdml.param
     "usdml.visibility.voxel.params": "leaf", "usdml.visibility.svo.params": "leaf",
     "usdml.visibility.insm.params": "leaf", "usdml.lighting.lgh.params": "leaf", "usdml.lighting.area.params": "leaf",
+    "usdml.render.denoise.params": "leaf",
     # the preview surface's material rows and their NumPy reference (NumPy only): the scene writes rows, lighting
     # and the kernels read them
     "usdml.kernels.brdf": "leaf",
@@ -167,3 +168,15 @@ def test_each_method_lives_in_its_folder():
             flat += [p.name for p in folder.iterdir() if p.is_file() and p.name.startswith(method)]
     c_files = {p.name for p in PACKAGE_DIRS["usdml.kernels"].iterdir() if p.suffix in (".c", ".h")}
     assert flat == [] and c_files == set()
+
+
+def test_pyproject_installs_every_package():
+    """A plain ``pip install .`` (not editable) installs only the packages pyproject.toml lists: every folder of
+    the package with an ``__init__.py`` must be there (usdml.lighting.area was missing, unseen by editable
+    installs)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    on_disk = {".".join((name, *init.parent.relative_to(folder).parts)) for name, folder in PACKAGE_DIRS.items()
+               for init in folder.rglob("__init__.py") if "__pycache__" not in init.parts}
+    assert on_disk - listed == set()

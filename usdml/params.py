@@ -15,8 +15,9 @@ camelCase (``voxel_max_skip`` -> ``usdml:voxel:maxSkip``; one word: ``gi`` -> ``
 its flag or attribute only where it differs (``vpl_count`` -> ``--vpls``); a render option has no attribute.
 
 A method's rows are declared in its folder (``usdml/visibility/voxel/params.py``, ``usdml/lighting/lgh/params.py``
-...) with :class:`usdml.param.Param`; the frame-wide rows stay here. A leaf module: it imports nothing of usdml
-but :mod:`usdml.errors`, :mod:`usdml.param`, the methods' row modules and the backend registry, and no ``pxr``.
+...) with :class:`usdml.param.Param`, as are denoising's (``usdml/render/denoise/params.py``); the frame-wide rows
+stay here. A leaf module: it imports nothing of usdml but :mod:`usdml.errors`, :mod:`usdml.param`, the row modules
+and the backend registry, and no ``pxr``.
 The registry is read when a table is needed, not at import: a backend registered later is a ``visibility``
 choice, and the parameter rows it declares (``register(..., params=...)``, or a built-in backend's
 ``usdml/visibility/<name>/params.py``) join the table.
@@ -33,6 +34,7 @@ from usdml.lighting.area import params as area
 from usdml.lighting.lgh import params as lgh
 from usdml.param import (BAKE, BENCH, COMMANDS, COMPARE, FARM, INFO, LIGHTING, LIGHTING_COMMANDS, LIT, RENDER,
                          STAGE_COMMANDS, VIS, VISIBILITY, VOXEL_COMMANDS, Param, Range)
+from usdml.render.denoise import params as denoise
 from usdml.visibility import registry
 
 #: image width in pixels when neither ``--imageWidth`` nor a RenderSettings resolution gives one
@@ -161,6 +163,8 @@ _SETTINGS = (
           (RENDER,), LIGHTING, attribute="usdml:depthOfField", source="UsdGeom.Camera lens (docs/depth-of-field.md)"),
     Param("seed", int, 0, "random seed (VPLs, shadow samples, dome light sampling)", **LIT, range=Range(0),
           metavar="N"),
+    # -- after the frame: denoising (issue 53 item 4)
+    *denoise.ROWS,
 )
 
 #: the options of a render beside the settings (``usdml render``'s own flags, :class:`usdml.Recorder`'s keywords,
@@ -297,10 +301,17 @@ def ignored(given, settings) -> list[str]:
         p = rows[name]
         if p.applies is None or any(getattr(settings, f) in values for f, values in p.applies):
             continue
-        need = " or ".join(f"{rows[f].flag} {'/'.join(values)}" for f, values in p.applies)
-        here = ", ".join(f"{rows[f].flag} {getattr(settings, f)}" for f in dict(p.applies))
+        need = " or ".join(_setting(rows[f], values) for f, values in p.applies)
+        here = ", ".join(_setting(rows[f], (getattr(settings, f),)) for f in dict(p.applies))
         out.append(f"{p.flag} is ignored: it applies with {need} (here: {here})")
     return out
+
+
+def _setting(row: Param, values: tuple) -> str:
+    """A setting's values as a flag gives them: ``--gi lgh/svo``; a switch ``--denoise`` or ``--no-denoise``."""
+    if row.type is bool:
+        return row.flag if values == (True,) else f"--no-{row.flag[2:]}"
+    return f"{row.flag} {'/'.join(map(str, values))}"
 
 
 def default_help(param: Param) -> str:

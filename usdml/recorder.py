@@ -180,6 +180,7 @@ class Recorder:
         """The job's frames as chunks on Dask (:mod:`usdml.render.farm`); the warnings of reading the stage here
         before the run's."""
         from usdml.aov.naming import frame_spec
+        from usdml.render.denoise.oidn import require_denoiser
         from usdml.render.farm import render_on_dask
         from usdml.stage import StageDelegate
 
@@ -188,6 +189,8 @@ class Recorder:
                                      purposes=job.purposes, implicit_detail=job.implicit_detail)
             frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
             delegate.check_times(frames)
+        if delegate.usdml_settings.updated(**job.overrides).denoise:     # here, not in the first worker's task
+            require_denoiser(params.PARAMS["denoise"].where)
         result = render_on_dask(job, frames)
         return replace(result, warnings=warnings + result.warnings)
 

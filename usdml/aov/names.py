@@ -14,6 +14,8 @@ AOV (aliases)         EXR channels             type     meaning; value where no 
 ``indirect``          ``indirect.R/G/B``       half     indirect (VPL / LGH) radiance; 0
 ``background``        ``background.R/G/B``     half     the domes' radiance where a camera ray reaches
                                                         nothing (visible lights); 0
+``color_noisy``       ``color_noisy.R/G/B/A``  half     ``color`` before ``--denoise`` (``color`` itself
+                                                        when the frame is not denoised)
 ``albedo``            ``albedo.R/G/B``         half     diffuse reflectance of the first hit; 0
 ``shadow``            ``shadow.Y``             float    fraction of the lights facing the point
                                                         that are blocked (hiddenLightsN / n); 0
@@ -21,6 +23,8 @@ AOV (aliases)         EXR channels             type     meaning; value where no 
 ``depth``             ``Z``                    float    camera-space depth along the viewing axis
 (``cameraDepth``)                                       (EXR ``worldToCamera`` z, > 0); +inf
 ``normal`` (``N``)    ``normal.X/Y/Z``         float    world-space unit shading normal; 0
+``denoiseNormal``     ``denoiseNormal.X/Y/Z``  float    the shading normal averaged over the pixel's
+                                                        rays like color (``--denoise``'s guide); 0
 ``Neye``              ``Neye.X/Y/Z``           float    normal in USD eye space (-Z forward); 0
 ``P``                 ``P.X/Y/Z``              float    world-space position; 0
 ``Peye``              ``Peye.X/Y/Z``           float    position in USD eye space (-Z forward); 0
@@ -132,6 +136,8 @@ AOVS: dict[str, AovSpec] = {a.name: a for a in (
             "light in front of it (visible lights)", filtered=True),
     AovSpec("background", _RGB, "half", 0.0, "the domes' radiance seen where a camera ray reaches nothing "
             "(visible lights)", filtered=True),
+    AovSpec("color_noisy", ("R", "G", "B", "A"), "half", 0.0, "color before denoising (--denoise; color itself "
+            "when the frame is not denoised)", filtered=True),
     AovSpec("albedo", _RGB, "half", 0.0, "diffuse reflectance at the first hit", filtered=True),
     AovSpec("shadow", ("Y",), "float", 0.0,
             "fraction of the lights facing the point that are blocked (hiddenLightsN / n)", filtered=True),
@@ -140,6 +146,8 @@ AOVS: dict[str, AovSpec] = {a.name: a for a in (
             "camera-space depth along the viewing axis, positive in front (EXR camera z)",
             prefixed=False, hydra=True),
     AovSpec("normal", _XYZ, "float", 0.0, "world-space unit shading normal", hydra=True),
+    AovSpec("denoiseNormal", _XYZ, "float", 0.0, "world-space shading normal averaged over the pixel's rays as "
+            "color is (not unit length at edges): the denoiser's guide, as Cycles' Denoising Normal", filtered=True),
     AovSpec("Neye", _XYZ, "float", 0.0, "unit normal in USD eye space (camera looks down -Z)",
             hydra=True),
     AovSpec("P", _XYZ, "float", 0.0, "world-space position"),
@@ -196,7 +204,8 @@ RAW_SOURCE_NAMES: dict[str, str] = {
     "normal": "normal", "N": "normal", "Neye": "Neye",
     "P": "P", "Peye": "Peye",
     "primId": "primId", "instanceId": "instanceId",
-    "direct": "direct", "indirect": "indirect", "albedo": "albedo",
+    "direct": "direct", "indirect": "indirect", "albedo": "albedo", "color_noisy": "color_noisy",
+    "denoiseNormal": "denoiseNormal",
     "diffuse": "diffuse", "specular": "specular", "emission": "emission", "background": "background",
     "shadow": "shadow", "lightCount": "lightCount",
     # Cryptomatte: its layer names, and Arnold's AOV names for them

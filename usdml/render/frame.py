@@ -24,6 +24,7 @@ from usdml.kernels.brdf import brdf_terms
 from usdml.lighting.area.shading import AreaEstimate, noise_estimate
 from usdml.lighting.dome import dome_to_distant_lights
 from usdml.render.backends import QUERY_ROLES, Backends
+from usdml.render.denoise.oidn import GUIDES, denoise_frame, wanted
 from usdml.render.estimate import estimate_visibility, frame_rng
 from usdml.render.frame_stats import FrameStats
 from usdml.render.gbuffer import GBuffer, PixelPass, build_gbuffer
@@ -204,6 +205,9 @@ class FrameRenderer:
         mattes = None           # the Cryptomatte ids of the primary backend's geometry, made again when it moves
         image = _PixelFilter(width, height)
         flags = _Seen()
+        # --denoise: the AOVs it denoises, and the guides it needs rendered with them (docs/denoising.md)
+        denoised = wanted(self.settings.denoise_aovs, sorted(aovs)) if self.settings.denoise else []
+        rendered = set(aovs) | set(GUIDES) if denoised else set(aovs)
         lens = camera.lens_radius > 0 and self.settings.depth_of_field and not (
             snap.render_settings is not None and snap.render_settings.disable_depth_of_field)
         if lens:
@@ -246,7 +250,7 @@ class FrameRenderer:
                 if direct.variance is not None:
                     sampled.append((direct.variance, direct.radiance))
                 flags.add(gb, surface, direct, indirect)
-                buffers = self._buffers(gb, surface, direct, indirect, slice_camera, aovs - crypto)
+                buffers = self._buffers(gb, surface, direct, indirect, slice_camera, rendered - crypto)
                 buffers.update({a: mattes.pass_ids(gb.geom, gb.triangle, a) for a in crypto})
                 image.add(buffers, rays.offsets)
         if sampled:
@@ -258,11 +262,13 @@ class FrameRenderer:
         blank = blank_frame(flags.hit, flags.lit, flags.albedo, len(lights), camera, flags.seen)
         if blank:
             log.warning(f"{self.delegate.path}: frame {time:g} {blank}")
+        buffers = image.result()
+        if denoised:
+            stats.denoise = denoise_frame(buffers, denoised, self.settings.denoise_prefilter)
         stats.lights = len(lights)
         stats.pixels = width * height
         stats.pixel_samples = samples
         stats.seconds = _time.perf_counter() - t0
-        buffers = image.result()
         return FrameResult(time=time, buffers=buffers, camera=camera, snapshot=snap, stats=stats,
                            manifests={a: mattes.manifest(a, image.present[a]) for a in crypto})
 
@@ -341,6 +347,7 @@ class FrameRenderer:
         world_to_eye = np.linalg.inv(camera.xform)
         table = {
             "color": lambda: np.concatenate([beauty * opaque[..., None], opaque[..., None]], axis=2),
+            "color_noisy": lambda: table["color"](),        # --denoise replaces color, not this
             "direct": lambda: radiance,
             "indirect": lambda: indirect_img,
             "diffuse": lambda: radiance - specular(),
@@ -351,6 +358,7 @@ class FrameRenderer:
             "lightCount": lambda: scatter(direct.facing.astype(np.float32), 1),
             "depth": lambda: gb.depth,
             "normal": lambda: gb.normal,
+            "denoiseNormal": lambda: gb.normal,             # the same, box-filtered (AovSpec.filtered)
             "Neye": lambda: (gb.normal.reshape(-1, 3) @ world_to_eye[:3, :3].T).reshape(h, w, 3) * alpha[..., None],
             "P": lambda: gb.position.astype(np.float32),
             "Peye": lambda: ((gb.position.reshape(-1, 3) @ world_to_eye[:3, :3].T + world_to_eye[:3, 3])

@@ -43,6 +43,9 @@ class FrameStats:
     #: lights with area: the relative RMSE of ``direct`` their sampling leaves, estimated from each point's samples
     #: (:class:`usdml.lighting.area.shading.AreaEstimate`)
     estimate_area: AreaEstimate | None = None
+    #: ``--denoise``: what was denoised, by which denoiser, in how many seconds
+    #: (:func:`usdml.render.denoise.oidn.denoise_frame`)
+    denoise: dict | None = None
     lights: int = 0                         #: the frame's lights, a dome's samples included
     pixels: int = 0
     pixel_samples: int = 0                  #: primary rays per pixel

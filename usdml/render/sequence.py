@@ -23,7 +23,9 @@ from usdml.aov.names import AOVS, EVERY_LIGHT_GROUP, LIGHT_GROUP, aov_for_render
 from usdml.aov.naming import format_frame, frame_placeholder, frame_spec, frame_spec_precision, output_paths
 from usdml.errors import UsdmlError, collect_warnings, log
 from usdml.outputs import make_output_folder
-from usdml.params import DEFAULT_WIDTH, ignored
+from usdml.params import DEFAULT_WIDTH, PARAMS, ignored
+from usdml.render.denoise.oidn import headers as denoise_headers
+from usdml.render.denoise.oidn import require_denoiser
 from usdml.render.estimate import VisibilityEstimate
 from usdml.render.estimate import header as estimate_header
 from usdml.render.lighting_estimate import LightingEstimate, frame_estimates, frame_headers
@@ -221,6 +223,8 @@ def _render_sequence(job: RenderJob) -> SequenceResult:
     for message in ignored(job.overrides, settings):
         log.warning(message)
     check_device(job.device)
+    if settings.denoise:
+        require_denoiser(PARAMS["denoise"].where)     # one line before any frame renders, not after the first
     frames = frame_spec(job.frames, delegate.start_time, delegate.end_time)
     delegate.check_times(frames)
     products = plan_products(delegate, job, frames)
@@ -277,7 +281,8 @@ def _render_sequence(job: RenderJob) -> SequenceResult:
                                         **(estimate_header(result.stats.estimate) if result.stats.estimate is not None
                                            else {}), **frame_headers(result.stats),
                                         **camera_headers(result.stats, result.camera),
-                                        **cryptomatte_header(product.layers, result.manifests)})
+                                        **cryptomatte_header(product.layers, result.manifests),
+                                        **denoise_headers(result.stats.denoise)})
                     if job.preview and "color" in result.buffers:
                         write_png_preview(_preview_path(path), result.buffers["color"], tonemap="reinhard")
                 seconds.append(_time.perf_counter() - t0)
