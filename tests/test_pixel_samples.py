@@ -109,7 +109,7 @@ def test_offsets_are_correlated_multi_jittered_as_every_text_says():
             assert len(set(sub[cell[:, 0] == k, 1])) == 1                   # column k: one sub-row
     row = PARAMS["pixel_samples"]
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    line = next(t for t in readme.splitlines() if "**Anti-aliasing**" in t)
+    line = next(t for t in readme.splitlines() if "**Final frames**" in t)
     for text in (row.help, row.doc, line):
         assert "correlated multi-jittered" in text and "stratified" not in text, text
 
