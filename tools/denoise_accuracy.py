@@ -4,11 +4,11 @@ A seeded family of stages (:func:`write_stage`): a 40 x 40 ground split into two
 edge from near to far), a box in the lens's focus 3 m from the camera and one or two more nearby, a rect light
 above them (soft shadows), and a tall box 10 m away whose vertical edge stands against the dark beyond it. The
 camera is a 70 mm lens (``focalLength`` 0.7 in tenths of a metre, a 36 mm film) at f/1 focused at 3 m, close to the issue's
-case: once usdml reads the thin lens the far edge is out of focus; before that it renders sharp. Seed s moves and
+case: the far edge is out of focus (about 4 pixels of blur at 128 wide). Seed s moves and
 sizes the boxes and the light and picks the albedos.
 
 Per stage: the noisy frame is ``color`` at 4 pixel samples and ``--light-samples`` 1 (the noise of sampling the
-rect light, and of the lens once it is read), rendered with the guides ``albedo`` and ``denoiseNormal``; the
+rect light and of the lens), rendered with the guides ``albedo`` and ``denoiseNormal``; the
 denoised frame is the same buffers through :func:`usdml.render.denoise.oidn.denoise_frame`, the function the
 frame's hook calls. The noise-free answer is the same stage at 64 pixel samples and 16 light samples (256 times
 the samples of the noisy frame), rendered twice with other seeds: its noise is ``mean |a - b| / 2`` of the two,
