@@ -438,9 +438,12 @@ def measure(stage: str, frame: float, shutter: tuple[float, float], slices: int,
     ray_sets = {"static": (sr.rays(whole(moving[0])), 0.0),
                 "mb2": (sr.rays(sr.corners_at([whole(p) for p in ends], times)), times),
                 "mb4": (sr.rays(sr.corners_at([whole(p) for p in steps4], times)), times)}
+    ray_sets["still2"] = (ray_sets["static"][0], times)
     ray_sets["empty"] = ray_sets["static"]
+    # still2: two identical steps, Embree's motion blur structure with nothing moving (its own cost, no swept bounds)
     scenes = {"static": emb.scene([ground, ([moving[0]], tris)]), "mb2": emb.scene([ground, (ends, tris)]),
-              "mb4": emb.scene([ground, (steps4, tris)]), "empty": emb.scene([])}
+              "mb4": emb.scene([ground, (steps4, tris)]), "still2": emb.scene([ground, ([moving[0]] * 2, tris)]),
+              "empty": emb.scene([])}
     trace: dict = {"rays": rays}
     blocked: dict = {}
     loops = ["py", "c"] if compiled_loop() is not None else ["py"]
@@ -455,13 +458,14 @@ def measure(stage: str, frame: float, shutter: tuple[float, float], slices: int,
                     blocked[name] = packets[name].blocked()
             key = f"w{w}_{nthreads}t_{loop}"
             overhead = trace[f"empty_{key}_s"] = min(runs["empty"])
-            for name in ("static", "mb2", "mb4"):
+            for name in ("static", "mb2", "mb4", "still2"):
                 sec = trace[f"{name}_{key}_s"] = min(runs[name])
                 trace[f"{name}_{key}_mrays"] = rays / sec / 1e6
                 trace[f"{name}_{key}_net_mrays"] = rays / max(sec - overhead, 1e-9) / 1e6
     trace["loops"] = loops
     for name in ("static", "mb2", "mb4"):
         trace[f"{name}_blocked_fraction"] = float(blocked[name].mean())
+    trace["still2_vs_static_disagree"] = int((blocked["still2"] != blocked["static"]).sum())
     ex = rtcs.EmbreeScene()
     TriangleMesh(ex, whole(moving[0]), all_tris)
     o, d, tfar = ray_sets["static"][0]
@@ -589,10 +593,12 @@ def report(r: dict) -> str:
                     f"  rtcOccluded{w}, {k} thread(s), {how}: static {t[f'static_{key}_mrays']:.2f} "
                     f"({t[f'static_{key}_net_mrays']:.2f})   2 steps {t[f'mb2_{key}_mrays']:.2f} "
                     f"({t[f'mb2_{key}_net_mrays']:.2f})   4 steps {t[f'mb4_{key}_mrays']:.2f} "
-                    f"({t[f'mb4_{key}_net_mrays']:.2f})   empty scene {t[f'empty_{key}_s']:.3f} s")
+                    f"({t[f'mb4_{key}_net_mrays']:.2f})   2 still steps {t[f'still2_{key}_mrays']:.2f} "
+                    f"({t[f'still2_{key}_net_mrays']:.2f})   empty scene {t[f'empty_{key}_s']:.3f} s")
     lines.append("  embreex static (rtcOccluded1 in its C loop): " + "   ".join(
         f"{k} thread(s) {t[f'embreex_static_{k}t_mrays']:.2f}" for k in sorted({1, n}))
-        + f"; answers differing from ctypes': {t['ctypes_vs_embreex_disagree']}")
+        + f"; answers differing from ctypes': {t['ctypes_vs_embreex_disagree']}; 2 still steps differing from "
+        f"static: {t['still2_vs_static_disagree']}")
     lines += [
         f"agreement at the time steps (most rays differing at one step): 2 steps {a['mb2_at_steps_max_disagree']}, "
         f"4 steps {a['mb4_at_steps_max_disagree']}",
