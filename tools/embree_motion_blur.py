@@ -6,30 +6,34 @@ usdml blurs motion with time slices: every pass reads the stage at its time and 
 dynamic Embree scene there (``usdml/render/shutter.py``). The alternative is Embree's motion blur: a geometry with
 several time steps (one vertex buffer per step, vertices interpolated linearly between steps) and a time in every
 ray. ``embreex`` exposes neither, but its wheel bundles the whole Embree 4 library (``embreex.libs/libembree4-*``);
-this tool loads that library with ctypes. The few functions and the ``RTCRay16`` layout it needs are declared here
-from Embree 4's public headers (``rtcore_ray.h``, ``rtcore_scene.h``, ``rtcore_geometry.h``, ``rtcore_buffer.h``,
-``rtcore_common.h``, ``rtcore_device.h``): no header, no compiler, no new dependency.
+this tool loads that library with ctypes. The few functions and the ``RTCRay`` / ``RTCRay4/8/16`` layouts it needs
+are declared here from Embree 4's public headers (``rtcore_ray.h``, ``rtcore_scene.h``, ``rtcore_geometry.h``,
+``rtcore_buffer.h``, ``rtcore_common.h``, ``rtcore_device.h``): no header, no new dependency
+(``tests/test_embree_motion_blur.py`` checks the declarations on a moving square).
 
-On a deforming stage (default the skinned creature, ``stages/creature.usda``, frame 2, shutter -0.25..0.25; the
-bear deforms, the ground is static) it measures:
+On a moving stage (default the skinned creature, ``stages/creature.usda``, frame 2, shutter -0.25..0.25; the
+bear deforms, the ground is static; ``--stage stages/park.usda``: rigidly moving rides) it measures:
 
-1. **build**: the deforming geometry's BVH with one time step (a static BVH, what a slice builds), with 2 and with
+1. **build**: the moving geometry's BVH with one time step (a static BVH, what a slice builds), with 2 and with
    4 time steps (Embree's motion blur over the shutter), and ``--slices`` (16) static rebuilds, as usdml's slices
-   do per frame, both through ctypes and through embreex (the exact backend's own path: embreex copies vertex by
-   vertex). Also what reading the stage at a time costs (``StageDelegate.snapshot``), which slices pay per slice
-   and motion blur per time step.
-2. **trace**: shadow rays (occluded) from random points on the surfaces (area-weighted, frame pose, lifted along
-   the normal as the exact backend does) to random lights of the stage, ``rtcOccluded16`` in packets of 16 (valid
-   masks), on 1 and on ``--threads`` Python threads (ctypes releases the GIL in the call): the static BVH with no
-   time, against the 2- and 4-step BVHs with a random time per ray in [0, 1]. ctypes' own cost is measured with
-   the same calls on an empty scene and subtracted (both figures are printed). embreex's ``run`` on the static
-   BVH is the exact backend's path, for comparison.
-3. **agreement**: rays at time 0 and 1 against the 2-step BVH give the same answers as static BVHs of the poses
-   at shutter open and close (at 0, 1/3, 2/3, 1 for the 4-step one). And what linear interpolation costs in
-   accuracy: the rays split among the slices' times (stratum centres), each against a static BVH of the true
-   pose at its time (what slices trace), against the 2- and 4-step BVHs at the same times.
+   do per frame, through ctypes; and one rebuild through embreex (the exact backend's own path: embreex copies
+   vertex by vertex). Also what reading the stage at a time costs (``StageDelegate.snapshot`` and flattening),
+   which slices pay per slice and time steps per step.
+2. **trace**: shadow rays (occluded) from the points the camera sees to the stage's lights (:class:`ShadowRays`),
+   ``rtcOccluded1/8/16`` (``--widths``), on 1 and on ``--threads`` Python threads: the static BVH with no time,
+   against the 2- and 4-step BVHs and a BVH of two identical steps (the motion-blur structure with nothing
+   moving) with a random time per ray in [0, 1]. Each packet is either one ctypes call (its cost, about a
+   microsecond, is measured with the same calls on an empty scene and subtracted: "net") or, where ``cc`` works,
+   part of one call of a ten-line compiled C loop (:data:`LOOP_C`) that calls the Embree function it is handed.
+   embreex's ``run`` on the static BVH (the exact backend's path) for comparison, with its answers.
+3. **agreement**: rays at each time step give the answers of a static BVH of that step's pose; and what linear
+   interpolation costs: the rays split among the slices' times (strata centres), each from and against the
+   true pose at its time (what slices trace), against the 2- and 4-step BVHs at the same times.
 4. **memory**: what Embree allocates for each BVH (``rtcSetDeviceMemoryMonitorFunction``, net bytes after the
    commit, geometry buffers included).
+5. **per frame**: the sums for a ``--frame-width`` frame at ``--slices`` samples, every light of every visible
+   sample traced (single rays, ``--threads`` threads): the slices' reads, rebuilds and tracing against the time
+   steps' reads, build and tracing.
 
 Usage::
 
@@ -518,8 +522,7 @@ def measure(stage: str, frame: float, shutter: tuple[float, float], slices: int,
         agree[f"{name}_vs_slices_fraction"] = float((got != truth).mean())
         agree[f"{name}_vs_slices_from_moving_fraction"] = float((got != truth)[on_moving].mean())
         agree[f"{name}_vs_slices_from_static_fraction"] = float((got != truth)[~on_moving].mean())
-        dev = [np.linalg.norm(steps_lerp - poses[t], axis=1).max() for t, steps_lerp in
-               ((t, _lerp(steps, (t - t_open) / span)) for t in slice_times)]
+        dev = [np.linalg.norm(_lerp(steps, (t - t_open) / span) - poses[t], axis=1).max() for t in slice_times]
         agree[f"{name}_max_vertex_error"] = float(max(dev))
     agree["rays_from_moving_fraction"] = float(on_moving.mean())
     agree["max_vertex_motion"] = float(np.linalg.norm(poses[t_close] - poses[t_open], axis=1).max())
@@ -563,8 +566,8 @@ def _step(tau, count: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _lerp(steps: list[np.ndarray], tau: float) -> np.ndarray:
     """``(V, 3)`` vertices where Embree puts them at ray time ``tau`` in [0, 1] between evenly spread ``steps``."""
-    j, f = (int(x) if x.dtype.kind == "i" else float(x) for x in _step(tau, len(steps)))
-    return steps[j] * (1 - f) + steps[j + 1] * f
+    j, f = _step(tau, len(steps))
+    return steps[int(j)] * (1 - float(f)) + steps[int(j) + 1] * float(f)
 
 
 def report(r: dict) -> str:
@@ -574,7 +577,7 @@ def report(r: dict) -> str:
         f"{r['stage']} frame {r['frame']:g}, shutter {r['shutter'][0]:g}..{r['shutter'][1]:g}: "
         f"{r['moving_triangles']} moving triangles ({r['moving_vertices']} vertices), {r['static_triangles']} static;"
         f" Embree {r['library']}; best of {r['repeat']} runs",
-        f"stage read at a time (StageDelegate.snapshot): {r['snapshot_s']:.3f} s",
+        f"stage read at a time (StageDelegate.snapshot and flattening): {r['snapshot_s']:.3f} s",
         "build of the moving geometry (s, Embree's own threads):",
         f"  1 step (static) {b['static']:.3f}   2 steps {b['mb2']:.3f}   4 steps {b['mb4']:.3f}   "
         f"{s} static rebuilds {b['slices']:.3f}   embreex (the exact backend's path) {b['embreex_static']:.3f}, "
