@@ -240,14 +240,15 @@ void trace_packets(void *fn, int width, const int *valid, void *scene, char *ray
 def compiled_loop():
     """``trace_packets(fn, width, valid, scene, rays, count, stride)`` of :data:`LOOP_C`, compiled with ``cc`` into
     a temporary folder; None where no C compiler works."""
-    folder = Path(tempfile.mkdtemp(prefix="embree_loop_"))
-    (folder / "loop.c").write_text(LOOP_C)
-    try:
-        subprocess.run(["cc", "-O2", "-shared", "-fPIC", "-o", str(folder / "loop.so"), str(folder / "loop.c")],
-                       check=True, capture_output=True)
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    fn = ctypes.CDLL(str(folder / "loop.so")).trace_packets
+    with tempfile.TemporaryDirectory(prefix="embree_loop_") as tmp:    # a loaded library outlives its file
+        folder = Path(tmp)
+        (folder / "loop.c").write_text(LOOP_C)
+        try:
+            subprocess.run(["cc", "-O2", "-shared", "-fPIC", "-o", str(folder / "loop.so"), str(folder / "loop.c")],
+                           check=True, capture_output=True)
+        except (OSError, subprocess.CalledProcessError):
+            return None
+        fn = ctypes.CDLL(str(folder / "loop.so")).trace_packets
     vp = ctypes.c_void_p
     fn.restype, fn.argtypes = None, [vp, ctypes.c_int, vp, vp, vp, ctypes.c_long, ctypes.c_long]
     return fn
