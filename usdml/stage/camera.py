@@ -47,7 +47,8 @@ def _choices(cameras: list[Usd.Prim]) -> str:
 def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
     """The camera at ``time``; its lens (``fStop``, ``focusDistance``) and shutter (``shutter:open``/``close``)
     checked: negative, non-finite or a shutter that closes before it opens is a one-line error."""
-    cam = UsdGeom.Camera(prim).GetCamera(time)
+    camera = UsdGeom.Camera(prim)
+    cam = camera.GetCamera(time)
     path = str(prim.GetPath())
     xform = np.array(cam.transform, np.float64).T
     if not np.isfinite(xform).all():
@@ -69,9 +70,10 @@ def read_camera(prim: Usd.Prim, time: Usd.TimeCode) -> Camera:
         if not np.isfinite(value) or value < 0:
             raise UsdmlError(f"{path}.{name}: {value:g} at time {time.GetValue():g} must be finite and >= 0 "
                              "(0: no depth of field)")
-    camera = UsdGeom.Camera(prim)
     shutter = (float(camera.GetShutterOpenAttr().Get(time)), float(camera.GetShutterCloseAttr().Get(time)))
-    if not np.isfinite(shutter).all() or shutter[1] < shutter[0]:
+    if not np.isfinite(shutter).all():
+        raise UsdmlError(f"{path}: shutter:open/close {shutter} must be finite (timecodes around the frame)")
+    if shutter[1] < shutter[0]:
         raise UsdmlError(f"{path}: shutter:close ({shutter[1]:g}) is before shutter:open ({shutter[0]:g}); "
                          "the shutter closes after it opens (in timecodes around the frame; equal: no motion blur)")
     return Camera(
