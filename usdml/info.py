@@ -102,7 +102,7 @@ def stage_info(delegate: StageDelegate, time: float | None = None, started: floa
 
 
 def _lens_and_shutter(info: dict) -> str:
-    """``; shutter -0.25..0.25; f/2.8 at 500`` where the camera blurs (motion blur, depth of field), else ""."""
+    """``; shutter -0.25..0.25; f/2.8 focused at 500`` where the camera blurs (motion blur, depth of field), else ""."""
     out = ""
     if info["shutter"] and info["shutter"][1] > info["shutter"][0]:
         out += f"; shutter {info['shutter'][0]:g}..{info['shutter'][1]:g}"
