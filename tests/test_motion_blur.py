@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
+from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender, Vt
 
 from usdml.render.frame import FrameRenderer
 from usdml.settings import UsdmlSettings
@@ -185,3 +185,66 @@ def test_the_exr_says_what_was_blurred(tmp_path):
     info = subprocess.run([sys.executable, "-m", "usdml.cli", "info", str(tmp_path / "cli.usda")],
                           capture_output=True, text=True)
     assert "shutter -0.25..0.25; f/2 focused at 10" in info.stdout, info.stdout
+
+
+def _coverage(path, inside, samples=64) -> float:
+    """Mean |alpha − the fraction of the shutter each pixel is ``inside(x, y, τ)``| (x, y: metres on the plane 10 m
+    in front of the camera, τ: seconds from frame 2) over the pixels either touches; 4 × 4 points per pixel and
+    256 times of the shutter -0.25..0.25."""
+    alpha = render(path, samples).buffers["color"][..., 3].astype(np.float64)
+    h, w = alpha.shape
+    half = 10 * APERTURE / 2 / FOCAL
+    sub = (np.arange(4) + 0.5) / 4
+    xs = -half + (np.arange(w)[:, None] + sub[None]).ravel() / w * 2 * half
+    ys = half * h / w - (np.arange(h)[:, None] + sub[None]).ravel() / h * 2 * half * h / w
+    taus = (-0.25 + 0.5 * (np.arange(256) + 0.5) / 256) / 24
+    x, y = np.meshgrid(xs, ys)
+    frac = np.mean([inside(x, y, tau) for tau in taus], axis=0).reshape(h, 4, w, 4).mean(axis=(1, 3))
+    touched = (frac > 0) | (alpha > 0)
+    assert frac.max() > 0.5 and touched.mean() > 0.05
+    return float(np.abs(alpha - frac)[touched].mean())
+
+
+def _still_view(path):
+    """blur_stage's camera and light, and nothing in view."""
+    s = Usd.Stage.Open(blur_stage(path, "camera", 0.0, 1.0, SHUTTER))
+    s.RemovePrim("/quad")
+    return s
+
+
+def test_point_instancer_angular_velocity_turns_instances_over_the_shutter(tmp_path):
+    """USD's angularVelocities (degrees per second) turn an instance from its sample's orientation: a 2 m square
+    turning 90° over the shutter covers each point for the fraction of the shutter it is inside the turned square."""
+    s = _still_view(tmp_path / "spin.usda")
+    pi = UsdGeom.PointInstancer.Define(s, "/pi")
+    quad(s, "/pi/protos/square", [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    pi.CreatePrototypesRel().SetTargets(["/pi/protos/square"])
+    pi.CreateProtoIndicesAttr([0])
+    pi.CreatePositionsAttr().Set([(0, 0, -10)], 2)
+    pi.CreateOrientationsAttr().Set(Vt.QuathArray([Gf.Quath(1)]), 2)
+    omega = 90.0 / (0.5 / 24)                                   # degrees per second: 90° over the shutter
+    pi.CreateAngularVelocitiesAttr().Set([(0, 0, omega)], 2)
+    s.Save()
+
+    def inside(x, y, tau):
+        a = -np.radians(omega * tau)                            # the point in the square's own frame
+        return (np.abs(x * np.cos(a) - y * np.sin(a)) < 1) & (np.abs(x * np.sin(a) + y * np.cos(a)) < 1)
+    assert _coverage(tmp_path / "spin.usda", inside) <= 0.03
+
+
+def test_accelerations_move_points_over_the_shutter(tmp_path):
+    """USD's accelerations: points at τ seconds from their sample are p + v·τ + ½·a·τ²; a quad at rest at frame 2
+    accelerating along X is 2 m away at either end of the shutter."""
+    s = _still_view(tmp_path / "accel.usda")
+    m = UsdGeom.Mesh.Define(s, "/quad")
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    m.CreatePointsAttr().Set([(x, y, -10.0) for x, y in ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5))], 2)
+    m.CreateVelocitiesAttr().Set([(0, 0, 0)] * 4, 2)
+    accel = 2 * 2.0 * 96 ** 2                                   # ½·a·(1/96 s)² = 2 m
+    m.CreateAccelerationsAttr().Set([(accel, 0, 0)] * 4, 2)
+    s.Save()
+
+    def inside(x, y, tau):
+        return (np.abs(x - 0.5 * accel * tau ** 2) < 0.5) & (np.abs(y) < 0.5)
+    assert _coverage(tmp_path / "accel.usda", inside) <= 0.03
