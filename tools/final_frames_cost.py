@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
+    from usdml.params import check, table
     from usdml.render.frame import FrameRenderer
     from usdml.settings import UsdmlSettings
     from usdml.stage import StageDelegate
@@ -90,10 +91,10 @@ def main(argv: list[str] | None = None) -> int:
              "lens": dict(motion_blur=False)}
     backends = args.visibility.split(",")
     extra = {}
-    for item in args.set:
+    for item in args.set:       # typed as the parameter table declares the field, and checked by it
         key, value = item.split("=", 1)
-        extra[key] = value if not value.lstrip("-").replace(".", "", 1).isdigit() else \
-            (float(value) if "." in value else int(value))
+        kind = table()[key].type if key in table() else str
+        extra[key] = check(key, value.lower() in ("1", "true", "on") if kind is bool else kind(value))
     cases = [(b, k) for b in backends for k in args.cases.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         path, camera = overlay(args.stage, Path(tmp), shutter, args.fstop)
