@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
+from stage_build import define_ground
+
 ALBEDO = 0.5
 PANEL = 1.0        #: half size
 HEIGHT = 2.0
@@ -65,11 +67,7 @@ def panel_stage(path: Path, quads: int, box: bool = False) -> str:
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    ground = UsdGeom.Mesh.Define(stage, "/World/ground")
-    ground.CreatePointsAttr([(-20, 0, -20), (-20, 0, 20), (20, 0, 20), (20, 0, -20)])
-    ground.CreateFaceVertexCountsAttr([4])
-    ground.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    ground.CreateDisplayColorPrimvar().Set([(ALBEDO, ALBEDO, ALBEDO)])
+    define_ground(stage, 20, ALBEDO)
     cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
     cam.CreateFocalLengthAttr(18)
     cam.CreateHorizontalApertureAttr(36)

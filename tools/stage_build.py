@@ -302,6 +302,17 @@ def add_anim_layer(stage, out_dir, name):
     return layer
 
 
+def define_ground(stage, half, albedo=None, path="/World/ground"):
+    """A square ground ``2 half`` wide at y = 0, one quad facing up (+Y); grey ``albedo`` as its displayColor."""
+    ground = UsdGeom.Mesh.Define(stage, path)
+    ground.CreatePointsAttr([(-half, 0, -half), (-half, 0, half), (half, 0, half), (half, 0, -half)])
+    ground.CreateFaceVertexCountsAttr([4])
+    ground.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    if albedo is not None:
+        ground.CreateDisplayColorPrimvar().Set([(albedo, albedo, albedo)])
+    return ground
+
+
 def define_camera(stage, eyes, targets, clip, frames=None, path="/World/main_cam"):
     """35 mm lens on a 16:9 back; ``eyes``/``targets`` per frame if animated."""
     cam = UsdGeom.Camera.Define(stage, path)

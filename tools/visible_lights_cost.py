@@ -29,14 +29,12 @@ def make_stage(path: Path, lights: int) -> str:
     import math
 
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+    from stage_build import define_ground
 
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    ground = UsdGeom.Mesh.Define(stage, "/World/ground")
-    ground.CreatePointsAttr([(-30, 0, -30), (-30, 0, 30), (30, 0, 30), (30, 0, -30)])
-    ground.CreateFaceVertexCountsAttr([4])
-    ground.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    define_ground(stage, 30)
     cam = UsdGeom.Camera.Define(stage, "/World/main_cam")
     cam.CreateFocalLengthAttr(18)
     cam.CreateHorizontalApertureAttr(36)
