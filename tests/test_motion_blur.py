@@ -22,17 +22,9 @@ from usdml.settings import UsdmlSettings
 from usdml.stage import StageDelegate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
-from final_frames_accuracy import APERTURE, FOCAL, KINDS, blur_stage, swept  # noqa: E402
+from final_frames_accuracy import APERTURE, FOCAL, KINDS, blur_stage, quad, swept  # noqa: E402
 
 SPEED, WIDTH, SHUTTER = 8.0, 96, (-0.25, 0.25)
-
-
-def quad(s, path, points):
-    m = UsdGeom.Mesh.Define(s, path)
-    m.CreatePointsAttr(points)
-    m.CreateFaceVertexCountsAttr([4])
-    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    return m
 
 
 def ground_from_above(path, shutter):

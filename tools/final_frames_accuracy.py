@@ -40,6 +40,17 @@ KINDS = ("xform", "points", "velocities", "instancer", "skel", "camera")
 DEPTH, APERTURE, FOCAL, FPS = 10.0, 20.0, 25.0, 24.0
 
 
+def quad(stage, path: str, points):
+    """A UsdGeom.Mesh at ``path``: one four-cornered face ``points`` (a default value)."""
+    from pxr import UsdGeom
+
+    m = UsdGeom.Mesh.Define(stage, path)
+    m.CreatePointsAttr(points)
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    return m
+
+
 def blur_stage(path: Path, kind: str, speed: float, width: float, shutter: tuple[float, float]) -> str:
     from pxr import Gf, Usd, UsdGeom, UsdLux, UsdSkel, Vt
 
@@ -59,20 +70,14 @@ def blur_stage(path: Path, kind: str, speed: float, width: float, shutter: tuple
     local = [(-h, -0.5, 0.0), (h, -0.5, 0.0), (h, 0.5, 0.0), (-h, 0.5, 0.0)]
     at_depth = [(x, y, -DEPTH) for x, y, _ in local]
 
-    def quad(prim_path, points):
-        m = UsdGeom.Mesh.Define(s, prim_path)
-        m.CreatePointsAttr(points)
-        m.CreateFaceVertexCountsAttr([4])
-        m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        return m
     frames = (1, 2, 3)
     if kind == "xform":
-        quad("/box/quad", at_depth)
+        quad(s, "/box/quad", at_depth)
         op = UsdGeom.Xform.Define(s, "/box").AddTranslateOp()
         for t in frames:
             op.Set(Gf.Vec3d(speed * (t - 2), 0, 0), t)
     elif kind == "points":
-        m = quad("/quad", at_depth)
+        m = quad(s, "/quad", at_depth)
         for t in frames:
             m.GetPointsAttr().Set([(x + speed * (t - 2), y, z) for x, y, z in at_depth], t)
     elif kind == "velocities":
@@ -83,7 +88,7 @@ def blur_stage(path: Path, kind: str, speed: float, width: float, shutter: tuple
         m.CreateVelocitiesAttr().Set([(speed * FPS, 0, 0)] * 4, 1)
     elif kind == "instancer":
         pi = UsdGeom.PointInstancer.Define(s, "/pi")
-        quad("/pi/protos/quad", local)
+        quad(s, "/pi/protos/quad", local)
         pi.CreatePrototypesRel().SetTargets(["/pi/protos/quad"])
         pi.CreateProtoIndicesAttr([0])
         pi.CreatePositionsAttr().Set([(-speed, 0, -DEPTH)], 1)
@@ -101,13 +106,13 @@ def blur_stage(path: Path, kind: str, speed: float, width: float, shutter: tuple
         for t in frames:
             anim.CreateTranslationsAttr().Set(Vt.Vec3fArray([(speed * (t - 2), 0, 0)]), t)
         UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-        binding = UsdSkel.BindingAPI.Apply(quad("/rig/quad", at_depth).GetPrim())
+        binding = UsdSkel.BindingAPI.Apply(quad(s, "/rig/quad", at_depth).GetPrim())
         binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
         binding.CreateJointIndicesPrimvar(True, 1).Set([0])
         binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
         binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
     elif kind == "camera":
-        quad("/quad", at_depth)
+        quad(s, "/quad", at_depth)
         op = cam.AddTranslateOp()
         for t in frames:
             op.Set(Gf.Vec3d(-speed * (t - 2), 0, 0), t)
@@ -136,11 +141,8 @@ def edge_stage(path: Path, focal: float, f_stop: float, focus: float, depth: flo
     cam.CreateVerticalApertureAttr(aperture / 2)
     cam.CreateFStopAttr(f_stop)
     cam.CreateFocusDistanceAttr(focus)
-    m = UsdGeom.Mesh.Define(s, "/plane")
     big = 1e5
-    m.CreatePointsAttr([(-big, -big, -depth), (0, -big, -depth), (0, big, -depth), (-big, big, -depth)])
-    m.CreateFaceVertexCountsAttr([4])
-    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad(s, "/plane", [(-big, -big, -depth), (0, -big, -depth), (0, big, -depth), (-big, big, -depth)])
     UsdLux.DistantLight.Define(s, "/sun")
     s.Save()
     return str(path)
